@@ -1,0 +1,1 @@
+"""texspace model package."""

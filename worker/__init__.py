@@ -1,0 +1,1 @@
+"""texspace worker package."""
