@@ -1,0 +1,99 @@
+"""All service configuration in one typed object, read from ``TEXSPACE_*`` variables.
+
+Every process (api, worker, CLI) builds one :class:`Settings`; nothing else reads the
+environment. Paths default to a ``./data`` folder so ``make run`` needs no set-up.
+"""
+from __future__ import annotations
+
+import os
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+#: the model export shipped inside the package (``model/weights``)
+PACKAGED_MODEL_DIR = Path(__file__).resolve().parent.parent / "model" / "weights"
+
+
+class Settings(BaseSettings):
+    """Typed settings; each field is the env variable ``TEXSPACE_<FIELD>``."""
+
+    model_config = SettingsConfigDict(env_prefix="TEXSPACE_", extra="ignore")
+
+    # --- where things live ---------------------------------------------------------
+    data_dir: Path = Field(Path("data"), description="root of the SQLite db, queue and local storage")
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    database_url: str | None = Field(None, description="SQLAlchemy URL; default SQLite (WAL) under data_dir")
+
+    # --- queue -----------------------------------------------------------------------
+    queue_backend: Literal["sqlite", "redis", "postgres", "memory"] = "sqlite"
+    queue_url: str | None = Field(None, description="redis:// or postgresql:// URL of the queue broker")
+    queue_name: str = "texspace"
+
+    # --- storage ---------------------------------------------------------------------
+    storage_backend: Literal["local", "s3"] = "local"
+    storage_dir: Path | None = Field(None, description="local storage root; default data_dir/storage")
+    s3_endpoint_url: str | None = None
+    s3_bucket: str = "texspace"
+    s3_prefix: str = ""
+    s3_access_key: str | None = None
+    s3_secret_key: str | None = None
+    s3_region: str = "us-east-1"
+
+    # --- models ----------------------------------------------------------------------
+    model_dirs: Annotated[list[Path], NoDecode] = Field(
+        default_factory=lambda: [PACKAGED_MODEL_DIR],
+        description="model export folders, separated by the OS path separator; the first is the default",
+    )
+
+    # --- limits (checked while streaming uploads and before queueing work) -----------
+    max_upload_bytes: int = Field(64 * 2**20, ge=1024)
+    max_image_pixels: int = Field(64 * 2**20, ge=64 * 64)
+    max_mesh_bytes: int = Field(64 * 2**20, ge=1024)
+    max_mesh_faces: int = Field(200_000, ge=1)
+    max_tile_size: int = Field(1024, ge=16)
+    max_volume_resolution: int = Field(256, ge=2)
+    max_bake_resolution: int = Field(4096, ge=16)
+    fit_seconds: float = Field(60.0, gt=0)
+    max_fit_seconds: float = Field(900.0, gt=0)
+
+    # --- jobs --------------------------------------------------------------------------
+    workers: int = Field(2, ge=1, description="huey worker threads per worker process")
+    lease_seconds: float = Field(30.0, gt=0)
+    heartbeat_seconds: float = Field(1.0, gt=0)
+    reaper_interval_seconds: float = Field(5.0, gt=0)
+    requeue_after_seconds: float = Field(120.0, gt=0, description="re-send queued jobs whose message was lost")
+    max_attempts: int = Field(3, ge=1)
+
+    # --- HTTP ----------------------------------------------------------------------------
+    tile_cache_bytes: int = Field(64 * 2**20, ge=0)
+    api_keys_enabled: bool = False
+    log_level: str = "INFO"
+    log_json: bool = True
+
+    @field_validator("model_dirs", mode="before")
+    @classmethod
+    def _split_dirs(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [Path(p) for p in value.split(os.pathsep) if p.strip()]
+        return value
+
+    @cached_property
+    def resolved_database_url(self) -> str:
+        """The database URL in force (the SQLite default lives under data_dir)."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'texspace.db').resolve()}"
+
+    @cached_property
+    def resolved_storage_dir(self) -> Path:
+        return (self.storage_dir or self.data_dir / "storage").resolve()
+
+    def ensure_dirs(self) -> None:
+        """Create the data folder (SQLite database, SQLite queue, local storage)."""
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        if self.storage_backend == "local":
+            self.resolved_storage_dir.mkdir(parents=True, exist_ok=True)
