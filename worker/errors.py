@@ -1,0 +1,50 @@
+"""Domain exceptions raised by worker/ (and model/).
+
+They carry a human-readable ``detail``; ``service/errors.py`` owns the one table that
+maps each class to an HTTP status and problem+json body. Nothing here knows HTTP.
+"""
+from __future__ import annotations
+
+
+class TexspaceError(Exception):
+    """Base of every domain error. ``detail`` says what was wrong, for the user."""
+
+    def __init__(self, detail: str):
+        super().__init__(detail)
+        self.detail = detail
+
+
+class InvalidImage(TexspaceError):
+    """An uploaded image is empty, truncated, of an unsupported format or unusable size."""
+
+
+class InvalidMesh(TexspaceError):
+    """An uploaded mesh cannot be parsed or fails validation (NaN, bad indices, no faces)."""
+
+
+class InvalidParameter(TexspaceError):
+    """A numeric or enum argument is outside what the function supports."""
+
+
+class LimitExceeded(TexspaceError):
+    """A request would exceed a configured size limit (pixels, faces, voxels...)."""
+
+
+class AtlasFailed(TexspaceError):
+    """UV atlas generation (xatlas, in a child process) crashed, timed out or ran out of memory."""
+
+
+class Canceled(TexspaceError):
+    """A job's ``should_cancel()`` returned True; work stopped between two steps."""
+
+
+class ModelNotFound(TexspaceError):
+    """No loaded model has the requested version, or a model directory is incomplete."""
+
+
+class ModelInvalid(TexspaceError):
+    """A model directory exists but its manifest or ONNX files break the contract."""
+
+
+class FeatureUnavailable(TexspaceError):
+    """An optional dependency (e.g. torch for fitting) is not installed."""

@@ -1,0 +1,247 @@
+"""ONNX Runtime sessions for the exported model (DESIGN.md Contract 1).
+
+Load once, then arrays in, arrays out:
+
+* ``SamplerSession(path)``: one ``sampler.onnx`` (a model's, or a fitted texture's own).
+  ``.sample(points, code, seed)`` evaluates it in bounded chunks.
+* ``ModelRuntime(model_dir)``: manifest + encoder + sampler of one model version.
+* ``ModelRegistry(folders)``: every model version found under some folders, side by
+  side, keyed by manifest ``version``, plus an LRU of extra sampler sessions for
+  fitted textures.
+
+Anything that has ``.sample(points, code, seed)`` is a ``Sampler``; tiles, volumes,
+bakes and regions take one, so they work with either kind of session.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import threading
+from collections import OrderedDict
+from pathlib import Path
+from typing import Iterable, Protocol
+
+import numpy as np
+import onnxruntime as ort
+
+from worker.errors import InvalidParameter, ModelInvalid, ModelNotFound
+
+log = logging.getLogger(__name__)
+
+MANIFEST_KEYS = (
+    "version", "variant", "code_size", "pixels_per_unit", "encoder_input_size",
+    "encoder_input_range", "exemplar_short_side", "output_colour", "training", "created_at",
+)
+# Points per sampler call. Measured on the 2-core dev machine (bench in the report):
+# per-point throughput is flat from 16k to 256k points, and 64k keeps the temporary
+# activations of a 4x128 MLP around 64k*128*4 B = 32 MB per layer.
+DEFAULT_CHUNK = 65536
+
+
+class Sampler(Protocol):
+    """What synthesis functions need: a point function of (position, code, seed)."""
+
+    def sample(self, points: np.ndarray, code: np.ndarray, seed: int) -> np.ndarray: ...
+
+
+def session_options(threads: int | None = None) -> ort.SessionOptions:
+    """CPU session options: all graph optimisations, sequential, ``threads`` intra-op."""
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.intra_op_num_threads = int(threads or os.cpu_count() or 1)
+    opts.inter_op_num_threads = 1
+    opts.log_severity_level = 3
+    return opts
+
+
+def _open_session(path: Path, threads: int | None) -> ort.InferenceSession:
+    if not path.is_file():
+        raise ModelNotFound(f"missing ONNX file: {path}")
+    try:
+        return ort.InferenceSession(str(path), sess_options=session_options(threads),
+                                    providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own assorted exception types
+        raise ModelInvalid(f"cannot load {path.name}: {exc}") from exc
+
+
+class SamplerSession:
+    """One ``sampler.onnx``: points float64 [P,3], z float32 [P|1,8], seed int64 -> rgb [P,3]."""
+
+    def __init__(self, path: str | os.PathLike, *, threads: int | None = None,
+                 chunk: int = DEFAULT_CHUNK):
+        self.path = Path(path)
+        self.session = _open_session(self.path, threads)
+        self.chunk = int(chunk)
+        inputs = {i.name: i for i in self.session.get_inputs()}
+        missing = {"points", "z", "seed"} - inputs.keys()
+        if missing:
+            raise ModelInvalid(f"{self.path.name} lacks inputs {sorted(missing)}")
+        # Contract allows seed of shape [] or [1]; feed whatever the graph declares.
+        self._seed_shape = (1,) if len(inputs["seed"].shape) == 1 else ()
+        self.code_size = int(inputs["z"].shape[1]) if isinstance(inputs["z"].shape[1], int) else 8
+        self._output = self.session.get_outputs()[0].name
+
+    def sample(self, points: np.ndarray, code: np.ndarray, seed: int) -> np.ndarray:
+        """Evaluate the texture at ``points``.
+
+        points : (P, 3) float64 world positions (converted only if needed).
+        code : (8,) or (1, 8) float32 shared code, or (P, 8) one code per point.
+        seed : int, texture instance.
+        Returns (P, 3) float32 linear RGB, computed ``self.chunk`` points at a time so
+        temporary memory stays bounded whatever P is.
+        """
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise InvalidParameter(f"points must have shape (P, 3), got {points.shape}")
+        code = np.ascontiguousarray(code, dtype=np.float32)
+        if code.ndim == 1:
+            code = code[None, :]
+        per_point = code.shape[0] != 1
+        if code.ndim != 2 or code.shape[1] != self.code_size or (per_point and code.shape[0] != len(points)):
+            raise InvalidParameter(f"code must be ({self.code_size},), (1, {self.code_size}) "
+                                   f"or (P, {self.code_size}); got {code.shape}")
+        seed_arr = np.full(self._seed_shape, int(seed), dtype=np.int64)
+        out = np.empty((len(points), 3), dtype=np.float32)
+        for start in range(0, len(points), self.chunk):
+            stop = min(start + self.chunk, len(points))
+            feed = {"points": points[start:stop], "seed": seed_arr,
+                    "z": code[start:stop] if per_point else code}
+            out[start:stop] = self.session.run([self._output], feed)[0]
+        return out
+
+
+def read_manifest(model_dir: Path) -> dict:
+    """Read and check ``manifest.json`` (all keys of docs/ARCHITECTURE.md required)."""
+    path = model_dir / "manifest.json"
+    if not path.is_file():
+        raise ModelNotFound(f"no manifest.json in {model_dir}")
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ModelInvalid(f"unreadable manifest {path}: {exc}") from exc
+    missing = [k for k in MANIFEST_KEYS if k not in manifest]
+    if missing:
+        raise ModelInvalid(f"manifest {path} lacks keys {missing}")
+    if manifest["output_colour"] != "linear":
+        raise ModelInvalid(f"manifest {path}: output_colour must be 'linear'")
+    return manifest
+
+
+def model_version(model_dir: Path) -> str:
+    """16 hex chars of sha256(encoder.onnx bytes + sampler.onnx bytes)."""
+    digest = hashlib.sha256()
+    for name in ("encoder.onnx", "sampler.onnx"):
+        digest.update((model_dir / name).read_bytes())
+    return digest.hexdigest()[:16]
+
+
+class ModelRuntime:
+    """Encoder + sampler of one model version, loaded once.
+
+    ``.version``, ``.manifest``, ``.pixels_per_unit``, ``.encode()``, ``.sample()``, ``.ready()``.
+    """
+
+    def __init__(self, model_dir: str | os.PathLike, threads: int | None = None, *,
+                 chunk: int = DEFAULT_CHUNK):
+        self.model_dir = Path(model_dir)
+        self.manifest = read_manifest(self.model_dir)
+        self.version: str = self.manifest["version"]
+        actual = model_version(self.model_dir)
+        if actual != self.version:
+            # The manifest names the model everywhere (ETags, rows); a mismatch means
+            # files were swapped by hand. Serve it, but say so loudly.
+            log.warning("model %s: manifest version %s != file hash %s",
+                        self.model_dir, self.version, actual)
+        self.pixels_per_unit = float(self.manifest["pixels_per_unit"])
+        self.code_size = int(self.manifest["code_size"])
+        self.input_size = int(self.manifest["encoder_input_size"])
+        self.short_side = int(self.manifest["exemplar_short_side"])
+        self.encoder = _open_session(self.model_dir / "encoder.onnx", threads)
+        self.sampler = SamplerSession(self.model_dir / "sampler.onnx", threads=threads, chunk=chunk)
+
+    def encode(self, crops: np.ndarray, batch: int = 16) -> np.ndarray:
+        """crops : (N, 3, S, S) float32 in [-1, 1] (S = encoder_input_size). Returns (N, code_size) float32."""
+        crops = np.ascontiguousarray(crops, dtype=np.float32)
+        s = self.input_size
+        if crops.ndim != 4 or crops.shape[1:] != (3, s, s):
+            raise InvalidParameter(f"crops must be (N, 3, {s}, {s}), got {crops.shape}")
+        name = self.encoder.get_inputs()[0].name
+        parts = [self.encoder.run(None, {name: crops[i:i + batch]})[0]
+                 for i in range(0, len(crops), batch)]
+        return np.concatenate(parts).astype(np.float32, copy=False)
+
+    def sample(self, points: np.ndarray, code: np.ndarray, seed: int) -> np.ndarray:
+        """See ``SamplerSession.sample``."""
+        return self.sampler.sample(points, code, seed)
+
+    def ready(self) -> bool:
+        """True when a one-point evaluation works (for health checks)."""
+        try:
+            rgb = self.sample(np.zeros((1, 3)), np.zeros(self.code_size, np.float32), 0)
+        except Exception:  # health check: any failure means not ready
+            log.exception("model %s not ready", self.version)
+            return False
+        return bool(np.isfinite(rgb).all())
+
+
+def find_model_dirs(folders: Iterable[str | os.PathLike]) -> list[Path]:
+    """Each folder that holds a manifest.json, or its immediate subfolders that do."""
+    found = []
+    for folder in map(Path, folders):
+        if (folder / "manifest.json").is_file():
+            found.append(folder)
+        elif folder.is_dir():
+            found.extend(sorted(p.parent for p in folder.glob("*/manifest.json")))
+    return found
+
+
+class ModelRegistry:
+    """Several model versions side by side, plus an LRU of fitted-texture samplers."""
+
+    def __init__(self, folders: Iterable[str | os.PathLike], *, default: str | None = None,
+                 threads: int | None = None, max_fitted: int = 8):
+        self.threads = threads
+        self.models: dict[str, ModelRuntime] = {}
+        for model_dir in find_model_dirs(folders):
+            runtime = ModelRuntime(model_dir, threads)
+            self.models.setdefault(runtime.version, runtime)
+        if not self.models:
+            raise ModelNotFound(f"no model directory (with manifest.json) under {list(map(str, folders))}")
+        if default is None:  # newest export wins
+            default = max(self.models.values(), key=lambda m: str(m.manifest["created_at"])).version
+        self.default = self.get(default)
+        self._fitted: OrderedDict[str, SamplerSession] = OrderedDict()
+        self._max_fitted = max_fitted
+        self._lock = threading.Lock()
+
+    def get(self, version: str | None = None) -> ModelRuntime:
+        """The runtime of ``version`` (the default one if None); ModelNotFound otherwise."""
+        if version is None:
+            return self.default
+        try:
+            return self.models[version]
+        except KeyError:
+            raise ModelNotFound(f"model version {version!r} is not loaded "
+                                f"(have {sorted(self.models)})") from None
+
+    def fitted_sampler(self, path: str | os.PathLike) -> SamplerSession:
+        """A fitted texture's own sampler.onnx, opened once and kept in a small LRU."""
+        key = str(Path(path).resolve())
+        with self._lock:
+            if key in self._fitted:
+                self._fitted.move_to_end(key)
+                return self._fitted[key]
+        session = SamplerSession(key, threads=self.threads)  # load outside the lock
+        with self._lock:
+            self._fitted[key] = session
+            self._fitted.move_to_end(key)
+            while len(self._fitted) > self._max_fitted:
+                self._fitted.popitem(last=False)
+        return session
+
+    def ready(self) -> bool:
+        """True when every loaded model answers a one-point evaluation."""
+        return all(m.ready() for m in self.models.values())
