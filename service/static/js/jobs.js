@@ -1,0 +1,82 @@
+// Live job progress: one list item per job, fed by the job's server-sent events;
+// falls back to polling GET /v1/jobs/{id} if the event stream breaks.
+import { getJob, jobEventsUrl, jobResultUrl } from './api.js';
+
+const TERMINAL = new Set(['succeeded', 'failed', 'canceled']);
+// Event names a server may use besides the default "message".
+const EVENT_NAMES = ['job', 'progress', 'state', 'update', 'status', 'done', 'end'];
+
+/** Progress as a 0..1 fraction whether the server reports 0..1 or 0..100. */
+export function fraction(progress) {
+  const p = Number(progress) || 0;
+  return Math.max(0, Math.min(1, p > 1 ? p / 100 : p));
+}
+
+export class JobList {
+  /** @param {HTMLElement} list  the <ul> to fill */
+  constructor(list) {
+    this.list = list;
+  }
+
+  /**
+   * Follow a job until it ends.
+   * @param {{id: string}} job  the submitted job (202 body)
+   * @param {string} label  what the user asked for, e.g. "bake glb of wood"
+   * @param {(job: object, resultUrl: string) => void} onSuccess
+   */
+  track(job, label, onSuccess) {
+    const item = document.createElement('li');
+    item.dataset.jobId = job.id;
+    item.innerHTML = `<div><strong></strong> <span class="state">queued</span></div>
+      <progress max="1" value="0"></progress><div class="links"></div>`;
+    item.querySelector('strong').textContent = label;
+    item.querySelector('progress').setAttribute('aria-label', `Progress of ${label}`);
+    this.list.prepend(item);
+
+    let finished = false;
+    const show = (state) => {
+      if (finished || !state) return;
+      const status = state.state || state.status || 'running';
+      item.dataset.state = status;
+      item.querySelector('.state').textContent = status;
+      item.querySelector('progress').value = status === 'succeeded' ? 1 : fraction(state.progress);
+      if (!TERMINAL.has(status)) return;
+      finished = true;
+      if (status === 'succeeded') {
+        const url = jobResultUrl(job.id);
+        const link = document.createElement('a');
+        link.href = url;
+        link.textContent = 'Download result';
+        link.setAttribute('download', '');
+        item.querySelector('.links').append(link);
+        onSuccess(state, url);
+      } else {
+        const error = state.error && (state.error.detail || state.error.message || state.error);
+        item.querySelector('.state').classList.add('failed');
+        item.querySelector('.state').textContent = `${status}${error ? `: ${error}` : ''}`;
+      }
+    };
+
+    const poll = async () => {
+      while (!finished) {
+        try { show(await getJob(job.id)); } catch (e) { /* transient: retry */ }
+        await new Promise((resolve) => setTimeout(resolve, 1000));
+      }
+    };
+
+    const source = new EventSource(jobEventsUrl(job.id));
+    const onEvent = (event) => {
+      let data;
+      try { data = JSON.parse(event.data); } catch { return; }
+      show(data.job || data);
+      if (finished) source.close();
+    };
+    source.onmessage = onEvent;
+    for (const name of EVENT_NAMES) source.addEventListener(name, onEvent);
+    source.onerror = () => {
+      // The server closes the stream after the last event; EventSource would reconnect.
+      source.close();
+      if (!finished) poll();
+    };
+  }
+}

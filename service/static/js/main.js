@@ -1,0 +1,225 @@
+// Page wiring: texture library + upload, the map and its controls, interpolation, 3D jobs.
+import * as api from './api.js';
+import { TextureMap } from './map.js';
+import { InterpolationPanel } from './interp.js';
+import { JobList } from './jobs.js';
+import { sphereObjFile } from './sphere.js';
+
+const $ = (id) => document.getElementById(id);
+const VOLUME_FORMATS = ['tiff', 'exr', 'nrrd', 'raw', 'png', 'dds'];
+
+const state = {
+  textures: [],     // listed textures, newest first
+  current: null,    // texture on the map
+  nextCursor: null,
+};
+
+function say(message, isError = false) {
+  $('status').textContent = message;
+  $('status').classList.toggle('error', isError);
+}
+
+function sayError(error) {
+  say(error instanceof api.ApiError ? `Error ${error.status}: ${error.message}` : String(error.message || error), true);
+}
+
+const tileParams = () => ({
+  seed: Number($('seed').value) || 0,
+  plane: $('plane').value,
+  offset: Number($('offset').value),
+});
+
+// ---- map -------------------------------------------------------------------------
+
+const textureMap = new TextureMap($('map'), {
+  onZoom: (zoom, native) => { $('zoom-info').textContent = `map zoom ${zoom}, native ${native}`; },
+});
+
+async function showTexture(texture) {
+  state.current = texture;
+  $('current-name').textContent = texture.name || texture.id;
+  $('exemplar').src = api.exemplarUrl(texture.id);
+  for (const button of document.querySelectorAll('#texture-list button')) {
+    button.setAttribute('aria-pressed', String(button.dataset.id === texture.id));
+  }
+  try {
+    await textureMap.show(texture.id, tileParams());
+    document.body.dataset.texture = texture.id;
+  } catch (error) {
+    sayError(error);
+  }
+}
+
+for (const id of ['seed', 'plane']) {
+  $(id).addEventListener('change', () => { textureMap.update(tileParams()); interpolation.refresh(); });
+}
+$('offset').addEventListener('input', () => { $('offset-value').value = Number($('offset').value).toFixed(2); });
+$('offset').addEventListener('change', () => textureMap.update(tileParams()));
+$('seed-next').addEventListener('click', () => {
+  $('seed').value = (Number($('seed').value) || 0) + 1;
+  $('seed').dispatchEvent(new Event('change'));
+});
+$('native-zoom').addEventListener('click', () => textureMap.goNative());
+
+// ---- library and upload ------------------------------------------------------------
+
+function textureButton(texture) {
+  const item = document.createElement('li');
+  const button = document.createElement('button');
+  button.type = 'button';
+  button.dataset.id = texture.id;
+  button.setAttribute('aria-pressed', String(state.current?.id === texture.id));
+  const img = document.createElement('img');
+  img.src = api.exemplarUrl(texture.id);
+  img.alt = '';
+  img.loading = 'lazy';
+  const meta = document.createElement('span');
+  meta.className = 'meta';
+  const name = document.createElement('span');
+  name.textContent = texture.name || texture.id;
+  const code = document.createElement('small');
+  code.textContent = Array.isArray(texture.code) ? texture.code.map((c) => c.toFixed(2)).join(' ') : '';
+  meta.append(name, code);
+  button.append(img, meta);
+  button.addEventListener('click', () => showTexture(texture));
+  item.append(button);
+  return item;
+}
+
+function renderLibrary() {
+  $('texture-list').replaceChildren(...state.textures.map(textureButton));
+  $('load-more').hidden = !state.nextCursor;
+  interpolation.setTextures(state.textures);
+  interpolation.refresh();
+}
+
+async function loadTextures(more = false) {
+  try {
+    const page = await api.listTextures(more ? state.nextCursor : undefined);
+    state.textures = more ? state.textures.concat(page.items) : page.items;
+    state.nextCursor = page.next_cursor;
+    renderLibrary();
+  } catch (error) {
+    sayError(error);
+  }
+}
+$('load-more').addEventListener('click', () => loadTextures(true));
+
+async function upload(file) {
+  if (!file) return;
+  if (!file.type.startsWith('image/')) { say(`${file.name} is not an image`, true); return; }
+  const name = $('upload-name').value.trim() || file.name.replace(/\.[^.]+$/, '');
+  say(`Encoding ${file.name}...`);
+  try {
+    const texture = await api.uploadTexture(file, name);
+    state.textures = [texture, ...state.textures.filter((t) => t.id !== texture.id)];
+    renderLibrary();
+    say(`Uploaded ${texture.name || texture.id}.`);
+    $('upload-name').value = '';
+    await showTexture(texture);
+  } catch (error) {
+    sayError(error);
+  }
+}
+
+const dropZone = $('drop-zone');
+$('upload-file').addEventListener('change', (event) => upload(event.target.files[0]));
+dropZone.addEventListener('keydown', (event) => {
+  if (event.key === 'Enter' || event.key === ' ') { event.preventDefault(); $('upload-file').click(); }
+});
+for (const type of ['dragenter', 'dragover']) {
+  dropZone.addEventListener(type, (event) => { event.preventDefault(); dropZone.classList.add('over'); });
+}
+for (const type of ['dragleave', 'drop']) {
+  dropZone.addEventListener(type, () => dropZone.classList.remove('over'));
+}
+dropZone.addEventListener('drop', (event) => {
+  event.preventDefault();
+  upload(event.dataTransfer.files[0]);
+});
+
+// ---- interpolation -------------------------------------------------------------------
+
+const interpolation = new InterpolationPanel({
+  selectA: $('interp-a'),
+  selectB: $('interp-b'),
+  slider: $('interp-t'),
+  output: $('interp-t-value'),
+  showButton: $('interp-show'),
+  strip: $('strip'),
+  getParams: () => ({ ...tileParams(), nativeZoom: textureMap.nativeZoom }),
+  onBlend: (texture) => {
+    say(`Showing blend ${texture.name || texture.id}.`);
+    showTexture(texture);
+  },
+  onError: sayError,
+});
+
+// ---- 3D: bakes and volumes -------------------------------------------------------------
+
+const jobs = new JobList($('jobs'));
+let viewer = null;
+
+async function getViewer() {
+  // three.js is loaded on first use so that the map works even if WebGL is unavailable.
+  if (!viewer) {
+    const { MeshViewer } = await import('./view3d.js');
+    viewer = new MeshViewer($('viewer'));
+  }
+  return viewer;
+}
+
+function requireTexture() {
+  if (!state.current) { say('Pick or upload a texture first.', true); return false; }
+  return true;
+}
+
+$('bake-form').addEventListener('submit', async (event) => {
+  event.preventDefault();
+  if (!requireTexture()) return;
+  const mesh = $('bake-mesh').files[0] || sphereObjFile();
+  const format = $('bake-format').value;
+  const params = {
+    resolution: Number($('bake-resolution').value),
+    seed: tileParams().seed,
+    scale: Number($('bake-scale').value) || 1,
+    format,
+  };
+  try {
+    const job = await api.startBake(state.current.id, mesh, params);
+    say(`Bake job ${job.id} started.`);
+    jobs.track(job, `bake ${mesh.name} (${format})`, async (_, url) => {
+      if (format !== 'glb') return;
+      try {
+        await (await getViewer()).load(url);
+        say('Bake loaded in the 3D view.');
+      } catch (error) {
+        sayError(error);
+      }
+    });
+  } catch (error) {
+    sayError(error);
+  }
+});
+
+$('volume-format').replaceChildren(...VOLUME_FORMATS.map((f) => new Option(f, f)));
+$('volume-form').addEventListener('submit', async (event) => {
+  event.preventDefault();
+  if (!requireTexture()) return;
+  const size = Number($('volume-size').value);
+  const params = { size, seed: tileParams().seed, format: $('volume-format').value };
+  try {
+    const job = await api.startVolume(state.current.id, params);
+    say(`Volume job ${job.id} started.`);
+    jobs.track(job, `volume ${size}^3 (${params.format})`, () => say('Volume ready to download.'));
+  } catch (error) {
+    sayError(error);
+  }
+});
+
+// ---- start -----------------------------------------------------------------------------
+
+getViewer().catch((error) => say(`3D view unavailable: ${error.message}`, true));
+await loadTextures();
+if (state.textures.length) await showTexture(state.textures[0]);
+window.texspace = { state, textureMap, get viewer() { return viewer; } };

@@ -1,0 +1,85 @@
+// The infinite texture plane as a Leaflet map. L.CRS.Simple maps one map pixel at
+// zoom 0 to one unit, and Leaflet's tile (z, x, y) covers pixels
+// [x*256, (x+1)*256) x [y*256, (y+1)*256) with y growing down: exactly the API's XYZ
+// tile convention, so Leaflet's zoom is the API's zoom and no coordinate maths is needed.
+// noWrap and no bounds: x and y run over all integers, negatives included.
+/* global L */
+import { tileJson, tileTemplate } from './api.js';
+
+const TILE_SIZE = 256;
+
+/** Read the native zoom (one tile pixel = one exemplar pixel) from a TileJSON document. */
+export function nativeZoomOf(tj) {
+  for (const key of ['native_zoom', 'nativeZoom', 'native_zoom_level', 'texspace:native_zoom']) {
+    if (Number.isInteger(tj[key])) return tj[key];
+  }
+  if (tj.texspace && Number.isInteger(tj.texspace.native_zoom)) return tj.texspace.native_zoom;
+  if (Array.isArray(tj.center) && Number.isInteger(tj.center[2])) return tj.center[2];
+  return 0;
+}
+
+export class TextureMap {
+  /** @param {HTMLElement} element  container of the map */
+  constructor(element, { onZoom } = {}) {
+    this.map = L.map(element, {
+      crs: L.CRS.Simple,
+      center: [0, 0],
+      zoom: 0,
+      minZoom: -4,
+      maxZoom: 6,
+      zoomSnap: 1,
+      attributionControl: false,
+      keyboard: true,
+    });
+    this.layer = null;
+    this.textureId = null;
+    this.params = { seed: 0, plane: 'xy', offset: 0 };
+    this.nativeZoom = 0;
+    this.tilesLoaded = 0;
+    this.onZoom = onZoom || (() => {});
+    this.map.on('zoomend', () => this.onZoom(this.map.getZoom(), this.nativeZoom));
+  }
+
+  /** Show a texture; keeps the current view if only the seed/plane/offset change. */
+  async show(textureId, params = {}) {
+    Object.assign(this.params, params);
+    const firstTime = this.textureId === null;
+    const tj = await tileJson(textureId, { seed: this.params.seed });
+    this.textureId = textureId;
+    this.nativeZoom = nativeZoomOf(tj);
+    const minZoom = Number.isInteger(tj.minzoom) ? tj.minzoom : this.nativeZoom - 4;
+    const maxZoom = Number.isInteger(tj.maxzoom) ? tj.maxzoom : this.nativeZoom + 2;
+    this.map.setMinZoom(minZoom);
+    // Allow two extra zoom levels past the finest tiles: Leaflet upscales them.
+    this.map.setMaxZoom(maxZoom + 2);
+    if (this.layer) this.layer.remove();
+    this.layer = L.tileLayer(this._template(), {
+      tileSize: TILE_SIZE,
+      noWrap: true,
+      minZoom,
+      maxZoom: maxZoom + 2,
+      minNativeZoom: minZoom,
+      maxNativeZoom: maxZoom,
+      keepBuffer: 1,
+      className: 'texture-tiles',
+    });
+    this.layer.on('tileload', () => { this.tilesLoaded += 1; });
+    this.layer.addTo(this.map);
+    if (firstTime) this.map.setView([0, 0], this.nativeZoom, { animate: false });
+    this.onZoom(this.map.getZoom(), this.nativeZoom);
+  }
+
+  /** Change seed / plane / offset of the texture on show (re-requests tiles). */
+  update(params) {
+    Object.assign(this.params, params);
+    if (this.layer) this.layer.setUrl(this._template());
+  }
+
+  goNative() {
+    this.map.setZoom(this.nativeZoom);
+  }
+
+  _template() {
+    return tileTemplate(this.textureId, { ...this.params, size: TILE_SIZE });
+  }
+}

@@ -1,0 +1,78 @@
+// three.js viewer for a baked GLB: orbit controls, soft lights, camera fitted to the model.
+import * as THREE from 'three';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+
+export class MeshViewer {
+  /** @param {HTMLElement} element  container; the canvas fills it */
+  constructor(element) {
+    this.element = element;
+    // preserveDrawingBuffer lets tests (and "save image") read the canvas back.
+    this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
+    this.renderer.setClearColor(0x2b2b2e);
+    element.appendChild(this.renderer.domElement);
+
+    this.scene = new THREE.Scene();
+    this.camera = new THREE.PerspectiveCamera(40, 1, 0.01, 100);
+    this.camera.position.set(0, 0.6, 3);
+    this.scene.add(new THREE.HemisphereLight(0xffffff, 0x444450, 2.0));
+    const sun = new THREE.DirectionalLight(0xffffff, 1.5);
+    sun.position.set(2, 3, 4);
+    this.scene.add(sun);
+
+    this.controls = new OrbitControls(this.camera, this.renderer.domElement);
+    this.controls.enableDamping = true;
+    this.controls.addEventListener('change', () => this.render());
+    this.model = null;
+    this.loadedUrl = null;
+
+    new ResizeObserver(() => this.resize()).observe(element);
+    this.resize();
+    this._loop();
+  }
+
+  resize() {
+    const { clientWidth: w, clientHeight: h } = this.element;
+    if (!w || !h) return;
+    this.renderer.setSize(w, h);
+    this.camera.aspect = w / h;
+    this.camera.updateProjectionMatrix();
+    this.render();
+  }
+
+  render() {
+    this.renderer.render(this.scene, this.camera);
+  }
+
+  _loop() {
+    // Damping needs a few frames after the user lets go; otherwise we render on change.
+    requestAnimationFrame(() => this._loop());
+    if (this.controls.update()) this.render();
+  }
+
+  /** Load a GLB from a URL, replace the current model and frame it. */
+  async load(url) {
+    const gltf = await new GLTFLoader().loadAsync(url);
+    if (this.model) this.scene.remove(this.model);
+    this.model = gltf.scene;
+    this.scene.add(this.model);
+    this._frame(this.model);
+    this.loadedUrl = url;
+    this.element.dataset.loaded = url;
+    this.render();
+  }
+
+  _frame(object) {
+    const box = new THREE.Box3().setFromObject(object);
+    const size = box.getSize(new THREE.Vector3()).length() || 1;
+    const center = box.getCenter(new THREE.Vector3());
+    this.controls.target.copy(center);
+    const distance = size / (2 * Math.tan((this.camera.fov * Math.PI) / 360));
+    this.camera.position.copy(center).add(new THREE.Vector3(0.35, 0.3, 1).normalize().multiplyScalar(distance));
+    this.camera.near = size / 100;
+    this.camera.far = size * 100;
+    this.camera.updateProjectionMatrix();
+    this.controls.update();
+  }
+}
