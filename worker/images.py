@@ -1,0 +1,228 @@
+"""Image I/O: decoding uploads, preparing encoder crops, encoding outputs.
+
+Reading (``read_image``) goes through OpenImageIO, from a private temporary file (its
+Python binding has no in-memory reader). Conventions of what comes out:
+
+* float32 (H, W, 3), **sRGB-encoded** 0..1, RGB order: what the encoder expects.
+* The format is recognised from the first bytes (PNG, JPEG, TIFF, EXR, WebP, GIF, BMP),
+  never from the file name; anything else is refused.
+* Declared width x height (and channel count) are checked against ``max_pixels`` from
+  the header, *before* any pixel is decoded (decompression bombs).
+* 8/16-bit integer data are normalised by OIIO to 0..1. Float data (EXR, float TIFF)
+  are taken as linear light: NaN/inf become 0, values are clipped to 0..1 (no tone
+  mapping) and sRGB-encoded.
+* Grayscale is replicated to RGB. Alpha is composited over mid grey (sRGB 0.5) in
+  encoded values, like a browser showing the picture on a grey page, so transparent
+  regions do not become a black or white texture. CMYK JPEG/TIFF are converted to RGB
+  by OIIO itself. Animated GIF/WebP: the first frame (subimage 0).
+
+Writing (``write_image``) takes *linear* float RGB (the sampler's output) and returns
+bytes: PNG / WebP / JPEG are 8-bit sRGB (Pillow, in memory, no metadata), EXR is half
+float linear (OIIO, zip), TIFF is 16-bit sRGB (OIIO, zip). No timestamps are written,
+so the same pixels always give the same bytes.
+"""
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+
+import numpy as np
+import OpenImageIO as oiio
+from PIL import Image
+from skimage.transform import resize
+
+from worker.colour import linear_to_srgb, linear_to_srgb8, srgb_to_linear
+from worker.errors import InvalidImage, InvalidParameter, LimitExceeded
+from worker.runtime import ModelRuntime
+
+MIN_SIDE = 16             # smaller uploads carry no usable texture
+MID_GREY = np.float32(0.5)
+OUTPUT_FORMATS = ("png", "webp", "jpeg", "exr", "tiff")
+_MAGIC = (  # (prefix, offset, extension)
+    (b"\x89PNG\r\n\x1a\n", 0, "png"),
+    (b"\xff\xd8\xff", 0, "jpg"),
+    (b"II*\x00", 0, "tif"),
+    (b"MM\x00*", 0, "tif"),
+    (b"v/1\x01", 0, "exr"),
+    (b"WEBP", 8, "webp"),
+    (b"GIF8", 0, "gif"),
+    (b"BM", 0, "bmp"),
+)
+
+
+def sniff_format(data: bytes) -> str:
+    """File extension for the image format recognised from ``data``'s magic bytes."""
+    for magic, offset, ext in _MAGIC:
+        if data[offset:offset + len(magic)] == magic and (ext != "webp" or data[:4] == b"RIFF"):
+            return ext
+    raise InvalidImage("unrecognised image format (expected PNG, JPEG, TIFF, EXR, WebP, GIF or BMP)")
+
+
+def read_image(data: bytes, *, max_pixels: int, min_side: int = MIN_SIDE) -> np.ndarray:
+    """Decode an uploaded image. Returns (H, W, 3) float32 sRGB-encoded 0..1.
+
+    Raises InvalidImage (empty, unknown, truncated, too small) or LimitExceeded
+    (width * height > max_pixels, checked from the header before decoding).
+    """
+    if not data:
+        raise InvalidImage("empty upload (0 bytes)")
+    ext = sniff_format(data)
+    with tempfile.TemporaryDirectory(prefix="texspace-img-") as tmp:
+        path = os.path.join(tmp, "upload." + ext)
+        with open(path, "wb") as f:
+            f.write(data)
+        inp = oiio.ImageInput.open(path)
+        if inp is None:
+            raise InvalidImage(f"cannot read {ext} image: {oiio.geterror().strip() or 'corrupt header'}")
+        try:
+            spec = inp.spec()
+            w, h, c = spec.width, spec.height, spec.nchannels
+            if spec.depth > 1:
+                raise InvalidImage("volume images are not accepted as exemplars")
+            if w * h > max_pixels:
+                raise LimitExceeded(f"image is {w}x{h} = {w * h} pixels, limit is {max_pixels}")
+            if min(w, h) < min_side:
+                raise InvalidImage(f"image is {w}x{h}; both sides must be at least {min_side} pixels")
+            if not 1 <= c <= 16:
+                raise InvalidImage(f"unsupported channel count {c}")
+            pixels = inp.read_image(0, 0, 0, c, "float")
+            if pixels is None or inp.has_error:
+                raise InvalidImage(f"corrupt or truncated {ext} image: {inp.geterror().strip()}")
+            is_float = spec.format.basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
+            alpha = spec.alpha_channel
+        finally:
+            inp.close()
+    return _to_srgb_rgb(np.asarray(pixels, dtype=np.float32).reshape(h, w, c), is_float, alpha)
+
+
+def _to_srgb_rgb(px: np.ndarray, is_float: bool, alpha_channel: int) -> np.ndarray:
+    """(H, W, C) decoded values -> (H, W, 3) float32 sRGB-encoded, per the module rules.
+
+    OIIO returns colour premultiplied by alpha (it associates PNG/TIFF alpha on read),
+    so compositing over grey is ``rgb + grey * (1 - alpha)``.
+    """
+    c = px.shape[2]
+    if alpha_channel < 0 and c in (2, 4):
+        alpha_channel = c - 1   # gray+alpha / RGBA without an explicit alpha tag
+    colour = [i for i in range(c) if i != alpha_channel][:3]
+    rgb = px[:, :, colour]
+    if rgb.shape[2] < 3:
+        rgb = np.repeat(rgb[:, :, :1], 3, axis=2)
+    if is_float:
+        rgb = np.nan_to_num(rgb, nan=0.0, posinf=1.0, neginf=0.0)
+    if 0 <= alpha_channel < c:
+        alpha = np.clip(np.nan_to_num(px[:, :, alpha_channel:alpha_channel + 1]), 0.0, 1.0)
+        grey = srgb_to_linear(MID_GREY) if is_float else MID_GREY
+        rgb = rgb + grey * (1.0 - alpha)
+    if is_float:
+        rgb = linear_to_srgb(rgb)
+    return np.clip(rgb, 0.0, 1.0).astype(np.float32, copy=False)
+
+
+def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
+    """Resize (H, W, 3) float32 so min(H, W) == short_side (antialiased when shrinking)."""
+    h, w = image.shape[:2]
+    scale = short_side / min(h, w)
+    shape = (max(short_side, round(h * scale)), max(short_side, round(w * scale)))
+    if shape == (h, w):
+        return image
+    out = resize(image, shape + (3,), order=1, anti_aliasing=scale < 1, preserve_range=True)
+    return out.astype(np.float32, copy=False)
+
+
+def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: int = 3) -> np.ndarray:
+    """Crops of an sRGB image for the encoder.
+
+    The image is resized so its shorter side is ``max(short_side, size)`` (the model's
+    working resolution: features keep the scale seen in training), then a regular
+    ``grid x grid`` lattice of ``size`` crops is taken, first and last flush with the
+    borders, evenly spaced between (a side with room for only one crop gives one
+    position; duplicates are dropped). Values map 0..1 -> -1..1 (``2x - 1``).
+
+    image : (H, W, 3) float32 sRGB 0..1. Returns (N, 3, size, size) float32, N <= grid^2.
+    """
+    work = resize_short_side(image, max(short_side, size))
+    h, w = work.shape[:2]
+    rows = np.unique(np.round(np.linspace(0, h - size, grid)).astype(int))
+    cols = np.unique(np.round(np.linspace(0, w - size, grid)).astype(int))
+    windows = np.lib.stride_tricks.sliding_window_view(work, (size, size), axis=(0, 1))
+    crops = windows[rows[:, None], cols[None, :]]          # (R, C, 3, size, size)
+    crops = crops.reshape(-1, 3, size, size)
+    return (crops * np.float32(2) - np.float32(1)).astype(np.float32)
+
+
+def encode_image(runtime: ModelRuntime, image: np.ndarray, *, grid: int = 3) -> np.ndarray:
+    """Texture code of an sRGB image: the mean of its crops' codes. Returns (8,) float32."""
+    crops = encoder_crops(image, short_side=runtime.short_side, size=runtime.input_size, grid=grid)
+    return runtime.encode(crops).mean(axis=0).astype(np.float32)
+
+
+def write_image(rgb: np.ndarray, fmt: str, *, colour: str = "linear", quality: int = 90) -> bytes:
+    """Encode an image to bytes.
+
+    rgb : (H, W, 3) float32, linear light 0..1 (``colour='linear'``, the sampler's output)
+    or already sRGB-encoded (``colour='srgb'``, e.g. an uploaded exemplar).
+    fmt : png | webp | jpeg | exr | tiff (see module docstring for bit depths).
+    """
+    if fmt not in OUTPUT_FORMATS:
+        raise InvalidParameter(f"format must be one of {OUTPUT_FORMATS}, got {fmt!r}")
+    if colour not in ("linear", "srgb"):
+        raise InvalidParameter(f"colour must be 'linear' or 'srgb', got {colour!r}")
+    rgb = np.asarray(rgb, dtype=np.float32)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise InvalidParameter(f"rgb must be (H, W, 3), got {rgb.shape}")
+    if fmt == "exr":
+        linear = rgb if colour == "linear" else srgb_to_linear(rgb)
+        return _write_oiio(linear, "exr", "half", {"compression": "zip"})
+    if colour == "linear":
+        srgb8 = linear_to_srgb8(rgb)
+    else:
+        srgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+    if fmt == "tiff":
+        srgb16 = srgb8.astype(np.uint16) * 257 if colour == "srgb" else \
+            (linear_to_srgb(rgb) * 65535 + 0.5).astype(np.uint16)
+        return _write_oiio(srgb16, "tif", "uint16", {"compression": "zip", "oiio:ColorSpace": "sRGB"})
+    buf = io.BytesIO()
+    pil = Image.fromarray(srgb8, "RGB")
+    if fmt == "png":
+        pil.save(buf, "PNG", compress_level=6)
+    elif fmt == "webp":
+        pil.save(buf, "WEBP", quality=quality, method=4)
+    else:
+        pil.save(buf, "JPEG", quality=quality, optimize=False)
+    return buf.getvalue()
+
+
+def _write_oiio(pixels: np.ndarray, ext: str, dtype: str, attrs: dict[str, str]) -> bytes:
+    """Write (H, W, 3) pixels through OIIO to a temp file and return its bytes."""
+    h, w, c = pixels.shape
+    spec = oiio.ImageSpec(w, h, c, dtype)
+    for key, value in attrs.items():
+        spec.attribute(key, value)
+    with tempfile.TemporaryDirectory(prefix="texspace-out-") as tmp:
+        path = os.path.join(tmp, "image." + ext)
+        write_oiio_file(path, pixels, spec)
+        with open(path, "rb") as f:
+            return f.read()
+
+
+def write_oiio_file(path: str, pixels: np.ndarray, spec: oiio.ImageSpec) -> None:
+    """Write one image with OIIO; raise OSError with OIIO's message on failure."""
+    out = oiio.ImageOutput.create(path)
+    if out is None or not out.open(path, spec):
+        raise OSError(f"OpenImageIO cannot write {path}: {oiio.geterror()}")
+    ok = out.write_image(np.ascontiguousarray(pixels))
+    out.close()
+    if not ok:
+        raise OSError(f"OpenImageIO failed writing {path}: {out.geterror()}")
+
+
+def thumbnail(image: np.ndarray, *, max_side: int = 256, fmt: str = "webp") -> bytes:
+    """Small preview of an sRGB exemplar (H, W, 3) float32: longest side <= max_side."""
+    h, w = image.shape[:2]
+    scale = min(1.0, max_side / max(h, w))
+    if scale < 1.0:
+        shape = (max(1, round(h * scale)), max(1, round(w * scale)), 3)
+        image = resize(image, shape, order=1, anti_aliasing=True, preserve_range=True)
+    return write_image(image.astype(np.float32), fmt, colour="srgb")
