@@ -1,0 +1,221 @@
+"""Streaming writers for 3D texture volumes, one class per output format.
+
+Every writer is fed slabs of whole z-slices in order, ``write(rgb)`` with
+``rgb : (nz, N, N, 3) float32 linear``, and keeps nothing but the current slab, so
+memory is O(slab) whatever N is. Array order everywhere is [z, y, x, channel]
+(slice, row, column), x varying fastest in the files.
+
+Layouts:
+
+* ``npy``: float32 linear, shape (N, N, N, 3), C order. Header written first, slabs
+  appended (the file is a valid .npy when closed; ``np.load(..., mmap_mode='r')`` works).
+* ``exr``: multi-part OpenEXR, one part per z slice named ``slice_0000``...; float32
+  linear RGB, zip compression. Part k holds slice z = k.
+* ``tiff``: multi-page TIFF, one page per z slice (page k = slice z = k); float32 linear
+  RGB, zip compression.
+* ``raw``: a zip holding ``volume.raw`` (float32 little-endian linear RGB, [z][y][x][c],
+  no header) and ``volume.json`` (shape, dtype, byte order, axis order, bounds, colour).
+* ``nrrd``: NRRD 4 header written by hand (sizes ``3 N N N``, kinds
+  ``RGB-color domain domain domain``, raw little-endian float32, space directions and
+  origin from the bounds) followed by the data: pynrrd, 3D Slicer and ParaView read it.
+* ``dds``: DirectDraw Surface volume texture, "DDS " + DDS_HEADER (DDSD_DEPTH,
+  DDSCAPS2_VOLUME) + DDS_HEADER_DXT10 (DXGI_FORMAT_R8G8B8A8_UNORM_SRGB,
+  D3D10_RESOURCE_DIMENSION_TEXTURE3D), one mip level, then RGBA8 texels (sRGB-encoded,
+  alpha 255) slice by slice.
+* ``flipbook``: one 8-bit sRGB PNG holding the N slices as a grid of ``cols x rows``
+  cells of N x N pixels, ``cols * rows == N`` exactly (cols = the smallest divisor of N
+  that is >= sqrt(N)), slice 0 at the top-left, then left to right, top to bottom:
+  what Unity's texture importer turns into a Texture3D with "Flipbook Columns/Rows"
+  set to cols/rows. Written by a streaming PNG encoder, one grid row (``cols`` slices)
+  at a time, so the writer requires slabs of exactly ``cols`` slices.
+"""
+from __future__ import annotations
+
+import json
+import math
+import struct
+import zipfile
+import zlib
+
+import numpy as np
+import OpenImageIO as oiio
+
+from worker.colour import linear_to_srgb8
+
+FORMATS = ("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook")
+EXTENSIONS = {"npy": ".npy", "exr": ".exr", "tiff": ".tif", "raw": ".zip", "nrrd": ".nrrd",
+              "dds": ".dds", "flipbook": ".png"}
+_ZIP_TIME = (2020, 1, 1, 0, 0, 0)   # fixed, so identical volumes give identical zips
+
+
+def flipbook_grid(n: int) -> tuple[int, int]:
+    """(cols, rows) with cols * rows == n, cols the smallest divisor of n >= sqrt(n)."""
+    cols = next(c for c in range(math.isqrt(n - 1) + 1 if n > 1 else 1, n + 1) if n % c == 0)
+    return cols, n // cols
+
+
+class VolumeWriter:
+    """Base: ``write(rgb slab)`` repeatedly, then ``close()``. ``required_slab`` if fixed."""
+
+    required_slab: int | None = None
+
+    def __init__(self, path: str, n: int, bounds: np.ndarray):
+        self.path, self.n, self.bounds = path, n, bounds
+
+    def write(self, rgb: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+class NpyWriter(VolumeWriter):
+    def __init__(self, path, n, bounds):
+        super().__init__(path, n, bounds)
+        self.file = open(path, "wb")
+        header = {"descr": "<f4", "fortran_order": False, "shape": (n, n, n, 3)}
+        np.lib.format.write_array_header_1_0(self.file, header)
+
+    def write(self, rgb):
+        self.file.write(np.ascontiguousarray(rgb, dtype="<f4").data)
+
+    def close(self):
+        self.file.close()
+
+
+class OiioPagesWriter(VolumeWriter):
+    """Multi-part EXR or multi-page TIFF through OpenImageIO, one subimage per slice."""
+
+    def __init__(self, path, n, bounds):
+        super().__init__(path, n, bounds)
+        self.specs = []
+        for k in range(n):
+            spec = oiio.ImageSpec(n, n, 3, "float")
+            spec.attribute("compression", "zip")
+            spec.attribute("name", f"slice_{k:04d}")
+            self.specs.append(spec)
+        self.out = oiio.ImageOutput.create(path)
+        if self.out is None or not self.out.open(path, self.specs):
+            raise OSError(f"OpenImageIO cannot open {path}: {oiio.geterror()}")
+        self.k = 0
+
+    def write(self, rgb):
+        for page in rgb:
+            if self.k and not self.out.open(self.path, self.specs[self.k], "AppendSubimage"):
+                raise OSError(f"OpenImageIO cannot append slice {self.k}: {self.out.geterror()}")
+            if not self.out.write_image(np.ascontiguousarray(page)):
+                raise OSError(f"OpenImageIO failed on slice {self.k}: {self.out.geterror()}")
+            self.k += 1
+
+    def close(self):
+        self.out.close()
+
+
+def _volume_json(n: int, bounds: np.ndarray) -> dict:
+    return {"file": "volume.raw", "shape": [n, n, n, 3], "dtype": "float32", "byte_order": "little",
+            "axes": ["z", "y", "x", "channel"], "channels": ["R", "G", "B"], "colour": "linear",
+            "bounds_min": bounds[0].tolist(), "bounds_max": bounds[1].tolist()}
+
+
+class RawZipWriter(VolumeWriter):
+    def __init__(self, path, n, bounds):
+        super().__init__(path, n, bounds)
+        self.zip = zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED, allowZip64=True)
+        info = zipfile.ZipInfo("volume.json", _ZIP_TIME)
+        self.zip.writestr(info, json.dumps(_volume_json(n, bounds), indent=1))
+        self.raw = self.zip.open(zipfile.ZipInfo("volume.raw", _ZIP_TIME), "w", force_zip64=True)
+
+    def write(self, rgb):
+        self.raw.write(np.ascontiguousarray(rgb, dtype="<f4").data)
+
+    def close(self):
+        self.raw.close()
+        self.zip.close()
+
+
+class NrrdWriter(VolumeWriter):
+    def __init__(self, path, n, bounds):
+        super().__init__(path, n, bounds)
+        step = (bounds[1] - bounds[0]) / n
+        origin = bounds[0] + step / 2   # NRRD's origin is the first sample's centre
+        dirs = " ".join(f"({','.join(repr(float(v)) for v in row)})" for row in np.diag(step))
+        header = (
+            "NRRD0004\n# texspace volume: linear RGB\n"
+            "type: float\ndimension: 4\nspace: right-anterior-superior\n"
+            f"sizes: 3 {n} {n} {n}\nkinds: RGB-color domain domain domain\n"
+            f"space directions: none {dirs}\n"
+            f"space origin: ({','.join(repr(float(v)) for v in origin)})\n"
+            "endian: little\nencoding: raw\n\n")
+        self.file = open(path, "wb")
+        self.file.write(header.encode("ascii"))
+
+    def write(self, rgb):
+        self.file.write(np.ascontiguousarray(rgb, dtype="<f4").data)
+
+    def close(self):
+        self.file.close()
+
+
+def dds_volume_header(n: int) -> bytes:
+    """'DDS ' + DDS_HEADER + DDS_HEADER_DXT10 for an n^3 RGBA8 sRGB volume, one mip."""
+    flags = 0x1 | 0x2 | 0x4 | 0x8 | 0x1000 | 0x800000   # CAPS HEIGHT WIDTH PITCH PIXELFORMAT DEPTH
+    pixel_format = struct.pack("<2I4s5I", 32, 0x4, b"DX10", 0, 0, 0, 0, 0)   # DDPF_FOURCC
+    caps, caps2 = 0x1000 | 0x8, 0x200000                # TEXTURE | COMPLEX, VOLUME
+    header = struct.pack("<7I11I", 124, flags, n, n, n * 4, n, 1, *([0] * 11))
+    header += pixel_format + struct.pack("<5I", caps, caps2, 0, 0, 0)
+    dxt10 = struct.pack("<5I", 29, 4, 0, 1, 0)          # R8G8B8A8_UNORM_SRGB, TEXTURE3D
+    return b"DDS " + header + dxt10
+
+
+class DdsWriter(VolumeWriter):
+    def __init__(self, path, n, bounds):
+        super().__init__(path, n, bounds)
+        self.file = open(path, "wb")
+        self.file.write(dds_volume_header(n))
+
+    def write(self, rgb):
+        rgba = np.empty(rgb.shape[:3] + (4,), dtype=np.uint8)
+        rgba[..., :3] = linear_to_srgb8(rgb)
+        rgba[..., 3] = 255
+        self.file.write(rgba.data)
+
+    def close(self):
+        self.file.close()
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+class FlipbookWriter(VolumeWriter):
+    """Streaming PNG encoder: one grid row of ``cols`` slices per ``write``."""
+
+    def __init__(self, path, n, bounds):
+        super().__init__(path, n, bounds)
+        self.cols, self.rows = flipbook_grid(n)
+        self.required_slab = self.cols
+        self.file = open(path, "wb")
+        ihdr = struct.pack(">2I5B", self.cols * n, self.rows * n, 8, 2, 0, 0, 0)
+        self.file.write(b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"sRGB", b"\x00"))
+        self.zlib = zlib.compressobj(6)
+
+    def write(self, rgb):
+        if len(rgb) != self.cols:
+            raise ValueError(f"flipbook slabs must hold {self.cols} slices, got {len(rgb)}")
+        n = self.n
+        # (cols, N, N, 3) -> N scanlines of cols*N pixels, each prefixed by filter type 0.
+        lines = np.zeros((n, 1 + self.cols * n * 3), dtype=np.uint8)
+        lines[:, 1:] = linear_to_srgb8(rgb).transpose(1, 0, 2, 3).reshape(n, -1)
+        data = self.zlib.compress(lines.data)
+        if data:
+            self.file.write(_png_chunk(b"IDAT", data))
+
+    def close(self):
+        self.file.write(_png_chunk(b"IDAT", self.zlib.flush()) + _png_chunk(b"IEND", b""))
+        self.file.close()
+
+
+WRITERS: dict[str, type[VolumeWriter]] = {
+    "npy": NpyWriter, "exr": OiioPagesWriter, "tiff": OiioPagesWriter, "raw": RawZipWriter,
+    "nrrd": NrrdWriter, "dds": DdsWriter, "flipbook": FlipbookWriter,
+}
