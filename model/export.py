@@ -1,0 +1,179 @@
+"""Export a checkpoint to the portable model directory (docs/ARCHITECTURE.md).
+
+    python -m model.export CHECKPOINT [OUTDIR]      # OUTDIR defaults to model/weights/
+
+writes ``encoder.onnx``, ``sampler.onnx`` (DESIGN.md Contract 1) and ``manifest.json``.
+The sampler graph holds the hash noise itself, so any ONNX runtime reproduces a texture
+from (z, seed) without our code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from model.networks import TextureField, TextureSpace, load_checkpoint
+
+OPSET = 18  # BitwiseAnd / BitwiseXor need 18; onnxruntime 1.31 reads it
+MAX_IR_VERSION = 13  # onnxruntime 1.31 refuses newer IR
+DEFAULT_OUTDIR = Path(__file__).resolve().parent / "weights"
+ENCODER_INPUT_SIZE = 128
+ENCODER_INPUT_RANGE = [-1.0, 1.0]
+
+
+def _register_bitwise_symbolics() -> None:
+    """Teach the TorchScript exporter the ONNX 18 bitwise ops it does not map itself."""
+    from torch.onnx import register_custom_op_symbolic
+
+    def xor(g, a, b):
+        return g.op("BitwiseXor", a, b)
+
+    def and_(g, a, b):
+        return g.op("BitwiseAnd", a, b)
+
+    register_custom_op_symbolic("aten::bitwise_xor", xor, OPSET)
+    register_custom_op_symbolic("aten::bitwise_and", and_, OPSET)
+
+
+class SamplerGraph(nn.Module):
+    """Contract 1 around a TextureField.
+
+    points float64 [P,3], z float32 [P,8] or [1,8], seed int64 [] or [1] -> rgb float32 [P,3]
+    A shared code is one row evaluated for all P points; per-point codes are P rows of
+    one point each. ``reshape(rows, -1, 3)`` covers both with one graph.
+    """
+
+    def __init__(self, field: TextureField):
+        super().__init__()
+        self.field = field
+
+    def forward(self, points, z, seed):
+        rows = z.shape[0]
+        rgb = self.field(points.reshape(rows, -1, 3), z, seed.reshape([]))
+        return rgb.reshape(-1, 3)
+
+
+def _export(module: nn.Module, args: tuple, path: Path, input_names, output_names, dynamic_axes):
+    import onnx
+
+    _register_bitwise_symbolics()
+    module.eval()
+    with tempfile.TemporaryDirectory() as tmp:
+        raw = Path(tmp) / "graph.onnx"
+        with torch.no_grad():
+            torch.onnx.export(
+                module,
+                args,
+                str(raw),
+                input_names=input_names,
+                output_names=output_names,
+                dynamic_axes=dynamic_axes,
+                opset_version=OPSET,
+                dynamo=False,
+                do_constant_folding=True,
+            )
+        graph = onnx.load(str(raw))
+    if graph.ir_version > MAX_IR_VERSION:
+        graph.ir_version = MAX_IR_VERSION
+    graph.producer_name = "texspace"
+    graph.doc_string = ""
+    onnx.checker.check_model(graph)
+    tmp_path = path.with_suffix(".onnx.tmp")
+    onnx.save(graph, str(tmp_path))
+    os.replace(tmp_path, path)
+
+
+def export_sampler(field: TextureField, path: Path) -> None:
+    points = torch.rand(64, 3, dtype=torch.float64)
+    z = torch.zeros(1, field.cfg.code_size)
+    seed = torch.tensor(0, dtype=torch.int64)
+    _export(
+        SamplerGraph(field),
+        (points, z, seed),
+        path,
+        ["points", "z", "seed"],
+        ["rgb"],
+        {"points": {0: "P"}, "z": {0: "R"}, "rgb": {0: "P"}},
+    )
+
+
+def export_encoder(model: TextureSpace, path: Path) -> None:
+    image = torch.zeros(2, 3, ENCODER_INPUT_SIZE, ENCODER_INPUT_SIZE)
+    _export(model.encoder, (image,), path, ["image"], ["z"], {"image": {0: "N"}, "z": {0: "N"}})
+
+
+def model_version(*files: Path) -> str:
+    digest = hashlib.sha256()
+    for f in files:
+        digest.update(Path(f).read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def write_manifest(outdir: Path, cfg_dict: dict, training: dict, extra: dict | None = None) -> dict:
+    manifest = {
+        "version": model_version(outdir / "encoder.onnx", outdir / "sampler.onnx"),
+        "variant": cfg_dict["variant"],
+        "code_size": cfg_dict["code_size"],
+        "dims": cfg_dict["dims"],
+        "pixels_per_unit": float(cfg_dict["pixels_per_unit"]),
+        "encoder_input_size": ENCODER_INPUT_SIZE,
+        "encoder_input_range": ENCODER_INPUT_RANGE,
+        "exemplar_short_side": cfg_dict["exemplar_short_side"],
+        "output_colour": "linear",
+        "config": cfg_dict,
+        "training": training,
+        "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+    manifest.update(extra or {})
+    tmp = outdir / "manifest.json.tmp"
+    tmp.write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, outdir / "manifest.json")
+    return manifest
+
+
+def export_model(model: TextureSpace, outdir: Path, training: dict | None = None) -> dict:
+    """Write encoder.onnx, sampler.onnx and manifest.json into outdir; return the manifest."""
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    export_encoder(model, outdir / "encoder.onnx")
+    export_sampler(model.field, outdir / "sampler.onnx")
+    return write_manifest(outdir, model.cfg.to_dict(), training or {})
+
+
+def training_summary(ckpt: dict) -> dict:
+    keys = ("mode", "steps", "wall_seconds", "data", "loss", "final_loss", "args")
+    summary = {k: ckpt[k] for k in keys if k in ckpt}
+    summary.setdefault("steps", ckpt.get("step", 0))
+    return summary
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoint", help="checkpoint .pt written by model.train, or 'random' for an untrained model")
+    parser.add_argument("outdir", nargs="?", default=str(DEFAULT_OUTDIR))
+    parser.add_argument("--variant", default="ours", help="with 'random': which variant to initialise")
+    parser.add_argument("--seed", type=int, default=0, help="with 'random': torch seed of the initialisation")
+    args = parser.parse_args(argv)
+    if args.checkpoint == "random":
+        from model.networks import ModelConfig
+
+        torch.manual_seed(args.seed)
+        model = TextureSpace(ModelConfig(variant=args.variant))
+        training = {"mode": "untrained", "steps": 0, "note": f"random initialisation, torch seed {args.seed}"}
+    else:
+        model, ckpt = load_checkpoint(args.checkpoint)
+        training = training_summary(ckpt)
+    manifest = export_model(model, Path(args.outdir), training)
+    print(json.dumps({k: manifest[k] for k in ("version", "variant", "pixels_per_unit")}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,277 @@
+"""Networks of the neural 3D texture space (Henzler, Mitra, Ritschel, CVPR 2020).
+
+    exemplar [B,3,128,128] --Encoder--> z [B,8] --Translator--> e [B,64], T [B,K,D,D]
+    point x [B,P,D] --(T_k 2^k x, octave k)--> lattice noise --Decoder(noise, e)--> rgb
+
+One ``TextureField`` evaluates every variant of the paper's comparison; a variant is a
+set of switches (``VARIANTS``), so baselines and ours share every line they can.
+Shapes: B codes (exemplars, or points when codes vary per point), P points per code,
+K octaves, D spatial dimensions (2 or 3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from model.noise import noise_features, octave_seeds
+
+
+@dataclass(frozen=True)
+class Variant:
+    noise: bool  # lattice noise input
+    transforms: bool  # learned per-octave transforms T_k(z)
+    decoder: bool  # MLP decoder (else: octaves mixed by learned RGB weights)
+    position: bool  # the point's position is a decoder input
+
+
+VARIANTS: dict[str, Variant] = {
+    "perlin": Variant(noise=True, transforms=False, decoder=False, position=False),
+    "perlinT": Variant(noise=True, transforms=True, decoder=False, position=False),
+    "mlp": Variant(noise=False, transforms=False, decoder=True, position=True),
+    "oursP": Variant(noise=True, transforms=True, decoder=True, position=True),
+    "oursNoT": Variant(noise=True, transforms=False, decoder=True, position=False),
+    "ours": Variant(noise=True, transforms=True, decoder=True, position=False),
+}
+
+
+@dataclass
+class ModelConfig:
+    variant: str = "ours"
+    dims: int = 3  # 3: solid texture (sliced 2D-to-3D training); 2: planar
+    code_size: int = 8
+    extended_size: int = 64
+    n_octaves: int = 8
+    hidden: int = 128
+    n_hidden_layers: int = 4
+    nearest_input: bool = True  # feed the nearest-cell value as well as the interpolated one
+    smooth: bool = False  # smoothstep interpolation weights instead of linear
+    octave_rotations: bool = True  # fixed random rotation per octave: hides the lattice axes
+    pixels_per_unit: float = 256.0  # exemplar pixels per world unit; octave k has 2^k cells per unit
+    encoder_width: int = 32
+    exemplar_short_side: int = 256  # working resolution of exemplars (shorter side, pixels)
+
+    def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown variant {self.variant!r}; choose from {sorted(VARIANTS)}")
+        if self.dims not in (2, 3):
+            raise ValueError("dims must be 2 or 3")
+
+    @property
+    def flags(self) -> Variant:
+        return VARIANTS[self.variant]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+# ----------------------------------------------------------------------------- encoder
+
+
+class ResidualBlock(nn.Module):
+    def __init__(self, c_in: int, c_out: int, stride: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False)
+        self.norm1 = nn.InstanceNorm2d(c_out, affine=True)
+        self.conv2 = nn.Conv2d(c_out, c_out, 3, 1, 1, bias=False)
+        self.norm2 = nn.InstanceNorm2d(c_out, affine=True)
+        self.skip = (
+            nn.Sequential(nn.Conv2d(c_in, c_out, 1, stride, bias=False), nn.InstanceNorm2d(c_out, affine=True))
+            if stride != 1 or c_in != c_out
+            else nn.Identity()
+        )
+
+    def forward(self, x):
+        y = F.relu(self.norm1(self.conv1(x)))
+        return F.relu(self.norm2(self.conv2(y)) + self.skip(x))
+
+
+class Encoder(nn.Module):
+    """Exemplar -> code z. A ResNet-18-like layout (one block per stage, instance norm).
+
+    Instance norm discards each channel's mean and contrast, which *are* the texture's
+    colour, so the input's per-channel mean and std join the pooled features.
+    image float32 [B,3,H,W] in [-1,1] (sRGB-encoded, RGB)  ->  z float32 [B,code_size]
+    """
+
+    def __init__(self, code_size: int = 8, width: int = 32):
+        super().__init__()
+        w = width
+        self.stem = nn.Sequential(
+            nn.Conv2d(3, w, 5, 2, 2, bias=False), nn.InstanceNorm2d(w, affine=True), nn.ReLU()
+        )
+        self.stages = nn.Sequential(
+            ResidualBlock(w, w, 1),
+            ResidualBlock(w, 2 * w, 2),
+            ResidualBlock(2 * w, 4 * w, 2),
+            ResidualBlock(4 * w, 8 * w, 2),
+        )
+        self.head = nn.Sequential(nn.Linear(8 * w + 6, 128), nn.ReLU(), nn.Linear(128, code_size))
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        stats = torch.cat([image.mean(dim=(2, 3)), image.std(dim=(2, 3))], dim=1)  # [B,6]
+        pooled = self.stages(self.stem(image)).mean(dim=(2, 3))  # [B,8w]
+        return self.head(torch.cat([pooled, stats], dim=1))
+
+
+# ----------------------------------------------------------------------------- field
+
+
+def _fixed_rotations(n: int, dims: int, seed: int = 20200614) -> torch.Tensor:
+    """n deterministic random rotation matrices [n, dims, dims] (QR of Gaussians)."""
+    g = torch.Generator().manual_seed(seed)
+    q, r = torch.linalg.qr(torch.randn(n, dims, dims, generator=g, dtype=torch.float64))
+    q = q * torch.sign(torch.diagonal(r, dim1=-2, dim2=-1)).unsqueeze(-2)
+    det = torch.linalg.det(q)
+    q[..., :, 0] *= det.sign().unsqueeze(-1)  # proper rotations (det +1)
+    q[0] = torch.eye(dims, dtype=torch.float64)  # octave 0 stays axis-aligned
+    return q
+
+
+class Translator(nn.Module):
+    """z [B,8] -> extended code e [B,64], transforms T [B,K,D,D], RGB octave weights [B,K+1,3]."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        k, d = cfg.n_octaves, cfg.dims
+        self.cfg = cfg
+        self.body = nn.Sequential(nn.Linear(cfg.code_size, 128), nn.ReLU(), nn.Linear(128, 128), nn.ReLU())
+        self.to_extended = nn.Linear(128, cfg.extended_size)
+        self.to_transform = nn.Linear(128, k * d * d)
+        self.to_mix = nn.Linear(128, (k + 1) * 3)
+        # Start every transform at the identity: the network learns departures from it.
+        nn.init.zeros_(self.to_transform.weight)
+        nn.init.zeros_(self.to_transform.bias)
+
+    def forward(self, z: torch.Tensor):
+        k, d = self.cfg.n_octaves, self.cfg.dims
+        h = self.body(z)
+        eye = torch.eye(d, dtype=z.dtype, device=z.device)
+        transforms = eye + self.to_transform(h).reshape(-1, k, d, d)
+        mix = self.to_mix(h).reshape(-1, k + 1, 3)
+        return self.to_extended(h), transforms, mix
+
+
+class Decoder(nn.Module):
+    """MLP f(noise, position, e) -> colour logits, ReLU, ``n_hidden_layers`` x ``hidden``.
+
+    The first layer is split by input so the code's share (e @ W_e + b) is computed
+    once per code, not once per point: the same function, fewer multiplies when
+    thousands of points share one code.
+    """
+
+    def __init__(self, n_noise: int, n_position: int, n_code: int, hidden: int, n_hidden_layers: int):
+        super().__init__()
+        self.from_noise = nn.Linear(n_noise, hidden, bias=False) if n_noise else None
+        self.from_position = nn.Linear(n_position, hidden, bias=False) if n_position else None
+        self.from_code = nn.Linear(n_code, hidden)
+        layers = []
+        for _ in range(n_hidden_layers - 1):
+            layers += [nn.Linear(hidden, hidden), nn.ReLU()]
+        self.body = nn.Sequential(*layers)
+        self.out = nn.Linear(hidden, 3)
+
+    def forward(self, noise, position, code):
+        h = self.from_code(code).unsqueeze(1)  # [B,1,H]
+        if self.from_noise is not None:
+            h = h + self.from_noise(noise)
+        if self.from_position is not None:
+            h = h + self.from_position(position)
+        return self.out(self.body(F.relu(h)))
+
+
+class TextureField(nn.Module):
+    """Colour of the texture with code z and seed at any points.
+
+    points float64 [B,P,3] (only the first ``dims`` coordinates are used),
+    z float32 [B,code_size], seed int64 [] or [B]  ->  rgb float32 [B,P,3], linear 0..1
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        flags = cfg.flags
+        k, d = cfg.n_octaves, cfg.dims
+        self.translator = Translator(cfg)
+        n_noise = k * 3 * (2 if cfg.nearest_input else 1) if flags.noise else 0
+        self.decoder = (
+            Decoder(n_noise, d if flags.position else 0, cfg.extended_size, cfg.hidden, cfg.n_hidden_layers)
+            if flags.decoder
+            else None
+        )
+        # Octave k has 2^k cells per world unit (a cell of octave 0 = pixels_per_unit pixels).
+        frequencies = torch.tensor([2.0**i for i in range(k)], dtype=torch.float64)
+        rotations = _fixed_rotations(k, d) if cfg.octave_rotations else torch.eye(d, dtype=torch.float64).repeat(k, 1, 1)
+        self.register_buffer("octave_basis", rotations * frequencies[:, None, None], persistent=True)
+
+    def lattice_points(self, points: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+        """points float64 [B,P,D], transforms [B,K,D,D] -> float64 [B,P,K,D] (one matmul)."""
+        b, p, d = points.shape
+        k = self.cfg.n_octaves
+        mats = self.octave_basis.unsqueeze(0)  # [1,K,D,D]
+        if self.cfg.flags.transforms:
+            mats = torch.matmul(transforms.to(torch.float64), mats)  # T_k (R_k 2^k)
+        else:
+            mats = mats.expand(b, k, d, d)
+        # p[b,n,k,i] = sum_j M[b,k,i,j] x[b,n,j]  ->  x [B,P,D] @ M' [B,D,K*D]
+        stacked = mats.permute(0, 3, 1, 2).reshape(mats.shape[0], d, k * d)
+        return torch.matmul(points, stacked).reshape(b, p, k, d)
+
+    def forward(self, points: torch.Tensor, z: torch.Tensor, seed: torch.Tensor) -> torch.Tensor:
+        cfg, flags = self.cfg, self.cfg.flags
+        points = points[..., : cfg.dims]
+        extended, transforms, mix = self.translator(z)
+        b, p = points.shape[0], points.shape[1]
+
+        noise = None
+        if flags.noise:
+            seeds = octave_seeds(seed, cfg.n_octaves)  # [K] or [B,K]
+            if seeds.dim() == 2:
+                seeds = seeds.unsqueeze(1)  # [B,1,K]
+            nearest, interpolated = noise_features(self.lattice_points(points, transforms), seeds, cfg.smooth)
+            noise = interpolated  # [B,P,K,3]
+
+        if self.decoder is None:  # perlin / perlinT: octaves mixed by RGB weights, plus a bias
+            logits = mix[:, :1, :] + ((noise - 0.5) * mix[:, 1:, :].unsqueeze(1)).sum(dim=2)
+        else:
+            features = None
+            if flags.noise:
+                parts = [nearest, interpolated] if cfg.nearest_input else [interpolated]
+                features = torch.cat(parts, dim=-1).reshape(b, p, -1)
+            position = points.to(torch.float32) if flags.position else None
+            logits = self.decoder(features, position, extended)
+        return torch.sigmoid(2.0 * logits)  # = (tanh + 1) / 2, the authors' output range
+
+
+class TextureSpace(nn.Module):
+    """Encoder + field: the whole learned texture space."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = Encoder(cfg.code_size, cfg.encoder_width)
+        self.field = TextureField(cfg)
+
+    def encode(self, image: torch.Tensor) -> torch.Tensor:
+        return self.encoder(image)
+
+    def sample(self, points: torch.Tensor, z: torch.Tensor, seed) -> torch.Tensor:
+        seed = torch.as_tensor(seed, dtype=torch.int64)
+        return self.field(points, z, seed)
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+def load_checkpoint(path, map_location="cpu") -> tuple[TextureSpace, dict]:
+    """Rebuild a model from a checkpoint file alone: {'config', 'model', 'step', ...}."""
+    ckpt = torch.load(path, map_location=map_location, weights_only=False)
+    model = TextureSpace(ModelConfig(**ckpt["config"]))
+    model.load_state_dict(ckpt["model"])
+    model.eval()
+    return model, ckpt
+
