@@ -46,8 +46,9 @@ class Settings(BaseSettings):
     # --- models ----------------------------------------------------------------------
     model_dirs: Annotated[list[Path], NoDecode] = Field(
         default_factory=lambda: [PACKAGED_MODEL_DIR],
-        description="model export folders, separated by the OS path separator; the first is the default",
+        description="model export folders (or folders of them), separated by the OS path separator",
     )
+    default_model_version: str | None = Field(None, description="new uploads use this model; default: newest export")
 
     # --- limits (checked while streaming uploads and before queueing work) -----------
     max_upload_bytes: int = Field(64 * 2**20, ge=1024)

@@ -1,7 +1,8 @@
 // Interpolation panel: two texture pickers and a slider. Moving the slider creates the
 // blended texture through POST /v1/textures/interpolate (debounced, cached per a/b/t) and
 // shows it on the map; the strip shows a -> b at a few t values.
-import { interpolate, tileUrl, apiUrl } from './api.js';
+import { interpolate, tileUrl, apiUrl, tileJson } from './api.js';
+import { nativeZoomOf } from './map.js';
 
 const STRIP_STEPS = [0, 0.25, 0.5, 0.75, 1];
 const DEBOUNCE_MS = 350;
@@ -17,7 +18,12 @@ export class InterpolationPanel {
       output.value = Number(slider.value).toFixed(2);
       this._debounced();
     });
-    for (const select of [selectA, selectB]) select.addEventListener('change', () => this.refresh());
+    // The strip creates blended textures on the server, so it is drawn only once the
+    // user works with this panel, not on every page load.
+    this.active = false;
+    for (const select of [selectA, selectB]) {
+      select.addEventListener('change', () => { this.active = true; this.refresh(); });
+    }
     showButton.addEventListener('click', () => this.showBlend());
   }
 
@@ -52,6 +58,7 @@ export class InterpolationPanel {
 
   async showBlend() {
     if (!this._ready()) return;
+    if (!this.active) { this.active = true; this.refresh(); }
     try {
       const texture = await this._blend(Number(this.slider.value));
       this.onBlend(texture);
@@ -62,7 +69,7 @@ export class InterpolationPanel {
 
   /** Redraw the a -> b strip for the current pair and seed. */
   async refresh() {
-    if (!this._ready()) return;
+    if (!this._ready() || !this.active) return;
     const { seed } = this.getParams();
     const [a, b] = [this.selectA.value, this.selectB.value];
     if (this.stripPath) {
@@ -80,7 +87,10 @@ export class InterpolationPanel {
       img.alt = `Blend at t = ${t}`;
       figure.append(img, Object.assign(document.createElement('figcaption'), { textContent: `t = ${t}` }));
       this._blend(t)
-        .then((texture) => { img.src = tileUrl(texture.id, this.getParams().nativeZoom, 0, 0, { ...this.getParams(), size: 128 }); })
+        .then(async (texture) => {
+          const zoom = nativeZoomOf(await tileJson(texture.id));
+          img.src = tileUrl(texture.id, zoom, 0, 0, { ...this.getParams(), size: 128 });
+        })
         .catch((error) => this.onError(error));
       return figure;
     });

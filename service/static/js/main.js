@@ -147,7 +147,7 @@ const interpolation = new InterpolationPanel({
   output: $('interp-t-value'),
   showButton: $('interp-show'),
   strip: $('strip'),
-  getParams: () => ({ ...tileParams(), nativeZoom: textureMap.nativeZoom }),
+  getParams: tileParams,
   onBlend: (texture) => {
     say(`Showing blend ${texture.name || texture.id}.`);
     showTexture(texture);

@@ -49,6 +49,8 @@ export class TextureMap {
     this.nativeZoom = nativeZoomOf(tj);
     const minZoom = Number.isInteger(tj.minzoom) ? tj.minzoom : this.nativeZoom - 4;
     const maxZoom = Number.isInteger(tj.maxzoom) ? tj.maxzoom : this.nativeZoom + 2;
+    // Jump to native zoom before any tile layer exists, so no out-of-range tiles are asked for.
+    if (firstTime) this.map.setView([0, 0], this.nativeZoom, { animate: false });
     this.map.setMinZoom(minZoom);
     // Allow two extra zoom levels past the finest tiles: Leaflet upscales them.
     this.map.setMaxZoom(maxZoom + 2);
@@ -65,7 +67,6 @@ export class TextureMap {
     });
     this.layer.on('tileload', () => { this.tilesLoaded += 1; });
     this.layer.addTo(this.map);
-    if (firstTime) this.map.setView([0, 0], this.nativeZoom, { animate: false });
     this.onZoom(this.map.getZoom(), this.nativeZoom);
   }
 

@@ -1,0 +1,108 @@
+"""The long-lived things every process needs, built once from the settings.
+
+:class:`Services` holds the database engine and session factory, storage, the huey
+queue and the model registry (loaded lazily so the API starts and answers ``/readyz``
+honestly even while a model export is missing).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from sqlalchemy import Engine, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from . import db
+from .metrics import Metrics
+from .queue import make_huey
+from .settings import Settings
+from .storage import Storage, make_storage
+from .tables import ModelVersion, Texture
+from .tilecache import TileCache
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Services:
+    settings: Settings
+    engine: Engine
+    sessions: sessionmaker[Session]
+    storage: Storage
+    huey: object
+    run_job: object = None  # huey task wrapper: run_job(job_id) enqueues
+    metrics: Metrics = field(default_factory=Metrics)
+    tile_cache: TileCache | None = None
+    worker_id: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
+    _registry: object | None = None
+    _registry_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @property
+    def registry(self):  # -> worker.runtime.ModelRegistry
+        """The model registry, loaded on first use (raises ModelNotFound if no export exists)."""
+        if self._registry is None:
+            with self._registry_lock:
+                if self._registry is None:
+                    from worker.runtime import ModelRegistry
+
+                    registry = ModelRegistry(self.settings.model_dirs,
+                                             default=self.settings.default_model_version)
+                    self._record_models(registry)
+                    self._registry = registry
+        return self._registry
+
+    def _record_models(self, registry) -> None:  # noqa: ANN001
+        """Remember every loaded model version in the ``models`` table."""
+        with db.session_scope(self.sessions) as session:
+            known = set(session.scalars(select(ModelVersion.version)))
+            for version, runtime in registry.models.items():
+                if version not in known:
+                    session.add(ModelVersion(version=version, variant=str(runtime.manifest["variant"]),
+                                             manifest=runtime.manifest))
+
+    def sampler_for(self, texture: Texture):  # -> worker.runtime.Sampler
+        """The sampler that renders ``texture``: its own fitted one, or its model's."""
+        if texture.sampler_key:
+            cached = self.cache_dir / "samplers" / f"{texture.id}.onnx"
+            if not cached.is_file():
+                self.storage.get_file(texture.sampler_key, cached)
+            return self.registry.fitted_sampler(cached)
+        return self.registry.get(texture.model_version)
+
+    def pixels_per_unit(self, texture: Texture) -> float:
+        """World scale of the texture's model (fitted samplers share their parent's)."""
+        return self.registry.get(texture.model_version).pixels_per_unit
+
+    @property
+    def cache_dir(self) -> Path:
+        path = (self.settings.data_dir / "cache").resolve()
+        path.mkdir(parents=True, exist_ok=True)
+        return path
+
+    @property
+    def work_dir(self) -> Path:
+        """Scratch space for jobs (inputs downloaded, outputs before upload)."""
+        path = (self.settings.data_dir / "work").resolve()
+        path.mkdir(parents=True, exist_ok=True)
+        return path
+
+
+def build_services(settings: Settings, *, immediate: bool = False, migrate: bool = True) -> Services:
+    """Create every shared resource; ``immediate`` runs queued tasks in-process (tests)."""
+    settings.ensure_dirs()
+    url = settings.resolved_database_url
+    if migrate:
+        db.migrate(url)
+    engine = db.make_engine(url)
+    services = Services(settings=settings, engine=engine, sessions=db.make_sessionmaker(engine),
+                        storage=make_storage(settings), huey=None,
+                        tile_cache=TileCache(settings.tile_cache_bytes))
+    services.huey = make_huey(settings, immediate=immediate)
+    from .runner import register_tasks
+
+    services.run_job = register_tasks(services.huey, services)
+    return services

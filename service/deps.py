@@ -1,0 +1,96 @@
+"""FastAPI dependencies: the shared services, typed parameter groups, pagination."""
+from __future__ import annotations
+
+import base64
+import datetime as dt
+import json
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+from fastapi import Depends, Header, Query, Request
+from sqlalchemy import Select, and_, or_
+
+from worker.tiles import MAX_TILE_SIZE, MAX_ZOOM, MIN_TILE_SIZE, MIN_ZOOM
+
+from .context import Services
+from .errors import Problem
+
+Plane = Literal["xy", "xz", "yz"]
+TileFormat = Literal["png", "webp", "exr"]
+COORD_LIMIT = 2**36  # |x|, |y| of tiles: beyond, float64 raster positions lose exactness
+
+
+def get_services(request: Request) -> Services:
+    return request.app.state.services
+
+
+ServicesDep = Annotated[Services, Depends(get_services)]
+
+
+@dataclass
+class TileParams:
+    """Where and how to render one tile (DESIGN.md Contract 2)."""
+
+    seed: Annotated[int, Query(ge=0, le=2**31 - 1, description="texture instance")] = 0
+    size: Annotated[int, Query(ge=MIN_TILE_SIZE, le=MAX_TILE_SIZE, description="tile side in pixels")] = 256
+    plane: Annotated[Plane, Query(description="which world plane the tile lies in")] = "xy"
+    offset: Annotated[float, Query(ge=-1e9, le=1e9, description="plane position on the third axis (world units)")] = 0.0
+
+
+@dataclass
+class TileAddress:
+    z: int
+    x: int
+    y: int
+
+
+def tile_address(
+    z: int,
+    x: int,
+    y: int,
+) -> TileAddress:
+    """Path parameters checked against the zoom range and coordinate limit."""
+    if not MIN_ZOOM <= z <= MAX_ZOOM:
+        raise Problem(422, f"zoom z={z} outside [{MIN_ZOOM}, {MAX_ZOOM}]", slug="validation-error")
+    if abs(x) > COORD_LIMIT or abs(y) > COORD_LIMIT:
+        raise Problem(422, f"tile x and y must lie within +-{COORD_LIMIT}", slug="validation-error")
+    return TileAddress(z, x, y)
+
+
+def idempotency_key(
+    key: Annotated[str | None, Header(alias="Idempotency-Key", max_length=200,
+                                      description="repeat a submission safely: the same key returns the same job")] = None,
+) -> str | None:
+    return key
+
+
+@dataclass
+class PageParams:
+    limit: Annotated[int, Query(ge=1, le=200, description="items per page")] = 50
+    cursor: Annotated[str | None, Query(max_length=200, description="next_cursor of the previous page")] = None
+
+
+def encode_cursor(created_at: dt.datetime, ident: str) -> str:
+    return base64.urlsafe_b64encode(json.dumps([created_at.isoformat(), ident]).encode()).decode().rstrip("=")
+
+
+def apply_cursor(query: Select, table, page: PageParams) -> Select:  # noqa: ANN001
+    """Newest first; a cursor resumes after the last item of the previous page."""
+    query = query.order_by(table.created_at.desc(), table.id.desc()).limit(page.limit + 1)
+    if not page.cursor:
+        return query
+    try:
+        padded = page.cursor + "=" * (-len(page.cursor) % 4)
+        stamp, ident = json.loads(base64.urlsafe_b64decode(padded))
+        created = dt.datetime.fromisoformat(stamp)
+    except (ValueError, TypeError) as exc:
+        raise Problem(422, "invalid cursor", slug="validation-error") from exc
+    return query.where(or_(table.created_at < created, and_(table.created_at == created, table.id < ident)))
+
+
+def page_of(rows: list, page: PageParams) -> tuple[list, str | None]:
+    """Split the limit+1 rows fetched into this page and the next cursor."""
+    if len(rows) > page.limit:
+        rows = rows[:page.limit]
+        return rows, encode_cursor(rows[-1].created_at, rows[-1].id)
+    return rows, None

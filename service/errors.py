@@ -1,0 +1,128 @@
+"""The one table from domain errors to RFC 9457 ``application/problem+json`` responses.
+
+``worker/`` and ``model/`` raise plain exceptions (``worker/errors.py``); routes raise
+:class:`Problem` for HTTP-level cases (not found, conflict). Everything leaves the API
+as a problem document with a useful ``detail``.
+"""
+from __future__ import annotations
+
+import logging
+from http import HTTPStatus
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from worker import errors as domain
+
+log = logging.getLogger(__name__)
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+TYPE_PREFIX = "urn:texspace:problem:"
+
+#: domain exception class -> (HTTP status, problem type slug, title)
+ERROR_TABLE: dict[type[Exception], tuple[int, str, str]] = {
+    domain.InvalidImage: (422, "invalid-image", "The image cannot be used"),
+    domain.InvalidMesh: (422, "invalid-mesh", "The mesh cannot be used"),
+    domain.InvalidParameter: (422, "invalid-parameter", "A parameter is out of range"),
+    domain.LimitExceeded: (413, "limit-exceeded", "A size limit was exceeded"),
+    domain.AtlasFailed: (422, "atlas-failed", "The mesh could not be UV-unwrapped"),
+    domain.Canceled: (409, "canceled", "The job was canceled"),
+    domain.ModelNotFound: (503, "model-unavailable", "The texture's model is not loaded"),
+    domain.ModelInvalid: (500, "model-invalid", "A model export is broken"),
+    domain.FeatureUnavailable: (501, "feature-unavailable", "This feature is not installed"),
+    domain.TexspaceError: (400, "bad-request", "The request cannot be processed"),
+}
+
+
+class Problem(Exception):
+    """An HTTP-level problem raised by routes (not found, conflict, ...)."""
+
+    def __init__(self, status: int, detail: str, *, slug: str | None = None,
+                 title: str | None = None, headers: dict[str, str] | None = None,
+                 **extra: Any) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+        self.slug = slug or HTTPStatus(status).phrase.lower().replace(" ", "-")
+        self.title = title or HTTPStatus(status).phrase
+        self.headers = headers
+        self.extra = extra
+
+    def to_dict(self, instance: str | None = None) -> dict[str, Any]:
+        body = {"type": TYPE_PREFIX + self.slug, "title": self.title, "status": self.status,
+                "detail": self.detail}
+        if instance:
+            body["instance"] = instance
+        body.update(self.extra)
+        return body
+
+
+def not_found(what: str, ident: str) -> Problem:
+    return Problem(404, f"{what} {ident!r} does not exist", slug="not-found")
+
+
+def problem_for(exc: BaseException) -> Problem:
+    """The problem a domain (or unexpected) exception stands for."""
+    if isinstance(exc, Problem):
+        return exc
+    for cls in type(exc).__mro__:
+        if cls in ERROR_TABLE:
+            status, slug, title = ERROR_TABLE[cls]
+            return Problem(status, getattr(exc, "detail", str(exc)), slug=slug, title=title)
+    return Problem(500, "internal error; the request id in the logs tells more", slug="internal-error")
+
+
+def problem_response(problem: Problem, request: Request | None = None) -> JSONResponse:
+    instance = str(request.url.path) if request is not None else None
+    return JSONResponse(problem.to_dict(instance), status_code=problem.status,
+                        media_type=PROBLEM_MEDIA_TYPE, headers=problem.headers)
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Make every error leave the app as problem+json."""
+
+    @app.exception_handler(Problem)
+    async def _problem(request: Request, exc: Problem) -> JSONResponse:
+        return problem_response(exc, request)
+
+    @app.exception_handler(domain.TexspaceError)
+    async def _domain(request: Request, exc: domain.TexspaceError) -> JSONResponse:
+        return problem_response(problem_for(exc), request)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""), "type": e.get("type", "")}
+                  for e in exc.errors()]
+        detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors) or "invalid request"
+        return problem_response(Problem(422, detail, slug="validation-error",
+                                        title="Request validation failed", errors=errors), request)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        detail = exc.detail if isinstance(exc.detail, str) else HTTPStatus(exc.status_code).phrase
+        return problem_response(Problem(exc.status_code, detail, headers=getattr(exc, "headers", None)),
+                                request)
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        return problem_response(problem_for(exc), request)
+
+
+class ProblemDetails(BaseModel):
+    """RFC 9457 problem document."""
+
+    type: str = Field(description="URI naming the kind of problem")
+    title: str
+    status: int
+    detail: str = Field(description="what went wrong, for a person")
+    instance: str | None = None
+
+
+def problem_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses=`` entries for problem documents (media type fixed in main)."""
+    return {code: {"description": HTTPStatus(code).phrase, "model": ProblemDetails} for code in codes}

@@ -1,0 +1,159 @@
+"""What each job kind does: fetch inputs from storage, call worker/, store the result.
+
+Each handler takes (services, job, workdir, progress, should_cancel) and returns the
+job-row values to record on success. Results go to ``jobs/<job id>/result/<file>``, so a
+re-run overwrites the same key with the same content (idempotent outputs).
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
+
+from .context import Services
+from .db import session_scope
+from .tables import Job, Texture
+
+Progress = Callable[[float], None]
+ShouldCancel = Callable[[], bool]
+
+MEDIA_TYPES = {
+    "npy": "application/x-npy", "exr": "image/x-exr", "tiff": "image/tiff", "raw": "application/zip",
+    "glb": "model/gltf-binary", "obj": "application/zip", "png": "image/png", "webp": "image/webp",
+    "onnx": "application/octet-stream", "zip": "application/zip",
+}
+
+
+def result_key(job_id: str, filename: str) -> str:
+    return f"jobs/{job_id}/result/{filename}"
+
+
+def _texture(services: Services, job: Job) -> Texture:
+    with session_scope(services.sessions) as session:
+        texture = session.get(Texture, job.texture_id)
+    if texture is None:
+        raise InvalidParameter(f"texture {job.texture_id} was deleted before the job ran")
+    return texture
+
+
+def _store_result(services: Services, job: Job, path: Path, fmt: str) -> dict[str, Any]:
+    filename = path.name
+    key = result_key(job.id, filename)
+    size = services.storage.put_file(key, path)
+    return {"result_key": key, "result_filename": filename, "result_size": size,
+            "result_media_type": MEDIA_TYPES.get(fmt, "application/octet-stream")}
+
+
+def _returned_path(returned: Any, fallback: Path) -> Path:
+    """Worker functions may return the path they wrote (or a dict/obj with one)."""
+    if isinstance(returned, (str, Path)) and Path(returned).is_file():
+        return Path(returned)
+    return fallback
+
+
+def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
+               should_cancel: ShouldCancel) -> dict[str, Any]:
+    from worker.volumes import render_volume
+
+    texture = _texture(services, job)
+    params = job.params
+    out_path = workdir / f"volume-{texture.id[:8]}-{params['resolution']}.{params['format']}"
+    returned = render_volume(services.sampler_for(texture), np.asarray(texture.code, np.float32),
+                             int(params["seed"]), resolution=int(params["resolution"]),
+                             bounds=params["bounds"], fmt=params["format"], out_path=out_path,
+                             progress=progress, should_cancel=should_cancel)
+    return _store_result(services, job, _returned_path(returned, out_path), params["format"])
+
+
+def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
+             should_cancel: ShouldCancel) -> dict[str, Any]:
+    from worker.bake import bake_mesh
+
+    texture = _texture(services, job)
+    params = job.params
+    mesh_bytes = services.storage.get_bytes(job.input_key)
+    stem = Path(params.get("filename") or "mesh").stem or "mesh"
+    ext = "glb" if params["format"] == "glb" else "zip"
+    out_path = workdir / f"{stem}-baked.{ext}"
+    limits = {"max_faces": services.settings.max_mesh_faces,
+              "max_resolution": services.settings.max_bake_resolution}
+    returned = bake_mesh(services.sampler_for(texture), np.asarray(texture.code, np.float32),
+                         int(params["seed"]), mesh_bytes=mesh_bytes, filename=params.get("filename") or "mesh.obj",
+                         resolution=int(params["resolution"]), scale=float(params["scale"]),
+                         fmt=params["format"], out_path=out_path, limits=limits,
+                         progress=progress, should_cancel=should_cancel)
+    return _store_result(services, job, _returned_path(returned, out_path), ext)
+
+
+def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
+               should_cancel: ShouldCancel) -> dict[str, Any]:
+    from worker.regions import render_region
+
+    texture = _texture(services, job)
+    params = dict(job.params)
+    fmt = params.pop("format")
+    seed = int(params.pop("seed"))
+    out_path = workdir / f"region-{texture.id[:8]}.{fmt}"
+    returned = render_region(services.sampler_for(texture), np.asarray(texture.code, np.float32), seed,
+                             fmt=fmt, out_path=out_path, progress=progress, should_cancel=should_cancel,
+                             **params)
+    return _store_result(services, job, _returned_path(returned, out_path), fmt)
+
+
+def fitted_texture_id(job_id: str) -> str:
+    """Deterministic id of a fit job's new texture, so a re-run cannot make two."""
+    return hashlib.sha256(f"fit:{job_id}".encode()).hexdigest()[:32]
+
+
+def torch_available() -> bool:
+    return importlib.util.find_spec("torch") is not None
+
+
+def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
+            should_cancel: ShouldCancel) -> dict[str, Any]:
+    if not torch_available():
+        raise FeatureUnavailable("fitting needs PyTorch on the worker: pip install 'texspace[train]'")
+    from model.fit import fit_exemplar  # torch lives in model/, imported only here
+
+    texture = _texture(services, job)
+    if not texture.exemplar_key:
+        raise InvalidParameter(f"texture {texture.id} has no exemplar image to fit")
+    image_path = services.storage.get_file(texture.exemplar_key, workdir / "exemplar.bin")
+    out_dir = workdir / "fit"
+
+    def report(fraction: float) -> None:  # fit has no cancel hook: stop at a progress report
+        progress(fraction)
+        if should_cancel():
+            raise Canceled("fit canceled")
+
+    fit_exemplar(image_path, out_dir, init_model_dir=services.registry.get(texture.model_version).model_dir,
+                 seconds=float(job.params["seconds"]), progress=report)
+    code = json.loads((out_dir / "code.json").read_text())
+    code = code["code"] if isinstance(code, dict) else code
+    new_id = fitted_texture_id(job.id)
+    sampler_key = f"textures/{new_id}/sampler.onnx"
+    values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
+    services.storage.put_file(sampler_key, out_dir / "sampler.onnx")
+    exemplar_key = f"textures/{new_id}/{Path(texture.exemplar_key).name}"  # own copy: outlives the parent
+    services.storage.put_file(exemplar_key, image_path)
+    with session_scope(services.sessions) as session:
+        if session.get(Texture, new_id) is None:
+            session.add(Texture(id=new_id, name=f"{texture.name or texture.id} (fitted)",
+                                code=[float(c) for c in code], model_version=texture.model_version,
+                                source="fit", parents={"texture": texture.id, "job": job.id},
+                                exemplar_key=exemplar_key,
+                                exemplar_media_type=texture.exemplar_media_type,
+                                width=texture.width, height=texture.height, sampler_key=sampler_key))
+    return {**values, "output_texture_id": new_id}
+
+
+KINDS: dict[str, Callable[..., dict[str, Any]]] = {
+    "volume": run_volume, "bake": run_bake, "region": run_region, "fit": run_fit,
+}

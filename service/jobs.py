@@ -1,0 +1,186 @@
+"""Job lifecycle on the job table (DESIGN.md Contract 3): submit, claim, lease, finish,
+cancel, reap. Every state change is a conditional UPDATE, so racing API processes,
+workers and reapers can never move a job twice.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+from sqlalchemy import and_, select, update
+from sqlalchemy.exc import IntegrityError
+
+from .context import Services
+from .db import session_scope
+from .errors import Problem
+from .tables import TERMINAL_STATES, Job, new_id, utcnow
+
+log = logging.getLogger(__name__)
+
+
+def request_hash(kind: str, texture_id: str | None, params: dict[str, Any], extra: bytes = b"") -> str:
+    """Fingerprint of a submission, to tell an idempotent retry from a different request."""
+    blob = json.dumps([kind, texture_id, params], sort_keys=True).encode() + extra
+    return hashlib.sha256(blob).hexdigest()
+
+
+def submit(services: Services, *, kind: str, texture_id: str | None, params: dict[str, Any],
+           input_key: str | None = None, idempotency_key: str | None = None,
+           fingerprint: str | None = None, job_id: str | None = None) -> tuple[Job, bool]:
+    """Create a queued job and send its id to the queue; return (job, created).
+
+    With an ``idempotency_key`` already used, return that earlier job (created=False);
+    a different request under the same key is a 422 problem.
+    """
+    fingerprint = fingerprint or request_hash(kind, texture_id, params)
+    if idempotency_key:
+        existing = find_by_idempotency_key(services, idempotency_key)
+        if existing is not None:
+            return _same_request(existing, fingerprint), False
+    job = Job(id=job_id or new_id(), kind=kind, texture_id=texture_id, params=params, input_key=input_key,
+              state="queued", attempt=0, max_attempts=services.settings.max_attempts, progress=0.0,
+              cancel_requested=False, idempotency_key=idempotency_key, request_hash=fingerprint)
+    try:
+        with session_scope(services.sessions) as session:
+            session.add(job)
+    except IntegrityError:  # a concurrent request with the same key won the insert
+        existing = find_by_idempotency_key(services, idempotency_key or "")
+        if existing is None:
+            raise
+        return _same_request(existing, fingerprint), False
+    enqueue(services, job.id)
+    return get(services, job.id), True
+
+
+def _same_request(job: Job, fingerprint: str) -> Job:
+    if job.request_hash and job.request_hash != fingerprint:
+        raise Problem(422, "this Idempotency-Key was already used for a different request",
+                      slug="idempotency-key-reused")
+    return job
+
+
+def find_by_idempotency_key(services: Services, key: str) -> Job | None:
+    with session_scope(services.sessions) as session:
+        return session.scalars(select(Job).where(Job.idempotency_key == key)).first()
+
+
+def get(services: Services, job_id: str) -> Job | None:
+    with session_scope(services.sessions) as session:
+        return session.get(Job, job_id)
+
+
+def enqueue(services: Services, job_id: str) -> None:
+    """Send the job id to the queue (the row must be committed first)."""
+    with session_scope(services.sessions) as session:
+        session.execute(update(Job).where(Job.id == job_id).values(enqueued_at=utcnow()))
+    services.run_job(job_id)
+
+
+@dataclass
+class Claim:
+    """A running attempt of a job held by this worker."""
+
+    job: Job
+    attempt: int
+
+
+def claim(services: Services, job_id: str) -> Claim | None:
+    """Move a queued job to running under a fresh lease; None if it is not ours to run."""
+    now = utcnow()
+    lease = now + dt.timedelta(seconds=services.settings.lease_seconds)
+    with session_scope(services.sessions) as session:
+        job = session.get(Job, job_id)
+        if job is None or job.state != "queued":
+            return None
+        attempt = job.attempt + 1
+        moved = session.execute(
+            update(Job).where(Job.id == job_id, Job.state == "queued", Job.attempt == job.attempt)
+            .values(state="running", attempt=attempt, worker_id=services.worker_id, heartbeat_at=now,
+                    lease_expires_at=lease, started_at=job.started_at or now, progress=0.0, error=None)
+        ).rowcount
+    if moved != 1:
+        return None
+    return Claim(job=get(services, job_id), attempt=attempt)
+
+
+def _mine(claim_: Claim):  # noqa: ANN202
+    return and_(Job.id == claim_.job.id, Job.state == "running", Job.attempt == claim_.attempt)
+
+
+def heartbeat(services: Services, claim_: Claim, progress: float) -> tuple[bool, bool]:
+    """Extend the lease and record progress; return (still ours, cancel requested)."""
+    now = utcnow()
+    lease = now + dt.timedelta(seconds=services.settings.lease_seconds)
+    with session_scope(services.sessions) as session:
+        moved = session.execute(update(Job).where(_mine(claim_)).values(
+            heartbeat_at=now, lease_expires_at=lease, progress=progress)).rowcount
+        cancel = session.scalar(select(Job.cancel_requested).where(Job.id == claim_.job.id))
+    return moved == 1, bool(cancel)
+
+
+def finish(services: Services, claim_: Claim, state: str, **values: Any) -> bool:
+    """Record the end of our attempt (succeeded / failed / canceled / back to queued)."""
+    assert state in TERMINAL_STATES or state == "queued"
+    done = {"finished_at": utcnow()} if state in TERMINAL_STATES else {}
+    with session_scope(services.sessions) as session:
+        moved = session.execute(update(Job).where(_mine(claim_)).values(
+            state=state, lease_expires_at=None, **done, **values)).rowcount
+    return moved == 1
+
+
+def cancel(services: Services, job_id: str) -> Job:
+    """Cancel a job: a queued one at once, a running one by flag (seen between slabs)."""
+    with session_scope(services.sessions) as session:
+        job = session.get(Job, job_id)
+        if job is None:
+            raise Problem(404, f"job {job_id!r} does not exist", slug="not-found")
+        if job.state in TERMINAL_STATES:
+            raise Problem(409, f"job {job_id} is already {job.state}", slug="job-finished")
+        session.execute(update(Job).where(Job.id == job_id, Job.state == "queued").values(
+            state="canceled", cancel_requested=True, finished_at=utcnow(),
+            error={"type": "urn:texspace:problem:canceled", "title": "The job was canceled",
+                   "status": 409, "detail": "canceled while queued"}))
+        session.execute(update(Job).where(Job.id == job_id, Job.state == "running").values(
+            cancel_requested=True))
+    return get(services, job_id)
+
+
+def reap(services: Services) -> dict[str, int]:
+    """Re-queue running jobs whose lease expired (or fail them after max attempts), and
+    re-send queued jobs whose message may have been lost. Safe to run in many processes."""
+    now = utcnow()
+    counts = {"requeued": 0, "failed": 0, "resent": 0}
+    with session_scope(services.sessions) as session:
+        expired = session.scalars(select(Job).where(Job.state == "running",
+                                                    Job.lease_expires_at < now)).all()
+    for job in expired:
+        if job.cancel_requested or job.attempt >= job.max_attempts:
+            state = "canceled" if job.cancel_requested else "failed"
+            error = {"type": "urn:texspace:problem:lease-expired", "title": "The worker stopped",
+                     "status": 500, "detail": f"worker lost the job {job.attempt} time(s) "
+                                              f"(lease expired); giving up after {job.max_attempts}"}
+            values = {"state": state, "finished_at": now, "error": error, "lease_expires_at": None}
+        else:
+            values = {"state": "queued", "lease_expires_at": None, "worker_id": None}
+        with session_scope(services.sessions) as session:
+            moved = session.execute(update(Job).where(
+                Job.id == job.id, Job.state == "running", Job.attempt == job.attempt,
+                Job.lease_expires_at < now).values(**values)).rowcount
+        if moved == 1:
+            if values["state"] == "queued":
+                counts["requeued"] += 1
+                log.warning("lease expired, re-queued", extra={"job_id": job.id})
+                enqueue(services, job.id)
+            else:
+                counts["failed"] += 1
+    stale = now - dt.timedelta(seconds=services.settings.requeue_after_seconds)
+    with session_scope(services.sessions) as session:
+        lost = session.scalars(select(Job.id).where(Job.state == "queued", Job.enqueued_at < stale)).all()
+    for job_id in lost:
+        counts["resent"] += 1
+        enqueue(services, job_id)  # a duplicate message is harmless: claim() is conditional
+    return counts

@@ -1,0 +1,63 @@
+"""Structured logs: one JSON object per line, carrying the request id and job id.
+
+The ids live in context variables set by the request middleware and the job runner,
+so every log call below them is tagged without passing ids around.
+"""
+from __future__ import annotations
+
+import contextvars
+import datetime as dt
+import json
+import logging
+import sys
+
+request_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar("request_id", default=None)
+job_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar("job_id", default=None)
+
+# attributes every LogRecord has; anything else was passed with extra= and is logged
+_STANDARD = set(vars(logging.LogRecord("", 0, "", 0, "", (), None))) | {"message", "asctime", "taskName"}
+
+
+class JsonFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        entry = {
+            "time": dt.datetime.fromtimestamp(record.created, dt.timezone.utc).isoformat(timespec="milliseconds"),
+            "level": record.levelname,
+            "logger": record.name,
+            "message": record.getMessage(),
+        }
+        if (rid := request_id_var.get()) is not None:
+            entry["request_id"] = rid
+        if (jid := job_id_var.get()) is not None:
+            entry["job_id"] = jid
+        for key, value in vars(record).items():
+            if key not in _STANDARD and not key.startswith("_"):
+                entry[key] = value
+        if record.exc_info:
+            entry["exception"] = self.formatException(record.exc_info)
+        return json.dumps(entry, default=str)
+
+
+class ContextFormatter(logging.Formatter):
+    """Plain text for people at a terminal, still with the ids."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        ids = " ".join(f"{k}={v}" for k, v in (("req", request_id_var.get()), ("job", job_id_var.get())) if v)
+        base = super().format(record)
+        return f"{base} [{ids}]" if ids else base
+
+
+def setup_logging(level: str = "INFO", json_lines: bool = True) -> None:
+    """Send all logs (ours, uvicorn's, huey's) to stderr in one format."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JsonFormatter() if json_lines else
+                         ContextFormatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+    for name in ("uvicorn", "uvicorn.error", "uvicorn.access", "huey", "huey.consumer"):
+        logger = logging.getLogger(name)
+        logger.handlers[:] = []
+        logger.propagate = True
+    # our request middleware logs each request with its id; uvicorn's access log would repeat it
+    logging.getLogger("uvicorn.access").disabled = True

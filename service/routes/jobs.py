@@ -1,0 +1,203 @@
+"""Jobs: submit (volumes, bakes, fit, regions), list, read, cancel, result, events."""
+from __future__ import annotations
+
+import asyncio
+import json
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile, status
+from fastapi.responses import FileResponse, StreamingResponse
+from sqlalchemy import select
+from starlette.concurrency import run_in_threadpool
+
+from worker.errors import FeatureUnavailable, LimitExceeded
+
+from .. import jobs
+from ..db import session_scope
+from ..deps import PageParams, ServicesDep, apply_cursor, idempotency_key, page_of
+from ..errors import Problem, not_found, problem_responses
+from ..job_kinds import torch_available
+from ..schemas import FitIn, JobOut, JobPage, RegionIn, Seed, VolumeIn
+from ..tables import TERMINAL_STATES, Job, new_id
+from ..uploads import read_limited, safe_filename, sha256
+from .textures import load_texture
+
+router = APIRouter(tags=["jobs"])
+IdempotencyKey = Annotated[str | None, Depends(idempotency_key)]
+ACCEPTED = {"status_code": status.HTTP_202_ACCEPTED, "response_model": JobOut}
+
+
+def accepted(response: Response, job: Job, created: bool) -> JobOut:
+    response.headers["Location"] = f"/v1/jobs/{job.id}"
+    if not created:
+        response.headers["Idempotent-Replayed"] = "true"
+    return JobOut.of(job)
+
+
+def _submit(services, response: Response, kind: str, texture_id: str, params: dict,  # noqa: ANN001
+            key: str | None) -> JobOut:
+    load_texture(services, texture_id)
+    job, created = jobs.submit(services, kind=kind, texture_id=texture_id, params=params, idempotency_key=key)
+    return accepted(response, job, created)
+
+
+@router.post("/v1/textures/{texture_id}/volumes", **ACCEPTED, responses=problem_responses(404, 413, 422))
+def submit_volume(services: ServicesDep, response: Response, texture_id: str, body: VolumeIn,
+                  key: IdempotencyKey) -> JobOut:
+    """Render an N x N x N block of the solid texture (a job)."""
+    if body.resolution > services.settings.max_volume_resolution:
+        raise LimitExceeded(f"resolution {body.resolution} exceeds the limit of "
+                            f"{services.settings.max_volume_resolution}")
+    return _submit(services, response, "volume", texture_id, body.model_dump(), key)
+
+
+@router.post("/v1/textures/{texture_id}/bakes", **ACCEPTED, responses=problem_responses(404, 413, 422))
+def submit_bake(
+    services: ServicesDep,
+    response: Response,
+    texture_id: str,
+    key: IdempotencyKey,
+    mesh: Annotated[UploadFile, File(description="OBJ, PLY, STL, OFF, GLB or glTF mesh")],
+    resolution: Annotated[int, Form(ge=16, le=8192, description="texture atlas side in pixels")] = 1024,
+    seed: Annotated[int, Form(ge=0, le=2**31 - 1)] = 0,
+    scale: Annotated[float, Form(gt=0, le=1e6, description="world units per mesh unit")] = 1.0,
+    format: Annotated[Literal["glb", "obj"], Form(description="glb, or a zip of obj + mtl + png")] = "glb",
+) -> JobOut:
+    """UV-unwrap a mesh and bake the solid texture into its atlas (a job)."""
+    if resolution > services.settings.max_bake_resolution:
+        raise LimitExceeded(f"resolution {resolution} exceeds the limit of {services.settings.max_bake_resolution}")
+    load_texture(services, texture_id)
+    data = read_limited(mesh, services.settings.max_mesh_bytes, "the mesh")
+    filename = safe_filename(mesh.filename, "mesh.obj")
+    params = {"resolution": resolution, "seed": seed, "scale": scale, "format": format, "filename": filename}
+    fingerprint = jobs.request_hash("bake", texture_id, params, sha256(data).encode())
+    if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:
+        return accepted(response, jobs._same_request(existing, fingerprint), False)
+    job_id = new_id()
+    input_key = f"jobs/{job_id}/input/{filename}"
+    services.storage.put_bytes(input_key, data)
+    job, created = jobs.submit(services, kind="bake", texture_id=texture_id, params=params, input_key=input_key,
+                               idempotency_key=key, fingerprint=fingerprint, job_id=job_id)
+    if not created:
+        services.storage.delete_prefix(f"jobs/{job_id}")
+    return accepted(response, job, created)
+
+
+@router.post("/v1/textures/{texture_id}/fit", **ACCEPTED, responses=problem_responses(404, 413, 422, 501))
+def submit_fit(services: ServicesDep, response: Response, texture_id: str, key: IdempotencyKey,
+               body: FitIn | None = None) -> JobOut:
+    """Optimise a sampler for this one exemplar (needs the torch extra on the workers)."""
+    body = body or FitIn()
+    if not torch_available():
+        raise FeatureUnavailable("fitting needs PyTorch: install the train extra (pip install 'texspace[train]')")
+    if body.seconds > services.settings.max_fit_seconds:
+        raise LimitExceeded(f"seconds {body.seconds:g} exceeds the limit of {services.settings.max_fit_seconds:g}")
+    texture = load_texture(services, texture_id)
+    if not texture.exemplar_key:
+        raise Problem(409, "this texture has no exemplar image to fit", slug="no-exemplar")
+    return _submit(services, response, "fit", texture_id, body.model_dump(), key)
+
+
+@router.post("/v1/textures/{texture_id}/regions", **ACCEPTED, responses=problem_responses(404, 413, 422))
+def submit_region(services: ServicesDep, response: Response, texture_id: str, body: RegionIn,
+                  key: IdempotencyKey) -> JobOut:
+    """Render a large rectangle of the infinite plane to one image (a job)."""
+    if body.width * body.height > services.settings.max_image_pixels:
+        raise LimitExceeded(f"{body.width}x{body.height} exceeds the limit of "
+                            f"{services.settings.max_image_pixels} pixels")
+    return _submit(services, response, "region", texture_id, body.model_dump(), key)
+
+
+@router.get("/v1/jobs", response_model=JobPage, responses=problem_responses(422))
+def list_jobs(
+    services: ServicesDep,
+    page: Annotated[PageParams, Depends()],
+    state: Annotated[Literal["queued", "running", "succeeded", "failed", "canceled"] | None, Query()] = None,
+    texture_id: Annotated[str | None, Query(max_length=64)] = None,
+) -> JobPage:
+    query = select(Job)
+    if state:
+        query = query.where(Job.state == state)
+    if texture_id:
+        query = query.where(Job.texture_id == texture_id)
+    with session_scope(services.sessions) as session:
+        rows = list(session.scalars(apply_cursor(query, Job, page)))
+    rows, cursor = page_of(rows, page)
+    return JobPage(items=[JobOut.of(j) for j in rows], next_cursor=cursor)
+
+
+def load_job(services, job_id: str) -> Job:  # noqa: ANN001
+    job = jobs.get(services, job_id)
+    if job is None:
+        raise not_found("job", job_id)
+    return job
+
+
+@router.get("/v1/jobs/{job_id}", response_model=JobOut, responses=problem_responses(404))
+def get_job(services: ServicesDep, job_id: str) -> JobOut:
+    return JobOut.of(load_job(services, job_id))
+
+
+@router.post("/v1/jobs/{job_id}/cancel", **ACCEPTED, responses=problem_responses(404, 409))
+def cancel_job(services: ServicesDep, response: Response, job_id: str) -> JobOut:
+    """Cancel: a queued job at once; a running one stops at its next slab (poll the job)."""
+    job = jobs.cancel(services, job_id)
+    response.headers["Location"] = f"/v1/jobs/{job.id}"
+    return JobOut.of(job)
+
+
+@router.get("/v1/jobs/{job_id}/result",
+            responses={200: {"description": "the result file", "content": {"application/octet-stream": {}}},
+                       **problem_responses(404, 409)})
+def get_result(services: ServicesDep, job_id: str) -> Response:
+    job = load_job(services, job_id)
+    if job.state != "succeeded" or not job.result_key:
+        raise Problem(409, f"job {job_id} is {job.state}; the result exists once it has succeeded",
+                      slug="result-not-ready")
+    disposition = f'attachment; filename="{job.result_filename}"'
+    local = services.storage.local_path(job.result_key)
+    if local is not None:
+        return FileResponse(local, media_type=job.result_media_type, headers={"Content-Disposition": disposition})
+    size = services.storage.size(job.result_key)
+    return StreamingResponse(services.storage.iter_chunks(job.result_key), media_type=job.result_media_type,
+                             headers={"Content-Disposition": disposition, "Content-Length": str(size)})
+
+
+SSE_POLL_SECONDS = 0.25
+SSE_KEEPALIVE_SECONDS = 15.0
+
+
+@router.get("/v1/jobs/{job_id}/events",
+            responses={200: {"description": "server-sent events: `progress` while running, then one "
+                                            "final event named after the end state, with the job",
+                             "content": {"text/event-stream": {}}}, **problem_responses(404)})
+async def job_events(services: ServicesDep, request: Request, job_id: str) -> StreamingResponse:
+    await run_in_threadpool(load_job, services, job_id)
+
+    async def stream():  # noqa: ANN202
+        last, idle, event_id = None, 0.0, 0
+        while True:
+            job = await run_in_threadpool(jobs.get, services, job_id)
+            if job is None:
+                return
+            snapshot = (job.state, round(job.progress, 4), job.attempt)
+            if job.state in TERMINAL_STATES:
+                event_id += 1
+                yield f"id: {event_id}\nevent: {job.state}\ndata: {JobOut.of(job).model_dump_json()}\n\n"
+                return
+            if snapshot != last:
+                event_id += 1
+                idle = 0.0
+                data = json.dumps({"state": job.state, "progress": job.progress, "attempt": job.attempt})
+                yield f"id: {event_id}\nevent: progress\ndata: {data}\n\n"
+                last = snapshot
+            elif idle >= SSE_KEEPALIVE_SECONDS:
+                idle = 0.0
+                yield ": keep-alive\n\n"
+            if await request.is_disconnected():
+                return
+            await asyncio.sleep(SSE_POLL_SECONDS)
+            idle += SSE_POLL_SECONDS
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

@@ -1,0 +1,68 @@
+"""Tiles of the infinite plane (DESIGN.md Contract 2) and their TileJSON."""
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Header, Request, Response
+from starlette.concurrency import run_in_threadpool
+
+from worker.tiles import MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM
+
+from ..deps import ServicesDep, TileAddress, TileFormat, TileParams, tile_address
+from ..errors import problem_responses
+from ..schemas import TileJSON
+from ..tiles import CACHE_CONTROL, TILE_MEDIA_TYPES, etag_matches, render_tile_bytes, tile_etag
+from .textures import load_texture
+
+router = APIRouter(prefix="/v1/textures", tags=["tiles"])
+
+
+@router.get(
+    "/{texture_id}/tiles/{z}/{x}/{y}.{fmt}",
+    response_class=Response,
+    description=(f"Tile (z, x, y) of the texture's infinite plane; x and y may be negative. At zoom "
+                 f"{NATIVE_ZOOM} one tile pixel is one exemplar pixel; each zoom step doubles the pixels "
+                 f"per world unit (zoom {MIN_ZOOM}..{MAX_ZOOM}). Same URL, same bytes: strong ETag, "
+                 "immutable caching, 304 on If-None-Match."),
+    responses={200: {"description": "the tile image", "content": {m: {} for m in TILE_MEDIA_TYPES.values()}},
+               304: {"description": "unchanged (If-None-Match)"}, **problem_responses(404, 422, 503)},
+)
+async def get_tile(
+    services: ServicesDep,
+    texture_id: str,
+    fmt: TileFormat,
+    address: Annotated[TileAddress, Depends(tile_address)],
+    params: Annotated[TileParams, Depends()],
+    if_none_match: Annotated[str | None, Header()] = None,
+) -> Response:
+    texture = await run_in_threadpool(load_texture, services, texture_id)
+    key = dict(z=address.z, x=address.x, y=address.y, size=params.size, seed=params.seed,
+               plane=params.plane, offset=params.offset, fmt=fmt)
+    etag = tile_etag(texture, **key)
+    headers = {"ETag": etag, "Cache-Control": CACHE_CONTROL}
+    if etag_matches(if_none_match, etag):
+        services.metrics.tile_not_modified.inc()
+        return Response(status_code=304, headers=headers)
+    data = services.tile_cache.get(etag)
+    if data is None:
+        services.metrics.tile_cache_misses.inc()
+        data = await run_in_threadpool(render_tile_bytes, services, texture, **key)
+        services.tile_cache.put(etag, data)
+    else:
+        services.metrics.tile_cache_hits.inc()
+    return Response(content=data, media_type=TILE_MEDIA_TYPES[fmt], headers=headers)
+
+
+@router.get("/{texture_id}/tilejson.json", response_model=TileJSON, responses=problem_responses(404, 422))
+def get_tilejson(services: ServicesDep, request: Request, texture_id: str,
+                 params: Annotated[TileParams, Depends()]) -> TileJSON:
+    """TileJSON 3.0 for map viewers (Leaflet, OpenLayers, MapLibre) with a simple CRS."""
+    texture = load_texture(services, texture_id)
+    base = str(request.base_url).rstrip("/")
+    query = f"seed={params.seed}&size={params.size}"
+    if params.plane != "xy" or params.offset:
+        query += f"&plane={params.plane}&offset={params.offset:g}"
+    return TileJSON(name=texture.name or texture.id,
+                    tiles=[f"{base}/v1/textures/{texture.id}/tiles/{{z}}/{{x}}/{{y}}.png?{query}"],
+                    minzoom=MIN_ZOOM, maxzoom=MAX_ZOOM, tileSize=params.size,
+                    bounds=[-180.0, -85.0511287798066, 180.0, 85.0511287798066])

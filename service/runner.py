@@ -1,0 +1,126 @@
+"""Running one job attempt: claim, heartbeat thread, call the job kind, record the end.
+
+Retry policy: domain errors (bad mesh, limits, ...) are final, since a re-run would fail
+the same way; unexpected errors re-queue until ``max_attempts``; a worker killed
+outright is noticed by the reaper when its lease expires.
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+import time
+
+from worker.errors import Canceled, TexspaceError
+
+from . import jobs
+from .context import Services
+from .errors import problem_for
+from .logs import job_id_var
+
+log = logging.getLogger(__name__)
+TASK_NAME = "texspace.run_job"
+
+
+def register_tasks(huey, services: Services):  # noqa: ANN001, ANN201
+    """Register the one task (``run_job(job_id)``) on ``huey`` bound to ``services``.
+
+    Returns the task wrapper: calling it with a job id enqueues a message.
+    """
+
+    def run_job(job_id: str) -> None:
+        run_job_attempt(services, job_id)
+
+    return huey.task(name=TASK_NAME)(run_job)
+
+
+class Lease:
+    """Heartbeat thread for one attempt: extends the lease, saves progress, sees cancels."""
+
+    def __init__(self, services: Services, claim: jobs.Claim) -> None:
+        self.services = services
+        self.claim = claim
+        self.progress = 0.0
+        self.lost = threading.Event()
+        self.cancel = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name=f"lease-{claim.job.id[:8]}", daemon=True)
+
+    def __enter__(self) -> "Lease":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _loop(self) -> None:
+        token = job_id_var.set(self.claim.job.id)
+        try:
+            while not self._stop.wait(self.services.settings.heartbeat_seconds):
+                self.beat()
+        finally:
+            job_id_var.reset(token)
+
+    def beat(self) -> None:
+        try:
+            ours, cancel = jobs.heartbeat(self.services, self.claim, self.progress)
+        except Exception:  # a database hiccup must not kill the job; the lease has slack
+            log.exception("heartbeat failed")
+            return
+        if not ours:
+            log.warning("lease lost; stopping this attempt")
+            self.lost.set()
+        if cancel:
+            self.cancel.set()
+
+    def report(self, fraction: float) -> None:
+        self.progress = float(min(max(fraction, 0.0), 1.0))
+
+    def should_cancel(self) -> bool:
+        return self.cancel.is_set() or self.lost.is_set()
+
+
+def run_job_attempt(services: Services, job_id: str) -> str | None:
+    """Run one attempt of ``job_id`` if it is queued; return the state it ended in."""
+    from .job_kinds import KINDS
+
+    token = job_id_var.set(job_id)
+    try:
+        claim = jobs.claim(services, job_id)
+        if claim is None:
+            log.info("job not claimable (already running, finished or canceled); message dropped")
+            return None
+        log.info("job started", extra={"kind": claim.job.kind, "attempt": claim.attempt})
+        workdir = services.work_dir / f"{job_id}-{claim.attempt}"
+        workdir.mkdir(parents=True, exist_ok=True)
+        started = time.monotonic()
+        try:
+            with Lease(services, claim) as lease:
+                if claim.job.cancel_requested:
+                    raise Canceled("canceled before it started")
+                values = KINDS[claim.job.kind](services, claim.job, workdir, lease.report, lease.should_cancel)
+                if lease.lost.is_set():
+                    raise Canceled("lease lost")
+            state, values = "succeeded", {**values, "progress": 1.0}
+        except Canceled as exc:
+            state, values = "canceled", {"error": problem_for(exc).to_dict()}
+        except TexspaceError as exc:
+            state, values = "failed", {"error": problem_for(exc).to_dict()}
+        except Exception as exc:  # unexpected: retry while attempts remain
+            log.exception("job attempt crashed")
+            problem = problem_for(exc).to_dict()
+            problem["detail"] = f"{type(exc).__name__}: {exc}"
+            retry = claim.attempt < claim.job.max_attempts
+            state, values = ("queued" if retry else "failed"), {"error": problem}
+        finally:
+            shutil.rmtree(workdir, ignore_errors=True)
+        if jobs.finish(services, claim, state, **values):
+            log.info("job %s", state, extra={"seconds": round(time.monotonic() - started, 3)})
+            if state == "queued":
+                jobs.enqueue(services, job_id)
+        else:
+            log.warning("job ended as %s but its lease was taken over; result discarded", state)
+        return state
+    finally:
+        job_id_var.reset(token)

@@ -1,0 +1,197 @@
+"""Request and response bodies (pydantic). Links are absolute paths under /v1."""
+from __future__ import annotations
+
+import datetime as dt
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, Field, field_validator
+
+from .tables import Job, Texture
+
+CODE_SIZE = 8
+Seed = Annotated[int, Field(ge=0, le=2**31 - 1, description="texture instance; same seed, same texture")]
+
+
+class TextureLinks(BaseModel):
+    self: str
+    exemplar: str | None
+    tiles: str = Field(description="URL template: replace {z}/{x}/{y}; also .webp and .exr")
+    tilejson: str
+    volumes: str
+    bakes: str
+    fit: str
+    regions: str
+
+
+class TextureOut(BaseModel):
+    id: str
+    name: str
+    code: list[float] = Field(min_length=CODE_SIZE, max_length=CODE_SIZE)
+    model_version: str
+    source: Literal["upload", "interpolate", "fit"]
+    parents: dict[str, Any] | None = None
+    width: int | None = Field(None, description="exemplar width in pixels")
+    height: int | None = None
+    has_own_sampler: bool = Field(description="true for fitted textures (they carry their own sampler)")
+    created_at: dt.datetime
+    updated_at: dt.datetime
+    links: TextureLinks
+
+    @classmethod
+    def of(cls, t: Texture) -> "TextureOut":
+        base = f"/v1/textures/{t.id}"
+        return cls(id=t.id, name=t.name, code=t.code, model_version=t.model_version, source=t.source,
+                   parents=t.parents, width=t.width, height=t.height, has_own_sampler=bool(t.sampler_key),
+                   created_at=t.created_at, updated_at=t.updated_at,
+                   links=TextureLinks(self=base, exemplar=f"{base}/exemplar" if t.exemplar_key else None,
+                                      tiles=f"{base}/tiles/{{z}}/{{x}}/{{y}}.png", tilejson=f"{base}/tilejson.json",
+                                      volumes=f"{base}/volumes", bakes=f"{base}/bakes", fit=f"{base}/fit",
+                                      regions=f"{base}/regions"))
+
+
+class TexturePage(BaseModel):
+    items: list[TextureOut]
+    next_cursor: str | None = Field(None, description="pass as ?cursor= for the next page")
+
+
+class TexturePatch(BaseModel):
+    model_config = {"extra": "forbid"}
+    name: str = Field(max_length=200)
+
+
+class InterpolateIn(BaseModel):
+    model_config = {"extra": "forbid"}
+    a: str = Field(description="texture id at t = 0")
+    b: str = Field(description="texture id at t = 1")
+    t: float = Field(ge=0.0, le=1.0)
+    name: str | None = Field(None, max_length=200)
+
+
+Bounds = Annotated[list[list[float]], Field(min_length=2, max_length=2, description="[[x0,y0,z0],[x1,y1,z1]] world units")]
+
+
+class VolumeIn(BaseModel):
+    model_config = {"extra": "forbid"}
+    resolution: int = Field(64, ge=2, le=1024, description="voxels per side (N); capped by the server limit")
+    bounds: Bounds = Field(default_factory=lambda: [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    seed: Seed = 0
+    format: Literal["npy", "exr", "tiff", "raw"] = Field(
+        "npy", description="npy: float32 RGB [N,N,N,3] (z, y, x); exr/tiff: one slice per part/page; raw: zip of raw float32 + JSON")
+
+    @field_validator("bounds")
+    @classmethod
+    def _box(cls, value: list[list[float]]) -> list[list[float]]:
+        if any(len(corner) != 3 for corner in value):
+            raise ValueError("each corner needs 3 coordinates")
+        if any(not (abs(c) < 1e9) for corner in value for c in corner):
+            raise ValueError("coordinates must be finite and below 1e9 in magnitude")
+        if any(hi <= lo for lo, hi in zip(value[0], value[1])):
+            raise ValueError("the second corner must be greater than the first on every axis")
+        return value
+
+
+class FitIn(BaseModel):
+    model_config = {"extra": "forbid"}
+    seconds: float = Field(60.0, gt=0, le=3600, description="optimisation time budget; capped by the server")
+
+
+class RegionIn(BaseModel):
+    """A large 2D export of the infinite plane (issue 5), rendered by a job."""
+
+    model_config = {"extra": "forbid"}
+    z: int = Field(description="zoom level, as for tiles")
+    x0: int = Field(description="first raster column at zoom z")
+    y0: int = Field(description="first raster row at zoom z")
+    width: int = Field(ge=1, le=16384)
+    height: int = Field(ge=1, le=16384)
+    seed: Seed = 0
+    plane: Literal["xy", "xz", "yz"] = "xy"
+    offset: float = Field(0.0, ge=-1e9, le=1e9)
+    format: Literal["png", "exr", "tiff"] = "png"
+
+
+class JobResult(BaseModel):
+    filename: str
+    media_type: str
+    size: int
+
+
+class JobLinks(BaseModel):
+    self: str
+    events: str
+    cancel: str
+    result: str | None
+    texture: str | None
+    output_texture: str | None
+
+
+class JobOut(BaseModel):
+    id: str
+    kind: Literal["volume", "bake", "fit", "region"]
+    state: Literal["queued", "running", "succeeded", "failed", "canceled"]
+    texture_id: str | None
+    params: dict[str, Any]
+    progress: float = Field(ge=0, le=1)
+    attempt: int
+    max_attempts: int
+    cancel_requested: bool
+    error: dict[str, Any] | None = Field(None, description="problem document of the failure")
+    result: JobResult | None
+    output_texture_id: str | None
+    created_at: dt.datetime
+    started_at: dt.datetime | None
+    finished_at: dt.datetime | None
+    heartbeat_at: dt.datetime | None
+    lease_expires_at: dt.datetime | None
+    links: JobLinks
+
+    @classmethod
+    def of(cls, j: Job) -> "JobOut":
+        base = f"/v1/jobs/{j.id}"
+        done = j.state == "succeeded" and j.result_key
+        return cls(id=j.id, kind=j.kind, state=j.state, texture_id=j.texture_id, params=j.params,
+                   progress=j.progress, attempt=j.attempt, max_attempts=j.max_attempts,
+                   cancel_requested=j.cancel_requested, error=j.error,
+                   result=JobResult(filename=j.result_filename, media_type=j.result_media_type,
+                                    size=j.result_size) if done else None,
+                   output_texture_id=j.output_texture_id, created_at=j.created_at, started_at=j.started_at,
+                   finished_at=j.finished_at, heartbeat_at=j.heartbeat_at, lease_expires_at=j.lease_expires_at,
+                   links=JobLinks(self=base, events=f"{base}/events", cancel=f"{base}/cancel",
+                                  result=f"{base}/result" if done else None,
+                                  texture=f"/v1/textures/{j.texture_id}" if j.texture_id else None,
+                                  output_texture=f"/v1/textures/{j.output_texture_id}" if j.output_texture_id else None))
+
+
+class JobPage(BaseModel):
+    items: list[JobOut]
+    next_cursor: str | None = None
+
+
+class ModelOut(BaseModel):
+    version: str
+    variant: str
+    loaded: bool
+    default: bool
+    pixels_per_unit: float | None
+    manifest: dict[str, Any]
+
+
+class ModelList(BaseModel):
+    items: list[ModelOut]
+    default: str | None
+
+
+class TileJSON(BaseModel):
+    tilejson: str = "3.0.0"
+    name: str
+    scheme: Literal["xyz"] = "xyz"
+    tiles: list[str]
+    minzoom: int
+    maxzoom: int
+    tileSize: int  # noqa: N815 - TileJSON spells it so
+    bounds: list[float]
+
+
+class Health(BaseModel):
+    status: Literal["ok", "unavailable"]
+    checks: dict[str, str] = Field(default_factory=dict)
