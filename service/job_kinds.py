@@ -27,7 +27,8 @@ ShouldCancel = Callable[[], bool]
 MEDIA_TYPES = {
     "npy": "application/x-npy", "exr": "image/x-exr", "tiff": "image/tiff", "raw": "application/zip",
     "glb": "model/gltf-binary", "obj": "application/zip", "png": "image/png", "webp": "image/webp",
-    "onnx": "application/octet-stream", "zip": "application/zip",
+    "onnx": "application/octet-stream", "zip": "application/zip", "nrrd": "application/octet-stream",
+    "dds": "image/vnd-ms.dds", "flipbook": "image/png",
 }
 
 
@@ -60,11 +61,12 @@ def _returned_path(returned: Any, fallback: Path) -> Path:
 
 def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
                should_cancel: ShouldCancel) -> dict[str, Any]:
+    from worker.volume_writers import EXTENSIONS
     from worker.volumes import render_volume
 
     texture = _texture(services, job)
     params = job.params
-    out_path = workdir / f"volume-{texture.id[:8]}-{params['resolution']}.{params['format']}"
+    out_path = workdir / f"volume-{texture.id[:8]}-{params['resolution']}{EXTENSIONS[params['format']]}"
     returned = render_volume(services.sampler_for(texture), np.asarray(texture.code, np.float32),
                              int(params["seed"]), resolution=int(params["resolution"]),
                              bounds=params["bounds"], fmt=params["format"], out_path=out_path,

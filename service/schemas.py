@@ -75,8 +75,10 @@ class VolumeIn(BaseModel):
     resolution: int = Field(64, ge=2, le=1024, description="voxels per side (N); capped by the server limit")
     bounds: Bounds = Field(default_factory=lambda: [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     seed: Seed = 0
-    format: Literal["npy", "exr", "tiff", "raw"] = Field(
-        "npy", description="npy: float32 RGB [N,N,N,3] (z, y, x); exr/tiff: one slice per part/page; raw: zip of raw float32 + JSON")
+    format: Literal["npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook"] = Field(
+        "npy", description="npy: float32 linear RGB [N,N,N,3] in (z, y, x) order; exr / tiff: one z slice per "
+                           "part / page; raw: zip of raw float32 + JSON header; nrrd; dds volume; flipbook: "
+                           "one PNG with the slices in a grid (Unity 3D texture import)")
 
     @field_validator("bounds")
     @classmethod

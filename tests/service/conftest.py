@@ -1,0 +1,60 @@
+"""Service unit-test fixtures: the real app with an in-memory queue run synchronously
+(huey immediate mode), SQLite and local storage in a temporary folder."""
+from __future__ import annotations
+
+import io
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from PIL import Image
+
+from service.context import Services, build_services
+from service.main import create_app
+from service.settings import Settings
+
+
+def brick_png(size: int = 96, rgba: bool = False) -> bytes:
+    """A real texture photo (scikit-image's CC0 brick wall), cropped small for speed."""
+    from skimage import data
+
+    grey = data.brick()[:size, :size]
+    rgb = np.stack([grey, (grey * 0.8).astype(np.uint8), (grey * 0.6).astype(np.uint8)], axis=-1)
+    if rgba:
+        rgb = np.concatenate([rgb, np.full(grey.shape + (1,), 200, np.uint8)], axis=-1)
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, "PNG")
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="session")
+def photo() -> bytes:
+    return brick_png()
+
+
+@pytest.fixture
+def settings(tmp_path: Path) -> Settings:
+    return Settings(data_dir=tmp_path / "data", log_json=False, heartbeat_seconds=0.2,
+                    max_volume_resolution=32)
+
+
+@pytest.fixture
+def services(settings: Settings) -> Iterator[Services]:
+    services = build_services(settings, immediate=True)
+    yield services
+    services.engine.dispose()
+
+
+@pytest.fixture
+def client(services: Services) -> Iterator[TestClient]:
+    with TestClient(create_app(services=services)) as client:
+        yield client
+
+
+@pytest.fixture
+def texture(client: TestClient, photo: bytes) -> dict:
+    res = client.post("/v1/textures", files={"image": ("brick.png", photo, "image/png")}, data={"name": "brick"})
+    assert res.status_code == 201, res.text
+    return res.json()

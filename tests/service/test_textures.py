@@ -1,0 +1,117 @@
+"""Texture endpoints through the real app (in-process, no servers)."""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import OpenImageIO as oiio
+from PIL import Image
+
+from tests.service.conftest import brick_png
+
+PROBLEM = "application/problem+json"
+
+
+def test_upload_encodes_and_stores(client, texture, photo) -> None:
+    assert len(texture["code"]) == 8 and all(np.isfinite(texture["code"]))
+    assert texture["name"] == "brick" and texture["source"] == "upload"
+    assert (texture["width"], texture["height"]) == (96, 96)
+    models = client.get("/v1/models").json()
+    assert texture["model_version"] == models["default"]
+    got = client.get(f"/v1/textures/{texture['id']}").json()
+    assert got["code"] == texture["code"]
+    exemplar = client.get(texture["links"]["exemplar"])
+    assert exemplar.status_code == 200 and exemplar.content == photo
+    assert exemplar.headers["content-type"] == "image/png"
+
+
+def test_upload_location_header(client, photo) -> None:
+    res = client.post("/v1/textures", files={"image": ("x.png", photo)})
+    assert res.status_code == 201
+    assert res.headers["location"] == f"/v1/textures/{res.json()['id']}"
+
+
+def test_same_image_same_code_rgba_and_16bit_accepted(client, photo) -> None:
+    a = client.post("/v1/textures", files={"image": ("a.png", photo)}).json()
+    b = client.post("/v1/textures", files={"image": ("b.png", photo)}).json()
+    assert a["code"] == b["code"] and a["id"] != b["id"]
+    rgba = client.post("/v1/textures", files={"image": ("c.png", brick_png(rgba=True))})
+    assert rgba.status_code == 201
+    sixteen = np.asarray(Image.open(io.BytesIO(photo)), np.uint16) * 257
+    out = oiio.ImageOutput.create("x.tif")
+    path = str(client.app.state.services.work_dir / "x16.tif")
+    out.open(path, oiio.ImageSpec(96, 96, 3, "uint16"))
+    out.write_image(sixteen)
+    out.close()
+    with open(path, "rb") as f:
+        res = client.post("/v1/textures", files={"image": ("x16.tif", f.read())})
+    assert res.status_code == 201, res.text
+    assert np.allclose(res.json()["code"], a["code"], atol=1e-3)
+
+
+def test_bad_images_are_problems(client) -> None:
+    res = client.post("/v1/textures", files={"image": ("x.png", b"not an image at all")})
+    assert res.status_code == 422 and res.headers["content-type"] == PROBLEM
+    assert res.json()["type"].endswith("invalid-image") and "format" in res.json()["detail"]
+    truncated = brick_png()[:200]
+    res = client.post("/v1/textures", files={"image": ("t.png", truncated)})
+    assert res.status_code == 422 and res.headers["content-type"] == PROBLEM
+    res = client.post("/v1/textures", data={"name": "no file"})
+    assert res.status_code == 422 and res.json()["type"].endswith("validation-error")
+
+
+def test_upload_limit(client, services, photo) -> None:
+    services.settings.max_upload_bytes = len(photo) - 1
+    res = client.post("/v1/textures", files={"image": ("x.png", photo)})
+    assert res.status_code == 413 and res.headers["content-type"] == PROBLEM
+
+
+def test_list_pagination(client, photo) -> None:
+    ids = [client.post("/v1/textures", files={"image": (f"{i}.png", photo)}).json()["id"] for i in range(5)]
+    seen, cursor = [], None
+    while True:
+        res = client.get("/v1/textures", params={"limit": 2, **({"cursor": cursor} if cursor else {})}).json()
+        seen += [t["id"] for t in res["items"]]
+        cursor = res["next_cursor"]
+        if not cursor:
+            break
+    assert seen == ids[::-1]  # newest first, each exactly once
+    assert client.get("/v1/textures", params={"cursor": "@@bad"}).status_code == 422
+
+
+def test_patch_and_delete(client, texture, services) -> None:
+    url = texture["links"]["self"]
+    res = client.patch(url, json={"name": "renamed"})
+    assert res.status_code == 200 and res.json()["name"] == "renamed"
+    assert res.json()["code"] == texture["code"]
+    assert client.patch(url, json={"code": [0] * 8}).status_code == 422
+    assert client.delete(url).status_code == 204
+    assert not services.storage.exists(f"textures/{texture['id']}/exemplar.png")
+    res = client.get(url)
+    assert res.status_code == 404 and res.headers["content-type"] == PROBLEM
+    assert texture["id"] in res.json()["detail"]
+
+
+def test_interpolate(client, texture, photo) -> None:
+    other = client.post("/v1/textures", files={"image": ("o.png", brick_png(size=64))}).json()
+    res = client.post("/v1/textures/interpolate", json={"a": texture["id"], "b": other["id"], "t": 0.25})
+    assert res.status_code == 201, res.text
+    blend = res.json()
+    expected = 0.75 * np.array(texture["code"]) + 0.25 * np.array(other["code"])
+    assert np.allclose(blend["code"], expected, atol=1e-6)
+    assert blend["source"] == "interpolate" and blend["links"]["exemplar"] is None
+    assert client.get(f"/v1/textures/{blend['id']}/exemplar").status_code == 404
+    assert client.get(f"/v1/textures/{blend['id']}/tiles/6/0/0.png?size=64").status_code == 200
+    bad = client.post("/v1/textures/interpolate", json={"a": texture["id"], "b": other["id"], "t": 1.5})
+    assert bad.status_code == 422
+    missing = client.post("/v1/textures/interpolate", json={"a": texture["id"], "b": "nope", "t": 0.5})
+    assert missing.status_code == 404
+
+
+def test_request_id_echoed(client) -> None:
+    res = client.get("/healthz", headers={"X-Request-ID": "abc-123"})
+    assert res.headers["x-request-id"] == "abc-123"
+    generated = client.get("/healthz").headers["x-request-id"]
+    assert len(generated) == 32
+    hostile = client.get("/healthz", headers={"X-Request-ID": "a b\tc"}).headers["x-request-id"]
+    assert hostile != "a b\tc"
