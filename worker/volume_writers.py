@@ -187,32 +187,55 @@ def _png_chunk(kind: bytes, data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
 
+class PngStream:
+    """Minimal streaming 8-bit RGB PNG encoder (sRGB chunk, filter 0, zlib level 6).
+
+    ``write_rows(rows (h, width, 3) uint8)`` in top-to-bottom order, then ``close()``.
+    Memory is one batch of rows; output bytes depend only on the pixels.
+    """
+
+    def __init__(self, file, width: int, height: int):
+        self.file, self.width, self.height, self.rows_done = file, width, height, 0
+        ihdr = struct.pack(">2I5B", width, height, 8, 2, 0, 0, 0)
+        file.write(b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"sRGB", b"\x00"))
+        self.zlib = zlib.compressobj(6)
+
+    def write_rows(self, rows: np.ndarray) -> None:
+        h = rows.shape[0]
+        lines = np.zeros((h, 1 + self.width * 3), dtype=np.uint8)   # column 0: filter type 0
+        lines[:, 1:] = rows.reshape(h, -1)
+        data = self.zlib.compress(lines.data)
+        if data:
+            self.file.write(_png_chunk(b"IDAT", data))
+        self.rows_done += h
+
+    def close(self) -> None:
+        if self.rows_done != self.height:
+            raise ValueError(f"PNG got {self.rows_done} rows, header says {self.height}")
+        self.file.write(_png_chunk(b"IDAT", self.zlib.flush()) + _png_chunk(b"IEND", b""))
+
+
 class FlipbookWriter(VolumeWriter):
-    """Streaming PNG encoder: one grid row of ``cols`` slices per ``write``."""
+    """Flipbook PNG: one grid row of ``cols`` slices per ``write``."""
 
     def __init__(self, path, n, bounds):
         super().__init__(path, n, bounds)
         self.cols, self.rows = flipbook_grid(n)
         self.required_slab = self.cols
         self.file = open(path, "wb")
-        ihdr = struct.pack(">2I5B", self.cols * n, self.rows * n, 8, 2, 0, 0, 0)
-        self.file.write(b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"sRGB", b"\x00"))
-        self.zlib = zlib.compressobj(6)
+        self.png = PngStream(self.file, self.cols * n, self.rows * n)
 
     def write(self, rgb):
         if len(rgb) != self.cols:
             raise ValueError(f"flipbook slabs must hold {self.cols} slices, got {len(rgb)}")
-        n = self.n
-        # (cols, N, N, 3) -> N scanlines of cols*N pixels, each prefixed by filter type 0.
-        lines = np.zeros((n, 1 + self.cols * n * 3), dtype=np.uint8)
-        lines[:, 1:] = linear_to_srgb8(rgb).transpose(1, 0, 2, 3).reshape(n, -1)
-        data = self.zlib.compress(lines.data)
-        if data:
-            self.file.write(_png_chunk(b"IDAT", data))
+        # (cols, N, N, 3) -> N image rows of cols*N pixels.
+        self.png.write_rows(linear_to_srgb8(rgb).transpose(1, 0, 2, 3).reshape(self.n, -1, 3))
 
     def close(self):
-        self.file.write(_png_chunk(b"IDAT", self.zlib.flush()) + _png_chunk(b"IEND", b""))
-        self.file.close()
+        try:
+            self.png.close()
+        finally:
+            self.file.close()
 
 
 WRITERS: dict[str, type[VolumeWriter]] = {

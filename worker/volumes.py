@@ -86,8 +86,13 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
                 writer.write(rgb.reshape(z1 - z0, n, n, 3))
                 if progress is not None:
                     progress(z1 / n)
-        finally:
-            writer.close()
+        except BaseException:
+            try:  # the partial file is deleted below; keep the original error
+                writer.close()
+            except Exception:
+                pass
+            raise
+        writer.close()
         os.chmod(tmp, 0o644)   # mkstemp makes 0600; results are read by the API process
         os.replace(tmp, out_path)
     except BaseException:
