@@ -1,6 +1,6 @@
 // Page wiring: texture library + upload, the map and its controls, interpolation, 3D jobs.
 import * as api from './api.js';
-import { TextureMap } from './map.js';
+import { TextureMap, nativeZoomOf } from './map.js';
 import { InterpolationPanel } from './interp.js';
 import { JobList } from './jobs.js';
 import { sphereObjFile } from './sphere.js';
@@ -38,6 +38,7 @@ const textureMap = new TextureMap($('map'), {
 async function showTexture(texture) {
   state.current = texture;
   $('current-name').textContent = texture.name || texture.id;
+  $('exemplar').hidden = false;
   $('exemplar').src = api.exemplarUrl(texture.id);
   for (const button of document.querySelectorAll('#texture-list button')) {
     button.setAttribute('aria-pressed', String(button.dataset.id === texture.id));
@@ -59,9 +60,24 @@ $('seed-next').addEventListener('click', () => {
   $('seed').value = (Number($('seed').value) || 0) + 1;
   $('seed').dispatchEvent(new Event('change'));
 });
+$('exemplar').addEventListener('error', () => {
+  // Blends and fitted textures may have no photo of their own.
+  $('exemplar').hidden = true;
+});
 $('native-zoom').addEventListener('click', () => textureMap.goNative());
 
 // ---- library and upload ------------------------------------------------------------
+
+/** Exemplar as thumbnail; textures without one (blends) show a tile of themselves. */
+function showThumbnail(img, texture) {
+  img.addEventListener('error', async () => {
+    try {
+      const zoom = nativeZoomOf(await api.tileJson(texture.id));
+      img.src = api.tileUrl(texture.id, zoom, 0, 0, { seed: 0, plane: 'xy', offset: 0, size: 64 });
+    } catch { /* leave the empty thumbnail */ }
+  }, { once: true });
+  img.src = api.exemplarUrl(texture.id);
+}
 
 function textureButton(texture) {
   const item = document.createElement('li');
@@ -70,9 +86,9 @@ function textureButton(texture) {
   button.dataset.id = texture.id;
   button.setAttribute('aria-pressed', String(state.current?.id === texture.id));
   const img = document.createElement('img');
-  img.src = api.exemplarUrl(texture.id);
   img.alt = '';
   img.loading = 'lazy';
+  showThumbnail(img, texture);
   const meta = document.createElement('span');
   meta.className = 'meta';
   const name = document.createElement('span');

@@ -65,10 +65,12 @@ export class MeshViewer {
 
   _frame(object) {
     const box = new THREE.Box3().setFromObject(object);
-    const size = box.getSize(new THREE.Vector3()).length() || 1;
+    const dims = box.getSize(new THREE.Vector3());
+    const size = Math.max(dims.x, dims.y, dims.z) || 1;
     const center = box.getCenter(new THREE.Vector3());
     this.controls.target.copy(center);
-    const distance = size / (2 * Math.tan((this.camera.fov * Math.PI) / 360));
+    // Far enough that the largest side fills about 3/4 of the view's height.
+    const distance = (0.65 * size) / Math.tan((this.camera.fov * Math.PI) / 360) + size / 2;
     this.camera.position.copy(center).add(new THREE.Vector3(0.35, 0.3, 1).normalize().multiplyScalar(distance));
     this.camera.near = size / 100;
     this.camera.far = size * 100;

@@ -1,0 +1,175 @@
+"""The web page in headless Chromium against the real service: upload -> tiles on the map
+-> pan and zoom fetch new tiles -> a seed change changes pixels -> a bake job -> the 3D
+view renders the baked mesh. Screenshots of every step go to tests/artifacts/browser/.
+"""
+from __future__ import annotations
+
+import base64
+import io
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pytestmark = [pytest.mark.browser, pytest.mark.e2e, pytest.mark.slow]
+
+TILE_URL = re.compile(r"/v1/textures/(?P<id>[0-9a-f-]+)/tiles/(?P<z>-?\d+)/(?P<x>-?\d+)/(?P<y>-?\d+)\.png\?(?P<query>.*)$")
+BAKE_TIMEOUT_MS = 240_000
+ALL_TILES_LOADED = """() => {
+  const tiles = [...document.querySelectorAll('#map img.leaflet-tile')];
+  return tiles.length > 0 && tiles.every((t) => t.classList.contains('leaflet-tile-loaded'));
+}"""
+
+
+def texture_photo_png() -> bytes:
+    """A real photo (scikit-image's bundled brick wall, CC0), tinted to RGB."""
+    from skimage import data
+
+    gray = data.brick().astype(np.float32) / 255.0                     # (512, 512)
+    rgb = np.stack([gray * 1.0, gray * 0.75, gray * 0.55], axis=-1)     # warm brick colour
+    buffer = io.BytesIO()
+    Image.fromarray((rgb * 255).astype(np.uint8)).save(buffer, "PNG")
+    return buffer.getvalue()
+
+
+def element_pixels(page, selector: str) -> np.ndarray:
+    """(h, w, 3) uint8 screenshot of one element."""
+    png = page.locator(selector).screenshot()
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+
+
+def canvas_pixels(page, selector: str) -> np.ndarray:
+    """(h, w, 3) uint8 read back from a WebGL canvas (needs preserveDrawingBuffer)."""
+    data_url = page.eval_on_selector(selector, "c => c.toDataURL('image/png')")
+    png = base64.b64decode(data_url.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+
+
+def spatial_std(pixels: np.ndarray) -> float:
+    """Largest per-channel standard deviation over the pixels of a (h, w, 3) image."""
+    return float(pixels.reshape(-1, 3).astype(np.float64).std(axis=0).max())
+
+
+class TileLog:
+    """Every tile the page fetched successfully: (texture id, z, x, y, query) in order."""
+
+    def __init__(self, page):
+        self.tiles: list[tuple[int, int, int, str]] = []
+        page.on("response", self._on_response)
+
+    def _on_response(self, response) -> None:
+        match = TILE_URL.search(response.url)
+        if match and response.status in (200, 304):
+            self.tiles.append((match["id"], int(match["z"]), int(match["x"]), int(match["y"]), match["query"]))
+
+    def keys(self, texture_id: str) -> set[tuple[int, int, int, str]]:
+        """Distinct (z, x, y, query) fetched for one texture."""
+        return {tile[1:] for tile in self.tiles if tile[0] == texture_id}
+
+
+def wait_for_new_tiles(page, tiles: TileLog, texture_id: str, seen: set, timeout_s: float = 60) -> set:
+    """Wait until the page has fetched tiles not in ``seen`` and all drawn tiles are loaded."""
+    deadline = time.monotonic() + timeout_s
+    while not tiles.keys(texture_id) - seen:
+        assert time.monotonic() < deadline, "no new tiles were fetched"
+        page.wait_for_timeout(100)  # lets playwright deliver response events
+    page.wait_for_function(ALL_TILES_LOADED, timeout=timeout_s * 1000)
+    return tiles.keys(texture_id) - seen
+
+
+def shoot(page, artifacts: Path, name: str) -> None:
+    page.screenshot(path=str(artifacts / f"{name}.png"), full_page=True)
+
+
+def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> None:
+    tiles = TileLog(page)
+    page.goto(base_url)
+    page.wait_for_selector("#map.leaflet-container")
+
+    # 1. Upload through the file input (the drop zone's label) -> listed and shown.
+    with page.expect_response(lambda r: r.url.endswith("/v1/textures") and r.request.method == "POST") as upload:
+        page.set_input_files("#upload-file", files=[{
+            "name": "brick.png", "mimeType": "image/png", "buffer": texture_photo_png()}])
+    assert upload.value.status == 201, upload.value.text()
+    texture_id = upload.value.json()["id"]
+    page.wait_for_selector(f'#texture-list button[data-id="{texture_id}"][aria-pressed="true"]')
+    page.wait_for_function(ALL_TILES_LOADED, timeout=60_000)
+    page.wait_for_function("() => document.getElementById('exemplar').naturalWidth > 0")
+    shoot(page, artifacts, "1-uploaded")
+    native = page.evaluate("window.texspace.textureMap.nativeZoom")
+    first = tiles.keys(texture_id)
+    assert {z for z, *_ in first} == {native}, "the map opens at the native zoom"
+    # Centred on the world origin: tiles on both sides of it, negative indices included.
+    assert any(x < 0 for _, x, _, _ in first) and any(x >= 0 for _, x, _, _ in first)
+    assert all("seed=0" in q for *_, q in first)
+    map_before = element_pixels(page, "#map")
+    assert spatial_std(map_before) > 3, "tiles are drawn, not a flat background"
+
+    # 2. Pan by dragging: tiles that were not on screen are fetched.
+    box = page.locator("#map").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    page.mouse.move(cx - 500, cy - 300, steps=12)
+    page.mouse.up()
+    panned = wait_for_new_tiles(page, tiles, texture_id, first)
+    assert panned and {z for z, *_ in panned} == {native}
+    assert max(x for _, x, _, _ in panned) > max(x for _, x, _, _ in first)
+    shoot(page, artifacts, "2-panned")
+
+    # 3. Zoom in with the +-button: tiles of the next zoom level are fetched.
+    before_zoom = tiles.keys(texture_id)
+    page.click(".leaflet-control-zoom-in")
+    page.wait_for_function(f"() => window.texspace.textureMap.map.getZoom() === {native + 1}")
+    zoomed = wait_for_new_tiles(page, tiles, texture_id, before_zoom)
+    assert {z for z, *_ in zoomed} == {native + 1}
+    shoot(page, artifacts, "3-zoomed")
+    page.click("#native-zoom")
+    page.wait_for_function(f"() => window.texspace.textureMap.map.getZoom() === {native}")
+    page.wait_for_function(ALL_TILES_LOADED, timeout=60_000)
+
+    # 4. A new seed re-requests the tiles and changes the pixels.
+    seed0 = element_pixels(page, "#map")
+    page.click("#seed-next")
+    page.wait_for_function("""() => {
+      const tiles = [...document.querySelectorAll('#map img.leaflet-tile')];
+      return tiles.length > 0 && tiles.every((t) => t.src.includes('seed=1') && t.classList.contains('leaflet-tile-loaded'));
+    }""", timeout=60_000)
+    assert any("seed=1" in q for *_, q in tiles.keys(texture_id))
+    seed1 = element_pixels(page, "#map")
+    assert seed0.shape == seed1.shape
+    assert np.abs(seed0.astype(int) - seed1.astype(int)).mean() > 2, "seed 1 looks like seed 0"
+    shoot(page, artifacts, "4-seed1")
+
+    # 5. Bake onto the page's own sphere; follow the job live; the 3D view shows it.
+    page.wait_for_selector("#viewer canvas")
+    blank = canvas_pixels(page, "#viewer canvas")
+    assert spatial_std(blank) < 1, "before a bake the 3D view is empty"
+    page.select_option("#bake-resolution", "256")
+    page.click("#bake-start")
+    page.wait_for_selector("#jobs li[data-job-id]")
+    page.wait_for_selector('#jobs li[data-state="succeeded"]', timeout=BAKE_TIMEOUT_MS)
+    page.wait_for_selector("#viewer[data-loaded]", timeout=30_000)
+    page.wait_for_timeout(300)  # one more animation frame after the load
+    baked = canvas_pixels(page, "#viewer canvas")
+    shoot(page, artifacts, "5-baked")
+    assert spatial_std(baked) > 10, "the baked mesh is drawn"
+    lit = np.abs(baked.astype(int) - blank.astype(int)).sum(axis=-1) > 30
+    assert lit.mean() > 0.05, "the mesh covers a visible part of the view"
+    assert page.locator('#jobs li[data-state="succeeded"] a[download]').count() >= 1
+    assert page.js_errors == []
+
+
+def test_controls_are_labelled(page, base_url: str) -> None:
+    """Every form control has an accessible name (label or aria-label)."""
+    page.goto(base_url)
+    page.wait_for_selector("#map.leaflet-container")
+    unlabelled = page.evaluate("""() => [...document.querySelectorAll('input, select, button')]
+        .filter((el) => !(el.labels && el.labels.length) && !el.getAttribute('aria-label')
+                        && !el.textContent.trim() && !el.title)
+        .map((el) => el.outerHTML.slice(0, 80))""")
+    assert unlabelled == []
+    assert page.js_errors == []
