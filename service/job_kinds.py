@@ -54,8 +54,9 @@ def _store_result(services: Services, job: Job, path: Path, fmt: str) -> dict[st
 
 def _returned_path(returned: Any, fallback: Path) -> Path:
     """Worker functions may return the path they wrote (or a dict/obj with one)."""
-    if isinstance(returned, (str, Path)) and Path(returned).is_file():
-        return Path(returned)
+    path = getattr(returned, "path", returned)
+    if isinstance(path, (str, Path)) and Path(path).is_file():
+        return Path(path)
     return fallback
 
 
@@ -76,7 +77,7 @@ def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
 
 def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
              should_cancel: ShouldCancel) -> dict[str, Any]:
-    from worker.bake import bake_mesh
+    from worker.bake import BakeLimits, bake_mesh
 
     texture = _texture(services, job)
     params = job.params
@@ -84,12 +85,15 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
     stem = Path(params.get("filename") or "mesh").stem or "mesh"
     ext = "glb" if params["format"] == "glb" else "zip"
     out_path = workdir / f"{stem}-baked.{ext}"
-    limits = {"max_faces": services.settings.max_mesh_faces,
-              "max_resolution": services.settings.max_bake_resolution}
+    limits = BakeLimits(max_faces=services.settings.max_mesh_faces,
+                        max_vertices=services.settings.max_mesh_faces,
+                        max_resolution=services.settings.max_bake_resolution)
+    scale = params.get("scale")
     returned = bake_mesh(services.sampler_for(texture), np.asarray(texture.code, np.float32),
                          int(params["seed"]), mesh_bytes=mesh_bytes, filename=params.get("filename") or "mesh.obj",
-                         resolution=int(params["resolution"]), scale=float(params["scale"]),
+                         resolution=int(params["resolution"]), scale=None if scale is None else float(scale),
                          fmt=params["format"], out_path=out_path, limits=limits,
+                         pixels_per_unit=services.pixels_per_unit(texture),
                          progress=progress, should_cancel=should_cancel)
     return _store_result(services, job, _returned_path(returned, out_path), ext)
 

@@ -45,6 +45,7 @@ def _submit(services, response: Response, kind: str, texture_id: str, params: di
 def submit_volume(services: ServicesDep, response: Response, texture_id: str, body: VolumeIn,
                   key: IdempotencyKey) -> JobOut:
     """Render an N x N x N block of the solid texture (a job)."""
+    load_texture(services, texture_id)
     if body.resolution > services.settings.max_volume_resolution:
         raise LimitExceeded(f"resolution {body.resolution} exceeds the limit of "
                             f"{services.settings.max_volume_resolution}")
@@ -57,16 +58,17 @@ def submit_bake(
     response: Response,
     texture_id: str,
     key: IdempotencyKey,
-    mesh: Annotated[UploadFile, File(description="OBJ, PLY, STL, OFF, GLB or glTF mesh")],
+    mesh: Annotated[UploadFile, File(description="OBJ, PLY, STL or GLB mesh (by file extension)")],
     resolution: Annotated[int, Form(ge=16, le=8192, description="texture atlas side in pixels")] = 1024,
     seed: Annotated[int, Form(ge=0, le=2**31 - 1)] = 0,
-    scale: Annotated[float, Form(gt=0, le=1e6, description="world units per mesh unit")] = 1.0,
+    scale: Annotated[float | None, Form(gt=0, le=1e6, description="world units per mesh unit; default: "
+                                                                   "the mesh spans 512 exemplar pixels")] = None,
     format: Annotated[Literal["glb", "obj"], Form(description="glb, or a zip of obj + mtl + png")] = "glb",
 ) -> JobOut:
     """UV-unwrap a mesh and bake the solid texture into its atlas (a job)."""
+    load_texture(services, texture_id)
     if resolution > services.settings.max_bake_resolution:
         raise LimitExceeded(f"resolution {resolution} exceeds the limit of {services.settings.max_bake_resolution}")
-    load_texture(services, texture_id)
     data = read_limited(mesh, services.settings.max_mesh_bytes, "the mesh")
     filename = safe_filename(mesh.filename, "mesh.obj")
     params = {"resolution": resolution, "seed": seed, "scale": scale, "format": format, "filename": filename}
@@ -102,6 +104,7 @@ def submit_fit(services: ServicesDep, response: Response, texture_id: str, key: 
 def submit_region(services: ServicesDep, response: Response, texture_id: str, body: RegionIn,
                   key: IdempotencyKey) -> JobOut:
     """Render a large rectangle of the infinite plane to one image (a job)."""
+    load_texture(services, texture_id)
     if body.width * body.height > services.settings.max_image_pixels:
         raise LimitExceeded(f"{body.width}x{body.height} exceeds the limit of "
                             f"{services.settings.max_image_pixels} pixels")

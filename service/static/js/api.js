@@ -86,10 +86,9 @@ async function submitJob(path, init) {
 export function startBake(textureId, meshFile, { resolution, seed, scale, format }) {
   const form = new FormData();
   form.append('mesh', meshFile, meshFile.name);
-  form.append('resolution', resolution);
-  form.append('seed', seed);
-  form.append('scale', scale);
-  form.append('format', format);
+  for (const [key, value] of Object.entries({ resolution, seed, scale, format })) {
+    if (value !== undefined && value !== null) form.append(key, value);
+  }
   return submitJob(`textures/${textureId}/bakes`, { body: form });
 }
 

@@ -3,8 +3,9 @@
 import { getJob, jobEventsUrl, jobResultUrl } from './api.js';
 
 const TERMINAL = new Set(['succeeded', 'failed', 'canceled']);
-// Event names a server may use besides the default "message".
-const EVENT_NAMES = ['job', 'progress', 'state', 'update', 'status', 'done', 'end'];
+// GET /v1/jobs/{id}/events sends `progress` ({state, progress, attempt}) while the job
+// runs, then one last event named after the end state carrying the whole job.
+const EVENT_NAMES = ['progress', 'succeeded', 'failed', 'canceled'];
 
 /** Progress as a 0..1 fraction whether the server reports 0..1 or 0..100. */
 export function fraction(progress) {

@@ -6,7 +6,8 @@ import { JobList } from './jobs.js';
 import { sphereObjFile } from './sphere.js';
 
 const $ = (id) => document.getElementById(id);
-const VOLUME_FORMATS = ['tiff', 'exr', 'nrrd', 'raw', 'png', 'dds'];
+// VolumeIn.format in service/schemas.py
+const VOLUME_FORMATS = ['npy', 'exr', 'tiff', 'raw', 'nrrd', 'dds', 'flipbook'];
 
 const state = {
   textures: [],     // listed textures, newest first
@@ -198,7 +199,8 @@ $('bake-form').addEventListener('submit', async (event) => {
   const params = {
     resolution: Number($('bake-resolution').value),
     seed: tileParams().seed,
-    scale: Number($('bake-scale').value) || 1,
+    // Empty = the server's default (the mesh spans 512 exemplar pixels).
+    scale: Number($('bake-scale').value) || undefined,
     format,
   };
   try {
@@ -222,12 +224,12 @@ $('volume-format').replaceChildren(...VOLUME_FORMATS.map((f) => new Option(f, f)
 $('volume-form').addEventListener('submit', async (event) => {
   event.preventDefault();
   if (!requireTexture()) return;
-  const size = Number($('volume-size').value);
-  const params = { size, seed: tileParams().seed, format: $('volume-format').value };
+  const resolution = Number($('volume-resolution').value);
+  const params = { resolution, seed: tileParams().seed, format: $('volume-format').value };
   try {
     const job = await api.startVolume(state.current.id, params);
     say(`Volume job ${job.id} started.`);
-    jobs.track(job, `volume ${size}^3 (${params.format})`, () => say('Volume ready to download.'));
+    jobs.track(job, `volume ${resolution}^3 (${params.format})`, () => say('Volume ready to download.'));
   } catch (error) {
     sayError(error);
   }

@@ -7,6 +7,8 @@
 import { tileJson, tileTemplate } from './api.js';
 
 const TILE_SIZE = 256;
+// worker/tiles.py NATIVE_ZOOM: used while the TileJSON does not say it (as `center[2]`).
+const DEFAULT_NATIVE_ZOOM = 6;
 
 /** Read the native zoom (one tile pixel = one exemplar pixel) from a TileJSON document. */
 export function nativeZoomOf(tj) {
@@ -15,7 +17,7 @@ export function nativeZoomOf(tj) {
   }
   if (tj.texspace && Number.isInteger(tj.texspace.native_zoom)) return tj.texspace.native_zoom;
   if (Array.isArray(tj.center) && Number.isInteger(tj.center[2])) return tj.center[2];
-  return 0;
+  return DEFAULT_NATIVE_ZOOM;
 }
 
 export class TextureMap {

@@ -1,0 +1,233 @@
+"""Jobs through the real app with tasks run in-process (huey immediate mode) or held in
+an in-memory queue to observe queued / running states."""
+from __future__ import annotations
+
+import datetime as dt
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from fastapi.testclient import TestClient
+from sqlalchemy import update
+
+from service import jobs
+from service.context import build_services
+from service.main import create_app
+from service.runner import Lease, run_job_attempt
+from service.tables import Job
+
+MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"
+
+
+def submit_volume(client: TestClient, texture: dict, **body) -> dict:
+    res = client.post(texture["links"]["volumes"], json={"resolution": 8, **body})
+    assert res.status_code == 202, res.text
+    assert res.headers["location"] == f"/v1/jobs/{res.json()['id']}"
+    return res.json()
+
+
+def test_volume_job_npy_result(client, texture) -> None:
+    job = submit_volume(client, texture, seed=3, bounds=[[0, 0, 0], [0.5, 0.5, 0.5]])
+    done = client.get(f"/v1/jobs/{job['id']}").json()
+    assert done["state"] == "succeeded", done
+    assert done["progress"] == 1.0 and done["attempt"] == 1
+    assert done["started_at"] and done["finished_at"]
+    res = client.get(done["links"]["result"])
+    assert res.status_code == 200
+    volume = np.load(io.BytesIO(res.content))
+    assert volume.shape == (8, 8, 8, 3) and volume.dtype == np.float32
+    assert np.isfinite(volume).all() and volume.min() >= 0 and volume.max() <= 1
+    again = client.get(client.post(texture["links"]["volumes"], json={
+        "resolution": 8, "seed": 3, "bounds": [[0, 0, 0], [0.5, 0.5, 0.5]]}).json()["links"]["self"]).json()
+    assert np.array_equal(np.load(io.BytesIO(client.get(again["links"]["result"]).content)), volume)
+
+
+def test_volume_limits_and_validation(client, texture) -> None:
+    too_big = client.post(texture["links"]["volumes"], json={"resolution": 33})
+    assert too_big.status_code == 413 and too_big.headers["content-type"] == "application/problem+json"
+    bad_bounds = client.post(texture["links"]["volumes"], json={"bounds": [[0, 0, 0], [1, -1, 1]]})
+    assert bad_bounds.status_code == 422
+    bad_format = client.post(texture["links"]["volumes"], json={"format": "vdb"})
+    assert bad_format.status_code == 422
+    assert client.post("/v1/textures/missing/volumes", json={}).status_code == 404
+
+
+def test_idempotency_key_returns_same_job(client, texture) -> None:
+    headers = {"Idempotency-Key": "vol-1"}
+    first = client.post(texture["links"]["volumes"], json={"resolution": 8}, headers=headers)
+    second = client.post(texture["links"]["volumes"], json={"resolution": 8}, headers=headers)
+    assert first.status_code == second.status_code == 202
+    assert first.json()["id"] == second.json()["id"]
+    assert second.headers["idempotent-replayed"] == "true"
+    assert len(client.get("/v1/jobs").json()["items"]) == 1
+    different = client.post(texture["links"]["volumes"], json={"resolution": 16}, headers=headers)
+    assert different.status_code == 422 and "Idempotency-Key" in different.json()["detail"]
+
+
+def test_bake_glb_loads_with_texture(client, texture) -> None:
+    mesh = (MESHES / "cube.obj").read_bytes()
+    res = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                      data={"resolution": "64", "seed": "1", "format": "glb"})
+    assert res.status_code == 202, res.text
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded", job
+    result = client.get(job["links"]["result"])
+    assert result.headers["content-type"] == "model/gltf-binary"
+    scene = trimesh.load(io.BytesIO(result.content), file_type="glb")
+    geometry = next(iter(scene.geometry.values()))
+    image = geometry.visual.material.baseColorTexture
+    assert image is not None and image.size == (64, 64)
+    assert len(geometry.faces) == 12
+
+
+def test_bake_bad_mesh_fails_job_with_problem(client, texture) -> None:
+    res = client.post(texture["links"]["bakes"], files={"mesh": ("junk.obj", b"v 0 0\nf 1 2 9\n")},
+                      data={"resolution": "64"})
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "failed"
+    assert job["error"]["type"].endswith("invalid-mesh") and job["error"]["detail"]
+    assert client.get(f"/v1/jobs/{job['id']}/result").status_code == 409
+
+
+def test_list_jobs_filters(client, texture) -> None:
+    ok = submit_volume(client, texture)
+    client.post(texture["links"]["bakes"], files={"mesh": ("junk.obj", b"nothing")})
+    states = {j["id"]: j["state"] for j in client.get("/v1/jobs").json()["items"]}
+    assert len(states) == 2 and states[ok["id"]] == "succeeded"
+    failed = client.get("/v1/jobs", params={"state": "failed"}).json()["items"]
+    assert [j["state"] for j in failed] == ["failed"]
+    assert client.get("/v1/jobs", params={"texture_id": "other"}).json()["items"] == []
+    assert client.get("/v1/jobs", params={"state": "sleeping"}).status_code == 422
+
+
+def test_events_stream_ends_with_final_state(client, texture) -> None:
+    job = submit_volume(client, texture)
+    with client.stream("GET", f"/v1/jobs/{job['id']}/events") as res:
+        assert res.headers["content-type"].startswith("text/event-stream")
+        text = "".join(res.iter_text())
+    assert "event: succeeded" in text
+    data = json.loads(text.split("event: succeeded\ndata: ")[1].split("\n")[0])
+    assert data["id"] == job["id"] and data["state"] == "succeeded"
+
+
+def test_fit_without_torch_is_501(client, texture, monkeypatch) -> None:
+    monkeypatch.setattr("service.routes.jobs.torch_available", lambda: False)
+    res = client.post(texture["links"]["fit"], json={"seconds": 5})
+    assert res.status_code == 501 and res.headers["content-type"] == "application/problem+json"
+    assert "train" in res.json()["detail"]
+
+
+# --- queued / running / leases: hold messages in an in-memory queue -------------------
+
+@pytest.fixture
+def held(settings):
+    """(client, services) whose queue keeps messages until the test runs them."""
+    settings.queue_backend = "memory"
+    services = build_services(settings)
+    with TestClient(create_app(services=services)) as client:
+        yield client, services
+    services.engine.dispose()
+
+
+def run_next_message(services) -> None:
+    task = services.huey.dequeue()
+    assert task is not None
+    services.huey.execute(task)
+
+
+def upload(client, photo) -> dict:
+    return client.post("/v1/textures", files={"image": ("b.png", photo)}).json()
+
+
+def test_cancel_queued_job(held, photo) -> None:
+    client, services = held
+    job = submit_volume(client, upload(client, photo))
+    assert job["state"] == "queued"
+    res = client.post(f"/v1/jobs/{job['id']}/cancel")
+    assert res.status_code == 202 and res.json()["state"] == "canceled"
+    run_next_message(services)  # the message is dropped: the row says canceled
+    assert client.get(f"/v1/jobs/{job['id']}").json()["state"] == "canceled"
+    assert client.post(f"/v1/jobs/{job['id']}/cancel").status_code == 409
+
+
+def test_cancel_running_job_is_seen_by_heartbeat(held, photo) -> None:
+    client, services = held
+    job = submit_volume(client, upload(client, photo))
+    claim = jobs.claim(services, job["id"])
+    assert claim is not None and claim.attempt == 1
+    lease = Lease(services, claim)
+    lease.beat()
+    assert not lease.should_cancel()
+    res = client.post(f"/v1/jobs/{job['id']}/cancel")
+    assert res.json()["state"] == "running" and res.json()["cancel_requested"]
+    lease.beat()
+    assert lease.should_cancel()
+
+
+def test_running_job_canceled_between_slabs(held, photo, monkeypatch) -> None:
+    client, services = held
+    job = submit_volume(client, upload(client, photo))
+    client.post(f"/v1/jobs/{job['id']}/cancel")  # while queued: immediate
+    assert run_job_attempt(services, job["id"]) is None
+    job = submit_volume(client, upload(client, photo), seed=1)
+    from service import job_kinds
+
+    real = job_kinds.run_volume
+
+    def cancel_then_run(services_, job_, workdir, progress, should_cancel):  # the user cancels mid-run
+        client.post(f"/v1/jobs/{job_.id}/cancel")
+        deadline = 50
+        while not should_cancel() and deadline:  # the heartbeat thread notices within a beat
+            import time
+            time.sleep(0.05)
+            deadline -= 1
+        return real(services_, job_, workdir, progress, should_cancel)
+
+    monkeypatch.setitem(job_kinds.KINDS, "volume", cancel_then_run)
+    assert run_job_attempt(services, job["id"]) == "canceled"
+    body = client.get(f"/v1/jobs/{job['id']}").json()
+    assert body["state"] == "canceled" and body["result"] is None
+
+
+def test_reaper_requeues_expired_lease_then_fails(held, photo) -> None:
+    client, services = held
+    job = submit_volume(client, upload(client, photo))
+    services.huey.flush()
+    past = dt.datetime.now(dt.timezone.utc) - dt.timedelta(seconds=5)
+    for attempt in range(1, services.settings.max_attempts + 1):
+        claim = jobs.claim(services, job["id"])  # a worker takes it ... and dies
+        assert claim is not None and claim.attempt == attempt
+        with services.sessions.begin() as session:
+            session.execute(update(Job).where(Job.id == job["id"]).values(lease_expires_at=past))
+        counts = jobs.reap(services)
+        expect_failed = attempt == services.settings.max_attempts
+        assert counts["failed" if expect_failed else "requeued"] == 1
+    body = client.get(f"/v1/jobs/{job['id']}").json()
+    assert body["state"] == "failed" and "lease expired" in body["error"]["detail"]
+    assert services.huey.pending_count() == services.settings.max_attempts - 1
+
+
+def test_requeued_job_runs_to_success(held, photo) -> None:
+    client, services = held
+    job = submit_volume(client, upload(client, photo))
+    services.huey.flush()
+    jobs.claim(services, job["id"])
+    with services.sessions.begin() as session:
+        session.execute(update(Job).where(Job.id == job["id"]).values(
+            lease_expires_at=dt.datetime.now(dt.timezone.utc) - dt.timedelta(seconds=1)))
+    assert jobs.reap(services)["requeued"] == 1
+    run_next_message(services)
+    body = client.get(f"/v1/jobs/{job['id']}").json()
+    assert body["state"] == "succeeded" and body["attempt"] == 2
+
+
+def test_metrics_report_jobs_and_queue(held, photo) -> None:
+    client, services = held
+    submit_volume(client, upload(client, photo))
+    text = client.get("/metrics").text
+    assert 'texspace_jobs{state="queued"} 1.0' in text
+    assert "texspace_queue_depth 1.0" in text
+    assert 'texspace_http_requests_total{method="POST",route="/v1/textures/{texture_id}/volumes",status="202"}' in text
