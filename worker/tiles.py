@@ -115,6 +115,33 @@ def box_downsample(rgb: np.ndarray, factor: int) -> np.ndarray:
     return rgb.reshape(h // factor, factor, w // factor, factor, c).mean(axis=(1, 3), dtype=np.float32)
 
 
+def render_window(sampler: Sampler, code: np.ndarray, seed: int, z: int, col0: int, row0: int,
+                  width: int, height: int, *, pixels_per_unit: float, plane: str = "xy",
+                  offset: float = 0.0, supersample: int = 1) -> np.ndarray:
+    """Linear RGB of any pixel window [col0, col0+width) x [row0, row0+height) of the
+    zoom-z raster (tiles are windows aligned on multiples of their size).
+
+    Returns (height, width, 3) float32; identical to the matching pixels of the tiles.
+    """
+    s = int(supersample)
+    limit = COORD_LIMIT * MAX_TILE_SIZE
+    if max(abs(col0), abs(row0), abs(col0 + width), abs(row0 + height)) > limit:
+        raise InvalidParameter(f"raster coordinates must stay within +-2^46, got {col0}, {row0}")
+    u = raster_coords(z, col0, width, pixels_per_unit=pixels_per_unit, supersample=s)
+    v = raster_coords(z, row0, height, pixels_per_unit=pixels_per_unit, supersample=s)
+    rgb = sampler.sample(plane_points(u, v, plane=plane, offset=offset), code, seed)
+    return box_downsample(rgb.reshape(height * s, width * s, 3), s)
+
+
+def resolve_pixels_per_unit(sampler: Sampler, pixels_per_unit: float | None) -> float:
+    """The explicit value, else ``sampler.pixels_per_unit`` (a ModelRuntime has one)."""
+    if pixels_per_unit is None:
+        pixels_per_unit = getattr(sampler, "pixels_per_unit", None)
+        if pixels_per_unit is None:
+            raise InvalidParameter("pixels_per_unit is required for a bare sampler session")
+    return float(pixels_per_unit)
+
+
 def render_tile(sampler: Sampler, code: np.ndarray, seed: int, z: int, x: int, y: int,
                 size: int = 256, *, pixels_per_unit: float | None = None, plane: str = "xy",
                 offset: float = 0.0, supersample: int | None = None) -> np.ndarray:
@@ -124,12 +151,8 @@ def render_tile(sampler: Sampler, code: np.ndarray, seed: int, z: int, x: int, y
     (a ModelRuntime has one). supersample defaults to ``supersample_for(z)``.
     Returns (size, size, 3) float32 linear 0..1.
     """
-    if pixels_per_unit is None:
-        pixels_per_unit = getattr(sampler, "pixels_per_unit", None)
-        if pixels_per_unit is None:
-            raise InvalidParameter("pixels_per_unit is required for a bare sampler session")
+    ppu = resolve_pixels_per_unit(sampler, pixels_per_unit)
     s = supersample_for(z) if supersample is None else int(supersample)
-    pts = tile_points(z, x, y, size, pixels_per_unit=pixels_per_unit, plane=plane,
-                      offset=offset, supersample=s)
-    rgb = sampler.sample(pts, code, seed).reshape(size * s, size * s, 3)
-    return box_downsample(rgb, s)
+    _check_tile(z, x, y, size, s, plane)
+    return render_window(sampler, code, seed, z, x * size, y * size, size, size,
+                         pixels_per_unit=ppu, plane=plane, offset=offset, supersample=s)
