@@ -18,10 +18,9 @@ def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:
 
     srgb : (...) float array, nominally 0..1 (clipped). Returns float32 of the same shape.
     """
-    x = np.clip(np.asarray(srgb, dtype=np.float32), 0.0, 1.0)
-    low = x * np.float32(1 / 12.92)
-    high = ((x + np.float32(0.055)) * np.float32(1 / 1.055)) ** np.float32(2.4)
-    return np.where(x <= _SRGB_KNEE, low, high).astype(np.float32, copy=False)
+    x = np.clip(np.asarray(srgb, dtype=np.float64), 0.0, 1.0)   # float64: exact 0 and 1
+    out = np.where(x <= _SRGB_KNEE, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+    return out.astype(np.float32)
 
 
 def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
@@ -29,10 +28,9 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
 
     linear : (...) float array, clipped to 0..1. Returns float32 of the same shape.
     """
-    x = np.clip(np.asarray(linear, dtype=np.float32), 0.0, 1.0)
-    low = x * np.float32(12.92)
-    high = np.float32(1.055) * x ** np.float32(1 / 2.4) - np.float32(0.055)
-    return np.where(x <= _LINEAR_KNEE, low, high).astype(np.float32, copy=False)
+    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    out = np.where(x <= _LINEAR_KNEE, x * 12.92, 1.055 * x ** (1 / 2.4) - 0.055)
+    return out.astype(np.float32)
 
 
 def linear_to_srgb8(linear: np.ndarray) -> np.ndarray:
