@@ -177,6 +177,17 @@ def style_error(
         return gram_loss(vgg(images), target_grams(exemplars, vgg), layer_weights, reduction="none")
 
 
+def feature_distance(
+    features_a: Features, features_b: Features, layer_weights: Mapping[str, float] | None = None,
+) -> torch.Tensor:
+    """Weighted mean squared difference of two same-size feature dicts, (N,) per pair."""
+    weights = layer_weights if layer_weights is not None else default_feature_weights(tuple(features_a))
+    total = 0.0
+    for name, a in features_a.items():
+        total = total + weights[name] * (a - features_b[name]).square().mean(dim=(1, 2, 3))
+    return total
+
+
 def vgg_distance(
     images_a: torch.Tensor, images_b: torch.Tensor, vgg: VGG16Features | None = None,
     layer_weights: Mapping[str, float] | None = None,
@@ -190,12 +201,7 @@ def vgg_distance(
         raise ValueError(f"shapes differ: {tuple(images_a.shape)} vs {tuple(images_b.shape)}")
     vgg = vgg or shared_vgg()
     with torch.no_grad():
-        features_a, features_b = vgg(images_a), vgg(images_b)
-    weights = layer_weights if layer_weights is not None else default_feature_weights(tuple(features_a))
-    total = 0.0
-    for name, a in features_a.items():
-        total = total + weights[name] * (a - features_b[name]).square().mean(dim=(1, 2, 3))
-    return total
+        return feature_distance(vgg(images_a), vgg(images_b), layer_weights)
 
 
 def measure_layer_scales(
