@@ -59,5 +59,6 @@ def setup_logging(level: str = "INFO", json_lines: bool = True) -> None:
         logger = logging.getLogger(name)
         logger.handlers[:] = []
         logger.propagate = True
+    logging.getLogger("alembic.runtime.plugins").setLevel(logging.WARNING)
     # our request middleware logs each request with its id; uvicorn's access log would repeat it
     logging.getLogger("uvicorn.access").disabled = True

@@ -1,0 +1,109 @@
+"""Long-running processes: the API (uvicorn), the worker (huey consumer + reaper), and
+``serve`` (both, for the embedded default)."""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+from .settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+def run_api(settings: Settings) -> None:
+    import uvicorn
+
+    uvicorn.run("service.main:app_from_env", factory=True, host=settings.host, port=settings.port,
+                log_config=None, timeout_graceful_shutdown=5)
+
+
+def start_reaper(services, stop: threading.Event) -> threading.Thread:  # noqa: ANN001
+    """A thread that periodically re-queues jobs with expired leases."""
+    from .jobs import reap
+
+    def loop() -> None:
+        while not stop.wait(services.settings.reaper_interval_seconds):
+            try:
+                counts = reap(services)
+                if any(counts.values()):
+                    log.info("reaper", extra=counts)
+            except Exception:  # keep reaping after a database hiccup
+                log.exception("reaper pass failed")
+
+    thread = threading.Thread(target=loop, name="reaper", daemon=True)
+    thread.start()
+    return thread
+
+
+def run_worker(settings: Settings, *, migrate: bool = True) -> None:
+    """Consume the queue with ``settings.workers`` threads until SIGINT / SIGTERM."""
+    from .context import build_services
+
+    services = build_services(settings, migrate=migrate)
+    try:
+        services.registry  # load models now, not inside the first job
+    except Exception:  # a missing model fails each job with a problem; keep consuming
+        log.exception("model registry not loaded")
+    stop = threading.Event()
+    start_reaper(services, stop)
+    consumer = services.huey.create_consumer(workers=settings.workers, worker_type="thread", periodic=False,
+                                             initial_delay=0.05, max_delay=0.5, graceful_signal="INT")
+    log.info("worker started", extra={"workers": settings.workers, "queue": settings.queue_backend,
+                                      "worker_id": services.worker_id})
+    try:
+        consumer.run()
+    finally:
+        stop.set()
+
+
+def _die_with_parent() -> None:
+    """In the child, before exec: get SIGTERM when the parent dies (Linux), because
+    uvicorn re-raises SIGTERM after its shutdown and our ``finally`` never runs."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:  # not Linux: the finally below still stops the worker on normal exits
+        pass
+
+
+def run_serve(settings: Settings) -> None:
+    """Migrate, start one worker process (restarted if it dies), and run the API here."""
+    from .db import migrate
+
+    settings.ensure_dirs()
+    migrate(settings.resolved_database_url)
+    command = [sys.executable, "-m", "service.cli", "worker", "--no-migrate"]
+    stopping = threading.Event()
+    state: dict[str, subprocess.Popen] = {}
+
+    def supervise() -> None:
+        while not stopping.is_set():
+            proc = subprocess.Popen(command, env=os.environ.copy(), preexec_fn=_die_with_parent)
+            state["proc"] = proc
+            log.info("worker process started", extra={"pid": proc.pid})
+            while proc.poll() is None and not stopping.is_set():
+                time.sleep(0.2)
+            if not stopping.is_set():
+                log.warning("worker process exited (code %s); restarting", proc.returncode)
+                time.sleep(0.5)
+
+    supervisor = threading.Thread(target=supervise, name="worker-supervisor", daemon=True)
+    supervisor.start()
+    try:
+        run_api(settings)
+    finally:
+        stopping.set()
+        proc = state.get("proc")
+        if proc is not None and proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
