@@ -74,7 +74,10 @@ def read_image(data: bytes, *, max_pixels: int, min_side: int = MIN_SIDE) -> np.
             f.write(data)
         inp = oiio.ImageInput.open(path)
         if inp is None:
-            raise InvalidImage(f"cannot read {ext} image: {oiio.geterror().strip() or 'corrupt header'}")
+            message = oiio.geterror().strip()
+            if "exceeds" in message and "limit" in message:   # OIIO's own bomb guard fired first
+                raise LimitExceeded("image too large: " + " ".join(message.splitlines()[:2]))
+            raise InvalidImage(f"cannot read {ext} image: {message or 'corrupt header'}")
         try:
             spec = inp.spec()
             w, h, c = spec.width, spec.height, spec.nchannels

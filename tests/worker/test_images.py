@@ -1,0 +1,165 @@
+"""read_image on good and broken inputs, encoder crops, writers."""
+import io
+import struct
+import zlib
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+from PIL import Image
+
+from worker.colour import linear_to_srgb, srgb_to_linear
+from worker.errors import InvalidImage, InvalidParameter, LimitExceeded
+from worker.images import (encode_image, encoder_crops, read_image, sniff_format, thumbnail,
+                           write_image)
+
+MAX = 4096 * 4096
+RNG = np.random.default_rng(5)
+RGB8 = RNG.integers(0, 256, (40, 56, 3), dtype=np.uint8)
+
+
+def pil_bytes(array, mode, fmt, **kw):
+    buf = io.BytesIO()
+    Image.fromarray(array, mode).save(buf, fmt, **kw)
+    return buf.getvalue()
+
+
+def oiio_bytes(array, ext, dtype, tmp_path):
+    path = str(tmp_path / f"img.{ext}")
+    spec = oiio.ImageSpec(array.shape[1], array.shape[0], array.shape[2], dtype)
+    out = oiio.ImageOutput.create(path)
+    assert out.open(path, spec) and out.write_image(array)
+    out.close()
+    return open(path, "rb").read()
+
+
+def test_png_8bit_exact():
+    img = read_image(pil_bytes(RGB8, "RGB", "PNG"), max_pixels=MAX)
+    assert img.shape == (40, 56, 3) and img.dtype == np.float32
+    assert np.array_equal((img * 255).round().astype(np.uint8), RGB8)
+
+
+def test_16bit_png_and_tiff(tmp_path):
+    rgb16 = RNG.integers(0, 65536, (32, 48, 3), dtype=np.uint16)
+    for ext in ("png", "tif"):
+        img = read_image(oiio_bytes(rgb16, ext, "uint16", tmp_path), max_pixels=MAX)
+        assert np.allclose(img, rgb16 / 65535.0, atol=1e-6)
+
+
+def test_exr_is_linear_and_becomes_srgb(tmp_path):
+    linear = RNG.random((32, 32, 3), dtype=np.float32)
+    linear[0, 0] = [np.nan, 5.0, -1.0]                      # junk an EXR can hold
+    img = read_image(oiio_bytes(linear, "exr", "float", tmp_path), max_pixels=MAX)
+    assert np.allclose(img[1:], linear_to_srgb(linear[1:]), atol=1e-6)
+    assert img[0, 0].tolist() == [0.0, 1.0, 0.0]
+
+
+def test_jpeg_webp_gray_rgba_cmyk():
+    smooth = np.repeat(np.linspace(0, 255, 64, dtype=np.uint8)[None, :, None], 48, 0).repeat(3, 2)
+    for fmt in ("JPEG", "WEBP"):
+        img = read_image(pil_bytes(smooth, "RGB", fmt, quality=95), max_pixels=MAX)
+        assert img.shape == (48, 64, 3) and np.abs(img * 255 - smooth).mean() < 3
+    gray = read_image(pil_bytes(smooth[:, :, 0], "L", "PNG"), max_pixels=MAX)
+    assert np.array_equal(gray[..., 0], gray[..., 2]) and np.allclose(gray[..., 1] * 255, smooth[..., 0])
+    rgba = np.zeros((20, 20, 4), np.uint8)
+    rgba[..., 0], rgba[:10, :, 3], rgba[10:, :, 3] = 255, 255, 0
+    img = read_image(pil_bytes(rgba, "RGBA", "PNG"), max_pixels=MAX)
+    assert np.allclose(img[0, 0], [1, 0, 0]) and np.allclose(img[15, 0], [0.5, 0.5, 0.5])  # mid grey
+    cmyk = Image.new("CMYK", (24, 24), (0, 255, 255, 0))           # pure red in CMYK
+    buf = io.BytesIO()
+    cmyk.save(buf, "JPEG", quality=100)
+    assert np.allclose(read_image(buf.getvalue(), max_pixels=MAX)[5, 5], [1, 0, 0], atol=0.02)
+
+
+def test_animated_gif_first_frame():
+    frames = [Image.new("RGB", (32, 32), c) for c in ((255, 0, 0), (0, 0, 255))]
+    buf = io.BytesIO()
+    frames[0].save(buf, "GIF", save_all=True, append_images=frames[1:], duration=100)
+    assert np.allclose(read_image(buf.getvalue(), max_pixels=MAX)[0, 0], [1, 0, 0], atol=0.01)
+
+
+def png_header_only(width, height):
+    """A PNG that declares a huge size but carries almost no data (decompression bomb)."""
+    ihdr = struct.pack(">2I5B", width, height, 8, 2, 0, 0, 0)
+    chunk = lambda k, d: struct.pack(">I", len(d)) + k + d + struct.pack(">I", zlib.crc32(k + d))  # noqa: E731
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 10)) + \
+        chunk(b"IEND", b"")
+
+
+def test_limits_checked_from_the_header():
+    with pytest.raises(LimitExceeded, match="100000x100000"):     # OIIO's own guard
+        read_image(png_header_only(100_000, 100_000), max_pixels=MAX)
+    with pytest.raises(LimitExceeded, match="20000x20000"):       # ours, before decoding
+        read_image(png_header_only(20_000, 20_000), max_pixels=MAX)
+    with pytest.raises(LimitExceeded):
+        read_image(pil_bytes(RGB8, "RGB", "PNG"), max_pixels=40 * 56 - 1)
+    with pytest.raises(InvalidImage, match="at least"):
+        read_image(pil_bytes(RGB8[:8], "RGB", "PNG"), max_pixels=MAX)
+
+
+@pytest.mark.parametrize("data, message", [
+    (b"", "empty"),
+    (b"hello world, not an image", "unrecognised"),
+    (b"\x89PNG\r\n\x1a\n" + b"garbage" * 20, "png"),
+    (b"\xff\xd8\xff\xe0" + b"\x00" * 50, "jpg"),
+])
+def test_broken_inputs(data, message):
+    with pytest.raises(InvalidImage, match=message):
+        read_image(data, max_pixels=MAX)
+
+
+def test_truncated_png_and_jpeg():
+    noise = RNG.integers(0, 256, (128, 128, 3), dtype=np.uint8)
+    for fmt in ("PNG", "JPEG"):
+        data = pil_bytes(noise, "RGB", fmt)
+        with pytest.raises(InvalidImage):
+            read_image(data[: len(data) // 2], max_pixels=MAX)
+
+
+def test_sniff_ignores_names():
+    assert sniff_format(pil_bytes(RGB8, "RGB", "WEBP")) == "webp"
+    assert sniff_format(pil_bytes(RGB8, "RGB", "TIFF")) == "tif"
+
+
+def test_encoder_crops_grid_and_range(brick):
+    crops = encoder_crops(brick, short_side=256, size=128, grid=3)
+    assert crops.shape == (9, 3, 128, 128) and crops.dtype == np.float32
+    assert crops.min() >= -1 and crops.max() <= 1
+    # brick is 512x512 -> resized to 256x256; crop (0, 0) is the top-left corner, crop 8 the
+    # bottom-right one
+    from worker.images import resize_short_side
+    work = resize_short_side(brick, 256) * 2 - 1
+    assert np.allclose(crops[0], work[:128, :128].transpose(2, 0, 1))
+    assert np.allclose(crops[8], work[128:, 128:].transpose(2, 0, 1))
+    wide = np.zeros((100, 700, 3), np.float32)                     # upscaled to 128 x 896
+    assert encoder_crops(wide, short_side=64, size=128, grid=3).shape == (3, 3, 128, 128)
+
+
+def test_encode_image(runtime, brick):
+    z = encode_image(runtime, brick)
+    assert z.shape == (8,) and z.dtype == np.float32 and np.isfinite(z).all()
+    assert np.array_equal(z, encode_image(runtime, brick))
+
+
+@pytest.mark.parametrize("fmt", ["png", "webp", "jpeg", "exr", "tiff"])
+def test_writers_are_deterministic_and_read_back(fmt):
+    linear = srgb_to_linear(np.repeat(np.linspace(0, 1, 96, dtype=np.float32)[None, :, None], 64, 0)
+                            .repeat(3, 2))
+    data = write_image(linear, fmt)
+    assert data == write_image(linear, fmt)
+    back = read_image(data, max_pixels=MAX)                      # sRGB-encoded again
+    tolerance = {"png": 0.5 / 255, "tiff": 1e-4, "exr": 2e-3, "webp": 6 / 255, "jpeg": 6 / 255}[fmt]
+    assert np.abs(back - linear_to_srgb(linear)).mean() <= tolerance
+
+
+def test_writer_rejects_bad_input():
+    with pytest.raises(InvalidParameter):
+        write_image(np.zeros((4, 4, 3), np.float32), "bmp")
+    with pytest.raises(InvalidParameter):
+        write_image(np.zeros((4, 4), np.float32), "png")
+
+
+def test_thumbnail(brick):
+    img = read_image(thumbnail(brick, max_side=100, fmt="png"), max_pixels=MAX)
+    assert img.shape == (100, 100, 3)
+    assert abs(img.mean() - brick.mean()) < 0.02
