@@ -75,7 +75,8 @@ def read_image(data: bytes, *, max_pixels: int, min_side: int = MIN_SIDE) -> np.
         inp = oiio.ImageInput.open(path)
         if inp is None:
             message = oiio.geterror().strip()
-            if "exceeds" in message and "limit" in message:   # OIIO's own bomb guard fired first
+            # OIIO's own bomb guards (absolute size; size claimed vs file size) fired first.
+            if ("exceeds" in message and "limit" in message) or "header claims" in message:
                 raise LimitExceeded("image too large: " + " ".join(message.splitlines()[:2]))
             raise InvalidImage(f"cannot read {ext} image: {message or 'corrupt header'}")
         try:

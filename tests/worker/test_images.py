@@ -89,9 +89,9 @@ def png_header_only(width, height):
 def test_limits_checked_from_the_header():
     with pytest.raises(LimitExceeded, match="100000x100000"):     # OIIO's own guard
         read_image(png_header_only(100_000, 100_000), max_pixels=MAX)
-    with pytest.raises(LimitExceeded, match="20000x20000"):       # ours, before decoding
+    with pytest.raises(LimitExceeded, match="1144 MB image from a 68 byte file"):
         read_image(png_header_only(20_000, 20_000), max_pixels=MAX)
-    with pytest.raises(LimitExceeded):
+    with pytest.raises(LimitExceeded, match="56x40 = 2240 pixels"):  # ours, from the header
         read_image(pil_bytes(RGB8, "RGB", "PNG"), max_pixels=40 * 56 - 1)
     with pytest.raises(InvalidImage, match="at least"):
         read_image(pil_bytes(RGB8[:8], "RGB", "PNG"), max_pixels=MAX)
