@@ -1,0 +1,150 @@
+"""End-to-end deployments: real ``texspace`` processes on free loopback ports.
+
+* embedded: ``texspace serve`` (API + one worker process, SQLite + SqliteHuey + local folder)
+* scaleout: ``texspace api`` + 2 ``texspace worker`` processes on PostgreSQL + Redis + an
+  S3-compatible server (moto), each process with its own data folder (nothing shared
+  on disk). Skipped, with the reason, when PostgreSQL or Redis cannot be reached.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.conftest import free_port
+
+PG_ADMIN_URL = os.environ.get("TEXSPACE_TEST_PG_URL", "postgresql://postgres@127.0.0.1:5432/test")
+REDIS_URL = os.environ.get("TEXSPACE_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
+READY_TIMEOUT = 120.0
+
+
+@dataclass
+class Deployment:
+    name: str
+    base_url: str
+    procs: list[subprocess.Popen] = field(default_factory=list)
+    logs: list[Path] = field(default_factory=list)
+
+    def client(self) -> httpx.Client:
+        return httpx.Client(base_url=self.base_url, timeout=60.0)
+
+    def log_tail(self, chars: int = 3000) -> str:
+        return "\n".join(f"--- {p.name}\n{p.read_text(errors='replace')[-chars:]}" for p in self.logs)
+
+
+def _start(args: list[str], env: dict[str, str], log_path: Path) -> subprocess.Popen:
+    log = open(log_path, "wb")
+    return subprocess.Popen([sys.executable, "-m", "service.cli", *args], env=env, stdout=log,
+                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+
+
+def _wait_ready(dep: Deployment) -> None:
+    deadline = time.monotonic() + READY_TIMEOUT
+    while time.monotonic() < deadline:
+        for proc in dep.procs:
+            if proc.poll() is not None:
+                pytest.fail(f"{dep.name}: a process exited with {proc.returncode}\n{dep.log_tail()}")
+        try:
+            if httpx.get(dep.base_url + "/readyz", timeout=5).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.3)
+    pytest.fail(f"{dep.name}: not ready within {READY_TIMEOUT}s\n{dep.log_tail()}")
+
+
+def _stop(dep: Deployment) -> None:
+    for proc in dep.procs:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+    for proc in dep.procs:
+        try:
+            proc.wait(15)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)  # its own session: only our process tree
+            proc.wait(5)
+
+
+def _base_env(data_dir: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TEXSPACE_")}
+    env.update(TEXSPACE_DATA_DIR=str(data_dir), TEXSPACE_LOG_JSON="true", TEXSPACE_HEARTBEAT_SECONDS="0.5",
+               TEXSPACE_WORKERS="1", PYTHONUNBUFFERED="1")
+    return env
+
+
+@pytest.fixture(scope="module")
+def embedded(tmp_path_factory) -> Iterator[Deployment]:
+    root = tmp_path_factory.mktemp("embedded")
+    port = free_port()
+    env = _base_env(root / "data") | {"TEXSPACE_PORT": str(port)}
+    dep = Deployment("embedded", f"http://127.0.0.1:{port}", logs=[root / "serve.log"])
+    dep.procs.append(_start(["serve"], env, dep.logs[0]))
+    try:
+        _wait_ready(dep)
+        yield dep
+    finally:
+        _stop(dep)
+
+
+def _postgres_database() -> tuple[str, callable]:
+    """A fresh database on the local server, and a function that drops it."""
+    psycopg = pytest.importorskip("psycopg")
+    try:
+        admin = psycopg.connect(PG_ADMIN_URL, autocommit=True, connect_timeout=3)
+    except psycopg.Error as exc:
+        pytest.skip(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {exc}")
+    name = f"texspace_e2e_{uuid.uuid4().hex[:10]}"
+    admin.execute(f'CREATE DATABASE "{name}"')
+
+    def drop() -> None:
+        admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+        admin.close()
+
+    return PG_ADMIN_URL.rsplit("/", 1)[0] + "/" + name, drop
+
+
+def _require_redis() -> None:
+    redis = pytest.importorskip("redis")
+    try:
+        redis.Redis.from_url(REDIS_URL, socket_connect_timeout=3).ping()
+    except redis.RedisError as exc:
+        pytest.skip(f"Redis unreachable at {REDIS_URL}: {exc}")
+
+
+@pytest.fixture(scope="module")
+def scaleout(tmp_path_factory, moto_s3_url: str) -> Iterator[Deployment]:
+    _require_redis()
+    database_url, drop_database = _postgres_database()
+    root = tmp_path_factory.mktemp("scaleout")
+    run = uuid.uuid4().hex[:8]
+    port = free_port()
+    shared = {"TEXSPACE_DATABASE_URL": database_url, "TEXSPACE_QUEUE_BACKEND": "redis",
+              "TEXSPACE_QUEUE_URL": REDIS_URL, "TEXSPACE_QUEUE_NAME": f"texspace-e2e-{run}",
+              "TEXSPACE_STORAGE_BACKEND": "s3", "TEXSPACE_S3_ENDPOINT_URL": moto_s3_url,
+              "TEXSPACE_S3_BUCKET": f"texspace-e2e-{run}", "TEXSPACE_S3_ACCESS_KEY": "test",
+              "TEXSPACE_S3_SECRET_KEY": "test", "TEXSPACE_PORT": str(port)}
+    dep = Deployment("scaleout", f"http://127.0.0.1:{port}")
+    for name, args in (("api", ["api"]), ("worker-1", ["worker"]), ("worker-2", ["worker"])):
+        log_path = root / f"{name}.log"
+        dep.logs.append(log_path)
+        dep.procs.append(_start(args, _base_env(root / name) | shared, log_path))
+    try:
+        _wait_ready(dep)
+        yield dep
+    finally:
+        _stop(dep)
+        drop_database()
+        import redis
+
+        client = redis.Redis.from_url(REDIS_URL)
+        for key in client.scan_iter(f"*texspace-e2e-{run}*"):
+            client.delete(key)
