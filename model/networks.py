@@ -173,6 +173,14 @@ class Decoder(nn.Module):
             layers += [nn.Linear(hidden, hidden), nn.ReLU()]
         self.body = nn.Sequential(*layers)
         self.out = nn.Linear(hidden, 3)
+        # He initialisation keeps the activations' spread through the ReLU stack, so an
+        # untrained decoder already varies with its noise input instead of being flat.
+        for layer in self.modules():
+            if isinstance(layer, nn.Linear):
+                nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
+                if layer.bias is not None:
+                    nn.init.zeros_(layer.bias)
+        nn.init.normal_(self.out.weight, std=0.5 / hidden**0.5)
 
     def forward(self, noise, position, code):
         h = self.from_code(code).unsqueeze(1)  # [B,1,H]
@@ -240,7 +248,8 @@ class TextureField(nn.Module):
             features = None
             if flags.noise:
                 parts = [nearest, interpolated] if cfg.nearest_input else [interpolated]
-                features = torch.cat(parts, dim=-1).reshape(b, p, -1)
+                # Centred to [-1, 1]: zero-mean inputs suit the ReLU layers' init.
+                features = (torch.cat(parts, dim=-1).reshape(b, p, -1) - 0.5) * 2.0
             position = points.to(torch.float32) if flags.position else None
             logits = self.decoder(features, position, extended)
         return torch.sigmoid(2.0 * logits)  # = (tanh + 1) / 2, the authors' output range

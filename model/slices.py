@@ -1,0 +1,101 @@
+"""2D slices of a solid texture: where the pixels of a synthesised patch lie in 3D.
+
+Training (2D-to-3D) and evaluation both look at a 3D texture through square patches
+on planes. A plane is an origin and two orthonormal in-plane axes; the patch's pixel
+(i, j) sits at ``origin + (j + 0.5) / ppu * u + (i + 0.5) / ppu * v`` (rows along v),
+so one patch pixel is one exemplar pixel, as at the tiles' native zoom.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+AXIS_PLANES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
+
+
+def plane_points(origins: torch.Tensor, axes: torch.Tensor, size: int, pixels_per_unit: float) -> torch.Tensor:
+    """Pixel centres of square patches.
+
+    origins : float64 [B,3], axes : float64 [B,2,3] (u, v)  ->  float64 [B, size*size, 3]
+    """
+    steps = (torch.arange(size, dtype=torch.float64) + 0.5) / pixels_per_unit
+    rows, cols = torch.meshgrid(steps, steps, indexing="ij")  # [S,S]
+    offsets = cols.reshape(1, -1, 1) * axes[:, None, 0, :] + rows.reshape(1, -1, 1) * axes[:, None, 1, :]
+    return origins[:, None, :] + offsets
+
+
+def random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:
+    """n uniformly random 3D rotation matrices [n,3,3] (QR of Gaussian matrices)."""
+    q, r = np.linalg.qr(rng.standard_normal((n, 3, 3)))
+    q = q * np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
+    q[np.linalg.det(q) < 0, :, 0] *= -1
+    return q
+
+
+def random_planes(
+    n: int, rng: np.random.Generator, *, oblique_fraction: float = 0.5, extent: float = 1000.0, dims: int = 3
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random slice planes: (origins float64 [n,3], axes float64 [n,2,3]).
+
+    Axis-aligned planes pick xy / xz / yz with random in-plane sign flips; the rest
+    are uniformly random orientations (oblique). Origins are uniform in
+    [-extent, extent]^3 so training sees many different lattice cells. ``dims=2``
+    keeps every plane at xy (planar textures).
+    """
+    origins = rng.uniform(-extent, extent, size=(n, 3))
+    axes = np.zeros((n, 2, 3))
+    for k in range(n):  # n is a batch size (a handful), not a pixel count
+        if dims == 2:
+            a, b = AXIS_PLANES["xy"]
+        elif rng.random() < oblique_fraction:
+            axes[k] = random_rotations(1, rng)[0][:2]
+            continue
+        else:
+            a, b = list(AXIS_PLANES.values())[rng.integers(0, 3)]
+        axes[k, 0, a] = rng.choice([-1.0, 1.0])
+        axes[k, 1, b] = rng.choice([-1.0, 1.0])
+    if dims == 2:
+        origins[:, 2] = 0.0
+    return torch.from_numpy(origins), torch.from_numpy(axes)
+
+
+def fixed_planes(kind: str, n: int, seed: int = 0, extent: float = 100.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Deterministic evaluation planes: kind 'axis' (xy, xz, yz in turn) or 'oblique'."""
+    rng = np.random.default_rng(seed)
+    origins = rng.uniform(-extent, extent, size=(n, 3))
+    if kind == "oblique":
+        axes = random_rotations(n, rng)[:, :2]
+    elif kind == "axis":
+        axes = np.zeros((n, 2, 3))
+        for k in range(n):
+            a, b = list(AXIS_PLANES.values())[k % 3]
+            axes[k, 0, a] = axes[k, 1, b] = 1.0
+    else:
+        raise ValueError(f"kind must be 'axis' or 'oblique', got {kind!r}")
+    return torch.from_numpy(origins), torch.from_numpy(axes)
+
+
+def linear_to_srgb(rgb: torch.Tensor) -> torch.Tensor:
+    """Linear-light colour in [0,1] -> sRGB-encoded (IEC 61966-2-1), differentiable."""
+    rgb = rgb.clamp(0.0, 1.0)
+    high = 1.055 * rgb.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055
+    return torch.where(rgb <= 0.0031308, 12.92 * rgb, high)
+
+
+def srgb_to_linear(srgb: torch.Tensor) -> torch.Tensor:
+    srgb = srgb.clamp(0.0, 1.0)
+    return torch.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+
+
+def render_slices(
+    field, z: torch.Tensor, seeds: torch.Tensor, origins: torch.Tensor, axes: torch.Tensor, size: int
+) -> torch.Tensor:
+    """Synthesise square patches on planes: sRGB-encoded images [B,3,size,size].
+
+    field : a TextureField (its config gives pixels_per_unit); z float32 [B,8];
+    seeds int64 [B]; origins/axes from ``random_planes`` or ``fixed_planes``.
+    """
+    points = plane_points(origins, axes, size, field.cfg.pixels_per_unit)
+    rgb = field(points, z, seeds)  # [B, S*S, 3] linear
+    return linear_to_srgb(rgb).reshape(-1, size, size, 3).permute(0, 3, 1, 2)

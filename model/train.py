@@ -1,0 +1,227 @@
+"""Train a texture space (or fit one exemplar) on the CPU.
+
+    python -m model.train --out runs/space                 # the shipped space, 3D
+    python -m model.train --mode single --exemplar IMG --out runs/wood --minutes 5
+    python -m model.train --variant perlin --out runs/perlin --steps 2000
+
+Every step: draw exemplar crops, encode them (space mode) or use the learned code
+(single mode), synthesise patches on random slice planes of the solid texture
+(axis-aligned and oblique, random offsets; ``--dims 2`` keeps them on the xy plane),
+and match VGG16 statistics of the exemplar (Gram matrices, or sliced Wasserstein).
+Targets are computed once per exemplar from the whole image at the working
+resolution. Checkpoints carry weights + config + step + RNG state, so
+``--out`` an existing run resumes it, and export rebuilds the model from the file alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from model.data import TextureDataset, load_exemplar, sample_batch
+from model.losses import gram_loss, gram_matrices, sliced_wasserstein_loss
+from model.networks import ModelConfig, TextureSpace, VARIANTS, load_checkpoint
+from model.slices import random_planes, render_slices
+from model.vgg import GATYS_LAYERS, shared_vgg
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m model.train", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--mode", choices=["space", "single"], default="space")
+    p.add_argument("--variant", choices=sorted(VARIANTS), default="ours")
+    p.add_argument("--dims", type=int, choices=[2, 3], default=3)
+    p.add_argument("--data", default="data/textures/train", help="folder of exemplar PNGs (space mode)")
+    p.add_argument("--exemplar", help="image file (single mode)")
+    p.add_argument("--out", required=True, help="run folder: checkpoint, log; resumed if it exists")
+    p.add_argument("--init", help="checkpoint to start from (weights only; e.g. the space for a fit)")
+    p.add_argument("--steps", type=int, default=100_000, help="stop after this many steps in total")
+    p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time (this run)")
+    p.add_argument("--batch", type=int, default=4)
+    p.add_argument("--patch", type=int, default=96, help="synthesised patch size (pixels)")
+    p.add_argument("--crop", type=int, default=128, help="exemplar crop size fed to the encoder")
+    p.add_argument("--short-side", type=int, default=256, help="exemplar working resolution")
+    p.add_argument("--lr", type=float, default=5e-4)
+    p.add_argument("--code-lr", type=float, default=1e-2, help="single mode: learning rate of the code")
+    p.add_argument("--warmup", type=int, default=200)
+    p.add_argument("--clip", type=float, default=1.0, help="global gradient-norm clip")
+    p.add_argument("--loss", choices=["gram", "swd"], default="gram")
+    p.add_argument("--layers", default=",".join(GATYS_LAYERS))
+    p.add_argument("--oblique", type=float, default=0.5, help="fraction of oblique slice planes")
+    p.add_argument("--no-nearest", action="store_true", help="decoder gets interpolated noise only")
+    p.add_argument("--smooth", action="store_true", help="smoothstep noise interpolation")
+    p.add_argument("--no-rotations", action="store_true", help="exemplar crops keep their orientation")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ckpt-every", type=int, default=200)
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p.parse_args(argv)
+
+
+class Objective:
+    """VGG statistics of the exemplars, computed once; loss of synthesised patches."""
+
+    def __init__(self, images: list[np.ndarray], layers: tuple[str, ...], kind: str):
+        self.vgg = shared_vgg(layers)
+        self.kind = kind
+        self.targets = []  # per exemplar: Grams (gram) or features (swd)
+        with torch.no_grad():
+            for image in images:
+                feats = self.vgg(torch.from_numpy(image.transpose(2, 0, 1).copy())[None])
+                self.targets.append(gram_matrices(feats) if kind == "gram" else feats)
+
+    def __call__(self, synth: torch.Tensor, indices: np.ndarray) -> torch.Tensor:
+        feats = self.vgg(synth)
+        losses = []
+        for b, k in enumerate(indices):
+            one = {name: value[b : b + 1] for name, value in feats.items()}
+            if self.kind == "gram":
+                losses.append(gram_loss(one, self.targets[k]))
+            else:
+                losses.append(sliced_wasserstein_loss(one, self.targets[k]))
+        return torch.stack(losses).mean()
+
+
+def build(args) -> tuple[TextureSpace, torch.nn.Parameter | None, dict]:
+    cfg = ModelConfig(variant=args.variant, dims=args.dims, nearest_input=not args.no_nearest,
+                      smooth=args.smooth, exemplar_short_side=args.short_side)
+    model = TextureSpace(cfg)
+    state = {}
+    if args.init:
+        init, ckpt = load_checkpoint(args.init)
+        if init.cfg.to_dict() != cfg.to_dict():
+            raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {cfg.to_dict()}")
+        model.load_state_dict(init.state_dict())
+        state["init"] = str(args.init)
+    code = torch.nn.Parameter(torch.zeros(1, cfg.code_size)) if args.mode == "single" else None
+    return model, code, state
+
+
+def initial_code(model: TextureSpace, image: np.ndarray, crop: int, rng) -> torch.Tensor:
+    """The encoder's code for an exemplar: mean over a few crops."""
+    crops = sample_batch([image], 8, crop, rng, flips=False, rotations=False)
+    with torch.no_grad():
+        return model.encode(torch.from_numpy(crops) * 2 - 1).mean(0, keepdim=True)
+
+
+def learning_rate(step: int, base: float, warmup: int) -> float:
+    return base * min(1.0, (step + 1) / max(1, warmup))
+
+
+def train(args) -> Path:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out / "checkpoint.pt"
+
+    if args.mode == "single":
+        if not args.exemplar:
+            raise SystemExit("--mode single needs --exemplar IMAGE")
+        names, images = [Path(args.exemplar).stem], [load_exemplar(args.exemplar, args.short_side)]
+    else:
+        dataset = TextureDataset(args.data, short_side=args.short_side)
+        names, images = dataset.names, dataset.images
+    crop = min(args.crop, *(min(im.shape[:2]) for im in images))
+
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    model, code, meta = build(args)
+    if code is not None and args.init:
+        code.data.copy_(initial_code(model, images[0], crop, rng))
+    params = [{"params": [p for p in (model.field.parameters() if code is not None else model.parameters())]}]
+    if code is not None:
+        params.append({"params": [code], "lr": args.code_lr})
+    optimizer = torch.optim.Adam(params, lr=args.lr)
+
+    step, wall, history = 0, 0.0, []
+    if ckpt_path.exists():  # resume
+        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        model.load_state_dict(ckpt["model"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        if code is not None:
+            code.data.copy_(ckpt["code"])
+        step, wall = ckpt["step"], ckpt.get("wall_seconds", 0.0)
+        rng.bit_generator.state = ckpt["numpy_rng"]
+        torch.set_rng_state(ckpt["torch_rng"])
+        print(f"resumed {ckpt_path} at step {step}")
+
+    objective = Objective(images, tuple(args.layers.split(",")), args.loss)
+    log = (out / "log.jsonl").open("a")
+
+    def save():
+        ckpt = {
+            "config": model.cfg.to_dict(), "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+            "step": step, "wall_seconds": wall, "numpy_rng": rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(), "mode": args.mode, "data": names,
+            "loss": args.loss, "layers": args.layers, "args": vars(args),
+            "final_loss": float(np.mean(history[-50:])) if history else None,
+        }
+        if code is not None:
+            ckpt["code"] = code.detach().clone()
+        tmp = ckpt_path.with_suffix(".tmp")
+        torch.save(ckpt, tmp)
+        tmp.replace(ckpt_path)
+
+    stop = {"now": False}
+    signal.signal(signal.SIGTERM, lambda *_: stop.update(now=True))
+    deadline = time.monotonic() + args.minutes * 60 if args.minutes else math.inf
+    total = args.steps
+    bar = tqdm(total=total, initial=step, disable=args.quiet, dynamic_ncols=True, unit="step")
+    model.train()
+    try:
+        while step < total and time.monotonic() < deadline and not stop["now"]:
+            t0 = time.monotonic()
+            crops, indices = sample_batch(images, args.batch, crop, rng, return_indices=True,
+                                          rotations=not args.no_rotations)
+            if code is None:
+                z = model.encode(torch.from_numpy(crops) * 2 - 1)
+            else:
+                z = code.expand(args.batch, -1)
+            origins, axes = random_planes(args.batch, rng, oblique_fraction=args.oblique, dims=args.dims)
+            seeds = torch.from_numpy(rng.integers(0, 2**31, size=args.batch))
+            synth = render_slices(model.field, z, seeds, origins, axes, args.patch)
+            loss = objective(synth, indices)
+
+            for group in optimizer.param_groups[:1]:
+                group["lr"] = learning_rate(step, args.lr, args.warmup)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_([p for g in params for p in g["params"]], args.clip)
+            optimizer.step()
+
+            step += 1
+            wall += time.monotonic() - t0
+            history.append(loss.item())
+            # Output spread across the batch: a collapse to flat colour shows as ~0 here.
+            spread = float(synth.detach().std(dim=(2, 3)).mean())
+            bar.set_postfix(loss=f"{np.mean(history[-20:]):.3f}", std=f"{spread:.3f}", refresh=False)
+            bar.update(1)
+            log.write(json.dumps({"step": step, "loss": round(float(loss), 5), "std": round(spread, 4),
+                                  "grad": round(float(grad_norm), 4), "wall": round(wall, 1)}) + "\n")
+            if step % args.ckpt_every == 0:
+                save()
+                log.flush()
+    finally:
+        bar.close()
+        save()
+        log.close()
+    return ckpt_path
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    path = train(args)
+    print(f"checkpoint: {path}")
+
+
+if __name__ == "__main__":
+    main()
