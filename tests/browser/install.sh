@@ -8,5 +8,5 @@ if [ -x /usr/bin/chromium ]; then
 fi
 export DEBIAN_FRONTEND=noninteractive
 apt-get update -q
-apt-get install -y -q --no-install-recommends chromium chromium-driver fonts-dejavu-core
+apt-get install -y -q chromium chromium-driver
 /usr/bin/chromium --version
