@@ -26,8 +26,8 @@ Layouts:
   cells of N x N pixels, ``cols * rows == N`` exactly (cols = the smallest divisor of N
   that is >= sqrt(N)), slice 0 at the top-left, then left to right, top to bottom:
   what Unity's texture importer turns into a Texture3D with "Flipbook Columns/Rows"
-  set to cols/rows. Written by a streaming PNG encoder, one grid row (``cols`` slices)
-  at a time, so the writer requires slabs of exactly ``cols`` slices.
+  set to cols/rows. Written by a streaming PNG encoder, one grid row (``cols`` slices,
+  8-bit) buffered at a time.
 """
 from __future__ import annotations
 
@@ -55,9 +55,7 @@ def flipbook_grid(n: int) -> tuple[int, int]:
 
 
 class VolumeWriter:
-    """Base: ``write(rgb slab)`` repeatedly, then ``close()``. ``required_slab`` if fixed."""
-
-    required_slab: int | None = None
+    """Base: ``write(rgb slab)`` repeatedly (slices in order), then ``close()``."""
 
     def __init__(self, path: str, n: int, bounds: np.ndarray):
         self.path, self.n, self.bounds = path, n, bounds
@@ -216,20 +214,23 @@ class PngStream:
 
 
 class FlipbookWriter(VolumeWriter):
-    """Flipbook PNG: one grid row of ``cols`` slices per ``write``."""
+    """Flipbook PNG. Slices are converted to 8-bit one at a time into a one-grid-row
+    buffer (cols * N * N * 3 bytes), which is streamed out as N PNG rows when full."""
 
     def __init__(self, path, n, bounds):
         super().__init__(path, n, bounds)
         self.cols, self.rows = flipbook_grid(n)
-        self.required_slab = self.cols
         self.file = open(path, "wb")
         self.png = PngStream(self.file, self.cols * n, self.rows * n)
+        self.grid_row = np.empty((n, self.cols, n, 3), dtype=np.uint8)   # [y, col, x, c]
+        self.k = 0
 
     def write(self, rgb):
-        if len(rgb) != self.cols:
-            raise ValueError(f"flipbook slabs must hold {self.cols} slices, got {len(rgb)}")
-        # (cols, N, N, 3) -> N image rows of cols*N pixels.
-        self.png.write_rows(linear_to_srgb8(rgb).transpose(1, 0, 2, 3).reshape(self.n, -1, 3))
+        for page in rgb:
+            self.grid_row[:, self.k % self.cols] = linear_to_srgb8(page)
+            self.k += 1
+            if self.k % self.cols == 0:
+                self.png.write_rows(self.grid_row.reshape(self.n, -1, 3))
 
     def close(self):
         try:

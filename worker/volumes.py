@@ -53,8 +53,8 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
     """Evaluate the texture on an N^3 grid and write it to ``out_path`` in ``fmt``.
 
     code : (8,) float32. bounds : ((x0, y0, z0), (x1, y1, z1)) world box.
-    slab : z-slices per sampler call (default: about SLAB_POINTS points; flipbook
-    forces one grid row). Returns the final path.
+    slab : z-slices per sampler call (default: about SLAB_POINTS points).
+    Returns the final path.
     """
     n = int(resolution)
     if fmt not in FORMATS:
@@ -75,7 +75,7 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
         if fmt == "flipbook" and max(writer.cols, writer.rows) * n > MAX_FLIPBOOK_SIDE:
             writer.close()
             raise LimitExceeded(f"flipbook of {n} slices would exceed {MAX_FLIPBOOK_SIDE} px per side")
-        step = writer.required_slab or int(slab or max(1, SLAB_POINTS // (n * n)))
+        step = int(slab or max(1, SLAB_POINTS // (n * n)))
         axes = tuple(voxel_centres(box[0, a], box[1, a], n) for a in range(3))
         try:
             for z0 in range(0, n, step):

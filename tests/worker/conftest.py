@@ -64,9 +64,12 @@ class WavesSampler:
     def sample(self, points, code, seed):
         points = np.asarray(points, dtype=np.float64)
         self.calls.append(len(points))
-        k = np.array([[3.0, 5.0, 7.0], [11.0, 2.0, 13.0], [17.0, 19.0, 1.0]])
-        phase = np.mod(points, 64.0) @ k.T * (2 * np.pi / 64.0) + float(seed)
-        return (0.5 + 0.5 * np.sin(phase)).astype(np.float32)
+        k = np.array([[3.0, 5.0, 7.0], [11.0, 2.0, 13.0], [17.0, 19.0, 1.0]]) * (2 * np.pi / 64.0)
+        out = np.empty((len(points), 3), dtype=np.float32)
+        for a in range(0, len(points), 16384):   # chunked, like SamplerSession
+            phase = np.mod(points[a:a + 16384], 64.0) @ k.T + float(seed)
+            out[a:a + 16384] = 0.5 + 0.5 * np.sin(phase)
+        return out
 
 
 @pytest.fixture

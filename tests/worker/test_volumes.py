@@ -1,0 +1,137 @@
+"""Volumes: every format read back equals the npy result; memory O(slab); progress/cancel."""
+import json
+import os
+import struct
+import tracemalloc
+import zipfile
+
+import nrrd
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from worker.colour import linear_to_srgb8
+from worker.errors import Canceled, InvalidParameter, LimitExceeded
+from worker.volume_writers import flipbook_grid
+from worker.volumes import render_volume, slab_points, voxel_centres
+
+N = 12                                   # flipbook grid 4 x 3
+BOUNDS = ((-1.0, 0.0, 2.0), (1.0, 0.5, 3.0))
+
+
+@pytest.fixture(scope="module")
+def reference(runtime, code, tmp_path_factory):
+    path = render_volume(runtime, code, 4, resolution=N, bounds=BOUNDS, fmt="npy",
+                         out_path=tmp_path_factory.mktemp("vol") / "ref.npy", slab=5)
+    return np.load(path)
+
+
+def read_pages(path):
+    inp = oiio.ImageInput.open(str(path))
+    pages = []
+    while inp.seek_subimage(len(pages), 0):
+        pages.append(inp.read_image(len(pages), 0, 0, 3, "float"))
+    inp.close()
+    return np.stack(pages)
+
+
+def test_reference_is_the_sampler_on_voxel_centres(runtime, code, reference):
+    assert reference.shape == (N, N, N, 3) and reference.dtype == np.float32
+    xs, ys, zs = (voxel_centres(BOUNDS[0][a], BOUNDS[1][a], N) for a in range(3))
+    k, j, i = 7, 3, 10                                       # [z, y, x]
+    direct = runtime.sample(np.array([[xs[i], ys[j], zs[k]]]), code, 4)[0]
+    assert np.allclose(reference[k, j, i], direct, atol=1e-6)
+    assert voxel_centres(0, 1, 4).tolist() == [0.125, 0.375, 0.625, 0.875]
+    assert slab_points((xs, ys, zs), 2, 3)[0].tolist() == [xs[0], ys[0], zs[2]]
+
+
+@pytest.mark.parametrize("fmt", ["exr", "tiff", "raw", "nrrd", "dds", "flipbook"])
+def test_every_format_reads_back_equal_to_npy(runtime, code, reference, tmp_path, fmt):
+    out = render_volume(runtime, code, 4, resolution=N, bounds=BOUNDS, fmt=fmt,
+                        out_path=tmp_path / f"v.{fmt}", slab=5)
+    assert out.is_file() and os.listdir(tmp_path) == [f"v.{fmt}"]      # no temp file left
+    if fmt in ("exr", "tiff"):
+        assert np.array_equal(read_pages(out), reference)
+    elif fmt == "raw":
+        with zipfile.ZipFile(out) as z:
+            meta = json.loads(z.read("volume.json"))
+            data = np.frombuffer(z.read("volume.raw"), "<f4").reshape(meta["shape"])
+        assert meta["axes"] == ["z", "y", "x", "channel"] and np.array_equal(data, reference)
+    elif fmt == "nrrd":
+        data, header = nrrd.read(str(out), index_order="C")
+        assert np.array_equal(data, reference)
+        assert np.allclose(header["space origin"], [-1 + 1 / N, 0.25 / N, 2 + 0.5 / N])
+    elif fmt == "dds":
+        raw = out.read_bytes()
+        magic, size, flags, height, width, pitch, depth = struct.unpack_from("<4s6I", raw)
+        assert (magic, size, height, width, depth, pitch) == (b"DDS ", 124, N, N, N, 4 * N)
+        assert flags & 0x800000 and struct.unpack_from("<I", raw, 112)[0] & 0x200000  # DEPTH, caps2 VOLUME
+        assert raw[84:88] == b"DX10" and struct.unpack_from("<2I", raw, 128) == (29, 4)     # sRGB RGBA8, 3D
+        texels = np.frombuffer(raw, np.uint8, offset=148).reshape(N, N, N, 4)
+        assert np.array_equal(texels[..., :3], linear_to_srgb8(reference)) and (texels[..., 3] == 255).all()
+        # OpenImageIO recognises it as an RGBA volume (its reader returns slice 0 only).
+        spec = oiio.ImageInput.open(str(out)).spec()
+        assert (spec.width, spec.height, spec.depth, spec.nchannels) == (N, N, N, 4)
+    else:
+        cols, rows = flipbook_grid(N)
+        inp = oiio.ImageInput.open(str(out))
+        sheet = inp.read_image(0, 0, 0, 3, "uint8").reshape(rows * N, cols * N, 3)
+        slices = sheet.reshape(rows, N, cols, N, 3).transpose(0, 2, 1, 3, 4).reshape(N, N, N, 3)
+        assert np.array_equal(slices, linear_to_srgb8(reference))        # slice 0 top-left, row-major
+
+
+def test_flipbook_grid():
+    assert flipbook_grid(128) == (16, 8) and flipbook_grid(64) == (8, 8)
+    assert flipbook_grid(12) == (4, 3) and flipbook_grid(7) == (7, 1)
+
+
+@pytest.mark.parametrize("fmt", ["npy", "raw", "flipbook"])
+def test_memory_is_bounded_by_the_slab(waves, tmp_path, fmt):
+    n = 128
+    full = n ** 3 * 3 * 4                                     # 25 MB as float32
+    tracemalloc.start()
+    try:
+        render_volume(waves, np.zeros(8, np.float32), 0, resolution=n, fmt=fmt,
+                      out_path=tmp_path / "big", slab=4)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert max(waves.calls) == 4 * n * n
+    # positions (24 B/point) + colours (12 B/point) + the sampler's chunk temporaries
+    # (+ one 8-bit grid row for the flipbook): O(slab), far below the full volume.
+    slab_bytes = 4 * n * n * 12
+    assert peak < 8 * slab_bytes + (n ** 3 * 3 // 8 if fmt == "flipbook" else 0), \
+        f"peak {peak / 1e6:.1f} MB vs full {full / 1e6:.1f} MB"
+    assert peak < full / 4
+
+
+def test_npy_of_the_big_volume_is_right(waves, tmp_path):
+    path = render_volume(waves, np.zeros(8, np.float32), 2, resolution=64, fmt="npy",
+                         out_path=tmp_path / "w.npy", slab=7)
+    vol = np.load(path, mmap_mode="r")
+    c = voxel_centres(0, 1, 64)
+    assert np.array_equal(vol[63, 5, 9], waves.sample(np.array([[c[9], c[5], c[63]]]), None, 2)[0])
+
+
+def test_progress_and_cancel(runtime, code, tmp_path):
+    seen = []
+    render_volume(runtime, code, 1, resolution=8, fmt="npy", out_path=tmp_path / "a.npy",
+                  slab=3, progress=seen.append)
+    assert seen == sorted(seen) and seen[-1] == 1.0 and len(seen) == 3
+    calls = []
+    with pytest.raises(Canceled):
+        render_volume(runtime, code, 1, resolution=8, fmt="flipbook", out_path=tmp_path / "b.png", slab=2,
+                      should_cancel=lambda: calls.append(1) or len(calls) > 1)
+    assert sorted(os.listdir(tmp_path)) == ["a.npy"]          # nothing half-written left behind
+
+
+def test_limits_and_bad_parameters(runtime, code, tmp_path):
+    with pytest.raises(LimitExceeded):
+        render_volume(runtime, code, 0, resolution=300, fmt="npy", out_path=tmp_path / "x",
+                      max_voxels=256 ** 3)
+    with pytest.raises(InvalidParameter):
+        render_volume(runtime, code, 0, resolution=8, fmt="vdb", out_path=tmp_path / "x")
+    with pytest.raises(InvalidParameter):
+        render_volume(runtime, code, 0, resolution=8, bounds=((0, 0, 0), (1, 0, 1)), fmt="npy",
+                      out_path=tmp_path / "x")
+    assert os.listdir(tmp_path) == []
