@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import asyncio
+import importlib.util
 import json
 from typing import Annotated, Literal
 
@@ -85,7 +86,7 @@ def submit_bake(
     return accepted(response, job, created)
 
 
-@router.post("/v1/textures/{texture_id}/fit", **ACCEPTED, responses=problem_responses(404, 413, 422, 501))
+@router.post("/v1/textures/{texture_id}/fit", **ACCEPTED, responses=problem_responses(404, 409, 413, 422, 501))
 def submit_fit(services: ServicesDep, response: Response, texture_id: str, key: IdempotencyKey,
                body: FitIn | None = None) -> JobOut:
     """Optimise a sampler for this one exemplar (needs the torch extra on the workers)."""
@@ -100,11 +101,13 @@ def submit_fit(services: ServicesDep, response: Response, texture_id: str, key: 
     return _submit(services, response, "fit", texture_id, body.model_dump(), key)
 
 
-@router.post("/v1/textures/{texture_id}/regions", **ACCEPTED, responses=problem_responses(404, 413, 422))
+@router.post("/v1/textures/{texture_id}/regions", **ACCEPTED, responses=problem_responses(404, 413, 422, 501))
 def submit_region(services: ServicesDep, response: Response, texture_id: str, body: RegionIn,
                   key: IdempotencyKey) -> JobOut:
     """Render a large rectangle of the infinite plane to one image (a job)."""
     load_texture(services, texture_id)
+    if importlib.util.find_spec("worker.regions") is None:
+        raise FeatureUnavailable("region export is not available in this build (worker/regions.py missing)")
     if body.width * body.height > services.settings.max_image_pixels:
         raise LimitExceeded(f"{body.width}x{body.height} exceeds the limit of "
                             f"{services.settings.max_image_pixels} pixels")

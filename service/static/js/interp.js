@@ -42,6 +42,10 @@ export class InterpolationPanel {
   }
 
   _blend(t) {
+    // The ends are the picked textures themselves: nothing to create.
+    for (const [end, select] of [[0, this.selectA], [1, this.selectB]]) {
+      if (t === end) return Promise.resolve({ id: select.value, name: select.selectedOptions[0].text });
+    }
     const key = `${this.selectA.value}|${this.selectB.value}|${t.toFixed(2)}`;
     if (!this.cache.has(key)) {
       const pending = interpolate(this.selectA.value, this.selectB.value, t);

@@ -1,0 +1,111 @@
+"""openapi.yaml is the contract: it must be valid OpenAPI 3.1 and agree with the app on
+paths, methods, parameters, request bodies (fields) and response status codes."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+from openapi_spec_validator import validate
+
+SPEC_PATH = Path(__file__).resolve().parents[2] / "openapi.yaml"
+METHODS = {"get", "post", "put", "patch", "delete"}
+
+
+@pytest.fixture(scope="module")
+def spec() -> dict:
+    return yaml.safe_load(SPEC_PATH.read_text())
+
+
+@pytest.fixture
+def app_spec(client) -> dict:
+    return client.app.openapi()
+
+
+def resolve(doc: dict, node: dict) -> dict:
+    while isinstance(node, dict) and "$ref" in node:
+        target = doc
+        for part in node["$ref"].removeprefix("#/").split("/"):
+            target = target[part]
+        node = target
+    return node
+
+
+def operations(doc: dict) -> dict[tuple[str, str], dict]:
+    ops = {}
+    for path, item in doc["paths"].items():
+        shared = item.get("parameters", [])
+        for method, op in item.items():
+            if method in METHODS:
+                ops[(path, method)] = {**op, "parameters": shared + op.get("parameters", [])}
+    return ops
+
+
+def params(doc: dict, op: dict) -> set[tuple[str, str, bool]]:
+    out = set()
+    for p in op["parameters"]:
+        p = resolve(doc, p)
+        name = p["name"].lower() if p["in"] == "header" else p["name"]
+        out.add((name, p["in"], bool(p.get("required", False))))
+    return out
+
+
+def body(doc: dict, op: dict) -> tuple[bool, dict[str, set[str]]] | None:
+    if "requestBody" not in op:
+        return None
+    req = resolve(doc, op["requestBody"])
+    fields = {}
+    for media, content in req["content"].items():
+        schema = resolve(doc, content.get("schema", {}))
+        if "anyOf" in schema:  # FastAPI spells optional bodies as anyOf [X, null]
+            schema = resolve(doc, next(s for s in schema["anyOf"] if s.get("type") != "null"))
+        fields[media] = set(schema.get("properties", {}))
+    return bool(req.get("required", False)), fields
+
+
+def test_spec_is_valid_openapi_31(spec) -> None:
+    assert spec["openapi"].startswith("3.1")
+    validate(spec)
+
+
+def test_same_operations(spec, app_spec) -> None:
+    assert set(operations(spec)) == set(operations(app_spec))
+
+
+def test_same_parameters_bodies_and_status_codes(spec, app_spec) -> None:
+    ours, theirs = operations(spec), operations(app_spec)
+    problems = []
+    for key in sorted(ours.keys() & theirs.keys()):
+        a, b = ours[key], theirs[key]
+        if params(spec, a) != params(app_spec, b):
+            problems.append(f"{key}: parameters {sorted(params(spec, a))} != app {sorted(params(app_spec, b))}")
+        if set(a["responses"]) != set(b["responses"]):
+            problems.append(f"{key}: responses {sorted(a['responses'])} != app {sorted(b['responses'])}")
+        if body(spec, a) != body(app_spec, b):
+            problems.append(f"{key}: body {body(spec, a)} != app {body(app_spec, b)}")
+    assert not problems, "\n".join(problems)
+
+
+def test_error_responses_are_problem_json(spec, app_spec) -> None:
+    for doc in (spec, app_spec):
+        for key, op in operations(doc).items():
+            for code, response in op["responses"].items():
+                response = resolve(doc, response)
+                if code[0] in "45" and code != "503" or (code == "503" and "Health" not in str(response)):
+                    assert "application/problem+json" in response.get("content", {}), (key, code)
+
+
+def test_enums_match(spec, app_spec) -> None:
+    """Formats and planes the app accepts are the ones the contract documents."""
+    def enum_of(doc: dict, schema_name: str, field: str) -> set:
+        schemas = doc["components"]["schemas"]
+        schema = resolve(doc, schemas[schema_name]["properties"][field])
+        return set(schema.get("enum") or next(s["enum"] for s in schema.get("anyOf", []) if "enum" in s))
+
+    assert enum_of(spec, "VolumeRequest", "format") == enum_of(app_spec, "VolumeIn", "format")
+    assert enum_of(spec, "RegionRequest", "format") == enum_of(app_spec, "RegionIn", "format")
+    tile_op = operations(app_spec)[("/v1/textures/{texture_id}/tiles/{z}/{x}/{y}.{fmt}", "get")]
+    fmt = next(resolve(app_spec, p) for p in tile_op["parameters"] if resolve(app_spec, p)["name"] == "fmt")
+    spec_op = operations(spec)[("/v1/textures/{texture_id}/tiles/{z}/{x}/{y}.{fmt}", "get")]
+    spec_fmt = next(resolve(spec, p) for p in spec_op["parameters"] if resolve(spec, p)["name"] == "fmt")
+    assert set(resolve(app_spec, fmt["schema"])["enum"]) == set(spec_fmt["schema"]["enum"])
