@@ -1,0 +1,88 @@
+"""Regions: one big image equal to the tiles' pixels; zipped pyramid equal to tile bytes."""
+import json
+import os
+import zipfile
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from worker.colour import linear_to_srgb, linear_to_srgb8
+from worker.errors import Canceled, InvalidParameter, LimitExceeded
+from worker.images import write_image
+from worker.regions import RegionLimits, render_region
+from worker.runtime import SamplerSession
+from worker.tiles import NATIVE_ZOOM, render_tile, render_window
+
+N = NATIVE_ZOOM
+RECT = dict(z=N - 1, x0=-70, y0=33, width=150, height=70)     # not tile aligned, crosses x = 0
+
+
+@pytest.fixture(scope="module")
+def expected(runtime, code):
+    return render_window(runtime, code, 9, RECT["z"], RECT["x0"], RECT["y0"], RECT["width"],
+                         RECT["height"], pixels_per_unit=runtime.pixels_per_unit, supersample=2)
+
+
+def read(path):
+    inp = oiio.ImageInput.open(str(path))
+    spec = inp.spec()
+    pixels = inp.read_image(0, 0, 0, 3, "float")
+    inp.close()
+    return spec, pixels
+
+
+def test_region_pixels_are_the_tiles_pixels(runtime, code, expected):
+    # tile (N-1, -1, 0) covers columns [-64, 0) and rows [0, 64); the region starts at (-70, 33)
+    tile = render_tile(runtime, code, 9, N - 1, -1, 0, 64)
+    assert np.array_equal(expected[:31, 6:70], tile[33:, :])
+
+
+@pytest.mark.parametrize("fmt, tolerance", [("png", 0), ("tiff", 1e-4), ("exr", 1e-3)])
+def test_single_image_formats(runtime, code, expected, tmp_path, fmt, tolerance):
+    seen = []
+    out = render_region(runtime, code, 9, fmt=fmt, out_path=tmp_path / f"r.{fmt}",
+                        progress=seen.append, **RECT)
+    spec, pixels = read(out)
+    assert (spec.width, spec.height) == (150, 70) and seen[-1] == 1.0
+    if fmt == "png":
+        assert np.array_equal(np.round(pixels * 255).astype(np.uint8), linear_to_srgb8(expected))
+    elif fmt == "tiff":
+        assert spec.tile_width == 256 and np.abs(pixels - linear_to_srgb(expected)).max() < tolerance
+    else:
+        assert np.abs(pixels - expected).max() < tolerance
+    assert os.listdir(tmp_path) == [f"r.{fmt}"]
+
+
+def test_pyramid(runtime, code, tmp_path):
+    out = render_region(runtime, code, 9, z=N, x0=-64, y0=0, width=128, height=64, size=64,
+                        min_zoom=N - 1, fmt="pyramid", out_path=tmp_path / "p.zip")
+    with zipfile.ZipFile(out) as z:
+        names = sorted(z.namelist())
+        meta = json.loads(z.read("tilejson.json"))
+        tile = z.read(f"{N}/-1/0.png")
+        parent = z.read(f"{N - 1}/-1/0.png")
+    assert names == sorted([f"{N}/-1/0.png", f"{N}/0/0.png", f"{N - 1}/-1/0.png", f"{N - 1}/0/0.png",
+                            "tilejson.json"])
+    assert meta["minzoom"] == N - 1 and meta["maxzoom"] == N and meta["tiles"] == ["{z}/{x}/{y}.png"]
+    # the same bytes the tile endpoint serves
+    assert tile == write_image(render_tile(runtime, code, 9, N, -1, 0, 64), "png")
+    assert parent == write_image(render_tile(runtime, code, 9, N - 1, -1, 0, 64), "png")
+
+
+def test_limits_cancel_and_parameters(runtime, code, tmp_path):
+    with pytest.raises(LimitExceeded):
+        render_region(runtime, code, 0, fmt="png", out_path=tmp_path / "a.png",
+                      limits=RegionLimits(max_pixels=100), **RECT)
+    with pytest.raises(LimitExceeded):
+        render_region(runtime, code, 0, z=N, x0=0, y0=0, width=4096, height=4096, fmt="pyramid",
+                      out_path=tmp_path / "a.zip", limits=RegionLimits(max_tiles=10))
+    with pytest.raises(Canceled):
+        render_region(runtime, code, 0, fmt="tiff", out_path=tmp_path / "a.tif",
+                      should_cancel=lambda: True, **RECT)
+    with pytest.raises(InvalidParameter):
+        render_region(runtime, code, 0, fmt="jpeg2000", out_path=tmp_path / "a.jp2", **RECT)
+    with pytest.raises(InvalidParameter, match="pixels_per_unit"):   # a bare fitted sampler
+        render_region(SamplerSession(runtime.sampler.path), code, 0, fmt="png",
+                      out_path=tmp_path / "a.png", **RECT)
+    assert os.listdir(tmp_path) == []
