@@ -100,17 +100,21 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
 
 def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
                should_cancel: ShouldCancel) -> dict[str, Any]:
-    from worker.regions import render_region
+    from worker.regions import RegionLimits, render_region
 
     texture = _texture(services, job)
-    params = dict(job.params)
-    fmt = params.pop("format")
-    seed = int(params.pop("seed"))
-    out_path = workdir / f"region-{texture.id[:8]}.{fmt}"
-    returned = render_region(services.sampler_for(texture), np.asarray(texture.code, np.float32), seed,
-                             fmt=fmt, out_path=out_path, progress=progress, should_cancel=should_cancel,
-                             **params)
-    return _store_result(services, job, _returned_path(returned, out_path), fmt)
+    p = job.params
+    ext = {"tiff": "tif", "pyramid": "zip"}.get(p["format"], p["format"])
+    out_path = workdir / f"region-{texture.id[:8]}-z{p['z']}.{ext}"
+    limits = RegionLimits(max_pixels=services.settings.max_region_pixels,
+                          max_tiles=services.settings.max_region_tiles)
+    returned = render_region(services.sampler_for(texture), np.asarray(texture.code, np.float32), int(p["seed"]),
+                             z=int(p["z"]), x0=int(p["x0"]), y0=int(p["y0"]), width=int(p["width"]),
+                             height=int(p["height"]), fmt=p["format"], out_path=out_path, size=int(p["size"]),
+                             min_zoom=p.get("min_zoom"), plane=p["plane"], offset=float(p["offset"]),
+                             pixels_per_unit=services.pixels_per_unit(texture), limits=limits,
+                             progress=progress, should_cancel=should_cancel)
+    return _store_result(services, job, _returned_path(returned, out_path), "zip" if ext == "zip" else p["format"])
 
 
 def fitted_texture_id(job_id: str) -> str:

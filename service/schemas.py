@@ -109,7 +109,11 @@ class RegionIn(BaseModel):
     seed: Seed = 0
     plane: Literal["xy", "xz", "yz"] = "xy"
     offset: float = Field(0.0, ge=-1e9, le=1e9)
-    format: Literal["png", "exr", "tiff"] = "png"
+    format: Literal["png", "exr", "tiff", "pyramid"] = Field(
+        "png", description="png: 8-bit sRGB; tiff: tiled 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
+                           "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json")
+    size: int = Field(256, ge=64, le=1024, description="pyramid tile size")
+    min_zoom: int | None = Field(None, description="pyramid: lowest zoom (default: the minimum zoom)")
 
 
 class JobResult(BaseModel):

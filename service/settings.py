@@ -56,6 +56,8 @@ class Settings(BaseSettings):
     max_mesh_bytes: int = Field(64 * 2**20, ge=1024)
     max_mesh_faces: int = Field(200_000, ge=1)
     max_tile_size: int = Field(1024, ge=16)
+    max_region_pixels: int = Field(8192 * 8192, ge=64 * 64)
+    max_region_tiles: int = Field(4096, ge=1)
     max_volume_resolution: int = Field(256, ge=2)
     max_bake_resolution: int = Field(4096, ge=16)
     fit_seconds: float = Field(60.0, gt=0)

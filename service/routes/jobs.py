@@ -108,9 +108,9 @@ def submit_region(services: ServicesDep, response: Response, texture_id: str, bo
     load_texture(services, texture_id)
     if importlib.util.find_spec("worker.regions") is None:
         raise FeatureUnavailable("region export is not available in this build (worker/regions.py missing)")
-    if body.width * body.height > services.settings.max_image_pixels:
+    if body.width * body.height > services.settings.max_region_pixels:
         raise LimitExceeded(f"{body.width}x{body.height} exceeds the limit of "
-                            f"{services.settings.max_image_pixels} pixels")
+                            f"{services.settings.max_region_pixels} pixels")
     return _submit(services, response, "region", texture_id, body.model_dump(), key)
 
 

@@ -231,3 +231,17 @@ def test_metrics_report_jobs_and_queue(held, photo) -> None:
     assert 'texspace_jobs{state="queued"} 1.0' in text
     assert "texspace_queue_depth 1.0" in text
     assert 'texspace_http_requests_total{method="POST",route="/v1/textures/{texture_id}/volumes",status="202"}' in text
+
+
+def test_region_png_job(client, texture) -> None:
+    res = client.post(texture["links"]["regions"], json={"z": 6, "x0": -40, "y0": 10, "width": 100, "height": 70})
+    assert res.status_code == 202, res.text
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded", job
+    from PIL import Image
+
+    image = Image.open(io.BytesIO(client.get(job["links"]["result"]).content))
+    assert image.size == (100, 70)
+    too_big = client.post(texture["links"]["regions"], json={"z": 6, "x0": 0, "y0": 0, "width": 16384,
+                                                              "height": 16384})
+    assert too_big.status_code == 413

@@ -39,8 +39,10 @@ const textureMap = new TextureMap($('map'), {
 async function showTexture(texture) {
   state.current = texture;
   $('current-name').textContent = texture.name || texture.id;
-  $('exemplar').hidden = false;
-  $('exemplar').src = api.exemplarUrl(texture.id);
+  const hasExemplar = texture.source !== 'interpolate';
+  $('exemplar').hidden = !hasExemplar;
+  $('no-exemplar').hidden = hasExemplar;
+  if (hasExemplar) $('exemplar').src = api.exemplarUrl(texture.id);
   for (const button of document.querySelectorAll('#texture-list button')) {
     button.setAttribute('aria-pressed', String(button.dataset.id === texture.id));
   }
@@ -62,8 +64,9 @@ $('seed-next').addEventListener('click', () => {
   $('seed').dispatchEvent(new Event('change'));
 });
 $('exemplar').addEventListener('error', () => {
-  // Blends and fitted textures may have no photo of their own.
+  // A texture without a photo of its own (e.g. a blend from an older server).
   $('exemplar').hidden = true;
+  $('no-exemplar').hidden = false;
 });
 $('native-zoom').addEventListener('click', () => textureMap.goNative());
 
@@ -71,12 +74,14 @@ $('native-zoom').addEventListener('click', () => textureMap.goNative());
 
 /** Exemplar as thumbnail; textures without one (blends) show a tile of themselves. */
 function showThumbnail(img, texture) {
-  img.addEventListener('error', async () => {
+  const showTile = async () => {
     try {
       const zoom = nativeZoomOf(await api.tileJson(texture.id));
       img.src = api.tileUrl(texture.id, zoom, 0, 0, { seed: 0, plane: 'xy', offset: 0, size: 64 });
     } catch { /* leave the empty thumbnail */ }
-  }, { once: true });
+  };
+  if (texture.source === 'interpolate') { showTile(); return; }
+  img.addEventListener('error', showTile, { once: true });
   img.src = api.exemplarUrl(texture.id);
 }
 

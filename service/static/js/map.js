@@ -31,6 +31,7 @@ export class TextureMap {
       maxZoom: 6,
       zoomSnap: 1,
       attributionControl: false,
+      fadeAnimation: false, // tiles appear at full strength: what you see is the texture
       keyboard: true,
     });
     this.layer = null;
