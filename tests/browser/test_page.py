@@ -24,12 +24,12 @@ ALL_TILES_LOADED = """() => {
 }"""
 
 
-def texture_photo_png() -> bytes:
-    """A real photo (scikit-image's bundled brick wall, CC0), tinted to RGB."""
+def texture_photo_png(name: str = "brick", tint: tuple[float, float, float] = (1.0, 0.75, 0.55)) -> bytes:
+    """A real photo (scikit-image's bundled brick / gravel / grass, CC0), tinted to RGB."""
     from skimage import data
 
-    gray = data.brick().astype(np.float32) / 255.0                     # (512, 512)
-    rgb = np.stack([gray * 1.0, gray * 0.75, gray * 0.55], axis=-1)     # warm brick colour
+    gray = getattr(data, name)().astype(np.float32) / 255.0            # (512, 512)
+    rgb = gray[..., None] * np.asarray(tint, np.float32)                # (512, 512, 3)
     buffer = io.BytesIO()
     Image.fromarray((rgb * 255).astype(np.uint8)).save(buffer, "PNG")
     return buffer.getvalue()
@@ -187,6 +187,46 @@ def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> No
     lit = np.abs(baked.astype(int) - blank.astype(int)).sum(axis=-1) > 30
     assert lit.mean() > 0.05, "the mesh covers a visible part of the view"
     assert page.locator('#jobs li[data-state="succeeded"] a[download]').count() >= 1
+    assert page.js_errors == []
+
+
+def upload(page, name: str, png: bytes) -> str:
+    """Upload through the file input; returns the new texture's id once it is on the map."""
+    with page.expect_response(lambda r: r.url.endswith("/v1/textures") and r.request.method == "POST") as done:
+        page.set_input_files("#upload-file", files=[{"name": f"{name}.png", "mimeType": "image/png", "buffer": png}])
+    assert done.value.status == 201, done.value.text()
+    texture_id = done.value.json()["id"]
+    page.wait_for_selector(f'#texture-list button[data-id="{texture_id}"][aria-pressed="true"]')
+    return texture_id
+
+
+def test_interpolation_slider_and_strip(page, base_url: str, artifacts: Path) -> None:
+    """Pick A and B, move the slider: the blend is created and shown; the strip fills."""
+    page.goto(base_url)
+    page.wait_for_selector("#map.leaflet-container")
+    a = upload(page, "gravel", texture_photo_png("gravel", (0.6, 0.7, 1.0)))
+    b = upload(page, "grass", texture_photo_png("grass", (0.5, 1.0, 0.4)))
+    page.select_option("#interp-a", a)
+    page.select_option("#interp-b", b)
+    # (the strip makes its own blends at t = 0.25, 0.5, 0.75 meanwhile)
+    def is_slider_blend(response) -> bool:
+        return response.url.endswith("/v1/textures/interpolate") and '"t":0.3' in (response.request.post_data or "")
+
+    with page.expect_response(is_slider_blend) as created:
+        page.fill("#interp-t", "0.3")
+    blend = created.value.json()
+    assert created.value.status == 201 and blend["parents"] == {"a": a, "b": b, "t": 0.3}
+    page.wait_for_function(f"() => document.body.dataset.texture === '{blend['id']}'")
+    page.wait_for_function(ALL_TILES_LOADED, timeout=60_000)
+    assert page.eval_on_selector("#map img.leaflet-tile-loaded", "img => img.src").count(blend["id"]) == 1
+    # Strip: t = 0, 0.25, 0.5, 0.75, 1, each a tile of its own texture.
+    page.wait_for_function("""() => {
+      const imgs = [...document.querySelectorAll('#strip img')];
+      return imgs.length === 5 && imgs.every((img) => img.complete && img.naturalWidth > 0);
+    }""", timeout=60_000)
+    sources = page.eval_on_selector_all("#strip img", "imgs => imgs.map((img) => img.src)")
+    assert a in sources[0] and b in sources[-1] and len({TILE_URL.search(u)["id"] for u in sources}) == 5
+    shoot(page, artifacts, "6-interpolated")
     assert page.js_errors == []
 
 
