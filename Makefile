@@ -1,0 +1,50 @@
+# texspace: two commands on a fresh Debian / Python 3.11 machine.
+#   make run    virtual environment, runtime install (no torch), migrate, API + worker
+#               on SQLite at http://127.0.0.1:$(TEXSPACE_PORT) (default 8000)
+#   make test   test + train extras (torch==2.13.0, CPU), then pytest
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(VENV)/bin/pip
+TEXSPACE_PORT ?= 8000
+TEXSPACE_DATA_DIR ?= data
+export TEXSPACE_PORT TEXSPACE_DATA_DIR
+PYTEST_ARGS ?=
+
+.PHONY: run test install install-test migrate serve bench readme-figure clean-data
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+
+# stamps: re-install only when pyproject.toml changes, so `make run` restarts quickly
+$(VENV)/.installed-run: pyproject.toml | $(PY)
+	$(PIP) install --disable-pip-version-check -q -e .
+	touch $@
+
+$(VENV)/.installed-test: pyproject.toml | $(PY)
+	$(PIP) install --disable-pip-version-check -q -e '.[train,test]'
+	touch $@ $(VENV)/.installed-run
+
+install: $(VENV)/.installed-run
+install-test: $(VENV)/.installed-test
+
+migrate: install
+	$(VENV)/bin/texspace migrate
+
+run: migrate
+	$(VENV)/bin/texspace serve --host 127.0.0.1 --port $(TEXSPACE_PORT)
+
+test: install-test
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+bench:
+	$(PY) bench/run.py
+
+# the README picture: an exemplar beside a tile synthesised from its code
+readme-figure: install
+	$(PY) -c "from skimage import data; from PIL import Image; Image.fromarray(data.brick()[:256, :256]).save('/tmp/texspace-exemplar.png')"
+	$(VENV)/bin/texspace tile /tmp/texspace-exemplar.png 6 0 0 --size 256 -o /tmp/texspace-tile.png
+	$(PY) -c "from PIL import Image; a = Image.open('/tmp/texspace-exemplar.png').convert('RGB'); b = Image.open('/tmp/texspace-tile.png'); c = Image.new('RGB', (520, 256), 'white'); c.paste(a, (0, 0)); c.paste(b, (264, 0)); c.save('docs/images/exemplar-and-tile.png')"
+
+clean-data:
+	rm -rf $(TEXSPACE_DATA_DIR)
