@@ -187,8 +187,11 @@ class VGG16Features(nn.Module):
         self.layers = tuple(layers)
         self.pooling = pooling
         self._last = max(layer_depth(name) for name in self.layers)
-        self.convs = nn.ModuleDict({name: nn.Conv2d(c_in, c_out, 3, padding=1) for name, c_in, c_out in CONVS})
-        self.convs.load_state_dict(_cached_state())
+        # Only the convs up to the deepest requested layer: less memory for shallow sets.
+        needed = [(name, c_in, c_out) for name, c_in, c_out in CONVS if layer_depth(name) <= self._last]
+        self.convs = nn.ModuleDict({name: nn.Conv2d(c_in, c_out, 3, padding=1) for name, c_in, c_out in needed})
+        state = _cached_state()
+        self.convs.load_state_dict({key: state[key] for key in self.convs.state_dict()})
         self.register_buffer("mean_bgr", torch.tensor(CAFFE_MEAN_BGR).view(1, 3, 1, 1), persistent=False)
         self.requires_grad_(False)
         self.eval()

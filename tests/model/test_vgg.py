@@ -27,7 +27,7 @@ def test_extraction_from_wheel_matches_fingerprints_and_cache(vgg):
 
 
 def test_fingerprint_check_rejects_altered_weights(vgg):
-    state = {key: value.clone() for key, value in vgg.convs.state_dict().items()}
+    state = torch.load(vgg_module.weights_path(), weights_only=True)
     vgg_module.verify_fingerprints(state)
     state["conv1_2.bias"][0] += 1e-3
     with pytest.raises(ValueError, match="conv1_2"):
@@ -74,6 +74,9 @@ def test_named_layers_shapes_order_and_frozen():
     features["relu3_3"].sum().backward()
     assert image.grad is not None and image.grad.abs().sum() > 0
     assert (features["relu1_2"] >= 0).all()
+    shallow = vgg_module.VGG16Features(["relu2_1"])
+    assert list(shallow.convs) == ["conv1_1", "conv1_2", "conv2_1"]  # stops at the deepest layer
+    assert torch.equal(shallow(image)["relu2_1"], model.__class__(["relu2_1", "relu5_3"])(image)["relu2_1"])
     with pytest.raises(ValueError, match="unknown VGG16 layer"):
         vgg_module.VGG16Features(["relu6_1"])
 
