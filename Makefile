@@ -18,7 +18,7 @@ $(PY):
 
 # stamps: re-install only when pyproject.toml changes, so `make run` restarts quickly
 $(VENV)/.installed-run: pyproject.toml | $(PY)
-	$(PIP) install --disable-pip-version-check -q -e .
+	$(PIP) install --disable-pip-version-check --no-compile -q -e .
 	touch $@
 
 $(VENV)/.installed-test: pyproject.toml | $(PY)
