@@ -49,7 +49,7 @@ def parametrize(vertices: np.ndarray, faces: np.ndarray, *, resolution: int, pad
         env.pop(TEST_CRASH_ENV, None)
         if crash_for_test:
             env[TEST_CRASH_ENV] = crash_for_test
-        env["OMP_NUM_THREADS"] = "1"
+        env["OMP_NUM_THREADS"] = env["OPENBLAS_NUM_THREADS"] = "1"   # small VM footprint under RLIMIT_AS
         try:
             proc = subprocess.run([sys.executable, "-m", "worker.atlas", src, dst], env=env,
                                   capture_output=True, timeout=timeout,

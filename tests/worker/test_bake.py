@@ -1,5 +1,4 @@
 """UV bakes: atlas choice, coverage, gutter, colours through the saved file, bad meshes."""
-import io
 import os
 import zipfile
 
