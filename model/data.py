@@ -161,11 +161,12 @@ def to_rgb_uint8(image: Image.Image) -> np.ndarray:
     and compositing over a colour would invent one); 16-bit is scaled, not clipped.
     """
     image = ImageOps.exif_transpose(image)
-    if image.mode in ("I;16", "I;16B", "I;16L", "I", "F"):
+    if image.mode in ("I;16", "I;16B", "I;16L", "I", "F"):  # single-channel, wider than 8 bits
         values = np.asarray(image, dtype=np.float64)
-        peak = 65535.0 if image.mode.startswith("I") and values.max() > 255 else 255.0
-        if image.mode == "F" and values.max() <= 1.0:
-            peak = 1.0
+        if image.mode == "F":
+            peak = 1.0 if values.max() <= 1.0 else 255.0  # float images are 0..1 or 0..255
+        else:
+            peak = 65535.0 if values.max() > 255 else 255.0  # 16-bit, or 8-bit values in an int image
         grey = np.clip(np.round(values / peak * 255.0), 0, 255).astype(np.uint8)
         return np.repeat(grey[..., None], 3, axis=2)
     return np.asarray(image.convert("RGB"), dtype=np.uint8).copy()
