@@ -3,6 +3,30 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 
+/**
+ * Vertex normals averaged over every vertex at the same position, so that the UV
+ * atlas's seams (where vertices are split) do not show as creases in the shading.
+ */
+export function smoothNormals(geometry) {
+  geometry.computeVertexNormals(); // area-weighted normals per (split) vertex
+  const position = geometry.attributes.position;
+  const normal = geometry.attributes.normal;
+  const sums = new Map(); // position key -> [nx, ny, nz]
+  const keyOf = (i) => `${position.getX(i).toFixed(5)},${position.getY(i).toFixed(5)},${position.getZ(i).toFixed(5)}`;
+  for (let i = 0; i < position.count; i += 1) {
+    const key = keyOf(i);
+    const sum = sums.get(key) || [0, 0, 0];
+    sum[0] += normal.getX(i); sum[1] += normal.getY(i); sum[2] += normal.getZ(i);
+    sums.set(key, sum);
+  }
+  for (let i = 0; i < position.count; i += 1) {
+    const [x, y, z] = sums.get(keyOf(i));
+    const length = Math.hypot(x, y, z) || 1;
+    normal.setXYZ(i, x / length, y / length, z / length);
+  }
+  normal.needsUpdate = true;
+}
+
 export class MeshViewer {
   /** @param {HTMLElement} element  container; the canvas fills it */
   constructor(element) {
@@ -56,6 +80,14 @@ export class MeshViewer {
     const gltf = await new GLTFLoader().loadAsync(url);
     if (this.model) this.scene.remove(this.model);
     this.model = gltf.scene;
+    this.model.traverse((node) => {
+      // GLTFLoader flat-shades meshes that come without normals; bakes are smooth surfaces.
+      if (node.isMesh && node.material.flatShading) {
+        smoothNormals(node.geometry);
+        node.material.flatShading = false;
+        node.material.needsUpdate = true;
+      }
+    });
     this.scene.add(this.model);
     this._frame(this.model);
     this.loadedUrl = url;
