@@ -225,6 +225,8 @@ def to_markdown(report: dict) -> str:
     """Summary tables per domain plus per-exemplar style errors."""
     lines = ["# Evaluation", "", "Style error: Gram L2, lower is better. Diversity: VGG distance between",
              "seeds, higher is better. Success: diversity x (max style error - style error).", ""]
+    if len(report["checkpoints"]) < 2:
+        lines += ["Only one variant: success is 0 by definition (it compares variants).", ""]
     for domain, by_label in report["summary"].items():
         lines += [f"## {domain}", "", "| variant | style error | diversity | success | exemplars |", "|---|---|---|---|---|"]
         for label, m in by_label.items():
