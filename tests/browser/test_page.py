@@ -176,8 +176,10 @@ def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> No
     blank = canvas_pixels(page, "#viewer canvas")
     assert spatial_std(blank) < 1, "before a bake the 3D view is empty"
     page.select_option("#bake-resolution", "256")
-    page.click("#bake-start")
-    page.wait_for_selector("#jobs li[data-job-id]")
+    with page.expect_request(lambda r: "/events" in r.url) as events:
+        page.click("#bake-start")
+    job_id = page.get_attribute("#jobs li[data-job-id]", "data-job-id")
+    assert events.value.url.endswith(f"/v1/jobs/{job_id}/events"), "progress comes from server-sent events"
     page.wait_for_selector('#jobs li[data-state="succeeded"]', timeout=BAKE_TIMEOUT_MS)
     page.wait_for_selector("#viewer[data-loaded]", timeout=30_000)
     page.wait_for_timeout(300)  # one more animation frame after the load
@@ -187,6 +189,17 @@ def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> No
     lit = np.abs(baked.astype(int) - blank.astype(int)).sum(axis=-1) > 30
     assert lit.mean() > 0.05, "the mesh covers a visible part of the view"
     assert page.locator('#jobs li[data-state="succeeded"] a[download]').count() >= 1
+
+    # 6. A volume job: listed, followed to the end, downloadable.
+    page.select_option("#volume-resolution", "32")
+    page.click("#volume-start")
+    page.wait_for_selector("#jobs li[data-job-id] >> nth=1")
+    volume = page.locator("#jobs li").first
+    volume.locator("xpath=self::li[@data-state='succeeded']").wait_for(timeout=BAKE_TIMEOUT_MS)
+    href = volume.locator("a[download]").get_attribute("href")
+    result = page.request.get(href)
+    assert result.ok and len(result.body()) >= 32 ** 3 * 3 * 4, "npy of a 32^3 float32 RGB volume"
+    shoot(page, artifacts, "6-volume")
     assert page.js_errors == []
 
 
@@ -226,7 +239,7 @@ def test_interpolation_slider_and_strip(page, base_url: str, artifacts: Path) ->
     }""", timeout=60_000)
     sources = page.eval_on_selector_all("#strip img", "imgs => imgs.map((img) => img.src)")
     assert a in sources[0] and b in sources[-1] and len({TILE_URL.search(u)["id"] for u in sources}) == 5
-    shoot(page, artifacts, "6-interpolated")
+    shoot(page, artifacts, "7-interpolated")
     assert page.js_errors == []
 
 
