@@ -141,6 +141,7 @@ class JobOut(BaseModel):
     attempt: int
     max_attempts: int
     cancel_requested: bool
+    worker_id: str | None = Field(None, description="host:pid of the worker holding (or last holding) the job")
     error: dict[str, Any] | None = Field(None, description="problem document of the failure")
     result: JobResult | None
     output_texture_id: str | None
@@ -157,7 +158,7 @@ class JobOut(BaseModel):
         done = j.state == "succeeded" and j.result_key
         return cls(id=j.id, kind=j.kind, state=j.state, texture_id=j.texture_id, params=j.params,
                    progress=j.progress, attempt=j.attempt, max_attempts=j.max_attempts,
-                   cancel_requested=j.cancel_requested, error=j.error,
+                   cancel_requested=j.cancel_requested, worker_id=j.worker_id, error=j.error,
                    result=JobResult(filename=j.result_filename, media_type=j.result_media_type,
                                     size=j.result_size) if done else None,
                    output_texture_id=j.output_texture_id, created_at=j.created_at, started_at=j.started_at,

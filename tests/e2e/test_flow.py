@@ -133,3 +133,34 @@ def test_events_and_metrics(http, texture) -> None:
     assert "event: succeeded" in text
     metrics = http.get("/metrics").text
     assert "texspace_jobs{state=\"succeeded\"}" in metrics and "texspace_queue_depth" in metrics
+
+
+def test_killed_worker_loses_nothing(http, texture, deployment) -> None:
+    """SIGKILL the worker holding a job: its lease expires, the reaper re-queues the job,
+    and another (or the restarted) worker finishes it as attempt 2. Runs last: it kills."""
+    import os
+    import signal
+
+    job = http.post(texture["links"]["volumes"], json={"resolution": 96, "seed": 5}).json()
+    running = wait_for(http, job["id"], states={"running"}, timeout=120, min_progress=0.01)
+    host, pid = running["worker_id"].rsplit(":", 1)
+    ours = {p.pid for p in deployment.procs} | _children(deployment)
+    assert int(pid) in ours, "the job's worker must be a process this test started"
+    os.kill(int(pid), signal.SIGKILL)
+    done = wait_for(http, job["id"], timeout=300)
+    assert done["state"] == "succeeded", done
+    assert done["attempt"] == 2 and done["worker_id"] != running["worker_id"]
+    volume = np.load(io.BytesIO(http.get(done["links"]["result"]).content))
+    assert volume.shape == (96, 96, 96, 3)
+
+
+def _children(deployment) -> set[int]:
+    """Pids of the children of our processes (``serve`` runs its worker as a child)."""
+    found = set()
+    for proc in deployment.procs:
+        for task in Path(f"/proc/{proc.pid}/task").glob("*"):
+            try:
+                found |= {int(p) for p in (task / "children").read_text().split()}
+            except OSError:
+                pass
+    return found

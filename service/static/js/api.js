@@ -99,6 +99,21 @@ export function startVolume(textureId, params) {
   });
 }
 
+export async function cancelJob(id) {
+  return (await request(`jobs/${id}/cancel`, { method: 'POST' })).body;
+}
+
+/** `{items: [{version, manifest, ...}], default}` */
+export async function listModels() {
+  return (await request('models')).body;
+}
+
+/** Paths of the running app's OpenAPI document (to find optional endpoints). */
+export async function apiPaths() {
+  const response = await fetch(new URL('openapi.json', document.baseURI));
+  return response.ok ? Object.keys((await response.json()).paths || {}) : [];
+}
+
 export async function getJob(id) {
   return (await request(`jobs/${id}`)).body;
 }

@@ -1,6 +1,6 @@
 // Live job progress: one list item per job, fed by the job's server-sent events;
 // falls back to polling GET /v1/jobs/{id} if the event stream breaks.
-import { getJob, jobEventsUrl, jobResultUrl } from './api.js';
+import { cancelJob, getJob, jobEventsUrl, jobResultUrl } from './api.js';
 
 const TERMINAL = new Set(['succeeded', 'failed', 'canceled']);
 // GET /v1/jobs/{id}/events sends `progress` ({state, progress, attempt}) while the job
@@ -29,9 +29,16 @@ export class JobList {
     const item = document.createElement('li');
     item.dataset.jobId = job.id;
     item.innerHTML = `<div><strong></strong> <span class="state">queued</span></div>
-      <progress max="1" value="0"></progress><div class="links"></div>`;
+      <progress max="1" value="0"></progress>
+      <div class="links"><button type="button" class="cancel">Cancel</button></div>`;
     item.querySelector('strong').textContent = label;
     item.querySelector('progress').setAttribute('aria-label', `Progress of ${label}`);
+    const cancel = item.querySelector('.cancel');
+    cancel.setAttribute('aria-label', `Cancel ${label}`);
+    cancel.addEventListener('click', async () => {
+      cancel.disabled = true;
+      try { show(await cancelJob(job.id)); } catch { cancel.disabled = false; }
+    });
     this.list.prepend(item);
 
     let finished = false;
@@ -43,6 +50,7 @@ export class JobList {
       item.querySelector('progress').value = status === 'succeeded' ? 1 : fraction(state.progress);
       if (!TERMINAL.has(status)) return;
       finished = true;
+      cancel.remove();
       if (status === 'succeeded') {
         const url = jobResultUrl(job.id);
         const link = document.createElement('a');

@@ -10,6 +10,7 @@ const $ = (id) => document.getElementById(id);
 const VOLUME_FORMATS = ['npy', 'exr', 'tiff', 'raw', 'nrrd', 'dds', 'flipbook'];
 
 const state = {
+  models: null,     // Promise of GET /v1/models, fetched once
   textures: [],     // listed textures, newest first
   current: null,    // texture on the map
   nextCursor: null,
@@ -36,13 +37,36 @@ const textureMap = new TextureMap($('map'), {
   onZoom: (zoom, native) => { $('zoom-info').textContent = `map zoom ${zoom}, native ${native}`; },
 });
 
+/**
+ * Show the exemplar at the model's working resolution (uploads are resized so their
+ * shorter side is manifest.exemplar_short_side), where 1 px matches the map at native zoom.
+ */
+async function sizeExemplar(texture) {
+  const img = $('exemplar');
+  img.style.width = img.style.height = '';
+  const { width, height } = texture;
+  if (!width || !height) return;
+  try {
+    state.models ||= api.listModels();
+    const model = (await state.models).items.find((m) => m.version === texture.model_version);
+    const shortSide = model?.manifest?.exemplar_short_side;
+    if (!shortSide || state.current !== texture) return;
+    const scale = shortSide / Math.min(width, height);
+    img.style.width = `${Math.round(width * scale)}px`;
+    img.style.height = `${Math.round(height * scale)}px`;
+  } catch { /* natural size is the fallback */ }
+}
+
 async function showTexture(texture) {
   state.current = texture;
   $('current-name').textContent = texture.name || texture.id;
   const hasExemplar = texture.source !== 'interpolate';
   $('exemplar').hidden = !hasExemplar;
   $('no-exemplar').hidden = hasExemplar;
-  if (hasExemplar) $('exemplar').src = api.exemplarUrl(texture.id);
+  if (hasExemplar) {
+    $('exemplar').src = api.exemplarUrl(texture.id);
+    sizeExemplar(texture);
+  }
   for (const button of document.querySelectorAll('#texture-list button')) {
     button.setAttribute('aria-pressed', String(button.dataset.id === texture.id));
   }
