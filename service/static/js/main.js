@@ -266,6 +266,10 @@ $('volume-form').addEventListener('submit', async (event) => {
 
 // ---- start -----------------------------------------------------------------------------
 
+// A server that evaluates per-point codes can draw the a -> b strip as one image.
+api.apiPaths()
+  .then((paths) => { interpolation.stripPath = paths.find((p) => p.includes('strip') && !p.includes('{')) || null; })
+  .catch(() => {});
 getViewer().catch((error) => say(`3D view unavailable: ${error.message}`, true));
 await loadTextures();
 if (state.textures.length) await showTexture(state.textures[0]);
