@@ -20,10 +20,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.conftest import free_port
+from tests.conftest import PG_ADMIN_URL, REDIS_URL, free_port
 
-PG_ADMIN_URL = os.environ.get("TEXSPACE_TEST_PG_URL", "postgresql://postgres@127.0.0.1:5432/test")
-REDIS_URL = os.environ.get("TEXSPACE_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
 READY_TIMEOUT = 120.0
 
 
