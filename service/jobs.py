@@ -184,3 +184,23 @@ def reap(services: Services) -> dict[str, int]:
         counts["resent"] += 1
         enqueue(services, job_id)  # a duplicate message is harmless: claim() is conditional
     return counts
+
+
+def release_worker(services: Services) -> list[str]:
+    """On shutdown: hand this worker's running jobs back to the queue at once, instead of
+    letting their leases run out. Their threads, if they finish later, cannot record
+    anything (finish() only updates the attempt it claimed while still running)."""
+    with session_scope(services.sessions) as session:
+        held = session.scalars(select(Job.id).where(Job.state == "running",
+                                                    Job.worker_id == services.worker_id)).all()
+    released = []
+    for job_id in held:
+        with session_scope(services.sessions) as session:
+            moved = session.execute(update(Job).where(
+                Job.id == job_id, Job.state == "running", Job.worker_id == services.worker_id,
+                Job.cancel_requested.is_(False)).values(
+                state="queued", lease_expires_at=None, worker_id=None)).rowcount
+        if moved == 1:
+            released.append(job_id)
+            enqueue(services, job_id)
+    return released

@@ -1,6 +1,10 @@
 """The FastAPI app factory: it only wires settings, services, middleware and routes."""
 from __future__ import annotations
 
+import logging
+import threading
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -14,6 +18,7 @@ from .middleware import RequestContextMiddleware
 from .routes import jobs, system, textures, tiles
 from .settings import Settings
 
+log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 
 
@@ -21,7 +26,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     """Build the app. ``services`` may be given (tests pass in-memory queues)."""
     settings = settings or (services.settings if services else Settings())
     services = services or build_services(settings)
-    app = FastAPI(title="texspace", version=__version__,
+    app = FastAPI(title="texspace", version=__version__, lifespan=_warm_up,
                   description="Neural 3D texture space: encode a photo, then synthesise infinite tiles, "
                               "volumes and UV-baked meshes from its 8-number code.")
     app.state.services = services
@@ -35,6 +40,21 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     if (STATIC_DIR / "index.html").is_file():  # the web page (its own engineer's part)
         app.mount("/", StaticFiles(directory=STATIC_DIR, html=True), name="static")
     return app
+
+
+@asynccontextmanager
+async def _warm_up(app: FastAPI) -> AsyncIterator[None]:
+    """Load the models in the background at start, so the first request does not pay
+    for it; /readyz says 503 until they answer."""
+
+    def load() -> None:
+        try:
+            app.state.services.registry
+        except Exception:  # reported by /readyz and by each request that needs a model
+            log.exception("model registry could not be loaded")
+
+    threading.Thread(target=load, name="warm-up", daemon=True).start()
+    yield
 
 
 def _openapi(app: FastAPI) -> dict:

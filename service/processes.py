@@ -59,6 +59,14 @@ def run_worker(settings: Settings, *, migrate: bool = True) -> None:
         consumer.run()
     finally:
         stop.set()
+        from .jobs import release_worker
+
+        try:
+            released = release_worker(services)
+            if released:
+                log.info("handed running jobs back to the queue", extra={"jobs": released})
+        except Exception:  # the reaper will re-queue them when their leases expire
+            log.exception("could not release running jobs")
 
 
 def _die_with_parent() -> None:

@@ -245,3 +245,17 @@ def test_region_png_job(client, texture) -> None:
     too_big = client.post(texture["links"]["regions"], json={"z": 6, "x0": 0, "y0": 0, "width": 16384,
                                                               "height": 16384})
     assert too_big.status_code == 413
+
+
+def test_worker_shutdown_hands_running_jobs_back(held, photo) -> None:
+    client, services = held
+    job = submit_volume(client, upload(client, photo))
+    services.huey.flush()
+    claim = jobs.claim(services, job["id"])
+    assert jobs.release_worker(services) == [job["id"]]
+    body = client.get(f"/v1/jobs/{job['id']}").json()
+    assert body["state"] == "queued" and body["worker_id"] is None
+    assert not jobs.finish(services, claim, "succeeded")  # the old attempt cannot record a result
+    run_next_message(services)
+    body = client.get(f"/v1/jobs/{job['id']}").json()
+    assert body["state"] == "succeeded" and body["attempt"] == 2

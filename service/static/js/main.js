@@ -61,7 +61,7 @@ async function showTexture(texture) {
   state.current = texture;
   $('current-name').textContent = texture.name || texture.id;
   const hasExemplar = texture.source !== 'interpolate';
-  $('exemplar').hidden = !hasExemplar;
+  $('exemplar').parentElement.hidden = !hasExemplar;
   $('no-exemplar').hidden = hasExemplar;
   if (hasExemplar) {
     $('exemplar').src = api.exemplarUrl(texture.id);
@@ -89,7 +89,7 @@ $('seed-next').addEventListener('click', () => {
 });
 $('exemplar').addEventListener('error', () => {
   // A texture without a photo of its own (e.g. a blend from an older server).
-  $('exemplar').hidden = true;
+  $('exemplar').parentElement.hidden = true;
   $('no-exemplar').hidden = false;
 });
 $('native-zoom').addEventListener('click', () => textureMap.goNative());
@@ -132,10 +132,16 @@ function textureButton(texture) {
   return item;
 }
 
+/** The listed textures; blends (made by the slider and the strip) only on request. */
+function visibleTextures() {
+  return $('show-blends').checked ? state.textures : state.textures.filter((t) => t.source !== 'interpolate');
+}
+
 function renderLibrary() {
-  $('texture-list').replaceChildren(...state.textures.map(textureButton));
+  const textures = visibleTextures();
+  $('texture-list').replaceChildren(...textures.map(textureButton));
   $('load-more').hidden = !state.nextCursor;
-  interpolation.setTextures(state.textures);
+  interpolation.setTextures(textures);
   interpolation.refresh();
 }
 
@@ -150,6 +156,7 @@ async function loadTextures(more = false) {
   }
 }
 $('load-more').addEventListener('click', () => loadTextures(true));
+$('show-blends').addEventListener('change', renderLibrary);
 
 async function upload(file) {
   if (!file) return;
@@ -272,5 +279,5 @@ api.apiPaths()
   .catch(() => {});
 getViewer().catch((error) => say(`3D view unavailable: ${error.message}`, true));
 await loadTextures();
-if (state.textures.length) await showTexture(state.textures[0]);
+if (visibleTextures().length) await showTexture(visibleTextures()[0]);
 window.texspace = { state, textureMap, get viewer() { return viewer; } };

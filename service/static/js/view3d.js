@@ -92,6 +92,7 @@ export class MeshViewer {
     this._frame(this.model);
     this.loadedUrl = url;
     this.element.dataset.loaded = url;
+    this.element.querySelector('.viewer-hint')?.remove();
     this.render();
   }
 
