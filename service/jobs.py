@@ -40,7 +40,7 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
     if idempotency_key:
         existing = find_by_idempotency_key(services, idempotency_key)
         if existing is not None:
-            return _same_request(existing, fingerprint), False
+            return same_request(existing, fingerprint), False
     job = Job(id=job_id or new_id(), kind=kind, texture_id=texture_id, params=params, input_key=input_key,
               state="queued", attempt=0, max_attempts=services.settings.max_attempts, progress=0.0,
               cancel_requested=False, idempotency_key=idempotency_key, request_hash=fingerprint)
@@ -51,12 +51,13 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
         existing = find_by_idempotency_key(services, idempotency_key or "")
         if existing is None:
             raise
-        return _same_request(existing, fingerprint), False
+        return same_request(existing, fingerprint), False
     enqueue(services, job.id)
     return get(services, job.id), True
 
 
-def _same_request(job: Job, fingerprint: str) -> Job:
+def same_request(job: Job, fingerprint: str) -> Job:
+    """The earlier job of an Idempotency-Key, if the request is the same; else a 422."""
     if job.request_hash and job.request_hash != fingerprint:
         raise Problem(422, "this Idempotency-Key was already used for a different request",
                       slug="idempotency-key-reused")

@@ -37,7 +37,6 @@ def accepted(response: Response, job: Job, created: bool) -> JobOut:
 
 def _submit(services, response: Response, kind: str, texture_id: str, params: dict,  # noqa: ANN001
             key: str | None) -> JobOut:
-    load_texture(services, texture_id)
     job, created = jobs.submit(services, kind=kind, texture_id=texture_id, params=params, idempotency_key=key)
     return accepted(response, job, created)
 
@@ -75,7 +74,7 @@ def submit_bake(
     params = {"resolution": resolution, "seed": seed, "scale": scale, "format": format, "filename": filename}
     fingerprint = jobs.request_hash("bake", texture_id, params, sha256(data).encode())
     if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:
-        return accepted(response, jobs._same_request(existing, fingerprint), False)
+        return accepted(response, jobs.same_request(existing, fingerprint), False)
     job_id = new_id()
     input_key = f"jobs/{job_id}/input/{filename}"
     services.storage.put_bytes(input_key, data)

@@ -49,7 +49,7 @@ def create_texture(
     texture_id = new_id()
     key = f"textures/{texture_id}/exemplar.{ext}"
     services.storage.put_bytes(key, data)
-    texture = Texture(id=texture_id, name=name or (image.filename or ""), code=[float(c) for c in code],
+    texture = Texture(id=texture_id, name=(name or image.filename or "")[:200], code=[float(c) for c in code],
                       model_version=runtime.version, source="upload", exemplar_key=key,
                       exemplar_media_type=IMAGE_MEDIA_TYPES.get(ext, "application/octet-stream"),
                       width=int(pixels.shape[1]), height=int(pixels.shape[0]))

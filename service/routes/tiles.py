@@ -6,6 +6,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Header, Request, Response
 from starlette.concurrency import run_in_threadpool
 
+from worker.errors import LimitExceeded
 from worker.tiles import MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM
 
 from ..deps import ServicesDep, TileAddress, TileFormat, TileParams, tile_address
@@ -25,7 +26,7 @@ router = APIRouter(prefix="/v1/textures", tags=["tiles"])
                  f"per world unit (zoom {MIN_ZOOM}..{MAX_ZOOM}). Same URL, same bytes: strong ETag, "
                  "immutable caching, 304 on If-None-Match."),
     responses={200: {"description": "the tile image", "content": {m: {} for m in TILE_MEDIA_TYPES.values()}},
-               304: {"description": "unchanged (If-None-Match)"}, **problem_responses(404, 422, 503)},
+               304: {"description": "unchanged (If-None-Match)"}, **problem_responses(404, 413, 422, 503)},
 )
 async def get_tile(
     services: ServicesDep,
@@ -35,6 +36,8 @@ async def get_tile(
     params: Annotated[TileParams, Depends()],
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
+    if params.size > services.settings.max_tile_size:
+        raise LimitExceeded(f"tile size {params.size} exceeds the limit of {services.settings.max_tile_size}")
     texture = await run_in_threadpool(load_texture, services, texture_id)
     key = dict(z=address.z, x=address.x, y=address.y, size=params.size, seed=params.seed,
                plane=params.plane, offset=params.offset, fmt=fmt)
