@@ -87,6 +87,17 @@ def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> No
     assert changed.mean() > 0.2, f"tile {tile} with seed 1 looks like seed 0"
     shoot(page, artifacts, "4-seed1")
 
+    # 4b. A slice of the solid: another plane at an offset re-requests every tile.
+    page.select_option("#plane", "xz")
+    page.fill("#offset", "0.5")
+    page.wait_for_function("""() => {
+      const tiles = [...document.querySelectorAll('#map img.leaflet-tile')];
+      return tiles.length > 0 && tiles.every((t) => t.src.includes('plane=xz') && t.src.includes('offset=0.5')
+                                              && t.classList.contains('leaflet-tile-loaded'));
+    }""", timeout=60_000)
+    assert page.text_content("#offset-value") == "0.50"
+    shoot(page, artifacts, "4b-slice-xz")
+
     # 5. Bake onto the page's own sphere; follow the job live; the 3D view shows it.
     page.wait_for_selector("#viewer canvas")
     blank = canvas_pixels(page, "#viewer canvas")
