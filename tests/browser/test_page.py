@@ -158,6 +158,18 @@ def test_interpolation_slider_and_strip(page, base_url: str, artifacts: Path) ->
     sources = page.eval_on_selector_all("#strip img", "imgs => imgs.map((img) => img.src)")
     assert a in sources[0] and b in sources[-1] and len({TILE_URL.search(u)["id"] for u in sources}) == 5
     shoot(page, artifacts, "7-interpolated")
+
+    # The view lives in the URL hash: a reload (or a shared link) reopens it.
+    page.click("#seed-next")
+    page.click(".leaflet-control-zoom-out")
+    page.wait_for_function("() => location.hash.includes('seed=1') && location.hash.includes('z=5')")
+    view_before = page.evaluate("window.texspace.textureMap.view()")
+    page.reload()
+    page.wait_for_function(f"() => document.body.dataset.texture === '{blend['id']}'")
+    page.wait_for_function(ALL_TILES_LOADED, timeout=60_000)
+    assert page.evaluate("window.texspace.textureMap.view()") == view_before
+    assert page.input_value("#seed") == "1"
+    assert all("seed=1" in src for src in page.eval_on_selector_all("#map img.leaflet-tile", "i => i.map((t) => t.src)"))
     assert page.js_errors == []
 
 

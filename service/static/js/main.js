@@ -4,6 +4,7 @@ import { TextureMap, nativeZoomOf } from './map.js';
 import { InterpolationPanel } from './interp.js';
 import { JobList } from './jobs.js';
 import { sphereObjFile } from './sphere.js';
+import { readView, writeView } from './permalink.js';
 
 const $ = (id) => document.getElementById(id);
 // VolumeIn.format in service/schemas.py
@@ -57,7 +58,12 @@ async function sizeExemplar(texture) {
   } catch { /* natural size is the fallback */ }
 }
 
-async function showTexture(texture) {
+function rememberView() {
+  if (state.current && textureMap.textureId) writeView({ t: state.current.id, ...tileParams(), ...textureMap.view() });
+}
+textureMap.map.on('moveend', rememberView);
+
+async function showTexture(texture, view = null) {
   state.current = texture;
   $('current-name').textContent = texture.name || texture.id;
   const hasExemplar = texture.source !== 'interpolate';
@@ -71,18 +77,19 @@ async function showTexture(texture) {
     button.setAttribute('aria-pressed', String(button.dataset.id === texture.id));
   }
   try {
-    await textureMap.show(texture.id, tileParams());
+    await textureMap.show(texture.id, tileParams(), view);
     document.body.dataset.texture = texture.id;
+    rememberView();
   } catch (error) {
     sayError(error);
   }
 }
 
 for (const id of ['seed', 'plane']) {
-  $(id).addEventListener('change', () => { textureMap.update(tileParams()); interpolation.refresh(); });
+  $(id).addEventListener('change', () => { textureMap.update(tileParams()); interpolation.refresh(); rememberView(); });
 }
 $('offset').addEventListener('input', () => { $('offset-value').value = Number($('offset').value).toFixed(2); });
-$('offset').addEventListener('change', () => textureMap.update(tileParams()));
+$('offset').addEventListener('change', () => { textureMap.update(tileParams()); rememberView(); });
 $('seed-next').addEventListener('click', () => {
   $('seed').value = (Number($('seed').value) || 0) + 1;
   $('seed').dispatchEvent(new Event('change'));
@@ -278,6 +285,25 @@ api.apiPaths()
   .then((paths) => { interpolation.stripPath = paths.find((p) => p.includes('strip') && !p.includes('{')) || null; })
   .catch(() => {});
 getViewer().catch((error) => say(`3D view unavailable: ${error.message}`, true));
+/** Open the view in the URL hash (texture, seed, slice, centre, zoom), if any. */
+async function openLinkedView() {
+  const view = readView();
+  if (!view) return false;
+  if (view.seed !== undefined) $('seed').value = view.seed;
+  if (view.plane) $('plane').value = view.plane;
+  if (view.offset !== undefined) {
+    $('offset').value = view.offset;
+    $('offset-value').value = Number($('offset').value).toFixed(2);
+  }
+  try {
+    await showTexture(await api.getTexture(view.t), view);
+    return true;
+  } catch (error) {
+    sayError(error);
+    return false;
+  }
+}
+
 await loadTextures();
-if (visibleTextures().length) await showTexture(visibleTextures()[0]);
+if (!(await openLinkedView()) && visibleTextures().length) await showTexture(visibleTextures()[0]);
 window.texspace = { state, textureMap, get viewer() { return viewer; } };

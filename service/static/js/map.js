@@ -43,8 +43,11 @@ export class TextureMap {
     this.map.on('zoomend', () => this.onZoom(this.map.getZoom(), this.nativeZoom));
   }
 
-  /** Show a texture; keeps the current view if only the seed/plane/offset change. */
-  async show(textureId, params = {}) {
+  /**
+   * Show a texture; the first one opens at `view` ({x, y, z}: centre in zoom-0 pixels, y
+   * down) or at the origin at native zoom; later ones keep the current view.
+   */
+  async show(textureId, params = {}, view = null) {
     Object.assign(this.params, params);
     const firstTime = this.textureId === null;
     const tj = await tileJson(textureId, { seed: this.params.seed });
@@ -53,7 +56,10 @@ export class TextureMap {
     const minZoom = Number.isInteger(tj.minzoom) ? tj.minzoom : this.nativeZoom - 4;
     const maxZoom = Number.isInteger(tj.maxzoom) ? tj.maxzoom : this.nativeZoom + 2;
     // Jump to native zoom before any tile layer exists, so no out-of-range tiles are asked for.
-    if (firstTime) this.map.setView([0, 0], this.nativeZoom, { animate: false });
+    if (firstTime) {
+      const zoom = Math.min(Math.max(view?.z ?? this.nativeZoom, minZoom), maxZoom + 2);
+      this.map.setView([-(view?.y ?? 0), view?.x ?? 0], zoom, { animate: false });
+    }
     this.map.setMinZoom(minZoom);
     // Allow two extra zoom levels past the finest tiles: Leaflet upscales them.
     this.map.setMaxZoom(maxZoom + 2);
@@ -77,6 +83,12 @@ export class TextureMap {
   update(params) {
     Object.assign(this.params, params);
     if (this.layer) this.layer.setUrl(this._template());
+  }
+
+  /** Centre (zoom-0 pixels, y down) and zoom of the current view. */
+  view() {
+    const { lat, lng } = this.map.getCenter();
+    return { x: Math.round(lng * 100) / 100, y: Math.round(-lat * 100) / 100, z: this.map.getZoom() };
   }
 
   goNative() {
