@@ -7,7 +7,7 @@ import json
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
-from fastapi import Depends, Header, Query, Request
+from fastapi import Depends, Header, Path, Query, Request
 from sqlalchemy import Select, and_, or_
 
 from worker.tiles import MAX_TILE_SIZE, MAX_ZOOM, MIN_TILE_SIZE, MIN_ZOOM
@@ -45,15 +45,11 @@ class TileAddress:
 
 
 def tile_address(
-    z: int,
-    x: int,
-    y: int,
+    z: Annotated[int, Path(ge=MIN_ZOOM, le=MAX_ZOOM, description="zoom level")],
+    x: Annotated[int, Path(ge=-COORD_LIMIT, le=COORD_LIMIT, description="tile column, grows right")],
+    y: Annotated[int, Path(ge=-COORD_LIMIT, le=COORD_LIMIT, description="tile row, grows down")],
 ) -> TileAddress:
-    """Path parameters checked against the zoom range and coordinate limit."""
-    if not MIN_ZOOM <= z <= MAX_ZOOM:
-        raise Problem(422, f"zoom z={z} outside [{MIN_ZOOM}, {MAX_ZOOM}]", slug="validation-error")
-    if abs(x) > COORD_LIMIT or abs(y) > COORD_LIMIT:
-        raise Problem(422, f"tile x and y must lie within +-{COORD_LIMIT}", slug="validation-error")
+    """Path parameters, checked against the zoom range and the coordinate limit."""
     return TileAddress(z, x, y)
 
 

@@ -8,7 +8,6 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI
-from fastapi.staticfiles import StaticFiles
 
 from . import __version__
 from .context import Services, build_services
@@ -17,6 +16,7 @@ from .logs import setup_logging
 from .middleware import RequestContextMiddleware
 from .routes import jobs, system, textures, tiles
 from .settings import Settings
+from .site import SiteFiles
 
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).resolve().parent / "static"
@@ -38,7 +38,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
                        max_body_bytes=max(settings.max_upload_bytes, settings.max_mesh_bytes) + (1 << 20))
     app.openapi = lambda: _openapi(app)
     if (STATIC_DIR / "index.html").is_file():  # the web page (its own engineer's part)
-        app.mount("/", StaticFiles(directory=STATIC_DIR, html=True), name="static")
+        app.mount("/", SiteFiles(directory=STATIC_DIR, html=True, routes=list(app.router.routes)), name="static")
     return app
 
 

@@ -115,3 +115,15 @@ def test_request_id_echoed(client) -> None:
     assert len(generated) == 32
     hostile = client.get("/healthz", headers={"X-Request-ID": "a b\tc"}).headers["x-request-id"]
     assert hostile != "a b\tc"
+
+
+def test_web_page_and_wrong_methods(client) -> None:
+    page = client.get("/")
+    assert page.status_code == 200 and "<html" in page.text.lower()
+    res = client.request("OPTIONS", "/v1/textures")
+    assert res.status_code == 405 and res.headers["content-type"] == PROBLEM
+    assert set(res.headers["allow"].split(", ")) >= {"GET", "POST"}
+    res = client.put("/v1/jobs/abc/cancel")
+    assert res.status_code == 405 and res.headers["allow"] == "POST"
+    missing = client.get("/v1/nothing-here")
+    assert missing.status_code == 404 and missing.headers["content-type"] == PROBLEM
