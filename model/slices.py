@@ -60,8 +60,12 @@ def random_planes(
     return torch.from_numpy(origins), torch.from_numpy(axes)
 
 
-def fixed_planes(kind: str, n: int, seed: int = 0, extent: float = 100.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Deterministic evaluation planes: kind 'axis' (xy, xz, yz in turn) or 'oblique'."""
+def fixed_planes(kind: str, n: int, seed: int = 0, extent: float = 4.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Deterministic evaluation planes: kind 'axis' (xy, xz, yz in turn) or 'oblique'.
+
+    Near the origin (``extent``), where position-input baselines were trained, so every
+    variant is compared on ground it knows.
+    """
     rng = np.random.default_rng(seed)
     origins = rng.uniform(-extent, extent, size=(n, 3))
     if kind == "oblique":
