@@ -26,7 +26,7 @@ class JsonFormatter(logging.Formatter):
             "logger": record.name,
             "message": record.getMessage(),
         }
-        if (rid := request_id_var.get()) is not None:
+        if (rid := request_id_var.get()) is not None and "request_id" not in vars(record):
             entry["request_id"] = rid
         if (jid := job_id_var.get()) is not None:
             entry["job_id"] = jid

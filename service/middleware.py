@@ -80,5 +80,6 @@ class RequestContextMiddleware:
             self.metrics.requests.labels(scope["method"], route_path, str(status["code"])).inc()
             self.metrics.latency.labels(scope["method"], route_path).observe(elapsed)
             log.info("%s %s %s", scope["method"], scope["path"], status["code"],
-                     extra={"status": status["code"], "ms": round(elapsed * 1000, 2), "route": route_path})
+                     extra={"status": status["code"], "ms": round(elapsed * 1000, 2), "route": route_path,
+                            "request_id": request_id})
             request_id_var.reset(token)

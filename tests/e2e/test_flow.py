@@ -3,6 +3,7 @@ bake job on a real mesh -> downloads load; Idempotency-Key; cancel queued and ru
 from __future__ import annotations
 
 import io
+import json
 import time
 from pathlib import Path
 
@@ -126,13 +127,21 @@ def test_cancel_running_and_queued(http, texture, deployment) -> None:
     assert http.get(f"/v1/jobs/{queued['id']}").json()["state"] == "canceled"
 
 
-def test_events_and_metrics(http, texture) -> None:
-    job = http.post(texture["links"]["volumes"], json={"resolution": 8}).json()
+def test_events_metrics_and_logs(http, texture, deployment) -> None:
+    submitted = http.post(texture["links"]["volumes"], json={"resolution": 8},
+                          headers={"X-Request-ID": "e2e-trace-1"})
+    assert submitted.headers["x-request-id"] == "e2e-trace-1"
+    job = submitted.json()
     with http.stream("GET", f"/v1/jobs/{job['id']}/events", timeout=120) as res:
         text = "".join(res.iter_text())
     assert "event: succeeded" in text
     metrics = http.get("/metrics").text
     assert "texspace_jobs{state=\"succeeded\"}" in metrics and "texspace_queue_depth" in metrics
+    entries = [json.loads(line) for path in deployment.logs
+               for line in path.read_text().splitlines() if line.startswith("{")]
+    assert any(e.get("request_id") == "e2e-trace-1" and e.get("route") == "/v1/textures/{texture_id}/volumes"
+               for e in entries)
+    assert any(e.get("job_id") == job["id"] and e["message"] == "job succeeded" for e in entries)
 
 
 def test_killed_worker_loses_nothing(http, texture, deployment) -> None:
