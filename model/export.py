@@ -139,13 +139,23 @@ def write_manifest(outdir: Path, cfg_dict: dict, training: dict, extra: dict | N
     return manifest
 
 
+def save_weights(model: TextureSpace, path: Path, training: dict) -> None:
+    """A slim checkpoint (config + weights, no optimiser): what ``model.fit`` starts from."""
+    tmp = path.with_suffix(".tmp")
+    torch.save({"config": model.cfg.to_dict(), "model": model.state_dict(), "step": training.get("steps", 0),
+                "mode": "space", **{k: v for k, v in training.items() if k in ("wall_seconds", "data")}}, tmp)
+    os.replace(tmp, path)
+
+
 def export_model(model: TextureSpace, outdir: Path, training: dict | None = None) -> dict:
-    """Write encoder.onnx, sampler.onnx and manifest.json into outdir; return the manifest."""
+    """Write encoder.onnx, sampler.onnx, space.pt and manifest.json into outdir; return the manifest."""
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
+    training = training or {}
     export_encoder(model, outdir / "encoder.onnx")
     export_sampler(model.field, outdir / "sampler.onnx")
-    return write_manifest(outdir, model.cfg.to_dict(), training or {})
+    save_weights(model, outdir / "space.pt", training)
+    return write_manifest(outdir, model.cfg.to_dict(), training)
 
 
 def training_summary(ckpt: dict) -> dict:

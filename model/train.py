@@ -19,6 +19,7 @@ import argparse
 import json
 import math
 import signal
+import threading
 import time
 from pathlib import Path
 
@@ -122,7 +123,8 @@ def learning_rate(step: int, base: float, warmup: int) -> float:
     return base * min(1.0, (step + 1) / max(1, warmup))
 
 
-def train(args) -> Path:
+def train(args, progress=None) -> Path:
+    """Run (or resume) training; ``progress(fraction)`` is called after every step."""
     if args.threads:
         torch.set_num_threads(args.threads)
     out = Path(args.out)
@@ -183,8 +185,10 @@ def train(args) -> Path:
         tmp.replace(ckpt_path)
 
     stop = {"now": False}
-    signal.signal(signal.SIGTERM, lambda *_: stop.update(now=True))
-    deadline = time.monotonic() + args.minutes * 60 if args.minutes else math.inf
+    if threading.current_thread() is threading.main_thread():  # a job thread cannot own signals
+        signal.signal(signal.SIGTERM, lambda *_: stop.update(now=True))
+    started = time.monotonic()
+    deadline = started + args.minutes * 60 if args.minutes else math.inf
     total = args.steps
     bar = tqdm(total=total, initial=step, disable=args.quiet, dynamic_ncols=True, unit="step")
     model.train()
@@ -219,6 +223,9 @@ def train(args) -> Path:
             bar.update(1)
             log.write(json.dumps({"step": step, "loss": round(float(loss), 5), "std": round(spread, 4),
                                   "grad": round(float(grad_norm), 4), "wall": round(wall, 1)}) + "\n")
+            if progress is not None:
+                by_time = (time.monotonic() - started) / (deadline - started) if args.minutes else 0.0
+                progress(min(1.0, max(step / total, by_time)))
             if step % args.ckpt_every == 0:
                 save()
                 log.flush()

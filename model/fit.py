@@ -1,0 +1,85 @@
+"""Fit one exemplar (the paper's *single* mode), starting from the shipped space.
+
+    python -m model.fit IMAGE OUTDIR [--minutes 4] [--init model/weights/space.pt]
+
+Starts from the space's encoder code for IMAGE and its decoder, then optimises the
+code, the translator (so the per-octave transforms) and the decoder for this one
+exemplar. Writes OUTDIR/sampler.onnx (DESIGN.md Contract 1, same inputs and outputs
+as the shipped sampler), OUTDIR/code.json (the code to feed it) and
+OUTDIR/manifest.json. The worker runs this as the ``fit`` job where torch is installed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import torch
+
+from model.export import export_sampler, model_version
+from model.networks import load_checkpoint
+from model.train import parse_args, train
+
+DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
+DEFAULT_MINUTES = 4.0  # inside the 5-minute budget on 2 cores, with export
+
+
+def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
+                 patch: int = 64, progress=None, quiet: bool = True, seed: int = 0) -> dict:
+    """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps'}."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    init = Path(init_checkpoint)
+    if not init.exists():
+        raise FileNotFoundError(f"no space checkpoint at {init}; train one (make train) or pass --init")
+    space, _ = load_checkpoint(init)
+    cfg = space.cfg
+    with tempfile.TemporaryDirectory() as run_dir:
+        argv = ["--mode", "single", "--exemplar", str(image_path), "--out", run_dir, "--init", str(init),
+                "--variant", cfg.variant, "--dims", str(cfg.dims), "--short-side", str(cfg.exemplar_short_side),
+                "--minutes", str(minutes), "--patch", str(patch), "--batch", "2", "--lr", "2e-4",
+                "--warmup", "20", "--seed", str(seed), "--ckpt-every", "1000000"]
+        argv += ["--no-nearest"] if not cfg.nearest_input else []
+        argv += ["--smooth"] if cfg.smooth else []
+        argv += ["--quiet"] if quiet else []
+        ckpt_path = train(parse_args(argv), progress=progress)
+        model, ckpt = load_checkpoint(ckpt_path)
+    export_sampler(model.field, out_dir / "sampler.onnx")
+    code = ckpt["code"].reshape(-1).tolist()
+    (out_dir / "code.json").write_text(json.dumps({"code": code}) + "\n")
+    manifest = {
+        "version": model_version(out_dir / "sampler.onnx"),
+        "kind": "fitted",
+        "base_model": init.name,
+        "pixels_per_unit": cfg.pixels_per_unit,
+        "code": code,
+        "steps": ckpt["step"],
+        "wall_seconds": round(ckpt["wall_seconds"], 1),
+        "final_loss": ckpt.get("final_loss"),
+        "output_colour": "linear",
+    }
+    (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return {"code": code, "sampler": str(out_dir / "sampler.onnx"), "version": manifest["version"],
+            "steps": ckpt["step"]}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m model.fit", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("image")
+    p.add_argument("outdir")
+    p.add_argument("--init", default=str(DEFAULT_INIT), help="space checkpoint to start from")
+    p.add_argument("--minutes", type=float, default=DEFAULT_MINUTES)
+    p.add_argument("--patch", type=int, default=64)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
+                          patch=args.patch, quiet=False, seed=args.seed)
+    print(json.dumps({k: result[k] for k in ("version", "steps", "sampler")}))
+
+
+if __name__ == "__main__":
+    main()
