@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import inspect
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -135,16 +136,25 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     texture = _texture(services, job)
     if not texture.exemplar_key:
         raise InvalidParameter(f"texture {texture.id} has no exemplar image to fit")
-    image_path = services.storage.get_file(texture.exemplar_key, workdir / "exemplar.bin")
+    # keep the extension: image readers pick the decoder by it
+    image_path = services.storage.get_file(texture.exemplar_key, workdir / Path(texture.exemplar_key).name)
     out_dir = workdir / "fit"
 
-    def report(fraction: float) -> None:  # fit has no cancel hook: stop at a progress report
-        progress(fraction)
+    def report(fraction: float, *_: Any, **__: Any) -> None:  # no cancel hook: stop at a report
+        progress(float(fraction))
         if should_cancel():
             raise Canceled("fit canceled")
 
-    fit_exemplar(image_path, out_dir, init_model_dir=services.registry.get(texture.model_version).model_dir,
-                 seconds=float(job.params["seconds"]), progress=report)
+    model_dir = services.registry.get(texture.model_version).model_dir
+    seconds = float(job.params["seconds"])
+    accepted = inspect.signature(fit_exemplar).parameters
+    if "init_checkpoint" in accepted:  # model/fit.py starts from the space's training checkpoint
+        checkpoint = model_dir / "space.pt"
+        if not checkpoint.is_file():
+            raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
+        fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=seconds / 60.0, progress=report)
+    else:
+        fit_exemplar(image_path, out_dir, init_model_dir=model_dir, seconds=seconds, progress=report)
     code = json.loads((out_dir / "code.json").read_text())
     code = code["code"] if isinstance(code, dict) else code
     new_id = fitted_texture_id(job.id)
