@@ -173,6 +173,40 @@ def test_interpolation_slider_and_strip(page, base_url: str, artifacts: Path) ->
     assert page.js_errors == []
 
 
+def test_default_bake_mesh_is_a_closed_sphere(page, base_url: str, tmp_path: Path) -> None:
+    """The OBJ the page uploads when no mesh is chosen is a watertight unit icosphere."""
+    import trimesh
+
+    page.goto(base_url)
+    obj = page.evaluate("""async () => {
+      const { sphereObjFile } = await import('./js/sphere.js');
+      return await sphereObjFile().text();
+    }""")
+    (tmp_path / "sphere.obj").write_text(obj)
+    mesh = trimesh.load(tmp_path / "sphere.obj", process=False)
+    assert len(mesh.faces) == 1280 and mesh.is_watertight and mesh.is_winding_consistent
+    assert np.allclose(np.linalg.norm(mesh.vertices, axis=1), 1.0, atol=1e-5)
+    assert mesh.volume > 0.95 * 4 / 3 * np.pi * 0.97  # outward faces, close to the unit ball
+
+
+def test_keyboard_reaches_upload_and_map(page, base_url: str) -> None:
+    """Enter on the focused drop zone opens the file chooser; the map pans by keyboard."""
+    page.goto(base_url)
+    page.wait_for_selector("#map.leaflet-container")
+    choosers = []
+    # Registered before the key press: enabling file-chooser interception takes a round trip.
+    page.on("filechooser", lambda chooser: choosers.append(chooser))
+    page.focus("#drop-zone")
+    page.keyboard.press("Enter")
+    for _ in range(50):
+        if choosers:
+            break
+        page.wait_for_timeout(100)
+    assert len(choosers) == 1 and not choosers[0].is_multiple()
+    assert choosers[0].element.get_attribute("id") == "upload-file"
+    assert page.get_attribute("#map", "tabindex") == "0", "the map takes keyboard focus"
+
+
 def test_controls_are_labelled(page, base_url: str) -> None:
     """Every form control has an accessible name (label or aria-label)."""
     page.goto(base_url)
