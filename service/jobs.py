@@ -11,7 +11,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy import and_, select, update
+from sqlalchemy import and_, func, select, update
 from sqlalchemy.exc import IntegrityError
 
 from .context import Services
@@ -181,6 +181,9 @@ def reap(services: Services) -> dict[str, int]:
     stale = now - dt.timedelta(seconds=services.settings.requeue_after_seconds)
     with session_scope(services.sessions) as session:
         lost = session.scalars(select(Job.id).where(Job.state == "queued", Job.enqueued_at < stale)).all()
+        queued = session.scalar(select(func.count()).select_from(Job).where(Job.state == "queued"))
+    if lost and services.huey.pending_count() >= queued:
+        lost = []  # the broker holds a message for every queued job: they are only waiting
     for job_id in lost:
         counts["resent"] += 1
         enqueue(services, job_id)  # a duplicate message is harmless: claim() is conditional

@@ -259,3 +259,18 @@ def test_worker_shutdown_hands_running_jobs_back(held, photo) -> None:
     run_next_message(services)
     body = client.get(f"/v1/jobs/{job['id']}").json()
     assert body["state"] == "succeeded" and body["attempt"] == 2
+
+
+def test_reaper_resends_lost_messages_only(held, photo) -> None:
+    client, services = held
+    job = submit_volume(client, upload(client, photo))
+    old = dt.datetime.now(dt.timezone.utc) - dt.timedelta(seconds=services.settings.requeue_after_seconds + 1)
+    with services.sessions.begin() as session:
+        session.execute(update(Job).where(Job.id == job["id"]).values(enqueued_at=old))
+    assert jobs.reap(services)["resent"] == 0  # its message is still in the broker: just waiting
+    services.huey.flush()  # the broker lost it (e.g. Redis restarted without persistence)
+    with services.sessions.begin() as session:
+        session.execute(update(Job).where(Job.id == job["id"]).values(enqueued_at=old))
+    assert jobs.reap(services)["resent"] == 1
+    run_next_message(services)
+    assert client.get(f"/v1/jobs/{job['id']}").json()["state"] == "succeeded"
