@@ -48,3 +48,25 @@ readme-figure: install
 
 clean-data:
 	rm -rf $(TEXSPACE_DATA_DIR)
+
+# --- the model (torch, the train extra) --------------------------------------------
+# make train resumes runs/space (seeded from the committed checkpoint when present),
+# stops after TRAIN_STEPS steps in total, then exports to model/weights/.
+TRAIN_STEPS ?= 20000
+TRAIN_ARGS ?= --patch 64 --batch 4 --lr 5e-4 --warmup 200 --no-nearest --smooth --threads 2 --ckpt-every 100
+.PHONY: data train export evaluate
+
+data: install-test
+	$(PY) -m model.data fetch
+
+train: data
+	@if [ ! -f runs/space/checkpoint.pt ] && [ -f model/checkpoints/space-train.pt ]; then \
+		mkdir -p runs/space && cp model/checkpoints/space-train.pt runs/space/checkpoint.pt; fi
+	$(PY) -m model.train --out runs/space --steps $(TRAIN_STEPS) $(TRAIN_ARGS)
+	$(PY) -m model.export runs/space/checkpoint.pt model/weights
+
+export: install-test
+	$(PY) -m model.export runs/space/checkpoint.pt model/weights
+
+evaluate: data
+	$(PY) -m model.evaluate --checkpoint-dir runs/compare --exemplars data/textures/val --out model/weights/eval

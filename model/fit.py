@@ -27,7 +27,7 @@ DEFAULT_MINUTES = 4.0  # inside the 5-minute budget on 2 cores, with export
 
 
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
-                 patch: int = 64, progress=None, quiet: bool = True, seed: int = 0) -> dict:
+                 patch: int = 64, grain: str | None = None, progress=None, quiet: bool = True, seed: int = 0) -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps'}."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -44,6 +44,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         argv += ["--no-nearest"] if not cfg.nearest_input else []
         argv += ["--smooth"] if cfg.smooth else []
         argv += ["--quiet"] if quiet else []
+        argv += ["--grain", grain] if grain else []
         ckpt_path = train(parse_args(argv), progress=progress)
         model, ckpt = load_checkpoint(ckpt_path)
     export_sampler(model.field, out_dir / "sampler.onnx")
@@ -74,10 +75,11 @@ def main(argv=None):
     p.add_argument("--minutes", type=float, default=DEFAULT_MINUTES)
     p.add_argument("--patch", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--grain", choices=["x", "y"], help="anisotropic exemplar: its grain runs along image x or y")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
-                          patch=args.patch, quiet=False, seed=args.seed)
+                          patch=args.patch, grain=args.grain, quiet=False, seed=args.seed)
     print(json.dumps({k: result[k] for k in ("version", "steps", "sampler")}))
 
 

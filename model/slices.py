@@ -34,7 +34,8 @@ def random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def random_planes(
-    n: int, rng: np.random.Generator, *, oblique_fraction: float = 0.5, extent: float = 1000.0, dims: int = 3
+    n: int, rng: np.random.Generator, *, oblique_fraction: float = 0.5, extent: float = 1000.0, dims: int = 3,
+    grain: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Random slice planes: (origins float64 [n,3], axes float64 [n,2,3]).
 
@@ -42,10 +43,20 @@ def random_planes(
     are uniformly random orientations (oblique). Origins are uniform in
     [-extent, extent]^3 so training sees many different lattice cells. ``dims=2``
     keeps every plane at xy (planar textures).
+
+    ``grain=True`` is for anisotropic exemplars (wood, brushed metal) whose grain runs
+    along the image's x axis: every plane then contains the world x axis (u = x, v turned
+    about x), so the grain shows on all of them; planes across the grain (yz) are left
+    free for the solid to fill with whatever cross-section is consistent.
     """
     origins = rng.uniform(-extent, extent, size=(n, 3))
     axes = np.zeros((n, 2, 3))
     for k in range(n):  # n is a batch size (a handful), not a pixel count
+        if grain and dims == 3:
+            turn = rng.uniform(0, 2 * np.pi) if rng.random() < oblique_fraction else rng.integers(0, 4) * np.pi / 2
+            axes[k, 0] = (1.0, 0.0, 0.0)
+            axes[k, 1] = (0.0, np.cos(turn), np.sin(turn))
+            continue
         if dims == 2:
             a, b = AXIS_PLANES["xy"]
         elif rng.random() < oblique_fraction:
