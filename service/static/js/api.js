@@ -114,6 +114,11 @@ export async function apiPaths() {
   return response.ok ? Object.keys((await response.json()).paths || {}) : [];
 }
 
+/** Newest jobs first: `{items, next_cursor}`. */
+export async function listJobs(limit = 10, textureId) {
+  return (await request(apiUrl('jobs', { limit, texture_id: textureId }))).body;
+}
+
 export async function getJob(id) {
   return (await request(`jobs/${id}`)).body;
 }

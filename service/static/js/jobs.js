@@ -13,6 +13,14 @@ export function fraction(progress) {
   return Math.max(0, Math.min(1, p > 1 ? p / 100 : p));
 }
 
+/** A short label for a job, e.g. "bake sphere.obj (glb)" or "volume 64^3 (npy)". */
+export function describe(job) {
+  const p = job.params || {};
+  if (job.kind === 'bake') return `bake ${p.filename || 'mesh'} (${p.format || 'glb'})`;
+  if (job.kind === 'volume') return `volume ${p.resolution}^3 (${p.format})`;
+  return `${job.kind || 'job'} ${job.id.slice(0, 8)}`;
+}
+
 export class JobList {
   /** @param {HTMLElement} list  the <ul> to fill */
   constructor(list) {
@@ -20,12 +28,13 @@ export class JobList {
   }
 
   /**
-   * Follow a job until it ends.
-   * @param {{id: string}} job  the submitted job (202 body)
-   * @param {string} label  what the user asked for, e.g. "bake glb of wood"
-   * @param {(job: object, resultUrl: string) => void} onSuccess
+   * List a job and follow it until it ends.
+   * @param {object} job  a JobOut (the 202 body of a submission, or from GET /v1/jobs)
+   * @param {{label?: string, onSuccess?: (job: object, resultUrl: string) => void,
+   *          onView?: (resultUrl: string) => void}} options
+   *   onView: offered as a "View in 3D" button on finished GLB bakes.
    */
-  track(job, label, onSuccess) {
+  track(job, { label = describe(job), onSuccess = () => {}, onView = null } = {}) {
     const item = document.createElement('li');
     item.dataset.jobId = job.id;
     item.innerHTML = `<div><strong></strong> <span class="state">queued</span></div>
@@ -58,6 +67,13 @@ export class JobList {
         link.textContent = 'Download result';
         link.setAttribute('download', '');
         item.querySelector('.links').append(link);
+        if (onView && job.kind === 'bake' && job.params?.format === 'glb') {
+          const view = document.createElement('button');
+          view.type = 'button';
+          view.textContent = 'View in 3D';
+          view.addEventListener('click', () => onView(url));
+          item.querySelector('.links').append(' ', view);
+        }
         onSuccess(state, url);
       } else {
         const error = state.error && (state.error.detail || state.error.message || state.error);
@@ -73,6 +89,10 @@ export class JobList {
       }
     };
 
+    if (TERMINAL.has(job.state)) {
+      show(job);
+      return;
+    }
     const source = new EventSource(jobEventsUrl(job.id));
     const onEvent = (event) => {
       let data;

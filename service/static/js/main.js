@@ -229,6 +229,25 @@ async function getViewer() {
   return viewer;
 }
 
+async function viewResult(url) {
+  try {
+    await (await getViewer()).load(url);
+    say('Bake loaded in the 3D view.');
+  } catch (error) {
+    sayError(error);
+  }
+}
+
+/** Recent jobs (any texture), oldest first so the newest ends on top. */
+async function loadRecentJobs() {
+  try {
+    const page = await api.listJobs(8);
+    for (const job of page.items.reverse()) jobs.track(job, { onView: viewResult });
+  } catch (error) {
+    sayError(error);
+  }
+}
+
 function requireTexture() {
   if (!state.current) { say('Pick or upload a texture first.', true); return false; }
   return true;
@@ -249,15 +268,7 @@ $('bake-form').addEventListener('submit', async (event) => {
   try {
     const job = await api.startBake(state.current.id, mesh, params);
     say(`Bake job ${job.id} started.`);
-    jobs.track(job, `bake ${mesh.name} (${format})`, async (_, url) => {
-      if (format !== 'glb') return;
-      try {
-        await (await getViewer()).load(url);
-        say('Bake loaded in the 3D view.');
-      } catch (error) {
-        sayError(error);
-      }
-    });
+    jobs.track(job, { onView: viewResult, onSuccess: (_, url) => { if (format === 'glb') viewResult(url); } });
   } catch (error) {
     sayError(error);
   }
@@ -272,7 +283,7 @@ $('volume-form').addEventListener('submit', async (event) => {
   try {
     const job = await api.startVolume(state.current.id, params);
     say(`Volume job ${job.id} started.`);
-    jobs.track(job, `volume ${resolution}^3 (${params.format})`, () => say('Volume ready to download.'));
+    jobs.track(job, { onSuccess: () => say('Volume ready to download.') });
   } catch (error) {
     sayError(error);
   }
@@ -304,6 +315,7 @@ async function openLinkedView() {
   }
 }
 
+loadRecentJobs();
 await loadTextures();
 if (!(await openLinkedView()) && visibleTextures().length) await showTexture(visibleTextures()[0]);
 window.texspace = { state, textureMap, get viewer() { return viewer; } };
