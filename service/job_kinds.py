@@ -87,7 +87,7 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
     ext = "glb" if params["format"] == "glb" else "zip"
     out_path = workdir / f"{stem}-baked.{ext}"
     limits = BakeLimits(max_faces=services.settings.max_mesh_faces,
-                        max_vertices=services.settings.max_mesh_faces,
+                        max_vertices=services.settings.max_mesh_vertices,
                         max_resolution=services.settings.max_bake_resolution)
     scale = params.get("scale")
     returned = bake_mesh(services.sampler_for(texture), np.asarray(texture.code, np.float32),

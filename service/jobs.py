@@ -41,6 +41,9 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
         existing = find_by_idempotency_key(services, idempotency_key)
         if existing is not None:
             return same_request(existing, fingerprint), False
+    from .limits import check_queue_room  # back-pressure: 503 + Retry-After when full
+
+    check_queue_room(services)
     job = Job(id=job_id or new_id(), kind=kind, texture_id=texture_id, params=params, input_key=input_key,
               state="queued", attempt=0, max_attempts=services.settings.max_attempts, progress=0.0,
               cancel_requested=False, idempotency_key=idempotency_key, request_hash=fingerprint)

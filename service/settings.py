@@ -55,6 +55,7 @@ class Settings(BaseSettings):
     max_image_pixels: int = Field(64 * 2**20, ge=64 * 64)
     max_mesh_bytes: int = Field(64 * 2**20, ge=1024)
     max_mesh_faces: int = Field(200_000, ge=1)
+    max_mesh_vertices: int = Field(200_000, ge=3)
     max_tile_size: int = Field(1024, ge=16)
     max_region_pixels: int = Field(8192 * 8192, ge=64 * 64)
     max_region_tiles: int = Field(4096, ge=1)
@@ -70,10 +71,18 @@ class Settings(BaseSettings):
     reaper_interval_seconds: float = Field(5.0, gt=0)
     requeue_after_seconds: float = Field(120.0, gt=0, description="re-send queued jobs whose message was lost")
     max_attempts: int = Field(3, ge=1)
+    max_queued_jobs: int = Field(1000, ge=1, description="back-pressure: submissions beyond this many "
+                                 "queued jobs get 503 + Retry-After")
+    queue_full_retry_after_seconds: int = Field(30, ge=1)
 
     # --- HTTP ----------------------------------------------------------------------------
     tile_cache_bytes: int = Field(64 * 2**20, ge=0)
     api_keys_enabled: bool = False
+    api_key_pepper: str = Field("texspace-dev-pepper", description="server-side secret mixed into "
+                                "API key hashes; set your own in production")
+    rate_limit_per_minute: float = Field(600.0, gt=0, description="requests per API key per minute "
+                                         "(each API process), when API keys are enabled")
+    rate_limit_burst: int = Field(60, ge=1)
     log_level: str = "INFO"
     log_json: bool = True
 

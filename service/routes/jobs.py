@@ -18,6 +18,7 @@ from ..db import session_scope
 from ..deps import PageParams, ServicesDep, apply_cursor, idempotency_key, page_of
 from ..errors import Problem, not_found, problem_responses
 from ..job_kinds import torch_available
+from ..limits import check_mesh, check_queue_room
 from ..schemas import FitIn, JobOut, JobPage, RegionIn, Seed, VolumeIn
 from ..tables import TERMINAL_STATES, Job, new_id
 from ..uploads import read_limited, safe_filename, sha256
@@ -41,7 +42,7 @@ def _submit(services, response: Response, kind: str, texture_id: str, params: di
     return accepted(response, job, created)
 
 
-@router.post("/v1/textures/{texture_id}/volumes", **ACCEPTED, responses=problem_responses(404, 413, 422))
+@router.post("/v1/textures/{texture_id}/volumes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503))
 def submit_volume(services: ServicesDep, response: Response, texture_id: str, body: VolumeIn,
                   key: IdempotencyKey) -> JobOut:
     """Render an N x N x N block of the solid texture (a job)."""
@@ -52,7 +53,7 @@ def submit_volume(services: ServicesDep, response: Response, texture_id: str, bo
     return _submit(services, response, "volume", texture_id, body.model_dump(), key)
 
 
-@router.post("/v1/textures/{texture_id}/bakes", **ACCEPTED, responses=problem_responses(404, 413, 422))
+@router.post("/v1/textures/{texture_id}/bakes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503))
 def submit_bake(
     services: ServicesDep,
     response: Response,
@@ -75,6 +76,8 @@ def submit_bake(
     fingerprint = jobs.request_hash("bake", texture_id, params, sha256(data).encode())
     if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:
         return accepted(response, jobs.same_request(existing, fingerprint), False)
+    check_mesh(services.settings, data, filename)  # a bad mesh is refused now, nothing stored
+    check_queue_room(services)
     job_id = new_id()
     input_key = f"jobs/{job_id}/input/{filename}"
     services.storage.put_bytes(input_key, data)
@@ -85,7 +88,7 @@ def submit_bake(
     return accepted(response, job, created)
 
 
-@router.post("/v1/textures/{texture_id}/fit", **ACCEPTED, responses=problem_responses(404, 409, 413, 422, 501))
+@router.post("/v1/textures/{texture_id}/fit", **ACCEPTED, responses=problem_responses(404, 409, 413, 422, 501, 503))
 def submit_fit(services: ServicesDep, response: Response, texture_id: str, key: IdempotencyKey,
                body: FitIn | None = None) -> JobOut:
     """Optimise a sampler for this one exemplar (needs the torch extra on the workers)."""
@@ -100,7 +103,7 @@ def submit_fit(services: ServicesDep, response: Response, texture_id: str, key: 
     return _submit(services, response, "fit", texture_id, body.model_dump(), key)
 
 
-@router.post("/v1/textures/{texture_id}/regions", **ACCEPTED, responses=problem_responses(404, 413, 422, 501))
+@router.post("/v1/textures/{texture_id}/regions", **ACCEPTED, responses=problem_responses(404, 413, 422, 501, 503))
 def submit_region(services: ServicesDep, response: Response, texture_id: str, body: RegionIn,
                   key: IdempotencyKey) -> JobOut:
     """Render a large rectangle of the infinite plane to one image (a job)."""

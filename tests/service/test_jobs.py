@@ -18,6 +18,7 @@ from service.context import build_services
 from service.main import create_app
 from service.runner import Lease, run_job_attempt
 from service.tables import Job
+from worker.errors import InvalidParameter
 
 MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"
 
@@ -83,18 +84,23 @@ def test_bake_glb_loads_with_texture(client, texture) -> None:
     assert len(geometry.faces) == 12
 
 
-def test_bake_bad_mesh_fails_job_with_problem(client, texture) -> None:
+def test_bake_bad_mesh_is_refused_at_submission(client, texture) -> None:
     res = client.post(texture["links"]["bakes"], files={"mesh": ("junk.obj", b"v 0 0\nf 1 2 9\n")},
                       data={"resolution": "64"})
-    job = client.get(res.json()["links"]["self"]).json()
-    assert job["state"] == "failed"
-    assert job["error"]["type"].endswith("invalid-mesh") and job["error"]["detail"]
-    assert client.get(f"/v1/jobs/{job['id']}/result").status_code == 409
+    assert res.status_code == 422 and res.headers["content-type"] == "application/problem+json"
+    assert res.json()["type"].endswith("invalid-mesh") and res.json()["detail"]
+    assert client.get("/v1/jobs").json()["items"] == []
 
 
-def test_list_jobs_filters(client, texture) -> None:
+def test_list_jobs_filters(client, texture, monkeypatch) -> None:
     ok = submit_volume(client, texture)
-    client.post(texture["links"]["bakes"], files={"mesh": ("junk.obj", b"nothing")})
+    from service import job_kinds  # bad meshes are now refused at submission: fail a job in the worker
+
+    def broken(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise InvalidParameter("made to fail")
+
+    monkeypatch.setitem(job_kinds.KINDS, "volume", broken)
+    submit_volume(client, texture, resolution=9)
     states = {j["id"]: j["state"] for j in client.get("/v1/jobs").json()["items"]}
     assert len(states) == 2 and states[ok["id"]] == "succeeded"
     failed = client.get("/v1/jobs", params={"state": "failed"}).json()["items"]
