@@ -1,0 +1,127 @@
+"""Hostile and odd files (``tests/data/bad``, made by ``make_corpus.py``): each gets a clear
+answer. Refused input is a 4xx problem+json with a useful detail and leaves nothing in
+storage or the database; valid-but-odd input is accepted; the service keeps serving."""
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+
+from .conftest import BAD, PROBLEM, row_counts, stored_files
+
+# file -> (status, problem slug or None, a word the detail must contain)
+IMAGES = {
+    "zero.png": (422, "invalid-image", "empty"),
+    "truncated.png": (422, "invalid-image", "truncated"),
+    "garbage_after_header.jpg": (422, "invalid-image", "jpg"),
+    "polyglot_gif_script.gif": (422, "invalid-image", "gif"),
+    "text_named.png": (422, "invalid-image", "unrecognised"),
+    "one_pixel.png": (422, "invalid-image", "16 pixels"),
+    "bomb_60000x60000.png": (413, "limit-exceeded", "large"),
+    "polyglot_png_zip.png": (201, None, None),   # a valid PNG; the appended zip is ignored
+    "png_named.jpg": (201, None, None),          # the format comes from the bytes, not the name
+    "grey16.png": (201, None, None),
+    "float32.tif": (201, None, None),
+    "half_hdr.exr": (201, None, None),           # HDR values and a NaN: clipped, still encoded
+    "cmyk.jpg": (201, None, None),
+    "animated.gif": (201, None, None),           # first frame
+    "animated.webp": (201, None, None),
+}
+MESHES = {
+    "nan_vertices.obj": (422, "invalid-mesh", "NaN"),
+    "out_of_range.obj": (422, "invalid-mesh", "out of bounds"),
+    "no_faces.obj": (422, "invalid-mesh", "no faces"),
+    "all_degenerate.obj": (422, "invalid-mesh", "degenerate"),
+    "faces_over_limit.obj": (413, "limit-exceeded", "1152 faces"),
+    "junk.obj": (422, "invalid-mesh", "no faces"),
+    "broken_header.glb": (422, "invalid-mesh", "GLB"),
+    "one_face.obj": (202, None, None),
+    "non_manifold.obj": (202, None, None),
+    "some_degenerate.obj": (202, None, None),
+}
+
+
+def assert_problem(res, status: int, slug: str, word: str) -> None:
+    assert res.status_code == status, res.text
+    assert res.headers["content-type"] == PROBLEM
+    body = res.json()
+    assert body["status"] == status and body["type"] == f"urn:texspace:problem:{slug}", body
+    assert word.lower() in body["detail"].lower(), body["detail"]
+
+
+def assert_still_serving(client) -> None:
+    assert client.get("/healthz").status_code == 200
+    assert client.get("/v1/textures", params={"limit": 1}).status_code == 200
+
+
+def test_corpus_is_complete() -> None:
+    """Every file the generator writes has an expectation here (and vice versa)."""
+    on_disk = {p.name for p in BAD.iterdir() if p.suffix != ".py"} - {"cube.obj"}
+    assert on_disk == set(IMAGES) | set(MESHES)
+
+
+@pytest.mark.parametrize("name", sorted(IMAGES))
+def test_image_upload(client, module_services, name: str) -> None:
+    status, slug, word = IMAGES[name]
+    before_files, before_rows = stored_files(module_services), row_counts(module_services)
+    started = time.monotonic()
+    res = client.post("/v1/textures", files={"image": (name, (BAD / name).read_bytes())})
+    if slug:
+        assert_problem(res, status, slug, word)
+        assert stored_files(module_services) == before_files and row_counts(module_services) == before_rows
+    else:
+        assert res.status_code == 201, res.text
+        texture = res.json()
+        assert len(texture["code"]) == 8 and all(math.isfinite(c) for c in texture["code"])
+        assert texture["width"] == texture["height"] == 48
+        new = set(stored_files(module_services)) - set(before_files)
+        assert len(new) == 1 and new.pop().startswith(f"textures/{texture['id']}/exemplar.")
+        exemplar = client.get(texture["links"]["exemplar"])
+        assert exemplar.content == (BAD / name).read_bytes()
+        assert exemplar.headers["content-type"].startswith("image/")
+    if name.startswith("bomb"):
+        assert time.monotonic() - started < 2.0, "refused from the header, without decoding"
+    assert_still_serving(client)
+
+
+@pytest.mark.parametrize("name", sorted(MESHES))
+def test_mesh_upload(client, module_services, texture, name: str) -> None:
+    status, slug, word = MESHES[name]
+    before_files, before_rows = stored_files(module_services), row_counts(module_services)
+    res = client.post(texture["links"]["bakes"], files={"mesh": (name, (BAD / name).read_bytes())},
+                      data={"resolution": "32", "format": "glb"})
+    if slug:
+        assert_problem(res, status, slug, word)
+        assert stored_files(module_services) == before_files and row_counts(module_services) == before_rows
+    else:
+        assert res.status_code == 202, res.text
+        job = client.get(res.json()["links"]["self"]).json()
+        assert job["state"] == "succeeded", job
+        glb = client.get(job["links"]["result"])
+        assert glb.status_code == 200 and glb.content[:4] == b"glTF"
+    assert_still_serving(client)
+
+
+@pytest.mark.parametrize("filename", ["../../../etc/cube.obj", "..\\..\\windows\\cube.obj", "/abs/cube.obj",
+                                      "a/b/../../../cube.obj"])
+def test_mesh_filename_with_path_separators_stays_inside_storage(client, module_services, texture,
+                                                                 filename: str) -> None:
+    res = client.post(texture["links"]["bakes"], files={"mesh": (filename, (BAD / "cube.obj").read_bytes())},
+                      data={"resolution": "16"})
+    assert res.status_code == 202, res.text
+    job = res.json()
+    assert job["params"]["filename"] == "cube.obj"
+    root = module_services.storage.root
+    assert all(p.resolve().is_relative_to(root) for p in root.rglob("*"))
+    assert any(f.startswith(f"jobs/{job['id']}/input/cube.obj") for f in stored_files(module_services))
+    assert not list(root.parent.glob("etc")) and not list(root.parent.parent.glob("etc"))
+
+
+@pytest.mark.parametrize("filename", ["../../evil.png", "..\\evil.png", "a/b/c.png"])
+def test_image_filename_with_path_separators_is_only_a_name(client, module_services, filename: str) -> None:
+    res = client.post("/v1/textures", files={"image": (filename, (BAD / "grey16.png").read_bytes())})
+    assert res.status_code == 201, res.text
+    texture = res.json()
+    keys = [f for f in stored_files(module_services) if texture["id"] in f]
+    assert keys == [f"textures/{texture['id']}/exemplar.png"]
