@@ -128,6 +128,8 @@ def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> No
     assert result.ok and len(result.body()) >= 32 ** 3 * 3 * 4, "npy of a 32^3 float32 RGB volume"
     shoot(page, artifacts, "6-volume")
 
+    assert page.evaluate("window.texspace.textureMap.tilesFailed") == 0
+
     # 7. After a reload the recent jobs are listed again; the bake can be viewed in 3D.
     page.reload()
     page.wait_for_selector(f'#jobs li[data-job-id="{job_id}"][data-state="succeeded"]')
@@ -136,6 +138,7 @@ def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> No
     page.wait_for_selector("#viewer[data-loaded]", timeout=30_000)
     page.wait_for_timeout(300)
     assert spatial_std(canvas_pixels(page, "#viewer canvas")) > 10
+    assert page.evaluate("window.texspace.textureMap.tilesFailed") == 0
     assert page.js_errors == []
 
 

@@ -36,6 +36,7 @@ const tileParams = () => ({
 
 const textureMap = new TextureMap($('map'), {
   onZoom: (zoom, native) => { $('zoom-info').textContent = `map zoom ${zoom}, native ${native}`; },
+  onTileError: () => say('Some tiles failed to load (the server may be busy); pan or zoom to retry.', true),
 });
 
 /**
@@ -315,7 +316,8 @@ async function openLinkedView() {
   }
 }
 
+// For the browser tests and the console.
+window.texspace = { state, textureMap, get viewer() { return viewer; } };
 loadRecentJobs();
 await loadTextures();
 if (!(await openLinkedView()) && visibleTextures().length) await showTexture(visibleTextures()[0]);
-window.texspace = { state, textureMap, get viewer() { return viewer; } };

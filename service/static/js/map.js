@@ -22,7 +22,7 @@ export function nativeZoomOf(tj) {
 
 export class TextureMap {
   /** @param {HTMLElement} element  container of the map */
-  constructor(element, { onZoom } = {}) {
+  constructor(element, { onZoom, onTileError } = {}) {
     this.map = L.map(element, {
       crs: L.CRS.Simple,
       center: [0, 0],
@@ -39,7 +39,9 @@ export class TextureMap {
     this.params = { seed: 0, plane: 'xy', offset: 0 };
     this.nativeZoom = 0;
     this.tilesLoaded = 0;
+    this.tilesFailed = 0;
     this.onZoom = onZoom || (() => {});
+    this.onTileError = onTileError || (() => {});
     this.map.on('zoomend', () => this.onZoom(this.map.getZoom(), this.nativeZoom));
   }
 
@@ -75,6 +77,7 @@ export class TextureMap {
       className: 'texture-tiles',
     });
     this.layer.on('tileload', () => { this.tilesLoaded += 1; });
+    this.layer.on('tileerror', () => { this.tilesFailed += 1; this.onTileError(); });
     this.layer.addTo(this.map);
     this.onZoom(this.map.getZoom(), this.nativeZoom);
   }
