@@ -194,6 +194,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=int, default=1024)
     p.add_argument("--scale", type=float, default=None, help="world units per mesh unit (default: auto)")
     p.add_argument("--format", choices=("glb", "obj"), default="glb")
+
+    from .auth import add_cli  # texspace keys create|list|revoke
+
+    add_cli(sub)
     return parser
 
 

@@ -168,6 +168,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
             session.add(Texture(id=new_id, name=f"{texture.name or texture.id} (fitted)",
                                 code=[float(c) for c in code], model_version=texture.model_version,
                                 source="fit", parents={"texture": texture.id, "job": job.id},
+                                owner_id=texture.owner_id,
                                 exemplar_key=exemplar_key,
                                 exemplar_media_type=texture.exemplar_media_type,
                                 width=texture.width, height=texture.height, sampler_key=sampler_key))

@@ -37,6 +37,9 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
     a different request under the same key is a 422 problem.
     """
     fingerprint = fingerprint or request_hash(kind, texture_id, params)
+    from .auth import current_owner
+
+    idempotency_key = tenant_key(idempotency_key)
     if idempotency_key:
         existing = find_by_idempotency_key(services, idempotency_key)
         if existing is not None:
@@ -46,7 +49,8 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
     check_queue_room(services)
     job = Job(id=job_id or new_id(), kind=kind, texture_id=texture_id, params=params, input_key=input_key,
               state="queued", attempt=0, max_attempts=services.settings.max_attempts, progress=0.0,
-              cancel_requested=False, idempotency_key=idempotency_key, request_hash=fingerprint)
+              cancel_requested=False, idempotency_key=idempotency_key, request_hash=fingerprint,
+              owner_id=current_owner())
     try:
         with session_scope(services.sessions) as session:
             session.add(job)
@@ -67,7 +71,19 @@ def same_request(job: Job, fingerprint: str) -> Job:
     return job
 
 
+def tenant_key(key: str | None) -> str | None:
+    """The stored form of an Idempotency-Key: per API key when keys are enabled, so two
+    tenants using the same key never see each other's job (idempotent: applied once)."""
+    from .auth import current_owner
+
+    owner = current_owner()
+    if not key or not owner or key.startswith(owner + ":"):
+        return key
+    return f"{owner}:{hashlib.sha256(key.encode()).hexdigest()}"
+
+
 def find_by_idempotency_key(services: Services, key: str) -> Job | None:
+    key = tenant_key(key)
     with session_scope(services.sessions) as session:
         return session.scalars(select(Job).where(Job.idempotency_key == key)).first()
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from fastapi import FastAPI
 
-from . import __version__
+from . import __version__, auth
 from .context import Services, build_services
 from .errors import PROBLEM_MEDIA_TYPE, install_error_handlers
 from .logs import setup_logging
@@ -33,7 +33,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
     services.metrics.watch(services)
     install_error_handlers(app)
     for module in (system, textures, tiles, jobs):
-        app.include_router(module.router)
+        app.include_router(module.router, **({} if module is system else auth.router_options()))
     app.add_middleware(RequestContextMiddleware, metrics=services.metrics,
                        max_body_bytes=max(settings.max_upload_bytes, settings.max_mesh_bytes) + (1 << 20))
     app.openapi = lambda: _openapi(app)

@@ -13,7 +13,7 @@ from starlette.concurrency import run_in_threadpool
 
 from worker.errors import FeatureUnavailable, LimitExceeded
 
-from .. import jobs
+from .. import auth, jobs
 from ..db import session_scope
 from ..deps import PageParams, ServicesDep, apply_cursor, idempotency_key, page_of
 from ..errors import Problem, not_found, problem_responses
@@ -123,7 +123,7 @@ def list_jobs(
     state: Annotated[Literal["queued", "running", "succeeded", "failed", "canceled"] | None, Query()] = None,
     texture_id: Annotated[str | None, Query(max_length=64)] = None,
 ) -> JobPage:
-    query = select(Job)
+    query = auth.scoped(select(Job), Job)
     if state:
         query = query.where(Job.state == state)
     if texture_id:
@@ -136,7 +136,7 @@ def list_jobs(
 
 def load_job(services, job_id: str) -> Job:  # noqa: ANN001
     job = jobs.get(services, job_id)
-    if job is None:
+    if job is None or not auth.visible(job):
         raise not_found("job", job_id)
     return job
 
@@ -149,6 +149,7 @@ def get_job(services: ServicesDep, job_id: str) -> JobOut:
 @router.post("/v1/jobs/{job_id}/cancel", **ACCEPTED, responses=problem_responses(404, 409))
 def cancel_job(services: ServicesDep, response: Response, job_id: str) -> JobOut:
     """Cancel: a queued job at once; a running one stops at its next slab (poll the job)."""
+    load_job(services, job_id)  # 404 for another tenant's job
     job = jobs.cancel(services, job_id)
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return JobOut.of(job)

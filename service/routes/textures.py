@@ -10,6 +10,7 @@ from sqlalchemy import select
 
 from worker.images import encode_image, read_image, sniff_format
 
+from .. import auth
 from ..db import session_scope
 from ..deps import PageParams, ServicesDep, apply_cursor, page_of
 from ..errors import Problem, not_found, problem_responses
@@ -23,7 +24,7 @@ router = APIRouter(prefix="/v1/textures", tags=["textures"])
 def load_texture(services, texture_id: str) -> Texture:  # noqa: ANN001
     with session_scope(services.sessions) as session:
         texture = session.get(Texture, texture_id)
-    if texture is None:
+    if texture is None or not auth.visible(texture):  # another tenant's texture does not exist for you
         raise not_found("texture", texture_id)
     return texture
 
@@ -52,7 +53,7 @@ def create_texture(
     texture = Texture(id=texture_id, name=(name or image.filename or "")[:200], code=[float(c) for c in code],
                       model_version=runtime.version, source="upload", exemplar_key=key,
                       exemplar_media_type=IMAGE_MEDIA_TYPES.get(ext, "application/octet-stream"),
-                      width=int(pixels.shape[1]), height=int(pixels.shape[0]))
+                      width=int(pixels.shape[1]), height=int(pixels.shape[0]), owner_id=auth.current_owner())
     with session_scope(services.sessions) as session:
         session.add(texture)
     response.headers["Location"] = f"/v1/textures/{texture_id}"
@@ -63,7 +64,7 @@ def create_texture(
 def list_textures(services: ServicesDep, page: Annotated[PageParams, Depends()]) -> TexturePage:
     """Newest first, with cursor pagination."""
     with session_scope(services.sessions) as session:
-        rows = list(session.scalars(apply_cursor(select(Texture), Texture, page)))
+        rows = list(session.scalars(apply_cursor(auth.scoped(select(Texture), Texture), Texture, page)))
     rows, cursor = page_of(rows, page)
     return TexturePage(items=[TextureOut.of(t) for t in rows], next_cursor=cursor)
 
@@ -83,7 +84,7 @@ def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) 
     code = (1.0 - body.t) * np.asarray(a.code, np.float64) + body.t * np.asarray(b.code, np.float64)
     texture = Texture(id=new_id(), name=body.name or f"{a.name or a.id} x {b.name or b.id} @ {body.t:g}",
                       code=[float(c) for c in code], model_version=a.model_version, source="interpolate",
-                      parents={"a": a.id, "b": b.id, "t": body.t})
+                      parents={"a": a.id, "b": b.id, "t": body.t}, owner_id=auth.current_owner())
     with session_scope(services.sessions) as session:
         session.add(texture)
     response.headers["Location"] = f"/v1/textures/{texture.id}"
@@ -100,7 +101,7 @@ def patch_texture(services: ServicesDep, texture_id: str, body: TexturePatch) ->
     """Rename a texture (its code, and so its tiles, never change)."""
     with session_scope(services.sessions) as session:
         texture = session.get(Texture, texture_id)
-        if texture is None:
+        if texture is None or not auth.visible(texture):
             raise not_found("texture", texture_id)
         texture.name = body.name
         texture.updated_at = utcnow()
@@ -112,7 +113,7 @@ def delete_texture(services: ServicesDep, texture_id: str) -> Response:
     """Delete the texture and its stored files (job results stay until their jobs go)."""
     with session_scope(services.sessions) as session:
         texture = session.get(Texture, texture_id)
-        if texture is None:
+        if texture is None or not auth.visible(texture):
             raise not_found("texture", texture_id)
         session.delete(texture)
     services.storage.delete_prefix(f"textures/{texture_id}")
