@@ -1,6 +1,7 @@
 // Page wiring: texture library + upload, the map and its controls, interpolation, 3D jobs.
 import * as api from './api.js';
-import { TextureMap, nativeZoomOf } from './map.js';
+import { TextureMap } from './map.js';
+import { textureItem, wireDropZone } from './library.js';
 import { InterpolationPanel } from './interp.js';
 import { JobList } from './jobs.js';
 import { sphereObjFile } from './sphere.js';
@@ -104,42 +105,6 @@ $('native-zoom').addEventListener('click', () => textureMap.goNative());
 
 // ---- library and upload ------------------------------------------------------------
 
-/** Exemplar as thumbnail; textures without one (blends) show a tile of themselves. */
-function showThumbnail(img, texture) {
-  const showTile = async () => {
-    try {
-      const zoom = nativeZoomOf(await api.tileJson(texture.id));
-      img.src = api.tileUrl(texture.id, zoom, 0, 0, { seed: 0, plane: 'xy', offset: 0, size: 64 });
-    } catch { /* leave the empty thumbnail */ }
-  };
-  if (texture.source === 'interpolate') { showTile(); return; }
-  img.addEventListener('error', showTile, { once: true });
-  img.src = api.exemplarUrl(texture.id);
-}
-
-function textureButton(texture) {
-  const item = document.createElement('li');
-  const button = document.createElement('button');
-  button.type = 'button';
-  button.dataset.id = texture.id;
-  button.setAttribute('aria-pressed', String(state.current?.id === texture.id));
-  const img = document.createElement('img');
-  img.alt = '';
-  img.loading = 'lazy';
-  showThumbnail(img, texture);
-  const meta = document.createElement('span');
-  meta.className = 'meta';
-  const name = document.createElement('span');
-  name.textContent = texture.name || texture.id;
-  const code = document.createElement('small');
-  code.textContent = Array.isArray(texture.code) ? texture.code.map((c) => c.toFixed(2)).join(' ') : '';
-  meta.append(name, code);
-  button.append(img, meta);
-  button.addEventListener('click', () => showTexture(texture));
-  item.append(button);
-  return item;
-}
-
 /** The listed textures; blends (made by the slider and the strip) only on request. */
 function visibleTextures() {
   return $('show-blends').checked ? state.textures : state.textures.filter((t) => t.source !== 'interpolate');
@@ -147,7 +112,7 @@ function visibleTextures() {
 
 function renderLibrary() {
   const textures = visibleTextures();
-  $('texture-list').replaceChildren(...textures.map(textureButton));
+  $('texture-list').replaceChildren(...textures.map((t) => textureItem(t, { pressed: state.current?.id === t.id, onSelect: showTexture })));
   $('load-more').hidden = !state.nextCursor;
   interpolation.setTextures(textures);
   interpolation.refresh();
@@ -183,21 +148,7 @@ async function upload(file) {
   }
 }
 
-const dropZone = $('drop-zone');
-$('upload-file').addEventListener('change', (event) => upload(event.target.files[0]));
-dropZone.addEventListener('keydown', (event) => {
-  if (event.key === 'Enter' || event.key === ' ') { event.preventDefault(); $('upload-file').click(); }
-});
-for (const type of ['dragenter', 'dragover']) {
-  dropZone.addEventListener(type, (event) => { event.preventDefault(); dropZone.classList.add('over'); });
-}
-for (const type of ['dragleave', 'drop']) {
-  dropZone.addEventListener(type, () => dropZone.classList.remove('over'));
-}
-dropZone.addEventListener('drop', (event) => {
-  event.preventDefault();
-  upload(event.dataTransfer.files[0]);
-});
+wireDropZone($('drop-zone'), $('upload-file'), upload);
 
 // ---- interpolation -------------------------------------------------------------------
 

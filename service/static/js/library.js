@@ -1,0 +1,61 @@
+// Texture library pieces: list items with thumbnails, and the upload drop zone.
+import * as api from './api.js';
+import { nativeZoomOf } from './map.js';
+
+/** Exemplar as thumbnail; textures without one (blends) show a tile of themselves. */
+function showThumbnail(img, texture) {
+  const showTile = async () => {
+    try {
+      const zoom = nativeZoomOf(await api.tileJson(texture.id));
+      img.src = api.tileUrl(texture.id, zoom, 0, 0, { seed: 0, plane: 'xy', offset: 0, size: 64 });
+    } catch { /* leave the empty thumbnail */ }
+  };
+  if (texture.source === 'interpolate') { showTile(); return; }
+  img.addEventListener('error', showTile, { once: true });
+  img.src = api.exemplarUrl(texture.id);
+}
+
+/** <li> with a toggle button (thumbnail, name, code) that selects the texture. */
+export function textureItem(texture, { pressed, onSelect }) {
+  const item = document.createElement('li');
+  const button = document.createElement('button');
+  button.type = 'button';
+  button.dataset.id = texture.id;
+  button.setAttribute('aria-pressed', String(pressed));
+  const img = document.createElement('img');
+  img.alt = '';
+  img.loading = 'lazy';
+  showThumbnail(img, texture);
+  const meta = document.createElement('span');
+  meta.className = 'meta';
+  const name = document.createElement('span');
+  name.textContent = texture.name || texture.id;
+  const code = document.createElement('small');
+  code.textContent = Array.isArray(texture.code) ? texture.code.map((c) => c.toFixed(2)).join(' ') : '';
+  meta.append(name, code);
+  button.append(img, meta);
+  button.addEventListener('click', () => onSelect(texture));
+  item.append(button);
+  return item;
+}
+
+/**
+ * A drop zone that is also the (keyboard-usable) label of a file input: dropped or
+ * chosen files go to onFile(file).
+ */
+export function wireDropZone(zone, input, onFile) {
+  input.addEventListener('change', () => { if (input.files[0]) onFile(input.files[0]); input.value = ''; });
+  zone.addEventListener('keydown', (event) => {
+    if (event.key === 'Enter' || event.key === ' ') { event.preventDefault(); input.click(); }
+  });
+  for (const type of ['dragenter', 'dragover']) {
+    zone.addEventListener(type, (event) => { event.preventDefault(); zone.classList.add('over'); });
+  }
+  for (const type of ['dragleave', 'drop']) {
+    zone.addEventListener(type, () => zone.classList.remove('over'));
+  }
+  zone.addEventListener('drop', (event) => {
+    event.preventDefault();
+    if (event.dataTransfer.files[0]) onFile(event.dataTransfer.files[0]);
+  });
+}
