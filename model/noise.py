@@ -39,12 +39,19 @@ _OCTAVE_MULT = 0x2545F491
 # Three colour channels share one 32-bit hash: 10 bits each.
 _CHANNEL_BITS = 10
 _CHANNEL_LEVELS = 1 << _CHANNEL_BITS
+_CHANNEL_MASKS = torch.tensor([(_CHANNEL_LEVELS - 1) << (_CHANNEL_BITS * c) for c in range(3)], dtype=torch.int64)
+_CHANNEL_SCALES = torch.tensor([2.0 ** -(_CHANNEL_BITS * (c + 1)) for c in range(3)], dtype=torch.float32)
+_HALF_BIN = 0.5 / _CHANNEL_LEVELS  # bin centres: added after interpolation (weights sum to 1)
 
 
 def _shr(h: torch.Tensor, bits: int) -> torch.Tensor:
-    """Right shift of a non-negative int64 (exports as integer Div: ONNX ``BitShift``
-    rejects int64; a float64 floor route was measured 10-20% slower in onnxruntime)."""
-    return torch.div(h, 1 << bits, rounding_mode="trunc")
+    """Right shift of a non-negative int64.
+
+    ONNX ``BitShift`` rejects int64, so ``model/export.py`` exports this op as
+    Cast(uint64) -> BitShift -> Cast(int64): the same number for every non-negative
+    value, and 2.7x cheaper in onnxruntime than the integer Div it replaced (bench/).
+    """
+    return torch.bitwise_right_shift(h, bits)
 
 
 def mix32(h: torch.Tensor) -> torch.Tensor:
@@ -77,17 +84,43 @@ def octave_seeds(seed: torch.Tensor, n_octaves: int) -> torch.Tensor:
     return mix32(torch.bitwise_xor(base.unsqueeze(-1), torch.bitwise_and(octave * _OCTAVE_MULT, MASK32)))
 
 
-def _coordinate_terms(cells: torch.Tensor) -> torch.Tensor:
-    """Each axis' share of the cell hash: int64 [..., D, 2] -> int64 [..., D, 2].
+def _axis_terms(cells: torch.Tensor, dims: int) -> torch.Tensor:
+    """Each axis' share of the cell hash, for a cell and its upper neighbour.
+
+    cells : int64 [D, ...] lower corner cell per axis (axis-major)
+    returns int64 [D, 2, ...]: index [d, i] is the term of cell ``cells[d] + i``
 
     The hash of a cell is mix32 of (seed + sum over axes of these terms) mod 2**32, so a
     cell's 2**D corners need only 2 terms per axis, summed by broadcasting.
     """
-    dims = cells.shape[-2]
-    lo, hi = _split32(cells)
-    lo_mult = torch.tensor(_COORD_LO[:dims], dtype=torch.int64, device=cells.device).unsqueeze(-1)
-    hi_mult = torch.tensor(_COORD_HI[:dims], dtype=torch.int64, device=cells.device).unsqueeze(-1)
+    rest = [1] * (cells.dim() - 1)
+    pair = torch.tensor([0, 1], dtype=torch.int64, device=cells.device).reshape([1, 2] + rest)
+    lo, hi = _split32(cells.unsqueeze(1) + pair)
+    lo_mult = torch.tensor(_COORD_LO[:dims], dtype=torch.int64, device=cells.device).reshape([dims, 1] + rest)
+    hi_mult = torch.tensor(_COORD_HI[:dims], dtype=torch.int64, device=cells.device).reshape([dims, 1] + rest)
     return torch.bitwise_and(lo * lo_mult, MASK32) + torch.bitwise_and(hi * hi_mult, MASK32)
+
+
+def _corner_hashes_major(cells: torch.Tensor, seeds: torch.Tensor) -> torch.Tensor:
+    """Corner-major form of ``corner_hashes``: int64 [D, ...] -> int64 [2, 2(, 2), ...].
+
+    Corner axes lead and the points' axes trail, so every broadcast in the sum below
+    (and in the blends of ``noise_features``) repeats long contiguous rows: the fast
+    path of ONNX Runtime's elementwise kernels (a trailing size-2 or size-3 axis made
+    the same ops 2-4x slower).
+    """
+    dims = cells.shape[0]
+    terms = _axis_terms(cells, dims)  # [D, 2, ...]
+    h = seeds
+    for d in range(dims):
+        t = terms[d]  # [2, ...] along corner axis d
+        for _ in range(dims - 1 - d):
+            t = t.unsqueeze(1)
+        for _ in range(d):
+            t = t.unsqueeze(0)
+        h = h + t
+    # One mixing round suffices: neighbour-cell correlation measured below 0.002.
+    return mix32(torch.bitwise_and(h, MASK32))
 
 
 def corner_hashes(base: torch.Tensor, seeds: torch.Tensor) -> torch.Tensor:
@@ -98,20 +131,25 @@ def corner_hashes(base: torch.Tensor, seeds: torch.Tensor) -> torch.Tensor:
     returns int64 [..., 2, 2(, 2)]: index [..., i, j(, k)] is cell base + (i, j(, k))
     """
     dims = base.shape[-1]
-    pair = torch.tensor([0, 1], dtype=torch.int64, device=base.device)
-    terms = _coordinate_terms(base.unsqueeze(-1) + pair)  # [..., D, 2]
-    h = seeds
+    h = _corner_hashes_major(base.movedim(base.dim() - 1, 0), seeds)
     for _ in range(dims):
-        h = h.unsqueeze(-1)
-    for d in range(dims):
-        t = terms[..., d, :]  # [..., 2] along corner axis d
-        for _ in range(d):
-            t = t.unsqueeze(-2)
-        for _ in range(dims - 1 - d):
-            t = t.unsqueeze(-1)
-        h = h + t
-    # One mixing round suffices: neighbour-cell correlation measured below 0.002.
-    return mix32(torch.bitwise_and(h, MASK32))
+        h = h.movedim(0, h.dim() - 1)
+    return h
+
+
+def channel_levels(h: torch.Tensor, axis: int = -1) -> torch.Tensor:
+    """The three 10-bit fields of a 32-bit hash as level / 1024: int64 [...] -> float32,
+    with a new channel axis of size 3 inserted at ``axis`` (last by default).
+
+    Masked in place and scaled by a power of two instead of shifted down: a field
+    ``level << 10c`` has at most 10 significant bits, so the float32 cast and the scaling
+    are exact, and the graph needs no integer division.
+    """
+    h = h.unsqueeze(axis)
+    shape = [1] * h.dim()
+    shape[axis] = 3
+    fields = torch.bitwise_and(h, _CHANNEL_MASKS.to(h.device).reshape(shape))
+    return fields.to(torch.float32) * _CHANNEL_SCALES.to(h.device).reshape(shape)
 
 
 def channel_values(h: torch.Tensor) -> torch.Tensor:
@@ -120,25 +158,26 @@ def channel_values(h: torch.Tensor) -> torch.Tensor:
     10 bits per channel; values are the centres of 1024 equal bins, so the mean is
     exactly 0.5 and the variance (1 - 1024**-2) / 12.
     """
-    shifts = torch.tensor([1, _CHANNEL_LEVELS, _CHANNEL_LEVELS**2], dtype=torch.int64, device=h.device)
-    levels = torch.bitwise_and(torch.div(h.unsqueeze(-1), shifts, rounding_mode="trunc"), _CHANNEL_LEVELS - 1)
-    return (levels.to(torch.float32) + 0.5) * (1.0 / _CHANNEL_LEVELS)
+    return channel_levels(h) + _HALF_BIN
 
 
-def _multilinear(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """Blend corner values axis by axis.
+def _blend(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Multilinear blend, corner axes leading.
 
-    values  : [..., 2, 2(, 2), 3]  corner values, channels last
-    weights : [..., D]             interpolation parameter per axis in [0, 1]
-    returns [..., 3]
+    values  : [2, 2(, 2), C, ...]  corner values
+    weights : [D, ...]             interpolation parameter per axis in [0, 1]
+    returns [C, ...]
     """
-    dims = weights.shape[-1]
-    for d in reversed(range(dims)):
-        t = weights[..., d]
-        for _ in range(d + 1):
-            t = t.unsqueeze(-1)  # broadcast over the remaining corner axes and channels
-        v0, v1 = values.select(-2, 0), values.select(-2, 1)
-        values = v0 + t * (v1 - v0)
+    for d in range(weights.shape[0]):
+        v0, v1 = values[0], values[1]
+        values = v0 + weights[d] * (v1 - v0)
+    return values
+
+
+def _pick(values: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
+    """The corner each axis' flag picks: values [2, 2(, 2), C, ...], upper bool [D, ...] -> [C, ...]."""
+    for d in range(upper.shape[0]):
+        values = torch.where(upper[d], values[1], values[0])
     return values
 
 
@@ -155,14 +194,19 @@ def noise_features(
     smooth         : apply smoothstep to the interpolation weights (C1 continuous)
     returns (nearest, interpolated), float32 [..., K, 3] each
     """
+    # Axis-major inside (see _corner_hashes_major); one transpose in, one per output out.
     # Cell-centred lattice: value k sits at k + 0.5, so interpolate from q = p - 0.5.
-    q = lattice_points - 0.5
+    q = lattice_points.movedim(lattice_points.dim() - 1, 0) - 0.5  # [D, ..., K] (ONNX: no negative perm)
     base = torch.floor(q)
     frac = (q - base).to(torch.float32)  # keeps the gradient w.r.t. transforms
-    values = channel_values(corner_hashes(base.to(torch.int64), seeds))  # [..., K, 2,2(,2), 3]
+    # Levels without the half-bin offset: both blends below have weights summing to 1,
+    # so the offset is added once per octave instead of once per corner.
+    dims = q.shape[0]
+    levels = channel_levels(_corner_hashes_major(base.to(torch.int64), seeds), axis=dims)  # [2,2(,2), 3, ..., K]
 
     weights = frac * frac * (3.0 - 2.0 * frac) if smooth else frac
-    interpolated = _multilinear(values, weights)
+    interpolated = _blend(levels, weights) + _HALF_BIN  # [3, ..., K]
     # The nearest cell centre is the corner each rounded fraction picks.
-    nearest = _multilinear(values, (frac >= 0.5).to(torch.float32))
-    return nearest, interpolated
+    nearest = _pick(levels, frac >= 0.5) + _HALF_BIN
+    last = interpolated.dim() - 1
+    return nearest.movedim(0, last), interpolated.movedim(0, last)
