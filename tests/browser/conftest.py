@@ -106,6 +106,8 @@ def page(browser):
     page = browser.new_page()
     errors: list[str] = []
     page.on("pageerror", lambda error: errors.append(str(error)))
-    page.js_errors = errors  # the test asserts the page threw nothing
+    # Uncaught exceptions and console errors (failed requests among them): tests assert none.
+    page.on("console", lambda message: errors.append(message.text) if message.type == "error" else None)
+    page.js_errors = errors
     yield page
     page.close()
