@@ -214,6 +214,11 @@ class TextureField(nn.Module):
         frequencies = torch.tensor([2.0**i for i in range(k)], dtype=torch.float64)
         rotations = _fixed_rotations(k, d) if cfg.octave_rotations else torch.eye(d, dtype=torch.float64).repeat(k, 1, 1)
         self.register_buffer("octave_basis", rotations * frequencies[:, None, None], persistent=True)
+        # A fixed fractional shift per octave, so no two octaves' cell borders line up at
+        # integer world coordinates (where tile borders fall at native zoom). The noise's
+        # distribution is shift-invariant, so this changes no learned statistics.
+        g = torch.Generator().manual_seed(20200615)
+        self.register_buffer("octave_offset", torch.rand(k, d, generator=g, dtype=torch.float64), persistent=False)
 
     def lattice_points(self, points: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
         """points float64 [B,P,D], transforms [B,K,D,D] -> float64 [B,P,K,D] (one matmul)."""
@@ -226,7 +231,7 @@ class TextureField(nn.Module):
             mats = mats.expand(b, k, d, d)
         # p[b,n,k,i] = sum_j M[b,k,i,j] x[b,n,j]  ->  x [B,P,D] @ M' [B,D,K*D]
         stacked = mats.permute(0, 3, 1, 2).reshape(mats.shape[0], d, k * d)
-        return torch.matmul(points, stacked).reshape(b, p, k, d)
+        return torch.matmul(points, stacked).reshape(b, p, k, d) + self.octave_offset
 
     def forward(self, points: torch.Tensor, z: torch.Tensor, seed: torch.Tensor) -> torch.Tensor:
         cfg, flags = self.cfg, self.cfg.flags
