@@ -31,6 +31,7 @@ from __future__ import annotations
 import io
 import os
 import tempfile
+import time
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,6 +73,7 @@ class BakeResult:
     covered: np.ndarray = field(repr=False)   # (R, R) bool: texels evaluated by the sampler
     faces: int = 0
     vertices: int = 0
+    timings: dict = field(default_factory=dict)   # seconds per stage: load, atlas, raster, sample, gutter, write
 
 
 def load_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits()):
@@ -122,12 +124,20 @@ def uvs_usable(uv: np.ndarray | None, faces: np.ndarray, resolution: int) -> boo
 
 
 def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, padding,
-                 scale, progress=None, should_cancel=None, chunk: int = 1 << 18):
-    """Linear RGB atlas (R, R, 3) float32 and its coverage mask (R, R) bool."""
+                 scale, progress=None, should_cancel=None, chunk: int = 1 << 18,
+                 timings: dict | None = None):
+    """Linear RGB atlas (R, R, 3) float32 and its coverage mask (R, R) bool.
+
+    Only covered texels are evaluated. ``timings`` (optional) receives the seconds of
+    the raster, sample and gutter stages.
+    """
+    timings = {} if timings is None else timings
+    clock = time.perf_counter()
     R = resolution
     texel, face, bary = raster.rasterise(tri_uv, R)
     texels, points = raster.surface_points(texel, face, bary, tri_xyz, R)
     points *= scale
+    timings["raster"], clock = time.perf_counter() - clock, time.perf_counter()
     image = np.zeros((R * R, 3), dtype=np.float32)
     for start in range(0, len(texels), chunk):
         if should_cancel is not None and should_cancel():
@@ -136,10 +146,13 @@ def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, p
         image[texels[start:stop]] = sampler.sample(points[start:stop], code, seed)
         if progress is not None:
             progress(stop / len(texels))
+    timings["sample"], clock = time.perf_counter() - clock, time.perf_counter()
     covered = np.zeros(R * R, dtype=bool)
     covered[texels] = True
     covered = covered.reshape(R, R)
-    return raster.fill_gutter(image.reshape(R, R, 3), covered, padding), covered
+    filled = raster.fill_gutter(image.reshape(R, R, 3), covered, padding)
+    timings["gutter"] = time.perf_counter() - clock
+    return filled, covered
 
 
 def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: bytes, filename: str,
@@ -161,8 +174,11 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
             raise Canceled("bake job canceled")
         report(fraction)
 
+    timings: dict[str, float] = {"atlas": 0.0}
+    clock = time.perf_counter()
     vertices, faces, uv = load_mesh(mesh_bytes, filename, limits)
     step(0.05)
+    timings["load"], clock = time.perf_counter() - clock, time.perf_counter()
     uv_source = "mesh"
     if not uvs_usable(uv, faces, resolution):
         vmap, faces, uv = atlas.parametrize(
@@ -170,7 +186,9 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
             timeout=limits.atlas_timeout, memory_bytes=limits.atlas_memory_bytes,
             crash_for_test=atlas_crash_for_test)
         vertices, uv_source = vertices[vmap], "xatlas"
+        timings["atlas"] = time.perf_counter() - clock
     step(0.3)
+    clock = time.perf_counter()
     if scale is None:
         ppu = pixels_per_unit or getattr(sampler, "pixels_per_unit", None)
         if ppu is None:
@@ -178,8 +196,10 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
         scale = DEFAULT_SPAN_PIXELS / float(ppu) / max(float(np.ptp(vertices, axis=0).max()), 1e-12)
     image, covered = bake_texture(
         sampler, code, seed, uv[faces], vertices[faces], resolution=resolution, padding=padding,
-        scale=scale, progress=lambda f: report(0.3 + 0.6 * f), should_cancel=should_cancel)
+        scale=scale, progress=lambda f: report(0.3 + 0.6 * f), should_cancel=should_cancel,
+        timings=timings)
     step(0.9)
+    clock = time.perf_counter()
     out_path = Path(out_path)
     exr_path = out_path.with_name(out_path.name + ".exr") if exr and fmt == "glb" else None
     png = _png_bytes(image)
@@ -191,9 +211,10 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     _atomic_write(out_path, payload)
     if exr_path is not None:
         _atomic_write(exr_path, exr_bytes)
+    timings["write"] = time.perf_counter() - clock
     report(1.0)
     return BakeResult(out_path, exr_path, uv_source, resolution, float(scale), covered,
-                      len(faces), len(vertices))
+                      len(faces), len(vertices), timings)
 
 
 def _png_bytes(image: np.ndarray) -> bytes:

@@ -20,6 +20,7 @@ import logging
 import os
 import threading
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterable, Protocol
 
@@ -34,10 +35,10 @@ MANIFEST_KEYS = (
     "version", "variant", "code_size", "pixels_per_unit", "encoder_input_size",
     "encoder_input_range", "exemplar_short_side", "output_colour", "training", "created_at",
 )
-# Points per sampler call. Measured on the 2-core dev machine (bench in the report):
-# per-point throughput is flat from 16k to 256k points, and 64k keeps the temporary
-# activations of a 4x128 MLP around 64k*128*4 B = 32 MB per layer.
-DEFAULT_CHUNK = 65536
+# Points per sampler call. The noise makes a few dozen passes over arrays of
+# chunk * 8 octaves * 8 corners int64 values; at 4096 points each is 2 MB and stays in
+# this machine's L2/L3 (bench/run.py sweeps 1k-64k; 2k-8k were fastest, 64k ~1.5x slower).
+DEFAULT_CHUNK = 4096
 
 
 class Sampler(Protocol):
@@ -47,12 +48,17 @@ class Sampler(Protocol):
 
 
 def session_options(threads: int | None = None) -> ort.SessionOptions:
-    """CPU session options: all graph optimisations, sequential, ``threads`` intra-op."""
+    """CPU session options: all graph optimisations, sequential, ``threads`` intra-op.
+
+    Idle pool threads sleep instead of spinning: on a shared 2-core machine spinning
+    threads halved the sampler's throughput (bench/run.py).
+    """
     opts = ort.SessionOptions()
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.intra_op_num_threads = int(threads or os.cpu_count() or 1)
     opts.inter_op_num_threads = 1
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     opts.log_severity_level = 3
     return opts
 
@@ -68,13 +74,22 @@ def _open_session(path: Path, threads: int | None) -> ort.InferenceSession:
 
 
 class SamplerSession:
-    """One ``sampler.onnx``: points float64 [P,3], z float32 [P|1,8], seed int64 -> rgb [P,3]."""
+    """One ``sampler.onnx``: points float64 [P,3], z float32 [P|1,8], seed int64 -> rgb [P,3].
+
+    Parallel over chunks, not inside them: the session runs one intra-op thread and
+    ``threads`` chunks run at once (``session.run`` releases the GIL). The graph is
+    mostly small elementwise ops, where ONNX Runtime's intra-op split cost more than it
+    won (bench/run.py: 2 intra-op threads were slower than 1 on the shared machine).
+    """
 
     def __init__(self, path: str | os.PathLike, *, threads: int | None = None,
                  chunk: int = DEFAULT_CHUNK):
         self.path = Path(path)
-        self.session = _open_session(self.path, threads)
+        self.session = _open_session(self.path, 1)
+        self.threads = max(1, int(threads or os.cpu_count() or 1))
         self.chunk = int(chunk)
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_lock = threading.Lock()
         inputs = {i.name: i for i in self.session.get_inputs()}
         missing = {"points", "z", "seed"} - inputs.keys()
         if missing:
@@ -105,12 +120,27 @@ class SamplerSession:
                                    f"or (P, {self.code_size}); got {code.shape}")
         seed_arr = np.full(self._seed_shape, int(seed), dtype=np.int64)
         out = np.empty((len(points), 3), dtype=np.float32)
-        for start in range(0, len(points), self.chunk):
+
+        def run(start: int) -> None:
             stop = min(start + self.chunk, len(points))
             feed = {"points": points[start:stop], "seed": seed_arr,
                     "z": code[start:stop] if per_point else code}
             out[start:stop] = self.session.run([self._output], feed)[0]
+
+        starts = range(0, len(points), self.chunk)
+        if self.threads == 1 or len(starts) == 1:
+            for start in starts:
+                run(start)
+        else:
+            for _ in self._executor().map(run, starts):  # re-raises a chunk's error
+                pass
         return out
+
+    def _executor(self) -> ThreadPoolExecutor:
+        with self._pool_lock:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="sampler")
+            return self._pool
 
 
 def read_manifest(model_dir: Path) -> dict:

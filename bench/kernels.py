@@ -1,0 +1,121 @@
+"""Point-throughput benchmarks: the machine's GEMM roofline, the ONNX sampler through
+worker/runtime, and the same weights in PyTorch eager mode."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import best_of
+
+POINTS = 1 << 18                       # 3D points per throughput measurement
+CHUNKS = (1024, 2048, 4096, 8192, 16384, 65536)
+
+
+def bench_points(n: int = POINTS, seed: int = 0) -> np.ndarray:
+    """(n, 3) float64 random 3D points in a 4-unit cube (1024 exemplar pixels a side)."""
+    return np.random.default_rng(seed).random((n, 3)) * 4.0
+
+
+def bench_code(code_size: int = 8) -> np.ndarray:
+    return np.random.default_rng(1).standard_normal(code_size).astype(np.float32)
+
+
+def decoder_flops_per_point(config: dict) -> int:
+    """Multiply-adds x 2 of the decoder MLP per point (the code's share is per code, not per point)."""
+    k, hidden, layers = config["n_octaves"], config["hidden"], config["n_hidden_layers"]
+    inputs = k * 3 * (2 if config.get("nearest_input", True) else 1)
+    if config.get("variant") == "oursP":
+        inputs += config["dims"]
+    return 2 * (inputs * hidden + (layers - 1) * hidden * hidden + hidden * 3)
+
+
+def gemm_gflops(threads: int) -> dict:
+    """float32 GEMM throughput measured now: numpy (BLAS, square 1024) and onnxruntime
+    (MatMul of the decoder's own shape, 65536 x 128 @ 128 x 128); GFLOP/s each."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper
+
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((1024, 1024), dtype=np.float32)
+    b = rng.standard_normal((1024, 1024), dtype=np.float32)
+    a @ b
+    numpy_s = best_of(lambda: a @ b, 7)
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["x", "w"], ["y"])], "gemm",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [None, 128]),
+         helper.make_tensor_value_info("w", TensorProto.FLOAT, [128, 128])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [None, 128])])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 9
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    sess = ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
+    x = rng.standard_normal((65536, 128), dtype=np.float32)
+    w = rng.standard_normal((128, 128), dtype=np.float32)
+    sess.run(None, {"x": x, "w": w})
+    ort_s = best_of(lambda: sess.run(None, {"x": x, "w": w}), 7)
+    return {"numpy_1024": 2 * 1024 ** 3 / numpy_s / 1e9, "onnxruntime_decoder_shape": 2 * 65536 * 128 * 128 / ort_s / 1e9}
+
+
+def sampler_sweep(model_dir: Path, thread_options=(1, 2), chunks=CHUNKS, log=print) -> dict:
+    """sampler.onnx through worker/runtime.SamplerSession over chunk sizes and threads.
+
+    Returns {"best": {...}, "default": {...}, "grid": [...]}: points/s of each setting.
+    """
+    from worker.runtime import DEFAULT_CHUNK, SamplerSession
+
+    points, code = bench_points(), bench_code()
+    grid = []
+    for threads in thread_options:
+        session = SamplerSession(model_dir / "sampler.onnx", threads=threads)
+        session.sample(points[:4096], code, 0)
+        for chunk in chunks:
+            session.chunk = chunk
+            seconds = best_of(lambda: session.sample(points, code, 7), 3)
+            grid.append({"threads": threads, "chunk": chunk, "points_per_s": len(points) / seconds})
+            log(f"  sampler threads={threads} chunk={chunk:6d}: {len(points) / seconds / 1e6:.3f} M points/s")
+    best = max(grid, key=lambda g: g["points_per_s"])
+    default_threads = os.cpu_count() or 1
+    default = next((g for g in grid if g["threads"] == min(default_threads, max(thread_options))
+                    and g["chunk"] == DEFAULT_CHUNK), best)
+    return {"best": best, "default": default, "grid": grid}
+
+
+def torch_eager(model_dir: Path, threads: int, log=print) -> dict | None:
+    """TextureSpace.sample (model/networks.py) on CPU, no_grad, same points and code.
+
+    The research code's way: one forward per batch of points. Best over a few batch sizes.
+    None when torch (the ``train`` extra) is absent.
+    """
+    try:
+        import torch
+    except ImportError:
+        return None
+    from model.networks import load_checkpoint
+
+    torch.set_num_threads(threads)
+    model, _ = load_checkpoint(model_dir / "space.pt")
+    points = torch.from_numpy(bench_points())
+    code = torch.from_numpy(bench_code(model.cfg.code_size))[None]
+    results = {}
+    with torch.no_grad():
+        for batch in (16384, 65536):
+            def run():
+                for start in range(0, len(points), batch):
+                    model.sample(points[None, start:start + batch], code, 7)
+            run()
+            seconds = best_of(run, 2)
+            results[batch] = len(points) / seconds
+            log(f"  torch eager batch={batch:6d}: {results[batch] / 1e6:.3f} M points/s")
+    batch = max(results, key=results.get)
+    return {"points_per_s": results[batch], "batch": batch, "threads": threads}
+
+
+def model_config(model_dir: Path) -> dict:
+    manifest = json.loads((model_dir / "manifest.json").read_text())
+    return manifest.get("config") or {"n_octaves": 8, "hidden": 128, "n_hidden_layers": 4,
+                                      "nearest_input": True, "variant": manifest["variant"], "dims": 3}

@@ -1,0 +1,169 @@
+"""texspace benchmarks (``make bench``): how close the product gets to this machine.
+
+    .venv/bin/python bench/run.py [--only NAME ...] [--quick]
+
+Measures, in one run: the machine's float32 GEMM roofline for the decoder, the ONNX
+sampler through worker/runtime (best chunk size and threads), the same weights in
+PyTorch eager, cold and cached 256^2 tiles over HTTP on an embedded ``texspace serve``,
+the encode of a 1024^2 upload, a 256^3 volume (child process, peak RSS) and a 2048^2
+bake of a ~100k-face mesh without UVs. Every target is a ratio against a reference
+measured in the same run, so the verdicts hold on a noisy shared machine. Prints a
+table and merges the numbers into bench/out/results.json (other keys are kept).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import traceback
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from bench import common, jobs, kernels, serving  # noqa: E402
+
+SECTIONS = ("kernels", "http", "volume", "bake")
+
+
+def log(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def measure(only: set[str], quick: bool) -> dict:
+    results: dict = {"machine": common.machine(), "errors": {}}
+    model_dir, note = common.prepare_model(log)
+    results["model"] = {"dir": str(model_dir.relative_to(common.ROOT)), "source": note}
+    config = kernels.model_config(model_dir)
+    threads = max(1, min(2, results["machine"]["cores"] or 1))
+
+    def section(name, fn):
+        if name not in only:
+            return
+        log(f"[{name}]")
+        t = time.perf_counter()
+        try:
+            fn()
+        except Exception as exc:  # one broken section must not hide the others' numbers
+            traceback.print_exc()
+            results["errors"][name] = f"{type(exc).__name__}: {exc}"
+        results.setdefault("section_seconds", {})[name] = round(time.perf_counter() - t, 1)
+
+    def run_kernels():
+        flops = kernels.decoder_flops_per_point(config)
+        gemm = kernels.gemm_gflops(threads)
+        peak = max(gemm.values())
+        log(f"  GEMM float32: {', '.join(f'{k} {v:.1f}' for k, v in gemm.items())} GFLOP/s; "
+            f"decoder {flops} FLOP/point")
+        sweep = kernels.sampler_sweep(model_dir, thread_options=(1, threads) if threads > 1 else (1,),
+                                      chunks=(2048, 4096, 16384) if quick else kernels.CHUNKS, log=log)
+        results.update({
+            "gemm_gflops": gemm, "decoder_flops_per_point": flops,
+            "roofline_points_per_s": peak * 1e9 / flops,
+            "sampler_points_per_s": sweep["best"]["points_per_s"],
+            "sampler_best_setting": {k: sweep["best"][k] for k in ("threads", "chunk")},
+            "sampler_default_points_per_s": sweep["default"]["points_per_s"],
+            "sampler_grid": sweep["grid"],
+        })
+        eager = kernels.torch_eager(model_dir, threads, log=log)
+        if eager is None:
+            results["torch_eager_points_per_s"] = None
+            results["torch_eager_note"] = "skipped: torch (the train extra) is not installed"
+        else:
+            results["torch_eager_points_per_s"] = eager["points_per_s"]
+            results["torch_eager_setting"] = {k: eager[k] for k in ("batch", "threads")}
+        results["tile_256_render_in_process_s"] = serving.tile_in_process(model_dir)
+        log(f"  tile 256^2 rendered in process (no HTTP, no PNG): {results['tile_256_render_in_process_s']:.3f} s")
+
+    def run_http():
+        results.update(serving.bench_http(model_dir, uploads=3 if quick else 7, cold_tiles=8 if quick else 24,
+                                          log=log))
+
+    def run_volume():
+        res = 128 if quick else 256
+        v = jobs.bench_volume(model_dir, res, log=log)
+        results[f"volume_{res}_s"], results[f"volume_{res}_peak_rss_mb"] = v["seconds"], v["peak_rss_mb"]
+
+    def run_bake():
+        results.update(jobs.bench_bake(model_dir, 1024 if quick else 2048, log=log))
+
+    section("kernels", run_kernels)
+    section("http", run_http)
+    section("volume", run_volume)
+    section("bake", run_bake)
+    return results
+
+
+def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
+    """Ratios against their targets, and the printed table's rows."""
+    rows, ratios = [], {}
+    sampler = r.get("sampler_points_per_s")
+
+    def ratio(key, value, target, ok, measure, shown, against):
+        ratios[key] = {"value": value, "target": target, "met": bool(ok)}
+        rows.append((measure, shown, against, f"{target} {'MET' if ok else 'NOT MET'}"))
+
+    if sampler and r.get("roofline_points_per_s"):
+        x = sampler / r["roofline_points_per_s"]
+        ratio("sampler_vs_roofline", x, ">= 0.5", x >= 0.5, "sampler points/s",
+              f"{sampler / 1e6:.3f} M", f"{x:.2f} x roofline {r['roofline_points_per_s'] / 1e6:.2f} M")
+    if sampler and r.get("torch_eager_points_per_s"):
+        x = sampler / r["torch_eager_points_per_s"]
+        ratio("sampler_vs_torch_eager", x, ">= 1.5", x >= 1.5, "sampler vs torch eager",
+              f"{sampler / 1e6:.3f} M", f"{x:.2f} x torch {r['torch_eager_points_per_s'] / 1e6:.3f} M")
+    if sampler and "tile_256_cold_p50_s" in r:
+        ref = 65536 / sampler
+        x = r["tile_256_cold_p50_s"] / ref
+        ratio("tile_cold_p50_vs_sampler", x, "<= 1.5", x <= 1.5, "tile 256^2 cold p50 (HTTP)",
+              f"{r['tile_256_cold_p50_s']:.3f} s", f"{x:.2f} x sampler 65,536 pts {ref:.3f} s")
+        rows.append(("tile 256^2 cold p95 (HTTP)", f"{r['tile_256_cold_p95_s']:.3f} s",
+                     f"{r['tile_256_cold_p95_s'] / ref:.2f} x sampler", "-"))
+    if "tile_cached_p50_s" in r:
+        ms = r["tile_cached_p50_s"] * 1000
+        ratio("tile_cached_p50_ms", ms, "< 5 ms", ms < 5, "tile cached p50 (HTTP)", f"{ms:.2f} ms", "absolute", )
+    if "encode_p50_s" in r:
+        rows.append(("encode 1024^2 upload p50 (HTTP)", f"{r['encode_p50_s']:.3f} s", "-", "-"))
+    for res in (256, 128):
+        key = f"volume_{res}_s"
+        if sampler and key in r:
+            ref = res ** 3 / sampler
+            x = r[key] / ref
+            ratio(f"volume_{res}_vs_sampler", x, "<= 1.3", x <= 1.3, f"volume {res}^3",
+                  f"{r[key]:.2f} s", f"{x:.2f} x sampler {res ** 3:,} pts {ref:.2f} s")
+            rss = r[f"volume_{res}_peak_rss_mb"]
+            ratio(f"volume_{res}_peak_rss_mb", rss, "< 1024 MB", rss < 1024, f"volume {res}^3 peak RSS",
+                  f"{rss:.0f} MB", "absolute")
+    if sampler and "bake_2048_excl_xatlas_s" in r:
+        ref = r["bake_2048_texels"] / sampler
+        x = r["bake_2048_excl_xatlas_s"] / ref
+        ratio("bake_vs_sampler", x, "<= 1.3", x <= 1.3, "bake excl. xatlas",
+              f"{r['bake_2048_excl_xatlas_s']:.2f} s",
+              f"{x:.2f} x sampler {r['bake_2048_texels']:,} texels {ref:.2f} s")
+        rows.append(("bake total / xatlas", f"{r['bake_2048_s']:.2f} s", f"xatlas {r['bake_2048_xatlas_s']:.2f} s",
+                     "-"))
+    return ratios, rows
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--only", nargs="+", choices=SECTIONS, help="run only these sections")
+    parser.add_argument("--quick", action="store_true",
+                        help="smaller sizes (volume 128^3, bake 1024^2), written to results-quick.json")
+    args = parser.parse_args(argv)
+    started = time.perf_counter()
+    results = measure(set(args.only or SECTIONS), args.quick)
+    results["ratios"], rows = verdicts(results)
+    results["bench_seconds"] = round(time.perf_counter() - started, 1)
+    print()
+    common.print_table(rows)
+    print(f"\nmachine: {results['machine']['cpu']}, {results['machine']['cores']} cores, load at start "
+          f"{results['machine']['load_average_at_start']}; {results['machine']['date_utc']}; "
+          f"{results['bench_seconds']} s")
+    if args.quick:
+        common.RESULTS = common.OUT / "results-quick.json"
+    common.merge_results(results)
+    print(f"results: {common.RESULTS.relative_to(common.ROOT)}")
+    return 1 if results["errors"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
