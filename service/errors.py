@@ -22,6 +22,7 @@ log = logging.getLogger(__name__)
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 TYPE_PREFIX = "urn:texspace:problem:"
+BODY_PARSE_ERROR = "There was an error parsing the body"  # FastAPI's 400 for bodies it cannot decode
 
 #: domain exception class -> (HTTP status, problem type slug, title)
 ERROR_TABLE: dict[type[Exception], tuple[int, str, str]] = {
@@ -104,6 +105,11 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         detail = exc.detail if isinstance(exc.detail, str) else HTTPStatus(exc.status_code).phrase
+        if exc.status_code == 400:  # FastAPI / Starlette could not parse the body: a validation error
+            if detail == BODY_PARSE_ERROR:
+                detail = "the request body cannot be decoded (expected UTF-8 JSON)"
+            return problem_response(Problem(422, f"invalid request body: {detail}", slug="validation-error",
+                                            title="Request validation failed"), request)
         return problem_response(Problem(exc.status_code, detail, headers=getattr(exc, "headers", None)),
                                 request)
 

@@ -59,7 +59,10 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
         if existing is None:
             raise
         return same_request(existing, fingerprint), False
-    enqueue(services, job.id)
+    try:
+        enqueue(services, job.id)
+    except Exception:  # broker down: the row is saved (the truth); the reaper re-sends the message
+        log.exception("could not send the job to the queue; the reaper will re-send it")
     return get(services, job.id), True
 
 

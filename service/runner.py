@@ -92,6 +92,8 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
             log.info("job not claimable (already running, finished or canceled); message dropped")
             return None
         log.info("job started", extra={"kind": claim.job.kind, "attempt": claim.attempt})
+        for stale in services.work_dir.glob(f"{job_id}-*"):  # scratch of attempts killed outright
+            shutil.rmtree(stale, ignore_errors=True)
         workdir = services.work_dir / f"{job_id}-{claim.attempt}"
         workdir.mkdir(parents=True, exist_ok=True)
         started = time.monotonic()

@@ -156,7 +156,7 @@ def cancel_job(services: ServicesDep, response: Response, job_id: str) -> JobOut
 
 
 @router.get("/v1/jobs/{job_id}/result",
-            responses={200: {"description": "the result file", "content": {"application/octet-stream": {}}},
+            responses={200: {"description": "the result file (its own media type)", "content": {"*/*": {}}},
                        **problem_responses(404, 409)})
 def get_result(services: ServicesDep, job_id: str) -> Response:
     job = load_job(services, job_id)
