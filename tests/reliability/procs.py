@@ -1,0 +1,103 @@
+"""Real ``texspace`` processes for fault tests: start, wait, signal, on loopback ports.
+
+Every process runs in its own session, so a test only ever signals processes it started.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+
+from tests.conftest import free_port
+
+FAST_JOBS = {  # short leases so a killed worker's job comes back within seconds
+    "TEXSPACE_LEASE_SECONDS": "2", "TEXSPACE_HEARTBEAT_SECONDS": "0.3", "TEXSPACE_REAPER_INTERVAL_SECONDS": "0.5",
+    "TEXSPACE_REQUEUE_AFTER_SECONDS": "3", "TEXSPACE_MAX_ATTEMPTS": "6", "TEXSPACE_WORKERS": "1",
+    "TEXSPACE_LOG_JSON": "true", "PYTHONUNBUFFERED": "1",
+}
+
+
+@dataclass
+class Cluster:
+    """An API process and workers sharing one environment (database, queue, storage)."""
+
+    root: Path
+    env: dict[str, str]
+    port: int = field(default_factory=free_port)
+    api: subprocess.Popen | None = None
+    workers: list[subprocess.Popen] = field(default_factory=list)
+    logs: list[Path] = field(default_factory=list)
+
+    @property
+    def base_url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def _spawn(self, args: list[str], name: str) -> subprocess.Popen:
+        log_path = self.root / f"{name}-{len(self.logs)}.log"
+        self.logs.append(log_path)
+        env = self.env | {"TEXSPACE_PORT": str(self.port)}
+        return subprocess.Popen([sys.executable, "-m", "service.cli", *args], env=env, stdin=subprocess.DEVNULL,
+                                stdout=open(log_path, "wb"), stderr=subprocess.STDOUT, start_new_session=True)
+
+    def start_api(self, timeout: float = 60.0) -> None:
+        self.api = self._spawn(["api"], "api")
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            assert self.api.poll() is None, self.log_tail()
+            try:
+                if httpx.get(self.base_url + "/healthz", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise AssertionError(f"api not up in {timeout}s\n{self.log_tail()}")
+
+    def start_worker(self) -> subprocess.Popen:
+        proc = self._spawn(["worker", "--no-migrate"], "worker")
+        self.workers.append(proc)
+        return proc
+
+    def client(self) -> httpx.Client:
+        return httpx.Client(base_url=self.base_url, timeout=30.0)
+
+    def log_tail(self, chars: int = 2500) -> str:
+        return "\n".join(f"--- {p.name}\n{p.read_text(errors='replace')[-chars:]}" for p in self.logs if p.exists())
+
+    def stop(self) -> None:
+        for proc in [self.api, *self.workers]:
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        for proc in [self.api, *self.workers]:
+            if proc is None:
+                continue
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)  # its own session: only our process tree
+                proc.wait(5)
+
+
+def base_env(data_dir: Path, **extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TEXSPACE_")}
+    return env | FAST_JOBS | {"TEXSPACE_DATA_DIR": str(data_dir)} | extra
+
+
+def wait_job(http: httpx.Client, job_id: str, done, timeout: float = 120.0, what: str = "") -> dict:  # noqa: ANN001
+    """Poll the job until ``done(job)`` holds; tolerate the API being briefly unreachable."""
+    deadline = time.monotonic() + timeout
+    job: dict = {}
+    while time.monotonic() < deadline:
+        try:
+            job = http.get(f"/v1/jobs/{job_id}").json()
+        except httpx.HTTPError:
+            job = {}
+        if job and done(job):
+            return job
+        time.sleep(0.1)
+    raise AssertionError(f"job {job_id}: {what or 'condition'} not met in {timeout}s: {job}")
