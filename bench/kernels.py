@@ -75,10 +75,17 @@ def sampler_sweep(model_dir: Path, thread_options=(1, 2), chunks=CHUNKS, log=pri
         session.sample(points[:4096], code, 0)
         for chunk in chunks:
             session.chunk = chunk
-            seconds = best_of(lambda: session.sample(points, code, 7), 3)
+            seconds = best_of(lambda: session.sample(points, code, 7), 2)
             grid.append({"threads": threads, "chunk": chunk, "points_per_s": len(points) / seconds})
             log(f"  sampler threads={threads} chunk={chunk:6d}: {len(points) / seconds / 1e6:.3f} M points/s")
-    best = max(grid, key=lambda g: g["points_per_s"])
+    best = dict(max(grid, key=lambda g: g["points_per_s"]))
+    # The maximum over a noisy grid is an outlier; the reference for the product's
+    # timings is the best setting's median over more runs.
+    session = SamplerSession(model_dir / "sampler.onnx", threads=best["threads"], chunk=best["chunk"])
+    runs = [len(points) / best_of(lambda: session.sample(points, code, 7), 1) for _ in range(7)]
+    best["max_points_per_s"], best["points_per_s"] = best["points_per_s"], float(np.median(runs))
+    log(f"  sampler best setting threads={best['threads']} chunk={best['chunk']}: median of 7 "
+        f"{best['points_per_s'] / 1e6:.3f} M points/s (max in sweep {best['max_points_per_s'] / 1e6:.3f})")
     default_threads = os.cpu_count() or 1
     default = next((g for g in grid if g["threads"] == min(default_threads, max(thread_options))
                     and g["chunk"] == DEFAULT_CHUNK), best)

@@ -61,6 +61,7 @@ def measure(only: set[str], quick: bool) -> dict:
             "roofline_points_per_s": peak * 1e9 / flops,
             "sampler_points_per_s": sweep["best"]["points_per_s"],
             "sampler_best_setting": {k: sweep["best"][k] for k in ("threads", "chunk")},
+            "sampler_max_points_per_s": sweep["best"]["max_points_per_s"],
             "sampler_default_points_per_s": sweep["default"]["points_per_s"],
             "sampler_grid": sweep["grid"],
         })

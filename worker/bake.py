@@ -202,12 +202,12 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     clock = time.perf_counter()
     out_path = Path(out_path)
     exr_path = out_path.with_name(out_path.name + ".exr") if exr and fmt == "glb" else None
-    png = _png_bytes(image)
+    srgb = Image.fromarray(linear_to_srgb8(image), "RGB")
     exr_bytes = write_image(image, "exr") if exr else None
-    if fmt == "glb":
-        payload = _glb_bytes(vertices, faces, uv, png)
+    if fmt == "glb":  # trimesh encodes the PNG itself: hand it the image, not PNG bytes (one encode, not two)
+        payload = _glb_bytes(vertices, faces, uv, srgb)
     else:
-        payload = _obj_zip_bytes(vertices, faces, uv, png, exr_bytes)
+        payload = _obj_zip_bytes(vertices, faces, uv, _png_bytes(srgb), exr_bytes)
     _atomic_write(out_path, payload)
     if exr_path is not None:
         _atomic_write(exr_path, exr_bytes)
@@ -217,15 +217,15 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
                       len(faces), len(vertices), timings)
 
 
-def _png_bytes(image: np.ndarray) -> bytes:
+def _png_bytes(srgb: Image.Image) -> bytes:
     buf = io.BytesIO()
-    Image.fromarray(linear_to_srgb8(image), "RGB").save(buf, "PNG", compress_level=6)
+    srgb.save(buf, "PNG", compress_level=6)
     return buf.getvalue()
 
 
-def _glb_bytes(vertices, faces, uv, png: bytes) -> bytes:
+def _glb_bytes(vertices, faces, uv, srgb: Image.Image) -> bytes:
     material = trimesh.visual.material.PBRMaterial(
-        baseColorTexture=Image.open(io.BytesIO(png)), baseColorFactor=[255, 255, 255, 255],
+        baseColorTexture=srgb, baseColorFactor=[255, 255, 255, 255],
         metallicFactor=0.0, roughnessFactor=1.0, name="texspace")
     visual = trimesh.visual.TextureVisuals(uv=uv, material=material)
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, visual=visual, process=False)

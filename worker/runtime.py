@@ -36,9 +36,11 @@ MANIFEST_KEYS = (
     "encoder_input_range", "exemplar_short_side", "output_colour", "training", "created_at",
 )
 # Points per sampler call. The noise makes a few dozen passes over arrays of
-# chunk * 8 octaves * 8 corners int64 values; at 4096 points each is 2 MB and stays in
-# this machine's L2/L3 (bench/run.py sweeps 1k-64k; 2k-8k were fastest, 64k ~1.5x slower).
-DEFAULT_CHUNK = 4096
+# chunk * 8 octaves * 8 corners int64 values; at 2048 points each is 1 MB and stays in
+# this machine's caches (1 MB L2 per core). Measured, 2 threads, median of 5 on the
+# shared 2-core machine: 1024: 0.33, 2048: 0.32, 4096: 0.28, 8192: 0.27 M points/s;
+# 64k chunks (the old default) ~0.25. bench/run.py sweeps it again on every run.
+DEFAULT_CHUNK = 2048
 
 
 class Sampler(Protocol):
