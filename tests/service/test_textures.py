@@ -5,6 +5,7 @@ import io
 
 import numpy as np
 import OpenImageIO as oiio
+import pytest
 from PIL import Image
 
 from tests.service.conftest import brick_png
@@ -127,3 +128,29 @@ def test_web_page_and_wrong_methods(client) -> None:
     assert res.status_code == 405 and res.headers["allow"] == "POST"
     missing = client.get("/v1/nothing-here")
     assert missing.status_code == 404 and missing.headers["content-type"] == PROBLEM
+
+
+def _encoded(fmt: str, pixels: np.ndarray, tmp_path) -> bytes:
+    path = str(tmp_path / f"upload.{fmt}")
+    if fmt in ("exr",):
+        out = oiio.ImageOutput.create(path)
+        out.open(path, oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], "half"))
+        out.write_image(pixels.astype(np.float32))
+        out.close()
+    else:
+        Image.fromarray(pixels).save(path)
+    with open(path, "rb") as f:
+        return f.read()
+
+
+@pytest.mark.parametrize("fmt,kind", [("jpg", "rgb8"), ("webp", "rgb8"), ("png", "grey8"),
+                                      ("exr", "float"), ("tif", "rgb8")])
+def test_upload_formats(client, fmt, kind, tmp_path) -> None:
+    grey = np.asarray(Image.open(io.BytesIO(brick_png(80))).convert("L"))
+    pixels = {"rgb8": np.stack([grey] * 3, -1), "grey8": grey,
+              "float": np.stack([grey] * 3, -1).astype(np.float32) / 255.0}[kind]
+    res = client.post("/v1/textures", files={"image": (f"x.{fmt}", _encoded(fmt, pixels, tmp_path))})
+    assert res.status_code == 201, res.text
+    body = res.json()
+    assert (body["width"], body["height"]) == (80, 80) and np.isfinite(body["code"]).all()
+    assert client.get(body["links"]["exemplar"]).headers["content-type"].startswith("image/")
