@@ -100,7 +100,11 @@ def enqueue(services: Services, job_id: str) -> None:
     """Send the job id to the queue (the row must be committed first)."""
     with session_scope(services.sessions) as session:
         session.execute(update(Job).where(Job.id == job_id).values(enqueued_at=utcnow()))
-    services.run_job(job_id)
+    try:
+        services.run_job(job_id)
+    except Exception:  # a broker connection dropped since its last use fails once, then reconnects
+        log.warning("queue send failed; retrying once", exc_info=True)
+        services.run_job(job_id)
 
 
 @dataclass
