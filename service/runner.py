@@ -123,6 +123,10 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
                 jobs.enqueue(services, job_id)
         else:
             log.warning("job ended as %s but its lease was taken over; result discarded", state)
+            if jobs.get(services, job_id) is None:  # deleted with its texture meanwhile: leave no files
+                from .purge import forget_job_files
+
+                forget_job_files(services, job_id)
         return state
     finally:
         job_id_var.reset(token)

@@ -14,6 +14,7 @@ from .. import auth
 from ..db import session_scope
 from ..deps import PageParams, ServicesDep, apply_cursor, page_of
 from ..errors import Problem, not_found, problem_responses
+from ..purge import purge_texture
 from ..schemas import InterpolateIn, TextureOut, TexturePage, TexturePatch
 from ..tables import Texture, new_id, utcnow
 from ..uploads import IMAGE_MEDIA_TYPES, read_limited
@@ -110,13 +111,12 @@ def patch_texture(services: ServicesDep, texture_id: str, body: TexturePatch) ->
 
 @router.delete("/{texture_id}", status_code=status.HTTP_204_NO_CONTENT, responses=problem_responses(404))
 def delete_texture(services: ServicesDep, texture_id: str) -> Response:
-    """Delete the texture and its stored files (job results stay until their jobs go)."""
+    """Delete the texture, cancel and delete its jobs, and remove all their stored files."""
     with session_scope(services.sessions) as session:
         texture = session.get(Texture, texture_id)
         if texture is None or not auth.visible(texture):
             raise not_found("texture", texture_id)
-        session.delete(texture)
-    services.storage.delete_prefix(f"textures/{texture_id}")
+    purge_texture(services, texture_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 

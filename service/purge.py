@@ -1,0 +1,40 @@
+"""Deleting a texture without leaving anything behind.
+
+A texture owns its stored files (``textures/<id>/...``) and its jobs; each job owns
+``jobs/<job id>/...`` (bake input, result). :func:`purge_texture` removes the rows first,
+in one transaction, then the files. A worker still running one of those jobs notices at
+its next heartbeat (its row is gone, so the lease is lost) and stops; if it had already
+stored a result, ``runner.run_job_attempt`` removes it (``forget_job_files``).
+"""
+from __future__ import annotations
+
+import logging
+
+from sqlalchemy import delete, select
+
+from .context import Services
+from .db import session_scope
+from .tables import Job, Texture
+
+log = logging.getLogger(__name__)
+
+
+def purge_texture(services: Services, texture_id: str) -> list[str]:
+    """Delete the texture, cancel and delete its jobs, remove all their files.
+    Returns the ids of the jobs removed."""
+    with session_scope(services.sessions) as session:
+        job_ids = list(session.scalars(select(Job.id).where(Job.texture_id == texture_id)))
+        session.execute(delete(Job).where(Job.texture_id == texture_id))
+        session.execute(delete(Texture).where(Texture.id == texture_id))
+    for job_id in job_ids:
+        forget_job_files(services, job_id)
+    services.storage.delete_prefix(f"textures/{texture_id}")
+    (services.cache_dir / "samplers" / f"{texture_id}.onnx").unlink(missing_ok=True)
+    if job_ids:
+        log.info("texture deleted with its jobs", extra={"texture_id": texture_id, "jobs": job_ids})
+    return job_ids
+
+
+def forget_job_files(services: Services, job_id: str) -> None:
+    """Remove every stored file of a job (input and result)."""
+    services.storage.delete_prefix(f"jobs/{job_id}")

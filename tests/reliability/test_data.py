@@ -1,0 +1,99 @@
+"""Data hygiene: deleting a texture cancels and deletes its jobs and removes every file
+they stored (storage listed before and after); writes are temp-file-then-rename, so an
+interrupted write leaves neither a partial object nor a temporary file."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service import jobs
+from service.context import build_services
+from service.main import create_app
+from service.runner import run_job_attempt
+from service.storage import LocalStorage
+from tests.service.conftest import brick_png
+
+from .conftest import BAD, make_settings, row_counts, stored_files
+
+
+@pytest.fixture
+def held(tmp_path: Path):
+    """The app with an in-memory queue that nothing consumes: jobs run only when the test
+    calls run_job_attempt."""
+    services = build_services(make_settings(tmp_path, queue_backend="memory"))
+    with TestClient(create_app(services=services)) as client:
+        yield services, client
+    services.engine.dispose()
+
+
+def test_delete_texture_removes_jobs_and_files(held) -> None:
+    services, client = held
+    keep = client.post("/v1/textures", files={"image": ("keep.png", brick_png(64))}).json()
+    keep_job = client.post(keep["links"]["volumes"], json={"resolution": 8}).json()
+    run_job_attempt(services, keep_job["id"])
+    before = stored_files(services)
+
+    doomed = client.post("/v1/textures", files={"image": ("doomed.png", brick_png())}).json()
+    done = client.post(doomed["links"]["volumes"], json={"resolution": 8}).json()
+    assert run_job_attempt(services, done["id"]) == "succeeded"
+    baked = client.post(doomed["links"]["bakes"], files={"mesh": ("cube.obj", (BAD / "cube.obj").read_bytes())},
+                        data={"resolution": "16"}).json()                     # queued, input stored
+    running = client.post(doomed["links"]["volumes"], json={"resolution": 8, "seed": 1}).json()
+    claim = jobs.claim(services, running["id"])                                # a worker holds it
+    queued = client.post(doomed["links"]["volumes"], json={"resolution": 8, "seed": 2}).json()
+    assert {f.split("/")[1] for f in stored_files(services) if f.startswith("jobs/")} >= {done["id"], baked["id"]}
+
+    res = client.delete(doomed["links"]["self"])
+    assert res.status_code == 204
+    assert stored_files(services) == before                   # nothing of the texture or its jobs is left
+    assert row_counts(services) == (1, 1)
+    for job in (done, baked, running, queued):
+        assert client.get(job["links"]["self"]).status_code == 404
+    assert jobs.heartbeat(services, claim, 0.5)[0] is False    # the running attempt has lost its lease
+    assert run_job_attempt(services, queued["id"]) is None      # its queue message is dropped
+    assert stored_files(services) == before
+    assert client.get(f"/v1/jobs/{keep_job['id']}/result").status_code == 200   # the other texture is untouched
+
+
+def test_job_finishing_after_its_texture_was_deleted_leaves_no_files(held, monkeypatch) -> None:
+    """The race: the texture is deleted while a job runs, and the job stores its result
+    before it notices. The runner removes what it stored."""
+    services, client = held
+    texture = client.post("/v1/textures", files={"image": ("t.png", brick_png())}).json()
+    job = client.post(texture["links"]["volumes"], json={"resolution": 8}).json()
+    from service import job_kinds
+
+    real_store = job_kinds._store_result
+
+    def delete_then_store(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        assert client.delete(texture["links"]["self"]).status_code == 204    # the DELETE lands first
+        assert stored_files(services) == []
+        return real_store(*args, **kwargs)                                    # then the result is stored
+
+    monkeypatch.setattr(job_kinds, "_store_result", delete_then_store)
+    run_job_attempt(services, job["id"])
+    assert stored_files(services) == [] and row_counts(services) == (0, 0)
+    assert not list(services.work_dir.iterdir())
+
+
+def test_interrupted_write_leaves_no_partial_object(tmp_path: Path, monkeypatch) -> None:
+    storage = LocalStorage(tmp_path / "store")
+    storage.put_bytes("textures/a/exemplar.png", b"old content")
+    real_copy = shutil.copyfile
+
+    def copy_half_then_fail(src, dst, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        data = Path(src).read_bytes()
+        Path(dst).write_bytes(data[: len(data) // 2])
+        raise OSError("disk full")
+
+    monkeypatch.setattr(shutil, "copyfile", copy_half_then_fail)
+    for key in ("textures/a/exemplar.png", "textures/b/exemplar.png"):
+        with pytest.raises(OSError):
+            storage.put_bytes(key, b"new content that never lands")
+    monkeypatch.setattr(shutil, "copyfile", real_copy)
+    files = sorted(str(p.relative_to(storage.root)) for p in storage.root.rglob("*") if p.is_file())
+    assert files == ["textures/a/exemplar.png"]                 # no temp files, no partial b
+    assert storage.get_bytes("textures/a/exemplar.png") == b"old content"
