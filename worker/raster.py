@@ -16,7 +16,11 @@ import numpy as np
 from scipy import ndimage
 
 EDGE_EPS = 1e-9           # barycentric tolerance: texel centres on an edge count as inside
-BATCH_CANDIDATES = 1 << 22  # candidate (triangle, texel) pairs per batch (~100 MB of temporaries)
+# Candidate (triangle, texel) pairs per batch. Small batches keep each float64
+# temporary (512 KB) in cache: 2048^2 atlas of the 100k-face bench mesh, best of 3:
+# 2^22 0.69 s, 2^20 0.46, 2^18 0.33, 2^16 0.29 (same output). Two threads over the
+# batches gained nothing measurable, so it stays one loop.
+BATCH_CANDIDATES = 1 << 16
 
 
 def uv_to_texel(uv: np.ndarray, resolution: int) -> np.ndarray:
@@ -43,7 +47,7 @@ def rasterise(tri_uv: np.ndarray, resolution: int):
     keep &= np.abs(det) > 1e-12                                          # UV-degenerate triangles cover nothing
     faces = np.flatnonzero(keep)
     faces = faces[np.argsort(dims[faces].prod(axis=1), kind="stable")]
-    texels, owners, barys = [], [], []
+    batches = []
     start = 0
     while start < len(faces):
         # As many triangles as fit the candidate budget once padded to the batch's
@@ -55,8 +59,13 @@ def rasterise(tri_uv: np.ndarray, resolution: int):
             if count == 1 or (stop - start) * w * h <= BATCH_CANDIDATES:
                 break
             count //= 2
-        batch = faces[start:stop]
+        batches.append((faces[start:stop], int(w), int(h)))
         start = stop
+    if not batches:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+
+    def cover(job):
+        batch, w, h = job
         cols = lo[batch, 0, None] + np.arange(w)[None, :]                # (B, w)
         rows = lo[batch, 1, None] + np.arange(h)[None, :]                # (B, h)
         dx = (cols + 0.5 - p0[batch, 0, None])[:, None, :]               # (B, 1, w)
@@ -69,11 +78,10 @@ def rasterise(tri_uv: np.ndarray, resolution: int):
         inside &= (cols < R)[:, None, :] & (rows < R)[:, :, None]
         inside &= (cols <= hi[batch, 0, None])[:, None, :] & (rows <= hi[batch, 1, None])[:, :, None]
         bi, yi, xi = np.nonzero(inside)
-        texels.append(rows[bi, yi] * R + cols[bi, xi])
-        owners.append(batch[bi])
-        barys.append(np.stack([b0[bi, yi, xi], b1[bi, yi, xi], b2[bi, yi, xi]], axis=1))
-    if not texels:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+        return (rows[bi, yi] * R + cols[bi, xi], batch[bi],
+                np.stack([b0[bi, yi, xi], b1[bi, yi, xi], b2[bi, yi, xi]], axis=1))
+
+    texels, owners, barys = zip(*map(cover, batches))
     return np.concatenate(texels), np.concatenate(owners), np.concatenate(barys)
 
 
@@ -82,12 +90,20 @@ def surface_points(texel: np.ndarray, face: np.ndarray, bary: np.ndarray, tri_xy
     """One 3D point per covered texel.
 
     tri_xyz : (F, 3, 3) float64 triangle corners. Returns (texels (T,) unique flat
-    indices, points (T, 3) float64); where a texel lies on several triangles the last wins.
+    indices in increasing order, points (T, 3) float64); where a texel lies on several
+    triangles the last wins.
     """
-    # np.unique on the reversed arrays keeps the last occurrence of each texel.
-    uniq, first_rev = np.unique(texel[::-1], return_index=True)
-    pick = len(texel) - 1 - first_rev
-    pts = np.einsum("kc,kcd->kd", bary[pick], tri_xyz[face[pick]])
+    # Last occurrence per texel by a scatter-max over an atlas-sized table: 0.09 s for
+    # 2.5M texels against 0.7 s for the np.unique sort it replaced (same result).
+    last = np.full(int(resolution) ** 2, -1, dtype=np.int64)
+    np.maximum.at(last, texel, np.arange(len(texel), dtype=np.int64))
+    uniq = np.flatnonzero(last >= 0)
+    pick = last[uniq]
+    owner, weights = face[pick], bary[pick]
+    # Corner by corner: three (T, 3) gathers instead of one (T, 3, 3) temporary.
+    pts = weights[:, 0, None] * tri_xyz[owner, 0]
+    pts += weights[:, 1, None] * tri_xyz[owner, 1]
+    pts += weights[:, 2, None] * tri_xyz[owner, 2]
     return uniq, pts
 
 
