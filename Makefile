@@ -39,6 +39,7 @@ test: install-test
 
 bench:
 	$(PY) bench/run.py
+	$(PY) bench/load.py   # 32 clients, 60 s, on a real `texspace serve` (loopback)
 
 # the README picture: an exemplar beside a tile synthesised from its code
 readme-figure: install
