@@ -9,6 +9,7 @@ from starlette.concurrency import run_in_threadpool
 from worker.errors import LimitExceeded
 from worker.tiles import MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM
 
+from .. import auth
 from ..deps import ServicesDep, TileAddress, TileFormat, TileParams, tile_address
 from ..errors import problem_responses
 from ..schemas import TileJSON
@@ -42,7 +43,9 @@ async def get_tile(
     key = dict(z=address.z, x=address.x, y=address.y, size=params.size, seed=params.seed,
                plane=params.plane, offset=params.offset, fmt=fmt)
     etag = tile_etag(texture, **key)
-    headers = {"ETag": etag, "Cache-Control": CACHE_CONTROL}
+    # with API keys, a tenant's tiles must not be served to others by a shared cache
+    cache_control = CACHE_CONTROL if auth.current_owner() is None else CACHE_CONTROL.replace("public", "private")
+    headers = {"ETag": etag, "Cache-Control": cache_control}
     if etag_matches(if_none_match, etag):
         services.metrics.tile_not_modified.inc()
         return Response(status_code=304, headers=headers)

@@ -55,8 +55,9 @@ def test_owner_sees_everything_of_its_own(tenants, owned) -> None:
     _, client, alice, _ = tenants
     texture, job = owned
     assert client.get(texture["links"]["self"], headers=alice).status_code == 200
-    assert client.get(f"/v1/textures/{texture['id']}/tiles/6/0/0.png", params={"size": 64},
-                      headers=alice).status_code == 200
+    tile = client.get(f"/v1/textures/{texture['id']}/tiles/6/0/0.png", params={"size": 64}, headers=alice)
+    assert tile.status_code == 200
+    assert tile.headers["cache-control"].startswith("private")  # no shared cache may hand it to others
     assert [t["id"] for t in client.get("/v1/textures", headers=alice).json()["items"]] == [texture["id"]]
     assert client.get(job["links"]["result"], headers=alice).status_code == 200
 
