@@ -158,21 +158,22 @@ class Translator(nn.Module):
 class Decoder(nn.Module):
     """MLP f(noise, position, e) -> colour logits, ReLU, ``n_hidden_layers`` x ``hidden``.
 
-    The first layer is split by input so the code's share (e @ W_e + b) is computed
-    once per code, not once per point: the same function, fewer multiplies when
-    thousands of points share one code.
+    The code e enters every layer as a per-code bias (``from_code`` gives one bias per
+    hidden layer plus the output), which is the same as concatenating e to each layer's
+    input. Every texture can therefore move its colours and features directly. With e
+    only at the input, a space trained on CPU for a few hours ignored the code and
+    collapsed to one average texture. Each bias is computed once per code, not once
+    per point.
     """
 
     def __init__(self, n_noise: int, n_position: int, n_code: int, hidden: int, n_hidden_layers: int):
         super().__init__()
+        self.hidden, self.n_hidden_layers = hidden, n_hidden_layers
         self.from_noise = nn.Linear(n_noise, hidden, bias=False) if n_noise else None
         self.from_position = nn.Linear(n_position, hidden, bias=False) if n_position else None
-        self.from_code = nn.Linear(n_code, hidden)
-        layers = []
-        for _ in range(n_hidden_layers - 1):
-            layers += [nn.Linear(hidden, hidden), nn.ReLU()]
-        self.body = nn.Sequential(*layers)
-        self.out = nn.Linear(hidden, 3)
+        self.from_code = nn.Linear(n_code, hidden * n_hidden_layers + 3)
+        self.layers = nn.ModuleList(nn.Linear(hidden, hidden, bias=False) for _ in range(n_hidden_layers - 1))
+        self.out = nn.Linear(hidden, 3, bias=False)
         # He initialisation keeps the activations' spread through the ReLU stack, so an
         # untrained decoder already varies with its noise input instead of being flat.
         for layer in self.modules():
@@ -180,15 +181,20 @@ class Decoder(nn.Module):
                 nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
                 if layer.bias is not None:
                     nn.init.zeros_(layer.bias)
+        nn.init.normal_(self.from_code.weight, std=0.5 / n_code**0.5)
         nn.init.normal_(self.out.weight, std=0.5 / hidden**0.5)
 
     def forward(self, noise, position, code):
-        h = self.from_code(code).unsqueeze(1)  # [B,1,H]
+        biases = self.from_code(code).unsqueeze(1)  # [B,1,H*L+3]
+        h = biases[..., : self.hidden]
         if self.from_noise is not None:
             h = h + self.from_noise(noise)
         if self.from_position is not None:
             h = h + self.from_position(position)
-        return self.out(self.body(F.relu(h)))
+        h = F.relu(h)
+        for i, layer in enumerate(self.layers, start=1):
+            h = F.relu(layer(h) + biases[..., i * self.hidden : (i + 1) * self.hidden])
+        return self.out(h) + biases[..., -3:]
 
 
 class TextureField(nn.Module):

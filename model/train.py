@@ -57,7 +57,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--crop", type=int, default=128, help="exemplar crop size fed to the encoder")
     p.add_argument("--short-side", type=int, default=256, help="exemplar working resolution")
     p.add_argument("--lr", type=float, default=5e-4)
-    p.add_argument("--code-lr", type=float, default=1e-2, help="single mode: learning rate of the code")
+    p.add_argument("--code-lr", type=float, default=5e-3, help="learning rate of the codes (table or single)")
     p.add_argument("--warmup", type=int, default=200)
     p.add_argument("--clip", type=float, default=1.0, help="global gradient-norm clip")
     p.add_argument("--loss", choices=["gram", "swd"], default="gram")
@@ -153,9 +153,20 @@ def train(args, progress=None) -> Path:
     model, code, meta = build(args)
     if code is not None and args.init:
         code.data.copy_(initial_code(model, images[0], crop, rng))
-    params = [{"params": [p for p in (model.field.parameters() if code is not None else model.parameters())]}]
-    if code is not None:
-        params.append({"params": [code], "lr": args.code_lr})
+    # Space mode learns one code per exemplar (an auto-decoder table) that the synthesis
+    # uses, and trains the encoder to predict those codes from crops. Gradients reach
+    # each code directly; through the encoder alone they were too weak, and a CPU-hours
+    # space ignored the code and collapsed to one texture.
+    if code is None:
+        code_table = torch.nn.Parameter(torch.randn(len(images), model.cfg.code_size, generator=torch.Generator()
+                                                    .manual_seed(args.seed)) * 0.5)
+        codes = code_table
+    else:
+        code_table, codes = None, code
+    synthesis_params = list(model.field.parameters()) + [codes]
+    params = [{"params": list(model.field.parameters())}, {"params": [codes], "lr": args.code_lr}]
+    if code_table is not None:
+        params.append({"params": list(model.encoder.parameters())})
     optimizer = torch.optim.Adam(params, lr=args.lr)
 
     step, wall, history = 0, 0.0, []
@@ -163,8 +174,7 @@ def train(args, progress=None) -> Path:
         ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
-        if code is not None:
-            code.data.copy_(ckpt["code"])
+        codes.data.copy_(ckpt["code"] if code is not None else ckpt["codes"])
         step, wall = ckpt["step"], ckpt.get("wall_seconds", 0.0)
         rng.bit_generator.state = ckpt["numpy_rng"]
         torch.set_rng_state(ckpt["torch_rng"])
@@ -186,6 +196,8 @@ def train(args, progress=None) -> Path:
         }
         if code is not None:
             ckpt["code"] = code.detach().clone()
+        else:
+            ckpt["codes"] = code_table.detach().clone()
         tmp = ckpt_path.with_suffix(".tmp")
         torch.save(ckpt, tmp)
         tmp.replace(ckpt_path)
@@ -203,21 +215,25 @@ def train(args, progress=None) -> Path:
             t0 = time.monotonic()
             crops, indices = sample_batch(images, args.batch, crop, rng, return_indices=True,
                                           rotations=not (args.no_rotations or args.grain))
-            if code is None:
-                z = model.encode(torch.from_numpy(crops) * 2 - 1)
+            if code_table is not None:
+                z = code_table[torch.from_numpy(indices)]
+                predicted = model.encode(torch.from_numpy(crops) * 2 - 1)
+                encoder_loss = (predicted - z.detach()).square().mean()
             else:
                 z = code.expand(args.batch, -1)
+                encoder_loss = torch.zeros(())
             origins, axes = random_planes(args.batch, rng, oblique_fraction=args.oblique, dims=args.dims,
                                           extent=extent, grain=bool(args.grain))
             seeds = torch.from_numpy(rng.integers(0, 2**31, size=args.batch))
             synth = render_slices(model.field, z, seeds, origins, axes, args.patch)
             loss = objective(synth, indices)
 
-            for group in optimizer.param_groups[:1]:
-                group["lr"] = learning_rate(step, args.lr, args.warmup)
+            for k, group in enumerate(optimizer.param_groups):
+                group["lr"] = learning_rate(step, args.code_lr if k == 1 else args.lr, args.warmup)
             optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_([p for g in params for p in g["params"]], args.clip)
+            (loss + encoder_loss).backward()
+            # Clip the synthesis gradients only: the encoder's regression loss is separate.
+            grad_norm = torch.nn.utils.clip_grad_norm_(synthesis_params, args.clip)
             optimizer.step()
 
             step += 1
@@ -227,7 +243,8 @@ def train(args, progress=None) -> Path:
             spread = float(synth.detach().std(dim=(2, 3)).mean())
             bar.set_postfix(loss=f"{np.mean(history[-20:]):.3f}", std=f"{spread:.3f}", refresh=False)
             bar.update(1)
-            log.write(json.dumps({"step": step, "loss": round(float(loss), 5), "std": round(spread, 4),
+            log.write(json.dumps({"step": step, "loss": round(loss.item(), 5), "std": round(spread, 4),
+                                  "encoder": round(encoder_loss.item(), 5),
                                   "grad": round(float(grad_norm), 4), "wall": round(wall, 1)}) + "\n")
             if progress is not None:
                 by_time = (time.monotonic() - started) / (deadline - started) if args.minutes else 0.0
