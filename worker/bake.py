@@ -124,7 +124,7 @@ def uvs_usable(uv: np.ndarray | None, faces: np.ndarray, resolution: int) -> boo
 
 
 def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, padding,
-                 scale, progress=None, should_cancel=None, chunk: int = 1 << 18,
+                 scale, progress=None, should_cancel=None, chunk: int = 1 << 16,
                  timings: dict | None = None):
     """Linear RGB atlas (R, R, 3) float32 and its coverage mask (R, R) bool.
 
@@ -135,15 +135,18 @@ def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, p
     clock = time.perf_counter()
     R = resolution
     texel, face, bary = raster.rasterise(tri_uv, R)
-    texels, points = raster.surface_points(texel, face, bary, tri_xyz, R)
-    points *= scale
+    texels, pick = raster.last_hits(texel, R)
     timings["raster"], clock = time.perf_counter() - clock, time.perf_counter()
     image = np.zeros((R * R, 3), dtype=np.float32)
     for start in range(0, len(texels), chunk):
         if should_cancel is not None and should_cancel():
             raise Canceled("bake job canceled")
         stop = min(start + chunk, len(texels))
-        image[texels[start:stop]] = sampler.sample(points[start:stop], code, seed)
+        # Surface points chunk by chunk: cache-sized arrays instead of 60 MB ones.
+        rows = pick[start:stop]
+        points = raster.barycentric_points(face[rows], bary[rows], tri_xyz)
+        points *= scale
+        image[texels[start:stop]] = sampler.sample(points, code, seed)
         if progress is not None:
             progress(stop / len(texels))
     timings["sample"], clock = time.perf_counter() - clock, time.perf_counter()

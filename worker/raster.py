@@ -85,6 +85,31 @@ def rasterise(tri_uv: np.ndarray, resolution: int):
     return np.concatenate(texels), np.concatenate(owners), np.concatenate(barys)
 
 
+def last_hits(texel: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray]:
+    """Covered texels and, for each, its last (texel, triangle) pair.
+
+    texel : (K,) int64 flat indices from ``rasterise``. Returns (texels (T,) unique flat
+    indices in increasing order, pick (T,) int64 index into the K pairs).
+    """
+    # A scatter-max over an atlas-sized table: 0.03-0.09 s for 2.5M texels against
+    # 0.7 s for the np.unique sort it replaced (same result).
+    last = np.full(int(resolution) ** 2, -1, dtype=np.int64)
+    np.maximum.at(last, texel, np.arange(len(texel), dtype=np.int64))
+    uniq = np.flatnonzero(last >= 0)
+    return uniq, last[uniq]
+
+
+def barycentric_points(face: np.ndarray, bary: np.ndarray, tri_xyz: np.ndarray) -> np.ndarray:
+    """face (T,) int64, bary (T, 3) float64, tri_xyz (F, 3, 3) float64 -> points (T, 3) float64.
+
+    Corner by corner: three (T, 3) gathers instead of one (T, 3, 3) temporary.
+    """
+    pts = bary[:, 0, None] * tri_xyz[face, 0]
+    pts += bary[:, 1, None] * tri_xyz[face, 1]
+    pts += bary[:, 2, None] * tri_xyz[face, 2]
+    return pts
+
+
 def surface_points(texel: np.ndarray, face: np.ndarray, bary: np.ndarray, tri_xyz: np.ndarray,
                    resolution: int) -> tuple[np.ndarray, np.ndarray]:
     """One 3D point per covered texel.
@@ -93,18 +118,8 @@ def surface_points(texel: np.ndarray, face: np.ndarray, bary: np.ndarray, tri_xy
     indices in increasing order, points (T, 3) float64); where a texel lies on several
     triangles the last wins.
     """
-    # Last occurrence per texel by a scatter-max over an atlas-sized table: 0.09 s for
-    # 2.5M texels against 0.7 s for the np.unique sort it replaced (same result).
-    last = np.full(int(resolution) ** 2, -1, dtype=np.int64)
-    np.maximum.at(last, texel, np.arange(len(texel), dtype=np.int64))
-    uniq = np.flatnonzero(last >= 0)
-    pick = last[uniq]
-    owner, weights = face[pick], bary[pick]
-    # Corner by corner: three (T, 3) gathers instead of one (T, 3, 3) temporary.
-    pts = weights[:, 0, None] * tri_xyz[owner, 0]
-    pts += weights[:, 1, None] * tri_xyz[owner, 1]
-    pts += weights[:, 2, None] * tri_xyz[owner, 2]
-    return uniq, pts
+    uniq, pick = last_hits(texel, resolution)
+    return uniq, barycentric_points(face[pick], bary[pick], tri_xyz)
 
 
 def overlap_fraction(texel: np.ndarray, resolution: int) -> float:
