@@ -110,7 +110,8 @@ def install_error_handlers(app: FastAPI) -> None:
                 detail = "the request body cannot be decoded (expected UTF-8 JSON)"
             return problem_response(Problem(422, f"invalid request body: {detail}", slug="validation-error",
                                             title="Request validation failed"), request)
-        return problem_response(Problem(exc.status_code, detail, headers=getattr(exc, "headers", None)),
+        slug = "limit-exceeded" if exc.status_code == 413 else None  # same type as LimitExceeded
+        return problem_response(Problem(exc.status_code, detail, slug=slug, headers=getattr(exc, "headers", None)),
                                 request)
 
     @app.exception_handler(Exception)

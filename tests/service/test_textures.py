@@ -154,3 +154,23 @@ def test_upload_formats(client, fmt, kind, tmp_path) -> None:
     body = res.json()
     assert (body["width"], body["height"]) == (80, 80) and np.isfinite(body["code"]).all()
     assert client.get(body["links"]["exemplar"]).headers["content-type"].startswith("image/")
+
+
+def test_request_body_limit_while_streaming(client, services, photo) -> None:
+    """The body limit is enforced as bytes arrive, for any route (chunked: no Content-Length)."""
+    limit = services.settings.max_upload_bytes = services.settings.max_mesh_bytes = 4096
+    from fastapi.testclient import TestClient  # the app reads the limit when built: build a new one
+
+    from service.main import create_app
+
+    with TestClient(create_app(services=services)) as small:
+        big = b"x" * (limit + (2 << 20))
+        res = small.post("/v1/textures", files={"image": ("big.png", big)})
+        assert res.status_code == 413 and res.json()["type"].endswith("limit-exceeded")
+
+        def chunks():
+            for _ in range(40):
+                yield b"y" * (128 << 10)
+
+        res = small.post("/v1/textures/interpolate", content=chunks(), headers={"Content-Type": "application/json"})
+        assert res.status_code == 413 and res.headers["content-type"] == PROBLEM
