@@ -31,7 +31,8 @@ install-test: $(VENV)/.installed-test
 migrate: install
 	$(VENV)/bin/texspace migrate
 
-run: migrate
+# serve applies the migrations itself before starting the API and the worker
+run: install
 	$(VENV)/bin/texspace serve --host 127.0.0.1 --port $(TEXSPACE_PORT)
 
 test: install-test
