@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import hmac
+import logging
 import math
 import secrets
 import threading
@@ -38,7 +39,9 @@ from .db import session_scope
 from .errors import Problem, problem_responses
 from .tables import ApiKey, new_id, utcnow
 
+log = logging.getLogger(__name__)
 HEADER = "X-API-Key"
+DEFAULT_PEPPERS = {"texspace-dev-pepper", "change-me"}
 KEY_PREFIX = "tsk_"
 KEY_CACHE_SECONDS = 5.0   # a revoked key stops working within this long on every API process
 
@@ -118,6 +121,8 @@ def _state(services) -> tuple[KeyCache, RateLimiter]:  # noqa: ANN001
     """The per-process key cache and rate limiter, kept on the Services object."""
     state = getattr(services, "_auth_state", None)
     if state is None:
+        if services.settings.api_key_pepper in DEFAULT_PEPPERS:
+            log.warning("API keys are hashed with a default pepper: set TEXSPACE_API_KEY_PEPPER to a secret")
         state = (KeyCache(), RateLimiter(services.settings.rate_limit_per_minute, services.settings.rate_limit_burst))
         services._auth_state = state
     return state

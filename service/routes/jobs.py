@@ -81,8 +81,12 @@ def submit_bake(
     job_id = new_id()
     input_key = f"jobs/{job_id}/input/{filename}"
     services.storage.put_bytes(input_key, data)
-    job, created = jobs.submit(services, kind="bake", texture_id=texture_id, params=params, input_key=input_key,
-                               idempotency_key=key, fingerprint=fingerprint, job_id=job_id)
+    try:
+        job, created = jobs.submit(services, kind="bake", texture_id=texture_id, params=params,
+                                   input_key=input_key, idempotency_key=key, fingerprint=fingerprint, job_id=job_id)
+    except BaseException:  # no row, no file: nothing orphaned
+        services.storage.delete_prefix(f"jobs/{job_id}")
+        raise
     if not created:
         services.storage.delete_prefix(f"jobs/{job_id}")
     return accepted(response, job, created)

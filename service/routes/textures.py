@@ -55,8 +55,12 @@ def create_texture(
                       model_version=runtime.version, source="upload", exemplar_key=key,
                       exemplar_media_type=IMAGE_MEDIA_TYPES.get(ext, "application/octet-stream"),
                       width=int(pixels.shape[1]), height=int(pixels.shape[0]), owner_id=auth.current_owner())
-    with session_scope(services.sessions) as session:
-        session.add(texture)
+    try:
+        with session_scope(services.sessions) as session:
+            session.add(texture)
+    except BaseException:  # no row, no file: nothing orphaned
+        services.storage.delete_prefix(f"textures/{texture_id}")
+        raise
     response.headers["Location"] = f"/v1/textures/{texture_id}"
     return TextureOut.of(texture)
 

@@ -129,3 +129,30 @@ def test_backup_and_restore_as_the_readme_says(tmp_path: Path) -> None:
         assert client.get(f"/v1/jobs/{job['id']}/result").content == result
         assert client.get(texture["links"]["exemplar"]).content == brick_png()
     services.engine.dispose()
+
+
+def test_failed_database_insert_leaves_no_file(held, monkeypatch) -> None:
+    """The file is stored before its row; if the row cannot be written, the file goes too."""
+    services, client = held
+    from service import db
+
+    real_scope = db.session_scope
+
+    class Broken(Exception):
+        pass
+
+    def failing_scope(factory):  # noqa: ANN001, ANN202
+        from contextlib import contextmanager
+
+        @contextmanager
+        def scope():  # noqa: ANN202
+            with real_scope(factory) as session:
+                yield session
+                if any(type(o).__name__ == "Texture" for o in session.new):
+                    raise Broken("database went away")
+        return scope()
+
+    monkeypatch.setattr("service.routes.textures.session_scope", failing_scope)
+    with pytest.raises(Broken):
+        client.post("/v1/textures", files={"image": ("t.png", brick_png())})
+    assert stored_files(services) == [] and row_counts(services) == (0, 0)
