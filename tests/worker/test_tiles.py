@@ -136,7 +136,13 @@ def test_far_tiles_look_like_near_tiles(tile, x, y):
     near, far = tile(N, 0, 0), tile(N, x, y)
     assert np.isfinite(far).all() and far.min() >= 0 and far.max() <= 1
     # Stationary texture: same colour statistics far away (no precision blow-up, no banding).
-    assert np.abs(far.mean(axis=(0, 1)) - near.mean(axis=(0, 1))).max() < 0.05
+    # A tile's mean colour wanders with the coarsest octave (256-px cells), so compare a
+    # zoomed-out far tile (several coarse cells) against the spread of zoomed-out near ones.
+    coarse = N - 3
+    near_means = np.array([tile(coarse, i, j).mean(axis=(0, 1)) for i, j in
+                           [(0, 0), (5, -7), (-9, 3), (12, 12), (-20, 4), (7, 30)]])
+    far_mean = tile(coarse, x, y).mean(axis=(0, 1))
+    assert (np.abs(far_mean - near_means.mean(0)) < 4 * near_means.std(0) + 0.01).all()
     ratio = (far.std(axis=(0, 1)) + 1e-4) / (near.std(axis=(0, 1)) + 1e-4)
     assert ((ratio > 1 / 3) & (ratio < 3)).all()
     # and not a constant or row-repeated image (lost precision collapses neighbours)
