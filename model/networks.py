@@ -142,6 +142,15 @@ class Translator(nn.Module):
         self.to_extended = nn.Linear(128, cfg.extended_size)
         self.to_transform = nn.Linear(128, k * d * d)
         self.to_mix = nn.Linear(128, (k + 1) * 3)
+        # Variance-preserving init: with PyTorch's default the code's influence on e shrank
+        # ~30x through the translator, the decoder learned one average texture first and
+        # then never used the code.
+        for layer in self.body:
+            if isinstance(layer, nn.Linear):
+                nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
+                nn.init.zeros_(layer.bias)
+        nn.init.normal_(self.to_extended.weight, std=1.0 / 128**0.5)
+        nn.init.zeros_(self.to_extended.bias)
         # Start every transform at the identity: the network learns departures from it.
         nn.init.zeros_(self.to_transform.weight)
         nn.init.zeros_(self.to_transform.bias)
@@ -181,7 +190,7 @@ class Decoder(nn.Module):
                 nn.init.kaiming_normal_(layer.weight, nonlinearity="relu")
                 if layer.bias is not None:
                     nn.init.zeros_(layer.bias)
-        nn.init.normal_(self.from_code.weight, std=0.5 / n_code**0.5)
+        nn.init.normal_(self.from_code.weight, std=1.0 / n_code**0.5)
         nn.init.normal_(self.out.weight, std=0.5 / hidden**0.5)
 
     def forward(self, noise, position, code):
