@@ -220,13 +220,21 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
                       len(faces), len(vertices), timings)
 
 
+# zlib level of baked PNGs. A 2048^2 bake: level 6 1.70 s / 4.48 MB, level 3 0.53 s /
+# 5.12 MB, level 1 0.47 s / 5.25 MB (bench/); 14% more bytes for 1.2 s less per bake.
+PNG_COMPRESS_LEVEL = 3
+
+
 def _png_bytes(srgb: Image.Image) -> bytes:
     buf = io.BytesIO()
-    srgb.save(buf, "PNG", compress_level=6)
+    srgb.save(buf, "PNG", compress_level=PNG_COMPRESS_LEVEL)
     return buf.getvalue()
 
 
 def _glb_bytes(vertices, faces, uv, srgb: Image.Image) -> bytes:
+    # trimesh saves the image itself with no options; Pillow merges an image's own
+    # ``encoderinfo`` into save() (Pillow >= 11), which is how the level reaches it.
+    srgb.encoderinfo = {"compress_level": PNG_COMPRESS_LEVEL}
     material = trimesh.visual.material.PBRMaterial(
         baseColorTexture=srgb, baseColorFactor=[255, 255, 255, 255],
         metallicFactor=0.0, roughnessFactor=1.0, name="texspace")
