@@ -51,11 +51,16 @@ def measure(only: set[str], quick: bool) -> dict:
     def run_kernels():
         flops = kernels.decoder_flops_per_point(config)
         gemm = kernels.gemm_gflops(threads)
-        peak = max(gemm.values())
         log(f"  GEMM float32: {', '.join(f'{k} {v:.1f}' for k, v in gemm.items())} GFLOP/s; "
             f"decoder {flops} FLOP/point")
         sweep = kernels.sampler_sweep(model_dir, thread_options=(1, threads) if threads > 1 else (1,),
                                       chunks=(2048, 4096, 16384) if quick else kernels.CHUNKS, log=log)
+        # GEMM again after the sampler: the roofline is the better of the two, so a
+        # quiet moment of the shared machine never flatters the sampler's ratio.
+        again = kernels.gemm_gflops(threads)
+        log(f"  GEMM float32 again: {', '.join(f'{k} {v:.1f}' for k, v in again.items())} GFLOP/s")
+        gemm = {k: max(v, again[k]) for k, v in gemm.items()}
+        peak = max(gemm.values())
         results.update({
             "gemm_gflops": gemm, "decoder_flops_per_point": flops,
             "roofline_points_per_s": peak * 1e9 / flops,
