@@ -22,7 +22,7 @@ from bench.common import ROOT
 def bench_volume(model_dir: Path, resolution: int = 256, log=print) -> dict:
     """render_volume to .npy in a fresh child process; its wall time and peak RSS."""
     proc = subprocess.run([sys.executable, "-m", "bench.jobs", "volume", str(model_dir), str(resolution)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=900)
+                          cwd=ROOT, capture_output=True, text=True, timeout=900, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"volume child failed: {proc.stderr[-2000:]}")
     result = json.loads(proc.stdout.strip().splitlines()[-1])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +76,7 @@ def sampler_sweep(model_dir: Path, thread_options=(1, 2), chunks=CHUNKS, log=pri
         session.sample(points[:4096], code, 0)
         for chunk in chunks:
             session.chunk = chunk
-            seconds = best_of(lambda: session.sample(points, code, 7), 2)
+            seconds = best_of(partial(session.sample, points, code, 7), 2)
             grid.append({"threads": threads, "chunk": chunk, "points_per_s": len(points) / seconds})
             log(f"  sampler threads={threads} chunk={chunk:6d}: {len(points) / seconds / 1e6:.3f} M points/s")
     best = dict(max(grid, key=lambda g: g["points_per_s"]))
@@ -111,15 +112,18 @@ def torch_eager(model_dir: Path, threads: int, log=print) -> dict | None:
     results = {}
     with torch.no_grad():
         for batch in (16384, 65536):
-            def run():
-                for start in range(0, len(points), batch):
-                    model.sample(points[None, start:start + batch], code, 7)
+            run = partial(_torch_batches, model, points, code, batch)
             run()
             seconds = best_of(run, 2)
             results[batch] = len(points) / seconds
             log(f"  torch eager batch={batch:6d}: {results[batch] / 1e6:.3f} M points/s")
     batch = max(results, key=results.get)
     return {"points_per_s": results[batch], "batch": batch, "threads": threads}
+
+
+def _torch_batches(model, points, code, batch: int) -> None:
+    for start in range(0, len(points), batch):
+        model.sample(points[None, start:start + batch], code, 7)
 
 
 def model_config(model_dir: Path) -> dict:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench import common, jobs, kernels, serving  # noqa: E402
+from bench import common, jobs, kernels, serving
 
 SECTIONS = ("kernels", "http", "volume", "bake")
 
@@ -43,7 +43,7 @@ def measure(only: set[str], quick: bool) -> dict:
         t = time.perf_counter()
         try:
             fn()
-        except Exception as exc:  # one broken section must not hide the others' numbers
+        except Exception as exc:  # noqa: BLE001 - one broken section must not hide the others' numbers
             traceback.print_exc()
             results["errors"][name] = f"{type(exc).__name__}: {exc}"
         results.setdefault("section_seconds", {})[name] = round(time.perf_counter() - t, 1)
