@@ -38,7 +38,7 @@ run: install
 test: install-test
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-bench:
+bench: install-test
 	$(PY) bench/run.py
 	$(PY) bench/load.py   # 32 clients, 60 s, on a real `texspace serve` (loopback)
 

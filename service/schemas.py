@@ -197,6 +197,7 @@ class TileJSON(BaseModel):
     maxzoom: int
     tileSize: int  # noqa: N815 - TileJSON spells it so
     bounds: list[float]
+    center: list[float]  # [x, y, zoom]; zoom = the native zoom (one tile pixel = one exemplar pixel)
 
 
 class Health(BaseModel):

@@ -71,4 +71,5 @@ def get_tilejson(services: ServicesDep, request: Request, texture_id: str,
     return TileJSON(name=texture.name or texture.id,
                     tiles=[f"{base}/v1/textures/{texture.id}/tiles/{{z}}/{{x}}/{{y}}.png?{query}"],
                     minzoom=MIN_ZOOM, maxzoom=MAX_ZOOM, tileSize=params.size,
-                    bounds=[-180.0, -85.0511287798066, 180.0, 85.0511287798066])
+                    bounds=[-180.0, -85.0511287798066, 180.0, 85.0511287798066],
+                    center=[0.0, 0.0, float(NATIVE_ZOOM)])

@@ -100,3 +100,4 @@ def test_tilejson(client, texture) -> None:
     assert body["tiles"][0].startswith("http://testserver/v1/textures/")
     assert "seed=3" in body["tiles"][0] and "{z}/{x}/{y}.png" in body["tiles"][0]
     assert body["minzoom"] <= NATIVE_ZOOM <= body["maxzoom"]
+    assert body["center"] == [0, 0, NATIVE_ZOOM]  # viewers open at one tile pixel = one exemplar pixel
