@@ -3,6 +3,7 @@ coordinates, volume resolution, mesh vertices, and queue back-pressure."""
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 from pathlib import Path
 
 import pytest
@@ -40,7 +41,10 @@ def test_request_body_is_refused_while_streaming(tmp_path: Path) -> None:
              "scheme": "http", "path": "/v1/textures", "raw_path": b"/v1/textures", "query_string": b"",
              "root_path": "", "server": ("127.0.0.1", 80), "client": ("127.0.0.1", 1234),
              "headers": [(b"content-type", b"multipart/form-data; boundary=xyz"), (b"host", b"t")]}
-    asyncio.run(app(scope, receive, send))
+    # A thread of its own: a session-wide fixture (playwright's sync API) may already run
+    # an event loop in the main thread, where asyncio.run refuses to start another.
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        pool.submit(asyncio.run, app(scope, receive, send)).result()
     start = next(m for m in sent if m["type"] == "http.response.start")
     assert start["status"] == 413
     assert (b"content-type", PROBLEM.encode()) in start["headers"]
