@@ -42,11 +42,9 @@ bench: install-test
 	$(PY) bench/run.py
 	$(PY) bench/load.py   # 32 clients, 60 s, on a real `texspace serve` (loopback)
 
-# the README picture: an exemplar beside a tile synthesised from its code
-readme-figure: install
-	$(PY) -c "from skimage import data; from PIL import Image; Image.fromarray(data.brick()[:256, :256]).save('/tmp/texspace-exemplar.png')"
-	$(VENV)/bin/texspace tile /tmp/texspace-exemplar.png 6 0 0 --size 256 -o /tmp/texspace-tile.png
-	$(PY) -c "from PIL import Image; a = Image.open('/tmp/texspace-exemplar.png').convert('RGB'); b = Image.open('/tmp/texspace-tile.png'); c = Image.new('RGB', (520, 256), 'white'); c.paste(a, (0, 0)); c.paste(b, (264, 0)); c.save('docs/images/exemplar-and-tile.png')"
+# the README picture: exemplars beside tiles synthesised from their codes
+readme-figure: data
+	$(PY) docs/make_readme_figure.py
 
 clean-data:
 	rm -rf $(TEXSPACE_DATA_DIR)
