@@ -5,9 +5,9 @@ code, so the two agree by construction. Every operation here is chosen to export
 plain ONNX and to mean the same thing in torch, numpy and ONNX Runtime:
 
 * Integer hashing keeps every value a non-negative 32-bit number held in int64.
-  ``& 0xFFFFFFFF`` masks, a right shift is a division of a non-negative number by a
-  power of two (ONNX ``BitShift`` rejects int64), and every multiplier is below 2**31 so
-  no product overflows int64.
+  ``& 0xFFFFFFFF`` masks, every multiplier is below 2**31 so no product overflows
+  int64, and right shifts export as Cast(uint64) -> BitShift -> Cast(int64) (ONNX
+  ``BitShift`` rejects int64; see ``_shr``).
 * Lattice coordinates are float64 until the cell index is taken, so a point at 1e7
   world units still lands in exactly the right cell at the finest octave.
 * The lattice is infinite: the cell index is hashed in two 32-bit halves, so there
