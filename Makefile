@@ -53,7 +53,7 @@ clean-data:
 # make train resumes runs/space (seeded from the committed checkpoint when present),
 # stops after TRAIN_STEPS steps in total, then exports to model/weights/.
 TRAIN_STEPS ?= 20000
-TRAIN_ARGS ?= --patch 64 --batch 4 --lr 2.5e-4 --warmup 200 --no-nearest --smooth --threads 2 --ckpt-every 100
+TRAIN_ARGS ?= --patch 64 --batch 4 --lr 5e-4 --warmup 200 --no-nearest --smooth --threads 2 --ckpt-every 100
 .PHONY: data train export evaluate
 
 data: install-test
