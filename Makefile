@@ -68,5 +68,17 @@ train: data
 export: install-test
 	$(PY) -m model.export runs/space/checkpoint.pt model/weights
 
+# The comparison: every variant trained as a space from scratch with the same settings and
+# the same number of steps (runs/compare/<variant>), then evaluated on the validation
+# exemplars together with the shipped space. `make -j2 compare` runs two at a time.
+COMPARE_STEPS ?= 1500
+COMPARE_ARGS ?= --patch 64 --batch 4 --lr 5e-4 --warmup 200 --no-nearest --smooth --threads 1 --ckpt-every 100 --quiet
+VARIANT_NAMES := perlin perlinT mlp oursP oursNoT ours
+.PHONY: compare $(addprefix compare-,$(VARIANT_NAMES))
+compare: $(addprefix compare-,$(VARIANT_NAMES))
+$(addprefix compare-,$(VARIANT_NAMES)): compare-%: data
+	$(PY) -m model.train --variant $* --out runs/compare/$* --steps $(COMPARE_STEPS) $(COMPARE_ARGS)
+
 evaluate: data
-	$(PY) -m model.evaluate --checkpoint-dir runs/compare --exemplars data/textures/val --out model/weights/eval
+	$(PY) -m model.evaluate --checkpoint-dir runs/compare --checkpoint model/weights/space.pt \
+		--exemplars data/textures/val --out model/weights/eval
