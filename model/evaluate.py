@@ -75,17 +75,22 @@ def find_checkpoints(directory: Path) -> list[Path]:
 
 
 def load_candidates(paths: Sequence[Path]) -> list[Candidate]:
-    """Load checkpoints; labels are variant names, made unique with the run folder."""
+    """Load checkpoints; labels are variant names, made unique with the run folder.
+
+    Single-exemplar fits are labelled ``<variant>-fit`` and share one label across
+    exemplars (each is evaluated only on its own), so a table shows one fit column.
+    """
     loaded = []
     for path in paths:
         model, ckpt = load_checkpoint(path)
         mode = ckpt.get("mode", "space")
         fitted = ckpt.get("data", [None])[0] if mode == "single" else None
         code = ckpt.get("code")
-        loaded.append(Candidate(model.cfg.variant, Path(path), model, mode, fitted, code, int(ckpt.get("step", 0))))
-    variants = [c.label for c in loaded]
+        label = f"{model.cfg.variant}-fit" if mode == "single" else model.cfg.variant
+        loaded.append(Candidate(label, Path(path), model, mode, fitted, code, int(ckpt.get("step", 0))))
+    keys = [(c.label, c.fitted_to) for c in loaded]
     for candidate in loaded:
-        if variants.count(candidate.label) > 1:
+        if keys.count((candidate.label, candidate.fitted_to)) > 1:
             candidate.label = f"{candidate.label}:{candidate.path.parent.name}/{candidate.path.stem}"
     return loaded
 
@@ -187,11 +192,12 @@ def evaluate(
     add_success(results)
     report = {
         "settings": {**asdict(settings), "layers": list(layers)},
-        "checkpoints": {c.label: {"path": str(c.path), "variant": c.model.cfg.variant, "mode": c.mode,
-                                  "dims": c.model.cfg.dims, "step": c.step, "fitted_to": c.fitted_to}
-                        for c in candidates},
+        "checkpoints": [{"label": c.label, "path": str(c.path), "variant": c.model.cfg.variant, "mode": c.mode,
+                         "dims": c.model.cfg.dims, "step": c.step, "fitted_to": c.fitted_to}
+                        for c in candidates],
         "results": results,
         "summary": summarise(results),
+        "checks": checks(results),
     }
     return report, images
 
@@ -211,6 +217,32 @@ def summarise(results: Sequence[dict]) -> dict:
     }
 
 
+def checks(results: Sequence[dict]) -> dict:
+    """The issue's acceptance figures, per label: the lowest diversity over exemplars and
+    domains, oblique / axis mean style error, and for every ``X-fit`` label the exemplars
+    where the fit's style error beats X's (encoder code) in each domain."""
+    by_label: dict[str, list[dict]] = {}
+    for row in results:
+        by_label.setdefault(row["variant"], []).append(row)
+    out: dict = {}
+    for label, rows in by_label.items():
+        entry = {"min_diversity": min(r["diversity"] for r in rows)}
+        axis = [r["style_error"] for r in rows if r["domain"] == "3d_axis"]
+        oblique = [r["style_error"] for r in rows if r["domain"] == "3d_oblique"]
+        if axis and oblique:
+            entry["oblique_over_axis"] = float(np.mean(oblique) / np.mean(axis))
+        base = label[: -len("-fit")] if label.endswith("-fit") else None
+        if base in by_label:
+            reference = {(r["exemplar"], r["domain"]): r["style_error"] for r in by_label[base]}
+            entry["fit_better"] = {}
+            for domain in dict.fromkeys(r["domain"] for r in rows):
+                pairs = [(r["style_error"], reference[(r["exemplar"], domain)]) for r in rows
+                         if r["domain"] == domain and (r["exemplar"], domain) in reference]
+                entry["fit_better"][domain] = [sum(fit < space for fit, space in pairs), len(pairs)]
+        out[label] = entry
+    return out
+
+
 def centre_crop(image: np.ndarray, size: int) -> np.ndarray:
     """(H, W, 3) -> (size, size, 3) centre crop (edge-padded if the image is smaller)."""
     height, width = image.shape[:2]
@@ -221,18 +253,30 @@ def centre_crop(image: np.ndarray, size: int) -> np.ndarray:
     return image[top : top + size, left : left + size]
 
 
+def report_labels(report: dict) -> list[str]:
+    """The report's column labels, in checkpoint order, once each."""
+    return list(dict.fromkeys(entry["label"] for entry in report["checkpoints"]))
+
+
 def to_markdown(report: dict) -> str:
     """Summary tables per domain plus per-exemplar style errors."""
     lines = ["# Evaluation", "", "Style error: Gram L2, lower is better. Diversity: VGG distance between",
              "seeds, higher is better. Success: diversity x (max style error - style error).", ""]
-    if len(report["checkpoints"]) < 2:
+    labels = report_labels(report)
+    if len(labels) < 2:
         lines += ["Only one variant: success is 0 by definition (it compares variants).", ""]
     for domain, by_label in report["summary"].items():
         lines += [f"## {domain}", "", "| variant | style error | diversity | success | exemplars |", "|---|---|---|---|---|"]
         for label, m in by_label.items():
             lines.append(f"| {label} | {m['style_error']:.4f} | {m['diversity']:.4f} | {m['success']:.4f} | {m['n']} |")
         lines.append("")
-    labels = list(report["checkpoints"])
+    lines += ["## Checks", "", "| variant | lowest diversity | oblique / axis style error | fit better than encoder code |",
+              "|---|---|---|---|"]
+    for label, entry in report["checks"].items():
+        ratio = f"{entry['oblique_over_axis']:.2f}" if "oblique_over_axis" in entry else "-"
+        better = ", ".join(f"{d}: {k}/{n}" for d, (k, n) in entry.get("fit_better", {}).items()) or "-"
+        lines.append(f"| {label} | {entry['min_diversity']:.4f} | {ratio} | {better} |")
+    lines.append("")
     exemplars = list(dict.fromkeys(row["exemplar"] for row in report["results"]))
     for domain in report["summary"]:
         cells = {(r["exemplar"], r["variant"]): r for r in report["results"] if r["domain"] == domain}
@@ -277,7 +321,7 @@ def write_report(report: dict, images: dict, out: Path) -> None:
     (out / "results.md").write_text(to_markdown(report))
     for domain in GRID_DOMAINS:
         if any(key[2] == domain for key in images):
-            write_grid(images, list(report["checkpoints"]), domain, out / f"grid_{domain}.png", report["settings"]["patch"])
+            write_grid(images, report_labels(report), domain, out / f"grid_{domain}.png", report["settings"]["patch"])
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -58,6 +58,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--short-side", type=int, default=256, help="exemplar working resolution")
     p.add_argument("--lr", type=float, default=5e-4)
     p.add_argument("--code-lr", type=float, default=5e-3, help="learning rate of the codes (table or single)")
+    p.add_argument("--transform-lr", type=float, default=None,
+                   help="learning rate of the per-octave transform head (default: --lr); a fit raises it "
+                        "so the octaves can stretch into grain within minutes")
     p.add_argument("--warmup", type=int, default=200)
     p.add_argument("--clip", type=float, default=1.0, help="global gradient-norm clip")
     p.add_argument("--loss", choices=["gram", "swd"], default="gram")
@@ -188,9 +191,16 @@ def train(args, progress=None) -> Path:
     else:
         code_table, codes = None, code
     synthesis_params = list(model.field.parameters()) + [codes]
-    params = [{"params": list(model.field.parameters())}, {"params": [codes], "lr": args.code_lr}]
+    # Group order is part of the checkpoint format (resuming needs the same groups), so
+    # the transform head gets its own group only when it has its own learning rate.
+    head = list(model.field.translator.to_transform.parameters()) if args.transform_lr else []
+    head_ids = {id(t) for t in head}
+    params = [{"params": [t for t in model.field.parameters() if id(t) not in head_ids], "base_lr": args.lr},
+              {"params": [codes], "base_lr": args.code_lr}]
+    if head:
+        params.append({"params": head, "base_lr": args.transform_lr})
     if code_table is not None:
-        params.append({"params": list(model.encoder.parameters())})
+        params.append({"params": list(model.encoder.parameters()), "base_lr": args.lr})
     optimizer = torch.optim.Adam(params, lr=args.lr)
 
     step, wall, history = 0, 0.0, []
@@ -252,8 +262,8 @@ def train(args, progress=None) -> Path:
             synth = render_slices(model.field, z, seeds, origins, axes, args.patch)
             loss = objective(synth, indices)
 
-            for k, group in enumerate(optimizer.param_groups):
-                group["lr"] = learning_rate(step, args.code_lr if k == 1 else args.lr, args.warmup)
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate(step, group["base_lr"], args.warmup)
             optimizer.zero_grad(set_to_none=True)
             (loss + encoder_loss).backward()
             # Clip the synthesis gradients only: the encoder's regression loss is separate.

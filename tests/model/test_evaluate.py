@@ -64,17 +64,37 @@ def test_success_uses_the_worst_style_error_per_exemplar_and_domain():
     assert [r["success"] for r in rows] == [6.0, 0.0, 0.0]
 
 
+def test_checks_count_fit_wins_per_domain_and_compare_slices():
+    row = lambda e, v, d, s, div=1.0: {"exemplar": e, "variant": v, "domain": d, "style_error": s, "diversity": div}
+    rows = [row("a", "ours", "3d_axis", 1.0), row("a", "ours", "3d_oblique", 3.0, div=0.5),
+            row("b", "ours", "3d_axis", 3.0), row("b", "ours", "3d_oblique", 3.0),
+            row("a", "ours-fit", "3d_axis", 0.5), row("b", "ours-fit", "3d_axis", 4.0, div=0.0)]
+    result = ev.checks(rows)
+    assert result["ours"] == {"min_diversity": 0.5, "oblique_over_axis": 1.5}
+    assert result["ours-fit"]["fit_better"] == {"3d_axis": [1, 2]}
+    assert result["ours-fit"]["min_diversity"] == 0.0
+
+
+def test_fits_share_one_label_across_exemplars(tmp_path):
+    paths = [save_checkpoint(tmp_path / name / "fit.pt", "ours", mode="single", data=[name], code=torch.zeros(1, 8))
+             for name in ("brick", "gravel")]
+    paths.append(save_checkpoint(tmp_path / "again" / "fit.pt", "ours", mode="single", data=["brick"],
+                                 code=torch.zeros(1, 8)))
+    labels = [c.label for c in ev.load_candidates(paths)]
+    assert labels == ["ours-fit:brick/fit", "ours-fit", "ours-fit:again/fit"]
+
+
 @pytest.mark.slow
 def test_evaluate_rows_metrics_and_determinism(setup):
     _, exemplars, checkpoints = setup
     candidates = ev.load_candidates(checkpoints)
-    assert [c.label for c in candidates] == ["ours", "mlp", "oursNoT", "perlin"]
+    assert [c.label for c in candidates] == ["ours", "mlp", "oursNoT", "perlin-fit"]
     report, images = ev.evaluate(candidates, exemplars, SETTINGS)
     rows = {(r["exemplar"], r["variant"], r["domain"]): r for r in report["results"]}
     # space models on every exemplar; the planar one in 2D only; the fit on its own exemplar
     assert {k for k in rows if k[1] == "ours"} == {(e, "ours", d) for e in ("brick", "gravel") for d in ev.DOMAINS}
     assert {k for k in rows if k[1] == "oursNoT"} == {("brick", "oursNoT", "2d"), ("gravel", "oursNoT", "2d")}
-    assert {k for k in rows if k[1] == "perlin"} == {("gravel", "perlin", d) for d in ev.DOMAINS}
+    assert {k for k in rows if k[1] == "perlin-fit"} == {("gravel", "perlin-fit", d) for d in ev.DOMAINS}
     for row in rows.values():
         assert np.isfinite(row["style_error"]) and row["style_error"] > 0
         assert row["success"] >= 0
@@ -100,10 +120,11 @@ def test_cli_writes_json_markdown_and_grids(setup, tmp_path):
                     "--patch", "32", "--seeds", "2", "--planes", "1"])
     assert code == 0
     report = json.loads((out / "results.json").read_text())
-    assert set(report["checkpoints"]) == {"ours", "perlin"}
+    assert {c["label"] for c in report["checkpoints"]} == {"ours", "perlin-fit"}
     assert report["summary"]["3d_oblique"]["ours"]["n"] == 2
     markdown = (out / "results.md").read_text()
     assert "| ours |" in markdown and "## 3d_axis" in markdown and "| brick | " in markdown
+    assert "## Checks" in markdown and set(report["checks"]) == {"ours", "perlin-fit"}
     for domain in ev.GRID_DOMAINS:
         with Image.open(out / f"grid_{domain}.png") as grid:
             assert grid.size == ((1 + 2 * 2) * 34, 14 + 2 * 34)

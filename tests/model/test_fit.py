@@ -12,6 +12,7 @@ ort = pytest.importorskip("onnxruntime")
 
 from model.export import export_model  # noqa: E402
 from model.fit import fit_exemplar  # noqa: E402
+from model.evaluate import load_candidates  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
 
 
@@ -32,3 +33,6 @@ def test_fit_writes_a_contract_sampler_and_its_code(tmp_path, skimage_textures, 
     assert rgb.shape == (100, 3) and np.isfinite(rgb).all()
     manifest = json.loads((tmp_path / "fit" / "manifest.json").read_text())
     assert manifest["kind"] == "fitted" and manifest["code"] == code
+    # the slim checkpoint beside it is what model.evaluate compares with the space's code
+    (fit,) = load_candidates([tmp_path / "fit" / "fit.pt"])
+    assert fit.label == "ours-fit" and fit.fitted_to == "gravel" and fit.code.reshape(-1).tolist() == code
