@@ -33,7 +33,8 @@ FIT_TRANSFORM_LR = 5e-3
 
 
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
-                 patch: int = 64, grain: str | None = None, progress=None, quiet: bool = True, seed: int = 0) -> dict:
+                 patch: int = 64, grain: str | None = None, loss: str = "gram", progress=None, quiet: bool = True,
+                 seed: int = 0) -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps'}."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -46,7 +47,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         argv = ["--mode", "single", "--exemplar", str(image_path), "--out", run_dir, "--init", str(init),
                 "--variant", cfg.variant, "--dims", str(cfg.dims), "--short-side", str(cfg.exemplar_short_side),
                 "--minutes", str(minutes), "--patch", str(patch), "--batch", "2", "--lr", str(FIT_LR),
-                "--transform-lr", str(FIT_TRANSFORM_LR), "--warmup", "20", "--seed", str(seed),
+                "--transform-lr", str(FIT_TRANSFORM_LR), "--warmup", "20", "--seed", str(seed), "--loss", loss,
                 "--ckpt-every", "1000000"]
         argv += ["--no-nearest"] if not cfg.nearest_input else []
         argv += ["--smooth"] if cfg.smooth else []
@@ -88,10 +89,11 @@ def main(argv=None):
     p.add_argument("--patch", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--grain", choices=["x", "y"], help="anisotropic exemplar: its grain runs along image x or y")
+    p.add_argument("--loss", choices=["gram", "swd"], default="gram", help="VGG feature statistics to match")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
-                          patch=args.patch, grain=args.grain, quiet=False, seed=args.seed)
+                          patch=args.patch, grain=args.grain, loss=args.loss, quiet=False, seed=args.seed)
     print(json.dumps({k: result[k] for k in ("version", "steps", "sampler")}))
 
 

@@ -35,7 +35,7 @@ def random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:
 
 def random_planes(
     n: int, rng: np.random.Generator, *, oblique_fraction: float = 0.5, extent: float = 1000.0, dims: int = 3,
-    grain: bool = False,
+    grain: str | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Random slice planes: (origins float64 [n,3], axes float64 [n,2,3]).
 
@@ -44,18 +44,23 @@ def random_planes(
     [-extent, extent]^3 so training sees many different lattice cells. ``dims=2``
     keeps every plane at xy (planar textures).
 
-    ``grain=True`` is for anisotropic exemplars (wood, brushed metal) whose grain runs
-    along the image's x axis: every plane then contains the world x axis (u = x, v turned
-    about x), so the grain shows on all of them; planes across the grain (yz) are left
-    free for the solid to fill with whatever cross-section is consistent.
+    ``grain="x"`` or ``"y"`` is for anisotropic exemplars (wood, brushed metal) whose
+    grain runs along the image's x (columns) or y (rows) axis: every plane then contains
+    that world axis in the same role (``x``: u = world x, v turned about x; ``y``: v =
+    world y, u turned about y), so the grain shows on all of them in the exemplar's own
+    orientation; planes across the grain are left free for the solid to fill with
+    whatever cross-section is consistent.
     """
+    if grain not in (None, "x", "y"):
+        raise ValueError(f"grain must be None, 'x' or 'y', got {grain!r}")
     origins = rng.uniform(-extent, extent, size=(n, 3))
     axes = np.zeros((n, 2, 3))
     for k in range(n):  # n is a batch size (a handful), not a pixel count
         if grain and dims == 3:
             turn = rng.uniform(0, 2 * np.pi) if rng.random() < oblique_fraction else rng.integers(0, 4) * np.pi / 2
-            axes[k, 0] = (1.0, 0.0, 0.0)
-            axes[k, 1] = (0.0, np.cos(turn), np.sin(turn))
+            along, across = (0, 1) if grain == "x" else (1, 0)  # which of u, v follows the grain
+            axes[k, along] = (1.0, 0.0, 0.0) if grain == "x" else (0.0, 1.0, 0.0)
+            axes[k, across] = (0.0, np.cos(turn), np.sin(turn)) if grain == "x" else (np.cos(turn), 0.0, np.sin(turn))
             continue
         if dims == 2:
             a, b = AXIS_PLANES["xy"]

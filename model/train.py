@@ -72,9 +72,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--smooth", action="store_true", help="smoothstep noise interpolation")
     p.add_argument("--no-rotations", action="store_true", help="exemplar crops keep their orientation")
     p.add_argument("--grain", choices=["x", "y"],
-                   help="anisotropic exemplar whose grain runs along the image's x (rows) or y (columns): crops "
-                        "keep their orientation (y-grain images are transposed) and every slice plane contains "
-                        "the world x axis, so the grain runs along world x")
+                   help="anisotropic exemplar whose grain runs along the image's x (left-right) or y (up-down): "
+                        "crops keep their orientation and every slice plane contains that world axis in the same "
+                        "role, so tiles on the xy plane show the grain as the exemplar does")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--ckpt-every", type=int, default=200)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
@@ -166,8 +166,6 @@ def train(args, progress=None) -> Path:
         if not args.exemplar:
             raise SystemExit("--mode single needs --exemplar IMAGE")
         names, images = [Path(args.exemplar).stem], [load_exemplar(args.exemplar, args.short_side)]
-        if args.grain == "y":
-            images = [np.ascontiguousarray(images[0].transpose(1, 0, 2))]
     else:
         dataset = TextureDataset(args.data, short_side=args.short_side)
         excluded = set(filter(None, args.exclude.split(",")))
@@ -257,7 +255,7 @@ def train(args, progress=None) -> Path:
                 z = code.expand(args.batch, -1)
                 encoder_loss = torch.zeros(())
             origins, axes = random_planes(args.batch, rng, oblique_fraction=args.oblique, dims=args.dims,
-                                          extent=extent, grain=bool(args.grain))
+                                          extent=extent, grain=args.grain)
             seeds = torch.from_numpy(rng.integers(0, 2**31, size=args.batch))
             synth = render_slices(model.field, z, seeds, origins, axes, args.patch)
             loss = objective(synth, indices)

@@ -55,3 +55,17 @@ def test_cli_trains_checkpoints_and_resumes(tmp_path, brick, vgg):
     assert ckpt["step"] == 5  # resumed from 3, not restarted
     lines = (out / "log.jsonl").read_text().splitlines()
     assert len(lines) == 5
+
+
+@pytest.mark.parametrize("grain, axis, role", [("x", 0, 0), ("y", 1, 1)])
+def test_grain_planes_keep_the_grain_axis_in_the_exemplars_role(grain, axis, role):
+    # A y-grain exemplar (stripes running up-down) must show its stripes up-down on the xy
+    # tile plane too: every plane's v axis (patch rows) is world y; for x-grain, u is world x.
+    origins, axes = random_planes(64, np.random.default_rng(0), grain=grain)
+    along = np.eye(3)[axis]
+    assert np.allclose(axes[:, role].numpy(), along)
+    assert np.allclose((axes[:, 1 - role].numpy() @ along), 0.0)             # the other axis is across it
+    assert np.allclose(np.linalg.norm(axes.numpy(), axis=-1), 1.0)
+    assert len({tuple(np.round(a, 6)) for a in axes[:, 1 - role].numpy()}) > 4  # turned about the grain
+    with pytest.raises(ValueError):
+        random_planes(2, np.random.default_rng(0), grain="z")
