@@ -79,6 +79,19 @@ compare: $(addprefix compare-,$(VARIANT_NAMES))
 $(addprefix compare-,$(VARIANT_NAMES)): compare-%: data
 	$(PY) -m model.train --variant $* --out runs/compare/$* --steps $(COMPARE_STEPS) $(COMPARE_ARGS)
 
+# Single-exemplar fits of every validation exemplar at the default settings
+# (runs/fits/<name>), then each fit against the shipped space's encoder code.
+FIT_ARGS ?=
+VAL_IMAGES = $(wildcard data/textures/val/*.png)
+.PHONY: fits evaluate-fits
+fits: data
+	for image in $(VAL_IMAGES); do \
+		$(PY) -m model.fit $$image runs/fits/$$(basename $$image .png) $(FIT_ARGS) || exit 1; done
+
+evaluate-fits: data
+	$(PY) -m model.evaluate --checkpoint model/weights/space.pt --checkpoint-dir runs/fits \
+		--exemplars data/textures/val --out model/weights/eval-fits
+
 evaluate: data
 	$(PY) -m model.evaluate --checkpoint-dir runs/compare --checkpoint model/weights/space.pt \
 		--exemplars data/textures/val --out model/weights/eval

@@ -73,6 +73,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "wall_seconds": round(ckpt["wall_seconds"], 1),
         "final_loss": ckpt.get("final_loss"),
         "output_colour": "linear",
+        "grain": ckpt["config"].get("grain"),
     }
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return {"code": code, "sampler": str(out_dir / "sampler.onnx"), "version": manifest["version"],

@@ -53,12 +53,21 @@ class ModelConfig:
     pixels_per_unit: float = 256.0  # exemplar pixels per world unit; octave k has 2^k cells per unit
     encoder_width: int = 32
     exemplar_short_side: int = 256  # working resolution of exemplars (shorter side, pixels)
+    # Anisotropic textures (wood, brushed metal): the world axis the grain runs along ("x" or
+    # "y"; None: isotropic) and how much longer every noise cell is along it. Value-noise
+    # octaves stretched this way are already fibres; a fit then only has to learn colours
+    # and the cross-section, which it can in minutes (rotated isotropic octaves never formed
+    # grain in 15).
+    grain: str | None = None
+    grain_stretch: float = 8.0
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; choose from {sorted(VARIANTS)}")
         if self.dims not in (2, 3):
             raise ValueError("dims must be 2 or 3")
+        if self.grain not in (None, "x", "y"):
+            raise ValueError(f"grain must be None, 'x' or 'y', got {self.grain!r}")
 
     @property
     def flags(self) -> Variant:
@@ -234,11 +243,17 @@ class TextureField(nn.Module):
         # distribution is shift-invariant, so this changes no learned statistics.
         g = torch.Generator().manual_seed(20200615)
         self.register_buffer("octave_offset", torch.rand(k, d, generator=g, dtype=torch.float64), persistent=False)
+        scale = torch.ones(d, dtype=torch.float64)
+        if cfg.grain:
+            scale[{"x": 0, "y": 1}[cfg.grain]] = 1.0 / cfg.grain_stretch
+        self.register_buffer("world_scale", scale, persistent=False)
 
     def lattice_points(self, points: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
         """points float64 [B,P,D], transforms [B,K,D,D] -> float64 [B,P,K,D] (one matmul)."""
         b, p, d = points.shape
         k = self.cfg.n_octaves
+        if self.cfg.grain:  # (a Python branch: isotropic exports carry no extra node)
+            points = points * self.world_scale
         mats = self.octave_basis.unsqueeze(0)  # [1,K,D,D]
         if self.cfg.flags.transforms:
             mats = torch.matmul(transforms.to(torch.float64), mats)  # T_k (R_k 2^k)

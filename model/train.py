@@ -130,12 +130,13 @@ class Objective:
 
 def build(args) -> tuple[TextureSpace, torch.nn.Parameter | None, dict]:
     cfg = ModelConfig(variant=args.variant, dims=args.dims, nearest_input=not args.no_nearest,
-                      smooth=args.smooth, exemplar_short_side=args.short_side)
+                      smooth=args.smooth, exemplar_short_side=args.short_side, grain=args.grain)
     model = TextureSpace(cfg)
     state = {}
     if args.init:
         init, ckpt = load_checkpoint(args.init)
-        if init.cfg.to_dict() != cfg.to_dict():
+        # A grain fit starts from an isotropic space: the stretch is a fixed input transform.
+        if init.cfg.to_dict() | {"grain": cfg.grain} != cfg.to_dict():
             raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {cfg.to_dict()}")
         model.load_state_dict(init.state_dict())
         state["init"] = str(args.init)
