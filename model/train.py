@@ -206,7 +206,10 @@ def train(args, progress=None) -> Path:
     if ckpt_path.exists():  # resume
         ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
         model.load_state_dict(ckpt["model"])
+        base_lrs = [group["base_lr"] for group in optimizer.param_groups]
         optimizer.load_state_dict(ckpt["optimizer"])
+        for group, base_lr in zip(optimizer.param_groups, base_lrs):  # this run's rates, not the saved ones
+            group["base_lr"] = base_lr
         codes.data.copy_(ckpt["code"] if code is not None else ckpt["codes"])
         step, wall = ckpt["step"], ckpt.get("wall_seconds", 0.0)
         rng.bit_generator.state = ckpt["numpy_rng"]

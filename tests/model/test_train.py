@@ -50,6 +50,10 @@ def test_cli_trains_checkpoints_and_resumes(tmp_path, brick, vgg):
     train_main(common + ["--steps", "3"])
     model, ckpt = load_checkpoint(out / "checkpoint.pt")
     assert ckpt["step"] == 3 and ckpt["code"].shape == (1, 8)
+    # checkpoints written before the optimiser groups carried their base rate still resume
+    for group in ckpt["optimizer"]["param_groups"]:
+        del group["base_lr"]
+    torch.save(ckpt, out / "checkpoint.pt")
     train_main(common + ["--steps", "5"])
     _, ckpt = load_checkpoint(out / "checkpoint.pt")
     assert ckpt["step"] == 5  # resumed from 3, not restarted
