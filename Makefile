@@ -71,7 +71,7 @@ export: install-test
 # The comparison: every variant trained as a space from scratch with the same settings and
 # the same number of steps (runs/compare/<variant>), then evaluated on the validation
 # exemplars together with the shipped space. Two threads, one run at a time, is the fastest on 2 cores.
-COMPARE_STEPS ?= 1500
+COMPARE_STEPS ?= 1000
 COMPARE_ARGS ?= --patch 64 --batch 4 --lr 5e-4 --warmup 200 --no-nearest --smooth --threads 2 --ckpt-every 100 --quiet
 VARIANT_NAMES := perlin perlinT mlp oursP oursNoT ours
 .PHONY: compare $(addprefix compare-,$(VARIANT_NAMES))
@@ -91,6 +91,21 @@ fits: data
 evaluate-fits: data
 	$(PY) -m model.evaluate --checkpoint model/weights/space.pt --checkpoint-dir runs/fits \
 		--exemplars data/textures/val --out model/weights/eval-fits
+
+# Noise input and loss, measured: single-exemplar runs from scratch, the same steps for each
+# setting, on three validation photos (two structured, one stochastic).
+ABLATION_IMAGES ?= miniworld_brick_wall_1 miniworld_floor_tiles_white vpython_gravel
+ABLATION_ARGS ?= --mode single --steps 300 --patch 64 --batch 2 --lr 1e-3 --warmup 20 --threads 1 --quiet
+ABLATION_SETTINGS := nearest:  linear:--no-nearest  smooth:--no-nearest,--smooth  smooth-swd:--no-nearest,--smooth,--loss,swd
+.PHONY: ablation
+ablation: data
+	for setting in $(ABLATION_SETTINGS); do \
+		name=$${setting%%:*}; flags=$$(echo $${setting#*:} | tr , ' '); \
+		for image in $(ABLATION_IMAGES); do \
+			$(PY) -m model.train $(ABLATION_ARGS) $$flags --exemplar data/textures/val/$$image.png \
+				--out runs/ablation/$$name/$$image || exit 1; done; done
+	$(PY) -m model.evaluate $(foreach s,$(ABLATION_SETTINGS),--group $(firstword $(subst :, ,$(s)))=runs/ablation/$(firstword $(subst :, ,$(s)))) \
+		--exemplars data/textures/val --out model/weights/eval-ablation
 
 evaluate: data
 	$(PY) -m model.evaluate --checkpoint-dir runs/compare --checkpoint model/weights/space.pt \

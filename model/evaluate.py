@@ -2,6 +2,7 @@
 
     python -m model.evaluate --checkpoint-dir runs --exemplars data/textures/val --out runs/eval
     python -m model.evaluate --checkpoint runs/ours/checkpoint.pt --exemplars data/textures/val
+    python -m model.evaluate --group smooth=runs/ablation/smooth --group nearest=runs/ablation/nearest
 
 For every checkpoint (its variant read from the checkpoint), every exemplar and every
 domain -- ``2d`` (the xy tile plane, z = 0), ``3d_axis`` (xy, xz, yz slices at random
@@ -74,19 +75,20 @@ def find_checkpoints(directory: Path) -> list[Path]:
     return paths
 
 
-def load_candidates(paths: Sequence[Path]) -> list[Candidate]:
+def load_candidates(paths: Sequence[Path], labels: Sequence[str | None] | None = None) -> list[Candidate]:
     """Load checkpoints; labels are variant names, made unique with the run folder.
 
     Single-exemplar fits are labelled ``<variant>-fit`` and share one label across
     exemplars (each is evaluated only on its own), so a table shows one fit column.
+    ``labels`` (one per path, None for the default) names a group of runs instead.
     """
     loaded = []
-    for path in paths:
+    for path, given in zip(paths, labels or [None] * len(paths)):
         model, ckpt = load_checkpoint(path)
         mode = ckpt.get("mode", "space")
         fitted = ckpt.get("data", [None])[0] if mode == "single" else None
         code = ckpt.get("code")
-        label = f"{model.cfg.variant}-fit" if mode == "single" else model.cfg.variant
+        label = given or (f"{model.cfg.variant}-fit" if mode == "single" else model.cfg.variant)
         loaded.append(Candidate(label, Path(path), model, mode, fitted, code, int(ckpt.get("step", 0))))
     keys = [(c.label, c.fitted_to) for c in loaded]
     for candidate in loaded:
@@ -328,6 +330,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m model.evaluate", description=__doc__.split("\n\n")[0])
     parser.add_argument("--checkpoint-dir", type=Path, help="evaluate every *.pt under this folder")
     parser.add_argument("--checkpoint", type=Path, action="append", default=[], help="a checkpoint (repeatable)")
+    parser.add_argument("--group", action="append", default=[], metavar="LABEL=DIR",
+                        help="every *.pt under DIR, shown as one column LABEL (e.g. fits of one setting)")
     parser.add_argument("--exemplars", type=Path, default=Path("data/textures/val"), help="folder of exemplar images")
     parser.add_argument("--out", type=Path, default=Path("runs/eval"))
     parser.add_argument("--patch", type=int, default=EvalSettings.patch)
@@ -338,15 +342,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.seeds < 2:
         parser.error("--seeds must be at least 2 (diversity compares seeds i != j)")
     paths = list(args.checkpoint) + (find_checkpoints(args.checkpoint_dir) if args.checkpoint_dir else [])
+    labels: list[str | None] = [None] * len(paths)
+    for group in args.group:
+        label, sep, directory = group.partition("=")
+        if not sep or not label:
+            parser.error(f"--group wants LABEL=DIR, got {group!r}")
+        found = find_checkpoints(Path(directory))
+        paths += found
+        labels += [label] * len(found)
     if not paths:
-        parser.error("give --checkpoint-dir or --checkpoint")
+        parser.error("give --checkpoint-dir, --checkpoint or --group")
     exemplars = sorted(p for p in args.exemplars.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
     if not exemplars:
         parser.error(f"no exemplar images in {args.exemplars}")
     if args.threads:
         torch.set_num_threads(args.threads)
     settings = EvalSettings(patch=args.patch, seeds=args.seeds, planes=args.planes)
-    report, images = evaluate(load_candidates(paths), exemplars, settings)
+    report, images = evaluate(load_candidates(paths, labels), exemplars, settings)
     write_report(report, images, args.out)
     print(to_markdown(report).split("### ")[0])
     print(f"wrote {args.out}/results.json, results.md, grids")

@@ -130,3 +130,11 @@ def test_cli_writes_json_markdown_and_grids(setup, tmp_path):
             assert grid.size == ((1 + 2 * 2) * 34, 14 + 2 * 34)
     with pytest.raises(SystemExit):
         ev.main(["--checkpoint-dir", str(runs), "--seeds", "1"])
+    # --group: every checkpoint under a folder is one named column
+    code = ev.main(["--group", f"setting-a={root / 'runs' / 'fit'}", "--group", f"setting-b={runs / 'ours'}",
+                    "--exemplars", str(exemplars[0].parent), "--out", str(tmp_path / "grouped"),
+                    "--patch", "32", "--seeds", "2", "--planes", "1"])
+    grouped = json.loads((tmp_path / "grouped" / "results.json").read_text())
+    assert [c["label"] for c in grouped["checkpoints"]] == ["setting-a", "setting-b"]
+    with pytest.raises(SystemExit):
+        ev.main(["--group", str(runs)])
