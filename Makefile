@@ -11,7 +11,7 @@ TEXSPACE_DATA_DIR ?= data
 export TEXSPACE_PORT TEXSPACE_DATA_DIR
 PYTEST_ARGS ?=
 
-.PHONY: run test install install-test migrate serve bench readme-figure clean-data
+.PHONY: run test install install-test migrate serve bench readme-figure grain-figure clean-data
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +45,11 @@ bench: install-test
 # the README picture: exemplars beside tiles synthesised from their codes
 readme-figure: data
 	$(PY) docs/make_readme_figure.py
+
+# the model card's wood picture: a default-length grain fit on the three axis planes
+grain-figure: data
+	$(PY) -m model.fit data/textures/val/miniworld_wood_1.png runs/fits-grain/miniworld_wood_1 --grain y
+	$(PY) docs/make_grain_figure.py
 
 clean-data:
 	rm -rf $(TEXSPACE_DATA_DIR)
