@@ -31,6 +31,10 @@ from pathlib import Path
 import httpx
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # run as a script (``python bench/load.py``)
+
+from bench.common import wait_ready  # noqa: E402
+
 RESULTS = ROOT / "bench" / "out" / "results.json"
 MIX = (("tile_cached", 0.55), ("tile_cold", 0.25), ("job_submit", 0.08), ("job_poll", 0.12))
 HOT_TILES = 16
@@ -68,18 +72,7 @@ def serve(extra_env: dict[str, str]):
                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         base = f"http://127.0.0.1:{port}"
         try:
-            deadline = time.monotonic() + 120
-            while True:
-                if proc.poll() is not None:
-                    raise RuntimeError(f"texspace serve exited:\n{(Path(data) / 'serve.log').read_text()[-2000:]}")
-                try:
-                    if httpx.get(base + "/readyz", timeout=2).status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise RuntimeError("texspace serve not ready after 120 s")
-                time.sleep(0.25)
+            wait_ready(base, [proc], 120, output=lambda: (Path(data) / "serve.log").read_text(errors="replace"))
             yield base
         finally:
             os.killpg(proc.pid, signal.SIGTERM)  # its own session: only the server we started

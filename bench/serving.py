@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import ROOT, median, percentile
+from bench.common import ROOT, median, percentile, wait_ready
 
 
 def free_port() -> int:
@@ -36,23 +36,13 @@ def embedded_server(model_dir: Path, log=print):
     with tempfile.TemporaryDirectory(prefix="texspace-bench-") as data:
         env = dict(os.environ, TEXSPACE_DATA_DIR=data, TEXSPACE_PORT=str(port), TEXSPACE_HOST="127.0.0.1",
                    TEXSPACE_MODEL_DIRS=str(model_dir), TEXSPACE_LOG_LEVEL="WARNING")
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+        log_path = Path(data) / "serve.log"  # a file, not a pipe: nobody reads it while the server runs
+        with open(log_path, "wb") as log_file:
+            proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
+                                    stdout=subprocess.DEVNULL, stderr=log_file, start_new_session=True)
         base = f"http://127.0.0.1:{port}"
         try:
-            deadline = time.monotonic() + 120
-            while True:
-                if proc.poll() is not None:
-                    raise RuntimeError(f"texspace serve exited: {proc.stderr.read().decode()[-2000:]}")
-                try:
-                    with urllib.request.urlopen(f"{base}/readyz", timeout=2) as r:
-                        if r.status == 200:
-                            break
-                except OSError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise RuntimeError("texspace serve not ready after 120 s")
-                time.sleep(0.25)
+            wait_ready(base, [proc], 120, output=lambda: log_path.read_text(errors="replace"))
             yield base
         finally:
             os.killpg(proc.pid, signal.SIGINT)

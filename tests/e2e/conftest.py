@@ -11,7 +11,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -21,6 +20,7 @@ import httpx
 import pytest
 
 from tests.conftest import PG_ADMIN_URL, REDIS_URL, free_port
+from tests.helpers import wait_ready
 
 READY_TIMEOUT = 120.0
 
@@ -46,18 +46,7 @@ def _start(args: list[str], env: dict[str, str], log_path: Path) -> subprocess.P
 
 
 def _wait_ready(dep: Deployment) -> None:
-    deadline = time.monotonic() + READY_TIMEOUT
-    while time.monotonic() < deadline:
-        for proc in dep.procs:
-            if proc.poll() is not None:
-                pytest.fail(f"{dep.name}: a process exited with {proc.returncode}\n{dep.log_tail()}")
-        try:
-            if httpx.get(dep.base_url + "/readyz", timeout=5).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.3)
-    pytest.fail(f"{dep.name}: not ready within {READY_TIMEOUT}s\n{dep.log_tail()}")
+    wait_ready(dep.base_url, dep.procs, READY_TIMEOUT, output=dep.log_tail, name=dep.name)
 
 
 def _stop(dep: Deployment) -> None:

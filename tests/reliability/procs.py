@@ -15,6 +15,7 @@ from pathlib import Path
 import httpx
 
 from tests.conftest import free_port
+from tests.helpers import wait_ready
 
 FAST_JOBS = {  # short leases so a killed worker's job comes back within seconds
     "TEXSPACE_LEASE_SECONDS": "2", "TEXSPACE_HEARTBEAT_SECONDS": "0.3", "TEXSPACE_REAPER_INTERVAL_SECONDS": "0.5",
@@ -47,16 +48,8 @@ class Cluster:
 
     def start_api(self, timeout: float = 60.0) -> None:
         self.api = self._spawn(["api"], "api")
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            assert self.api.poll() is None, self.log_tail()
-            try:
-                if httpx.get(self.base_url + "/healthz", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        raise AssertionError(f"api not up in {timeout}s\n{self.log_tail()}")
+        # liveness (/healthz), what these fault tests have always waited for, not /readyz
+        wait_ready(self.base_url, [self.api], timeout, output=self.log_tail, name="api", path="/healthz")
 
     def start_worker(self) -> subprocess.Popen:
         proc = self._spawn(["worker", "--no-migrate"], "worker")
