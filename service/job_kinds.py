@@ -148,13 +148,20 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     model_dir = services.registry.get(texture.model_version).model_dir
     seconds = float(job.params["seconds"])
     accepted = inspect.signature(fit_exemplar).parameters
+    options: dict[str, Any] = {}
+    grain = job.params.get("grain")  # jobs submitted before the field existed have none
+    if grain is not None:
+        if "grain" not in accepted:
+            raise FeatureUnavailable("this worker's model.fit has no grain option; update the worker")
+        options["grain"] = grain
     if "init_checkpoint" in accepted:  # model/fit.py starts from the space's training checkpoint
         checkpoint = model_dir / "space.pt"
         if not checkpoint.is_file():
             raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
-        fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=seconds / 60.0, progress=report)
+        fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=seconds / 60.0, progress=report,
+                     **options)
     else:
-        fit_exemplar(image_path, out_dir, init_model_dir=model_dir, seconds=seconds, progress=report)
+        fit_exemplar(image_path, out_dir, init_model_dir=model_dir, seconds=seconds, progress=report, **options)
     code = json.loads((out_dir / "code.json").read_text())
     code = code["code"] if isinstance(code, dict) else code
     new_id = fitted_texture_id(job.id)

@@ -95,6 +95,10 @@ class VolumeIn(BaseModel):
 class FitIn(BaseModel):
     model_config = {"extra": "forbid"}
     seconds: float = Field(60.0, gt=0, le=3600, description="optimisation time budget; capped by the server")
+    grain: Literal["x", "y"] | None = Field(
+        None, description="anisotropic exemplar (wood, brushed metal): the direction its grain runs in the photo, "
+                          "x = left-right, y = up-down; the fitted solid's noise cells are stretched 8x along that "
+                          "axis so tiles keep the grain in the photo's orientation. null: isotropic")
 
 
 class RegionIn(BaseModel):

@@ -1,0 +1,118 @@
+"""The fit endpoint's ``grain`` option travels from the request to ``fit_exemplar(grain=...)``.
+
+The real fit (torch, minutes) is replaced by a stand-in ``model.fit`` module with the
+real function's signature that records its call and writes what a fit writes (the
+shipped sampler.onnx and a code), so this runs in a second without the train extra.
+"""
+from __future__ import annotations
+
+import ast
+import json
+import shutil
+import sys
+import types
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.context import build_services
+from service.main import create_app
+
+REPO = Path(__file__).resolve().parents[2]
+MODEL_DIR = REPO / "model" / "weights"
+
+
+def fake_fit_module(calls: list[dict]) -> types.ModuleType:
+    def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain=None,  # noqa: ANN001, ANN202
+                     loss="gram", progress=None, quiet=True, seed=0):
+        calls.append({"image_path": Path(image_path), "init_checkpoint": Path(init_checkpoint),
+                      "minutes": minutes, "grain": grain})
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
+        (out_dir / "code.json").write_text(json.dumps({"code": [0.0] * 8}))
+        if progress:
+            progress(1.0)
+        return {"code": [0.0] * 8, "sampler": str(out_dir / "sampler.onnx"), "version": "fake", "steps": 1}
+
+    module = types.ModuleType("model.fit")
+    module.fit_exemplar = fit_exemplar
+    return module
+
+
+@pytest.fixture
+def fit_calls(monkeypatch) -> list[dict]:
+    calls: list[dict] = []
+    monkeypatch.setitem(sys.modules, "model.fit", fake_fit_module(calls))
+    monkeypatch.setattr("service.routes.jobs.torch_available", lambda: True)
+    monkeypatch.setattr("service.job_kinds.torch_available", lambda: True)
+    return calls
+
+
+@pytest.fixture
+def fit_client(settings, tmp_path) -> TestClient:
+    """The app on a copy of the shipped export plus a space.pt (what the fit starts from)."""
+    if not all((MODEL_DIR / f).is_file() for f in ("manifest.json", "encoder.onnx", "sampler.onnx")):
+        pytest.skip(f"no model export in {MODEL_DIR}")
+    model_dir = tmp_path / "model"
+    model_dir.mkdir()
+    for name in ("manifest.json", "encoder.onnx", "sampler.onnx"):
+        shutil.copy(MODEL_DIR / name, model_dir / name)
+    (model_dir / "space.pt").write_bytes(b"stand-in: the fake fit never reads it")
+    settings.model_dirs = [model_dir]
+    services = build_services(settings, immediate=True)
+    with TestClient(create_app(services=services)) as client:
+        yield client
+    services.engine.dispose()
+
+
+@pytest.fixture
+def fit_texture(fit_client, photo) -> dict:
+    res = fit_client.post("/v1/textures", files={"image": ("brick.png", photo, "image/png")})
+    assert res.status_code == 201, res.text
+    return res.json()
+
+
+def test_real_fit_exemplar_takes_grain_and_init_checkpoint() -> None:
+    """The stand-in matches model/fit.py (read without importing torch)."""
+    tree = ast.parse((REPO / "model" / "fit.py").read_text())
+    fn = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "fit_exemplar")
+    names = {a.arg for a in fn.args.kwonlyargs}
+    assert {"grain", "init_checkpoint", "minutes", "progress"} <= names
+
+
+def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_calls) -> None:
+    res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30, "grain": "y"})
+    assert res.status_code == 202, res.text
+    assert res.json()["params"] == {"seconds": 30, "grain": "y"}
+    job = fit_client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded", job
+    assert job["params"]["grain"] == "y"                      # recorded on the job
+    assert len(fit_calls) == 1 and fit_calls[0]["grain"] == "y"
+    assert fit_calls[0]["minutes"] == pytest.approx(0.5)
+    assert fit_calls[0]["init_checkpoint"].name == "space.pt"
+    fitted = fit_client.get(job["links"]["output_texture"]).json()
+    assert fitted["source"] == "fit" and fitted["parents"]["job"] == job["id"]
+
+
+def test_fit_without_grain_is_isotropic(fit_client, fit_texture, fit_calls) -> None:
+    res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30})
+    assert res.status_code == 202, res.text
+    assert res.json()["params"]["grain"] is None
+    assert fit_calls[0]["grain"] is None
+    res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30, "grain": None})
+    assert res.status_code == 202, res.text
+    assert fit_calls[1]["grain"] is None
+
+
+@pytest.mark.parametrize("grain", ["z", "Y", "", 1])
+def test_bad_grain_is_a_422_problem_naming_the_allowed_values(fit_client, fit_texture, fit_calls, grain) -> None:
+    res = fit_client.post(fit_texture["links"]["fit"], json={"grain": grain})
+    assert res.status_code == 422, res.text
+    assert res.headers["content-type"] == "application/problem+json"
+    problem = res.json()
+    assert problem["type"] == "urn:texspace:problem:validation-error"
+    assert "grain" in problem["detail"] and "'x' or 'y'" in problem["detail"]
+    assert fit_calls == []
+    assert fit_client.get("/v1/jobs").json()["items"] == []    # nothing queued
