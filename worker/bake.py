@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 import time
 import zipfile
 from dataclasses import dataclass, field
@@ -44,6 +43,7 @@ from PIL import Image
 from worker import atlas, raster
 from worker.colour import linear_to_srgb8
 from worker.errors import Canceled, InvalidMesh, InvalidParameter, LimitExceeded
+from worker.files import atomic_output
 from worker.images import write_image
 from worker.runtime import Sampler
 
@@ -262,14 +262,5 @@ def _obj_zip_bytes(vertices, faces, uv, png: bytes, exr: bytes | None) -> bytes:
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_output(path) as tmp, open(tmp, "wb") as f:
+        f.write(data)

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +32,7 @@ import OpenImageIO as oiio
 
 from worker.colour import linear_to_srgb, linear_to_srgb8
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
+from worker.files import atomic_output
 from worker.images import write_image
 from worker.runtime import Sampler
 from worker.tiles import (MAX_ZOOM, MIN_ZOOM, render_tile, render_window,
@@ -86,10 +86,7 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
             raise Canceled("region job canceled")
 
     out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out_path.parent, prefix=f".{out_path.name}.", suffix=_EXT[fmt])
-    os.close(fd)
-    try:
+    with atomic_output(out_path, suffix=_EXT[fmt]) as tmp:
         if fmt == "pyramid":
             low = MIN_ZOOM if min_zoom is None else int(min_zoom)
             if not MIN_ZOOM <= low <= z:
@@ -121,12 +118,6 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
                         progress((i + 1) / len(starts))
 
             _write_image_stripes(tmp, fmt, width, height, stripes())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, out_path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return out_path
 
 

@@ -12,13 +12,13 @@ into place, so readers never see half a volume and a re-run simply overwrites.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
+from worker.files import atomic_output
 from worker.runtime import Sampler
 from worker.volume_writers import EXTENSIONS, FORMATS, WRITERS
 
@@ -67,10 +67,7 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
     if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[1] > box[0]).all():
         raise InvalidParameter("bounds must be ((x0, y0, z0), (x1, y1, z1)) with max > min")
     out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out_path.parent, prefix=f".{out_path.name}.", suffix=EXTENSIONS[fmt])
-    os.close(fd)
-    try:
+    with atomic_output(out_path, suffix=EXTENSIONS[fmt]) as tmp:
         writer = WRITERS[fmt](tmp, n, box)
         if fmt == "flipbook" and max(writer.cols, writer.rows) * n > MAX_FLIPBOOK_SIDE:
             writer.close()
@@ -87,16 +84,10 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
                 if progress is not None:
                     progress(z1 / n)
         except BaseException:
-            try:  # the partial file is deleted below; keep the original error
+            try:  # atomic_output deletes the partial file; keep the original error
                 writer.close()
             except Exception:
                 pass
             raise
         writer.close()
-        os.chmod(tmp, 0o644)   # mkstemp makes 0600; results are read by the API process
-        os.replace(tmp, out_path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return out_path

@@ -1,0 +1,61 @@
+"""atomic_output: the result appears whole under its name, or not at all."""
+import os
+import stat
+
+import pytest
+
+from worker.files import atomic_output
+
+
+def test_success_renames_into_place(tmp_path):
+    target = tmp_path / "sub" / "result.npy"  # the folder does not exist yet
+    with atomic_output(target, suffix=".npy") as tmp:
+        assert os.path.dirname(tmp) == str(target.parent)  # same folder: the rename is atomic
+        assert tmp.endswith(".npy") and tmp != str(target)
+        assert not target.exists()  # nothing under the final name while writing
+        with open(tmp, "wb") as f:
+            f.write(b"payload")
+    assert target.read_bytes() == b"payload"
+    assert stat.S_IMODE(target.stat().st_mode) == 0o644
+    assert os.listdir(target.parent) == ["result.npy"]  # no temporary file left
+
+
+def test_success_overwrites_an_existing_file(tmp_path):
+    target = tmp_path / "result.bin"
+    target.write_bytes(b"old")
+    with atomic_output(target) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(b"new")
+    assert target.read_bytes() == b"new"
+    assert os.listdir(tmp_path) == ["result.bin"]
+
+
+@pytest.mark.parametrize("error", [ValueError("broken writer"), KeyboardInterrupt()])
+def test_exception_leaves_no_file_and_no_temp(tmp_path, error):
+    target = tmp_path / "result.png"
+    with pytest.raises(type(error)):
+        with atomic_output(target, suffix=".png") as tmp:
+            with open(tmp, "wb") as f:
+                f.write(b"half a file")
+            raise error
+    assert not target.exists()
+    assert os.listdir(tmp_path) == []
+
+
+def test_exception_keeps_the_previous_result(tmp_path):
+    target = tmp_path / "result.zip"
+    target.write_bytes(b"previous run")
+    with pytest.raises(RuntimeError):
+        with atomic_output(target, suffix=".zip"):
+            raise RuntimeError("canceled")
+    assert target.read_bytes() == b"previous run"
+    assert os.listdir(tmp_path) == ["result.zip"]
+
+
+def test_temp_removed_by_the_block_is_not_an_error(tmp_path):
+    target = tmp_path / "result.raw"
+    with pytest.raises(OSError):
+        with atomic_output(target) as tmp:
+            os.unlink(tmp)
+            raise OSError("writer cleaned up after itself")
+    assert os.listdir(tmp_path) == []
