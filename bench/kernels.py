@@ -1,15 +1,17 @@
 """Point-throughput benchmarks: the machine's GEMM roofline, the ONNX sampler through
-worker/runtime, and the same weights in PyTorch eager mode."""
+worker/runtime, and the same weights in PyTorch eager mode; the encoder on one crop
+against its own FLOP count."""
 from __future__ import annotations
 
 import json
 import os
+import time
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from bench.common import best_of
+from bench.common import best_of, median
 
 POINTS = 1 << 18                       # 3D points per throughput measurement
 CHUNKS = (1024, 2048, 4096, 8192, 16384, 65536)
@@ -60,6 +62,68 @@ def gemm_gflops(threads: int) -> dict:
     sess.run(None, {"x": x, "w": w})
     ort_s = best_of(lambda: sess.run(None, {"x": x, "w": w}), 7)
     return {"numpy_1024": 2 * 1024 ** 3 / numpy_s / 1e9, "onnxruntime_decoder_shape": 2 * 65536 * 128 * 128 / ort_s / 1e9}
+
+
+def encoder_flops(path: Path, size: int = 128) -> dict:
+    """Multiply-adds x 2 of one [1, 3, size, size] image through an encoder ONNX graph,
+    counted from the graph with shapes inferred for batch 1: Conv (2 x output elements x
+    Cin/group x kh x kw), Gemm and MatMul (2 x M x N x K). Normalisation, activations and
+    reductions are a few passes over the activations and are not counted."""
+    import onnx
+    from onnx import shape_inference
+
+    model = onnx.load(str(path))
+    for dim, value in zip(model.graph.input[0].type.tensor_type.shape.dim, (1, 3, size, size)):
+        dim.ClearField("dim_param")
+        dim.dim_value = value
+    model = shape_inference.infer_shapes(model, strict_mode=True)
+    shapes = {init.name: tuple(init.dims) for init in model.graph.initializer}
+    for info in (*model.graph.input, *model.graph.value_info, *model.graph.output):
+        dims = info.type.tensor_type.shape.dim
+        if all(d.HasField("dim_value") for d in dims):
+            shapes[info.name] = tuple(d.dim_value for d in dims)
+
+    def shape(name: str, node) -> tuple[int, ...]:
+        if name not in shapes:
+            raise ValueError(f"{node.op_type} {node.name!r}: no static shape for {name!r}")
+        return shapes[name]
+
+    counts = {"Conv": 0, "Gemm": 0, "MatMul": 0}
+    for node in model.graph.node:
+        if node.op_type == "Conv":
+            weight = shape(node.input[1], node)  # [Cout, Cin / group, kh, kw]
+            counts["Conv"] += 2 * int(np.prod(shape(node.output[0], node))) * int(np.prod(weight[1:]))
+        elif node.op_type == "Gemm":
+            trans = {a.name: a.i for a in node.attribute if a.name in ("transA", "transB")}
+            a, b = shape(node.input[0], node), shape(node.input[1], node)
+            m, k = a[::-1] if trans.get("transA") else a
+            n = b[0] if trans.get("transB") else b[1]
+            counts["Gemm"] += 2 * m * n * k
+        elif node.op_type == "MatMul":
+            k = shape(node.input[0], node)[-1]
+            counts["MatMul"] += 2 * int(np.prod(shape(node.output[0], node))) * k
+    return {"total": sum(counts.values()), **counts}
+
+
+def encode_crop(model_dir: Path, repeats: int = 41, warmup: int = 5, log=print) -> dict:
+    """worker/runtime's ``ModelRuntime.encode`` (the upload path's encoder session) on one
+    [1, 3, S, S] crop, 1 intra-op thread: wall time of each of ``repeats`` calls after
+    ``warmup`` calls. Returns the median and all times in seconds, and S."""
+    from worker.runtime import ModelRuntime
+
+    runtime = ModelRuntime(model_dir, threads=1)
+    size = runtime.input_size
+    crop = np.random.default_rng(2).uniform(-1, 1, (1, 3, size, size)).astype(np.float32)
+    for _ in range(warmup):
+        runtime.encode(crop)
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        runtime.encode(crop)
+        times.append(time.perf_counter() - t)
+    log(f"  encode {size}^2 crop, 1 thread: median {median(times) * 1000:.1f} ms, min {min(times) * 1000:.1f} ms "
+        f"over {repeats} (after {warmup} warm-up)")
+    return {"median_s": median(times), "all_s": times, "size": size}
 
 
 def sampler_sweep(model_dir: Path, thread_options=(1, 2), chunks=CHUNKS, log=print) -> dict:
