@@ -75,9 +75,9 @@ export: install-test
 
 # The comparison: every variant trained as a space from scratch with the same settings and
 # the same number of steps (runs/compare/<variant>), then evaluated on the validation
-# exemplars together with the shipped space. Two threads, one run at a time, is the fastest on 2 cores.
+# exemplars together with the shipped space. One thread per run: `make -j2 compare` runs two at once.
 COMPARE_STEPS ?= 1000
-COMPARE_ARGS ?= --patch 64 --batch 4 --lr 5e-4 --warmup 200 --no-nearest --smooth --threads 2 --ckpt-every 100 --quiet
+COMPARE_ARGS ?= --patch 64 --batch 4 --lr 5e-4 --warmup 200 --no-nearest --smooth --threads 1 --ckpt-every 100 --quiet
 VARIANT_NAMES := perlin perlinT mlp oursP oursNoT ours
 .PHONY: compare $(addprefix compare-,$(VARIANT_NAMES))
 compare: $(addprefix compare-,$(VARIANT_NAMES))
