@@ -15,9 +15,9 @@ RUN apt-get update \
     && rm -rf /var/lib/apt/lists/*
 
 RUN useradd --create-home --uid 10001 --user-group texspace \
-    && mkdir -p /app /data && chown texspace:texspace /data
+    && mkdir -p /data && chown texspace:texspace /data
 
-WORKDIR /app
+WORKDIR /src
 # dependencies first (cached layer), then the code and the shipped model export
 COPY pyproject.toml README.md ./
 RUN mkdir -p service worker model && touch service/__init__.py worker/__init__.py model/__init__.py \
@@ -25,14 +25,18 @@ RUN mkdir -p service worker model && touch service/__init__.py worker/__init__.p
 COPY service ./service
 COPY worker ./worker
 COPY model ./model
-COPY openapi.yaml ./
-RUN pip install --no-deps -e . && python -c "import service.main, worker.runtime"
+# a regular (non-editable) install: the image runs from site-packages, with the model export
+# (model/weights, the default TEXSPACE_MODEL_DIRS), migrations and web page as package data;
+# the source folder is removed so nothing can import from it
+RUN pip install --no-deps . && cd / && rm -rf /src \
+    && python -c "import service.main, worker.runtime; from service.settings import PACKAGED_MODEL_DIR as d; \
+assert all((d / n).is_file() for n in ('manifest.json', 'encoder.onnx', 'sampler.onnx', 'space.pt')), d"
 
+WORKDIR /home/texspace
 USER texspace
 ENV TEXSPACE_DATA_DIR=/data \
     TEXSPACE_HOST=0.0.0.0 \
-    TEXSPACE_PORT=8000 \
-    TEXSPACE_MODEL_DIRS=/app/model/weights
+    TEXSPACE_PORT=8000
 VOLUME ["/data"]
 EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=30s \
