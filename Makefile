@@ -113,5 +113,5 @@ ablation: data
 		--exemplars data/textures/val --out model/weights/eval-ablation
 
 evaluate: data
-	$(PY) -m model.evaluate --checkpoint-dir runs/compare --checkpoint model/weights/space.pt \
+	$(PY) -m model.evaluate --checkpoint-dir runs/compare --group ours-shipped=model/weights \
 		--exemplars data/textures/val --out model/weights/eval
