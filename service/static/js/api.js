@@ -1,7 +1,58 @@
 // Thin client for the texspace REST API (see openapi.yaml). Every function returns
 // parsed JSON or throws an ApiError carrying the RFC 9457 problem's title/detail.
+//
+// API keys: a server with TEXSPACE_API_KEYS_ENABLED answers /v1/textures... and
+// /v1/jobs... with 401 without an X-API-Key header. The page learns that from the 401 of
+// its first calls (no extra request), asks for a key, keeps it in localStorage and sends
+// it on every /v1 fetch. Requests the browser makes on its own (<img>, EventSource,
+// <a download>) cannot carry a header, so while a key is set they go through fetch
+// instead: fetchBlob / setImageSource / downloadWithKey here, streamEvents for job
+// progress, a fetching tile layer in map.js. Without a key nothing changes. The key is
+// never put in a URL (URLs end up in logs and history).
 
 const BASE = new URL('v1/', document.baseURI);
+const KEY_STORAGE = 'texspace.apiKey';
+const KEY_HEADER = 'X-API-Key';
+
+function readStoredKey() {
+  try { return window.localStorage.getItem(KEY_STORAGE) || ''; } catch { return ''; }
+}
+
+let apiKey = readStoredKey();
+let onUnauthorized = () => {};
+
+/** The API key in use ('' when none). */
+export function getApiKey() {
+  return apiKey;
+}
+
+/** True while a key is set: header-less requests then go through fetch. */
+export function hasApiKey() {
+  return apiKey !== '';
+}
+
+/** Use and remember (localStorage) a key; '' forgets it. */
+export function setApiKey(key) {
+  apiKey = (key || '').trim();
+  try {
+    if (apiKey) window.localStorage.setItem(KEY_STORAGE, apiKey);
+    else window.localStorage.removeItem(KEY_STORAGE);
+  } catch { /* storage disabled: the key lasts for this page only */ }
+}
+
+/** Headers that authenticate a request: `{X-API-Key}` with a key, else `{}`. */
+export function authHeaders() {
+  return apiKey ? { [KEY_HEADER]: apiKey } : {};
+}
+
+/** `callback(error)` on every 401 from the API (no key, or a wrong / revoked one). */
+export function setUnauthorizedHandler(callback) {
+  onUnauthorized = callback;
+}
+
+function withKey(options = {}) {
+  return apiKey ? { ...options, headers: { ...(options.headers || {}), ...authHeaders() } } : options;
+}
 
 /** Absolute URL of an API path such as `textures/abc/exemplar`. */
 export function apiUrl(path, params = {}) {
@@ -20,14 +71,137 @@ export class ApiError extends Error {
   }
 }
 
+function failure(status, body) {
+  const error = new ApiError(status, typeof body === 'object' && body ? body : { detail: body });
+  if (status === 401) onUnauthorized(error);
+  return error;
+}
+
+/** The ApiError for a response that is not ok (reads its problem document). */
+async function problemOf(response) {
+  const type = response.headers.get('content-type') || '';
+  let body;
+  try { body = type.includes('json') ? await response.json() : await response.text(); } catch { body = ''; }
+  const error = failure(response.status, body || `HTTP ${response.status}`);
+  error.retryAfter = response.headers.get('retry-after');
+  return error;
+}
+
 async function request(path, options = {}) {
-  const response = await fetch(path.startsWith('http') ? path : apiUrl(path), options);
+  const response = await fetch(path.startsWith('http') ? path : apiUrl(path), withKey(options));
   const type = response.headers.get('content-type') || '';
   const body = type.includes('json') ? await response.json() : await response.text();
-  if (!response.ok) {
-    throw new ApiError(response.status, typeof body === 'object' ? body : { detail: body });
-  }
+  if (!response.ok) throw failure(response.status, body);
   return { body, response };
+}
+
+const RATE_LIMIT_RETRIES = 3;
+const MAX_RETRY_WAIT_S = 10;
+
+/**
+ * GET an API URL with the key; the ok Response, else an ApiError. A 429 (the per-key
+ * rate limit: a map full of tiles can exceed its burst) is retried after Retry-After.
+ */
+export async function fetchWithKey(url, options = {}) {
+  for (let attempt = 0; ; attempt += 1) {
+    const response = await fetch(url, withKey(options));
+    if (response.ok) return response;
+    const error = await problemOf(response);
+    if (response.status !== 429 || attempt >= RATE_LIMIT_RETRIES) throw error;
+    const wait = Math.min(Number(error.retryAfter) || 1, MAX_RETRY_WAIT_S);
+    await new Promise((resolve) => setTimeout(resolve, wait * 1000));
+    if (options.signal?.aborted) throw new DOMException('aborted', 'AbortError');
+  }
+}
+
+/** GET an API URL with the key as a Blob. */
+export async function fetchBlob(url, options = {}) {
+  return (await fetchWithKey(url, options)).blob();
+}
+
+/**
+ * Show an API image in an <img>. Without a key: `img.src = url`, as always. With one:
+ * fetched with the header and shown from a blob: URL (revoked once decoded); a failure
+ * fires the img's `error` event like a failed src would. `img.dataset.src` keeps the
+ * API URL.
+ */
+export async function setImageSource(img, url) {
+  if (!apiKey) {
+    img.src = url;
+    return;
+  }
+  img.dataset.src = url;
+  let objectUrl;
+  try {
+    objectUrl = URL.createObjectURL(await fetchBlob(url));
+  } catch {
+    if (img.dataset.src === url) img.dispatchEvent(new Event('error'));
+    return;
+  }
+  if (img.dataset.src !== url) { URL.revokeObjectURL(objectUrl); return; } // superseded meanwhile
+  const release = () => URL.revokeObjectURL(objectUrl);
+  img.addEventListener('load', release, { once: true });
+  img.addEventListener('error', release, { once: true });
+  img.src = objectUrl;
+}
+
+/** The file name in a Content-Disposition header, if any. */
+function dispositionName(header) {
+  const match = /filename\*?=(?:UTF-8'')?"?([^";]+)"?/i.exec(header || '');
+  if (!match) return '';
+  try { return decodeURIComponent(match[1]); } catch { return match[1]; }
+}
+
+/** Download an API resource with the key: fetch, then save the blob under its own name. */
+export async function downloadWithKey(url, fallbackName = 'download') {
+  const response = await fetchWithKey(url);
+  const name = dispositionName(response.headers.get('content-disposition')) || fallbackName;
+  const objectUrl = URL.createObjectURL(await response.blob());
+  const link = Object.assign(document.createElement('a'), { href: objectUrl, download: name });
+  link.hidden = true;
+  document.body.append(link);
+  link.click();
+  link.remove();
+  // The download has its own copy once started; keep the URL a while for slow starts.
+  setTimeout(() => URL.revokeObjectURL(objectUrl), 60_000);
+}
+
+/**
+ * Read a server-sent event stream with fetch (so the key can go in a header, which
+ * EventSource cannot send). Calls onEvent({type, data, id}) per event; resolves when the
+ * server ends the stream; rejects on HTTP errors (ApiError) and network errors, and
+ * with an AbortError when `signal` aborts.
+ */
+export async function streamEvents(url, onEvent, { signal } = {}) {
+  const response = await fetchWithKey(url, { headers: { accept: 'text/event-stream' }, cache: 'no-store', signal });
+  const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
+  let buffer = '';
+  let event = { type: '', data: [], id: '' };
+  const line = (text) => {
+    if (text === '') {
+      if (event.data.length) onEvent({ type: event.type || 'message', data: event.data.join('\n'), id: event.id });
+      event = { type: '', data: [], id: event.id };
+      return;
+    }
+    if (text.startsWith(':')) return; // comment (keep-alive)
+    const colon = text.indexOf(':');
+    const field = colon < 0 ? text : text.slice(0, colon);
+    const value = colon < 0 ? '' : text.slice(colon + 1).replace(/^ /, '');
+    if (field === 'event') event.type = value;
+    else if (field === 'data') event.data.push(value);
+    else if (field === 'id') event.id = value;
+  };
+  for (;;) {
+    const { value, done } = await reader.read();
+    if (done) break;
+    buffer += value;
+    // Lines end in \n, \r\n or \r; a trailing \r may be the first half of a \r\n.
+    let match;
+    while ((match = /\r\n|\n|\r(?!$)/.exec(buffer))) {
+      line(buffer.slice(0, match.index));
+      buffer = buffer.slice(match.index + match[0].length);
+    }
+  }
 }
 
 /** Page of textures: `{items, next_cursor}` (also accepts a plain list). */

@@ -1,7 +1,7 @@
 // Interpolation panel: two texture pickers and a slider. Moving the slider creates the
 // blended texture through POST /v1/textures/interpolate (debounced, cached per a/b/t) and
 // shows it on the map; the strip shows a -> b at a few t values.
-import { interpolate, tileUrl, apiUrl, tileJson } from './api.js';
+import { interpolate, tileUrl, apiUrl, tileJson, setImageSource } from './api.js';
 import { nativeZoomOf } from './map.js';
 
 const STRIP_STEPS = [0, 0.25, 0.5, 0.75, 1];
@@ -80,7 +80,7 @@ export class InterpolationPanel {
       const img = document.createElement('img');
       img.className = 'strip-wide';
       img.alt = 'Continuous blend from texture A to texture B';
-      img.src = apiUrl(this.stripPath, { a, b, seed });
+      setImageSource(img, apiUrl(this.stripPath, { a, b, seed }));
       this.strip.replaceChildren(img);
       return;
     }
@@ -93,7 +93,7 @@ export class InterpolationPanel {
       this._blend(t)
         .then(async (texture) => {
           const zoom = nativeZoomOf(await tileJson(texture.id));
-          img.src = tileUrl(texture.id, zoom, 0, 0, { ...this.getParams(), size: 128 });
+          setImageSource(img, tileUrl(texture.id, zoom, 0, 0, { ...this.getParams(), size: 128 }));
         })
         .catch((error) => this.onError(error));
       return figure;

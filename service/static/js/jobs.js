@@ -1,6 +1,10 @@
 // Live job progress: one list item per job, fed by the job's server-sent events;
-// falls back to polling GET /v1/jobs/{id} if the event stream breaks.
-import { cancelJob, getJob, jobEventsUrl, jobResultUrl } from './api.js';
+// falls back to polling GET /v1/jobs/{id} if the event stream breaks. With an API key
+// the events are read with fetch (EventSource cannot send the X-API-Key header) and the
+// download link fetches the result with the key.
+import {
+  cancelJob, downloadWithKey, getJob, hasApiKey, jobEventsUrl, jobResultUrl, streamEvents,
+} from './api.js';
 
 const TERMINAL = new Set(['succeeded', 'failed', 'canceled']);
 // GET /v1/jobs/{id}/events sends `progress` ({state, progress, attempt}) while the job
@@ -25,6 +29,14 @@ export class JobList {
   /** @param {HTMLElement} list  the <ul> to fill */
   constructor(list) {
     this.list = list;
+    this.stops = new Set(); // stop functions of the jobs being followed
+  }
+
+  /** Stop following every job and empty the list (e.g. when the API key changes). */
+  clear() {
+    for (const stop of this.stops) stop();
+    this.stops.clear();
+    this.list.replaceChildren();
   }
 
   /**
@@ -51,14 +63,19 @@ export class JobList {
     this.list.prepend(item);
 
     let finished = false;
+    let stopped = false;
+    let stopStream = () => {};
+    const stop = () => { stopped = true; stopStream(); this.stops.delete(stop); };
+    this.stops.add(stop);
     const show = (state) => {
-      if (finished || !state) return;
+      if (finished || stopped || !state) return;
       const status = state.state || state.status || 'running';
       item.dataset.state = status;
       item.querySelector('.state').textContent = status;
       item.querySelector('progress').value = status === 'succeeded' ? 1 : fraction(state.progress);
       if (!TERMINAL.has(status)) return;
       finished = true;
+      stop();
       cancel.remove();
       if (status === 'succeeded') {
         const url = jobResultUrl(job.id);
@@ -66,6 +83,13 @@ export class JobList {
         link.href = url;
         link.textContent = 'Download result';
         link.setAttribute('download', '');
+        if (hasApiKey()) {
+          // A plain link cannot send the key: fetch the file with it, then save the blob.
+          link.addEventListener('click', async (event) => {
+            event.preventDefault();
+            try { await downloadWithKey(url, `${job.id}.bin`); } catch (error) { link.title = error.message; }
+          });
+        }
         item.querySelector('.links').append(link);
         if (onView && job.kind === 'bake' && job.params?.format === 'glb') {
           const view = document.createElement('button');
@@ -83,8 +107,13 @@ export class JobList {
     };
 
     const poll = async () => {
-      while (!finished) {
-        try { show(await getJob(job.id)); } catch (e) { /* transient: retry */ }
+      while (!finished && !stopped) {
+        try {
+          show(await getJob(job.id));
+        } catch (error) {
+          // No (valid) API key: retrying cannot help; other errors are transient.
+          if (error.status === 401) { item.querySelector('.state').textContent = 'needs an API key'; return; }
+        }
         await new Promise((resolve) => setTimeout(resolve, 1000));
       }
     };
@@ -93,7 +122,21 @@ export class JobList {
       show(job);
       return;
     }
+    if (hasApiKey()) {
+      const controller = new AbortController();
+      stopStream = () => controller.abort();
+      const onEvent = (event) => {
+        let data;
+        try { data = JSON.parse(event.data); } catch { return; }
+        show(data.job || data);
+      };
+      streamEvents(jobEventsUrl(job.id), onEvent, { signal: controller.signal })
+        .catch(() => {}) // network error or HTTP error: poll instead
+        .then(() => { if (!finished && !stopped) poll(); }); // ended early: poll
+      return;
+    }
     const source = new EventSource(jobEventsUrl(job.id));
+    stopStream = () => source.close();
     const onEvent = (event) => {
       let data;
       try { data = JSON.parse(event.data); } catch { return; }

@@ -7,13 +7,24 @@ function showThumbnail(img, texture) {
   const showTile = async () => {
     try {
       const zoom = nativeZoomOf(await api.tileJson(texture.id));
-      img.src = api.tileUrl(texture.id, zoom, 0, 0, { seed: 0, plane: 'xy', offset: 0, size: 64 });
+      api.setImageSource(img, api.tileUrl(texture.id, zoom, 0, 0, { seed: 0, plane: 'xy', offset: 0, size: 64 }));
     } catch { /* leave the empty thumbnail */ }
   };
   if (texture.source === 'interpolate') { showTile(); return; }
   img.addEventListener('error', showTile, { once: true });
-  img.src = api.exemplarUrl(texture.id);
+  api.setImageSource(img, api.exemplarUrl(texture.id));
 }
+
+// With an API key thumbnails are fetched by script, so loading="lazy" no longer defers
+// them: fetch each when it scrolls into view (every request counts against the key's
+// rate limit).
+const lazyThumbnails = 'IntersectionObserver' in window ? new IntersectionObserver((entries, observer) => {
+  for (const entry of entries) {
+    if (!entry.isIntersecting) continue;
+    observer.unobserve(entry.target);
+    entry.target._showThumbnail();
+  }
+}, { rootMargin: '200px' }) : null;
 
 /** <li> with a toggle button (thumbnail, name, code) that selects the texture. */
 export function textureItem(texture, { pressed, onSelect }) {
@@ -25,7 +36,12 @@ export function textureItem(texture, { pressed, onSelect }) {
   const img = document.createElement('img');
   img.alt = '';
   img.loading = 'lazy';
-  showThumbnail(img, texture);
+  if (api.hasApiKey() && lazyThumbnails) {
+    img._showThumbnail = () => showThumbnail(img, texture);
+    lazyThumbnails.observe(img);
+  } else {
+    showThumbnail(img, texture);
+  }
   const meta = document.createElement('span');
   meta.className = 'meta';
   const name = document.createElement('span');

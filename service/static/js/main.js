@@ -24,8 +24,34 @@ function say(message, isError = false) {
 }
 
 function sayError(error) {
+  if (error instanceof api.ApiError && error.status === 401) { askForKey(); return; }
   say(error instanceof api.ApiError ? `Error ${error.status}: ${error.message}` : String(error.message || error), true);
 }
+
+// ---- API key (servers with TEXSPACE_API_KEYS_ENABLED) ----------------------------------
+// The first /v1/textures or /v1/jobs call answers 401 when the server needs a key: then
+// the key field appears. Without keys nothing here shows and nothing extra is requested.
+
+/** Show the key field with a message saying why (no key yet, or the key was refused). */
+function askForKey() {
+  const refused = api.hasApiKey();
+  const message = refused
+    ? 'The API key was refused (unknown or revoked): enter a valid key in the API key field.'
+    : 'This server needs an API key: enter yours in the API key field to use the page.';
+  $('api-key-section').hidden = false;
+  $('api-key-section').classList.remove('accepted');
+  $('api-key-note').textContent = refused ? 'The API key was refused.' : 'This server needs an API key.';
+  say(message, true);
+}
+api.setUnauthorizedHandler(askForKey);
+
+function showKeyField() {
+  $('api-key-section').hidden = !api.hasApiKey();
+  $('api-key').value = api.getApiKey();
+  $('api-key-section').classList.add('accepted');
+  $('api-key-note').textContent = 'Requests are sent with this key.';
+}
+showKeyField();
 
 const tileParams = () => ({
   seed: Number($('seed').value) || 0,
@@ -37,7 +63,8 @@ const tileParams = () => ({
 
 const textureMap = new TextureMap($('map'), {
   onZoom: (zoom, native) => { $('zoom-info').textContent = `map zoom ${zoom}, native ${native}`; },
-  onTileError: () => say('Some tiles failed to load (the server may be busy); pan or zoom to retry.', true),
+  onTileError: (error) => (error?.status === 401 ? askForKey()
+    : say('Some tiles failed to load (the server may be busy); pan or zoom to retry.', true)),
 });
 
 /**
@@ -72,7 +99,7 @@ async function showTexture(texture, view = null) {
   $('exemplar').parentElement.hidden = !hasExemplar;
   $('no-exemplar').hidden = hasExemplar;
   if (hasExemplar) {
-    $('exemplar').src = api.exemplarUrl(texture.id);
+    api.setImageSource($('exemplar'), api.exemplarUrl(texture.id));
     sizeExemplar(texture);
   }
   for (const button of document.querySelectorAll('#texture-list button')) {
@@ -267,8 +294,37 @@ async function openLinkedView() {
   }
 }
 
+/** Recent jobs, the texture list, then the linked view or the newest texture. */
+async function start() {
+  loadRecentJobs();
+  await loadTextures();
+  if (!(await openLinkedView()) && visibleTextures().length) await showTexture(visibleTextures()[0]);
+}
+
+/** A new (or no) API key: another tenant's textures and jobs, so start over. */
+async function restartWithKey(key) {
+  api.setApiKey(key);
+  jobs.clear();
+  textureMap.clear();
+  Object.assign(state, { textures: [], current: null, nextCursor: null });
+  $('current-name').textContent = '(pick a texture)';
+  $('exemplar').removeAttribute('src');
+  delete $('exemplar').dataset.src; // drops a fetch still under way for the old key
+  delete document.body.dataset.texture;
+  renderLibrary();
+  say(key ? 'Using the API key.' : 'API key forgotten.');
+  showKeyField();
+  await start();
+}
+
+$('api-key-form').addEventListener('submit', (event) => {
+  event.preventDefault();
+  const key = $('api-key').value.trim();
+  if (!key) { $('api-key').focus(); return; }
+  restartWithKey(key);
+});
+$('api-key-forget').addEventListener('click', () => { $('api-key').value = ''; restartWithKey(''); });
+
 // For the browser tests and the console.
 window.texspace = { state, textureMap, get viewer() { return viewer; } };
-loadRecentJobs();
-await loadTextures();
-if (!(await openLinkedView()) && visibleTextures().length) await showTexture(visibleTextures()[0]);
+await start();

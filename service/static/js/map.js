@@ -4,9 +4,51 @@
 // tile convention, so Leaflet's zoom is the API's zoom and no coordinate maths is needed.
 // noWrap and no bounds: x and y run over all integers, negatives included.
 /* global L */
-import { tileJson, tileTemplate } from './api.js';
+import { fetchBlob, hasApiKey, tileJson, tileTemplate } from './api.js';
 
 const TILE_SIZE = 256;
+
+/**
+ * A TileLayer that fetches each tile with the API key header (an <img src> cannot send
+ * one) and shows it from a blob: URL; the URL is revoked and an unfinished fetch aborted
+ * when Leaflet unloads the tile. Used only while a key is set; otherwise the map is a
+ * plain L.TileLayer, exactly as without keys.
+ */
+export const KeyedTileLayer = L.TileLayer.extend({
+  initialize(url, options) {
+    L.TileLayer.prototype.initialize.call(this, url, options);
+    this.on('tileunload tileabort', ({ tile }) => KeyedTileLayer.release(tile));
+  },
+
+  createTile(coords, done) {
+    const tile = document.createElement('img');
+    L.DomEvent.on(tile, 'load', L.Util.bind(this._tileOnLoad, this, done, tile));
+    L.DomEvent.on(tile, 'error', L.Util.bind(this._tileOnError, this, done, tile));
+    tile.alt = '';
+    tile.setAttribute('role', 'presentation');
+    const url = this.getTileUrl(coords);
+    tile.dataset.src = url; // the API URL (src is a blob: URL)
+    const controller = new AbortController();
+    tile._texspaceAbort = controller;
+    fetchBlob(url, { signal: controller.signal })
+      .then((blob) => {
+        if (controller.signal.aborted) return;
+        tile._texspaceBlobUrl = URL.createObjectURL(blob);
+        tile.src = tile._texspaceBlobUrl; // -> load -> done(null, tile)
+      })
+      .catch((error) => { if (!controller.signal.aborted) done(error, tile); });
+    return tile;
+  },
+
+  statics: {
+    release(tile) {
+      tile._texspaceAbort?.abort();
+      if (tile._texspaceBlobUrl) URL.revokeObjectURL(tile._texspaceBlobUrl);
+      tile._texspaceBlobUrl = null;
+    },
+  },
+});
+
 // worker/tiles.py NATIVE_ZOOM: used while the TileJSON does not say it (as `center[2]`).
 const DEFAULT_NATIVE_ZOOM = 6;
 
@@ -66,7 +108,8 @@ export class TextureMap {
     // Allow two extra zoom levels past the finest tiles: Leaflet upscales them.
     this.map.setMaxZoom(maxZoom + 2);
     if (this.layer) this.layer.remove();
-    this.layer = L.tileLayer(this._template(), {
+    const TileLayer = hasApiKey() ? KeyedTileLayer : L.TileLayer;
+    this.layer = new TileLayer(this._template(), {
       tileSize: TILE_SIZE,
       noWrap: true,
       minZoom,
@@ -77,9 +120,16 @@ export class TextureMap {
       className: 'texture-tiles',
     });
     this.layer.on('tileload', () => { this.tilesLoaded += 1; });
-    this.layer.on('tileerror', () => { this.tilesFailed += 1; this.onTileError(); });
+    this.layer.on('tileerror', ({ error }) => { this.tilesFailed += 1; this.onTileError(error); });
     this.layer.addTo(this.map);
     this.onZoom(this.map.getZoom(), this.nativeZoom);
+  }
+
+  /** Take the texture off the map (e.g. when the API key changes). */
+  clear() {
+    if (this.layer) this.layer.remove();
+    this.layer = null;
+    this.textureId = null;
   }
 
   /** Change seed / plane / offset of the texture on show (re-requests tiles). */

@@ -2,6 +2,7 @@
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { authHeaders } from './api.js';
 
 /**
  * Vertex normals averaged over every vertex at the same position, so that the UV
@@ -75,9 +76,13 @@ export class MeshViewer {
     if (this.controls.update()) this.render();
   }
 
-  /** Load a GLB from a URL, replace the current model and frame it. */
+  /**
+   * Load a GLB from a URL, replace the current model and frame it. GLTFLoader fetches
+   * (FileLoader, and its texture loader for external images) with the request headers
+   * given here: the API key when one is set, none otherwise.
+   */
   async load(url) {
-    const gltf = await new GLTFLoader().loadAsync(url);
+    const gltf = await new GLTFLoader().setRequestHeader(authHeaders()).loadAsync(url);
     if (this.model) this.scene.remove(this.model);
     this.model = gltf.scene;
     this.model.traverse((node) => {
