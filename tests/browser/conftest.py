@@ -6,11 +6,13 @@ Set TEXSPACE_BROWSER_BASE_URL to drive an already running server instead.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import time
 import urllib.request
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -58,17 +60,10 @@ def _wait_until_up(url: str, process: subprocess.Popen | None, log: Path) -> Non
                        f"{log.read_text()[-3000:]}")
 
 
-@pytest.fixture(scope="session")
-def base_url(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> Iterator[str]:
-    """URL of a running texspace service (API + page at /)."""
-    external = os.environ.get("TEXSPACE_BROWSER_BASE_URL")
-    if external:
-        yield external.rstrip("/") + "/"
-        return
-    data_dir = tmp_path_factory.mktemp("texspace-data")
+@contextmanager
+def _serve(data_dir: Path, log: Path, env: dict[str, str]) -> Iterator[str]:
+    """``texspace serve`` on a free loopback port; yields its URL, stops it afterwards."""
     port = free_port()
-    log = artifacts / "server.log"
-    env = {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir)}
     command = [sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1", "--port", str(port)]
     with log.open("wb") as log_file:
         process = subprocess.Popen(command, cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT)
@@ -83,6 +78,33 @@ def base_url(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> Itera
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
+
+
+@pytest.fixture(scope="session")
+def base_url(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> Iterator[str]:
+    """URL of a running texspace service (API + page at /)."""
+    external = os.environ.get("TEXSPACE_BROWSER_BASE_URL")
+    if external:
+        yield external.rstrip("/") + "/"
+        return
+    data_dir = tmp_path_factory.mktemp("texspace-data")
+    with _serve(data_dir, artifacts / "server.log", {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir)}) as url:
+        yield url
+
+
+@pytest.fixture(scope="session")
+def keyed_server(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> Iterator[tuple[str, str]]:
+    """(URL, API key) of a texspace service of its own with API keys on (as in compose.yaml);
+    the key is made the way an admin does, with ``texspace keys create``."""
+    data_dir = tmp_path_factory.mktemp("texspace-keyed-data")
+    env = {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir), "TEXSPACE_API_KEYS_ENABLED": "true",
+           "TEXSPACE_API_KEY_PEPPER": "browser-test-pepper"}
+    made = subprocess.run([sys.executable, "-m", "service.cli", "keys", "create", "browser-test"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=True)
+    key = re.search(r"^key: +(\S+)$", made.stdout, re.M)
+    assert key, f"no key in the output of texspace keys create:\n{made.stdout}\n{made.stderr}"
+    with _serve(data_dir, artifacts / "server-keyed.log", env) as url:
+        yield url, key[1]
 
 
 @pytest.fixture(scope="session")
