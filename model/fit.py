@@ -30,6 +30,9 @@ DEFAULT_MINUTES = 4.0  # inside the 5-minute budget on 2 cores, with export
 # stayed flat.
 FIT_LR = 1e-3
 FIT_TRANSFORM_LR = 5e-3
+# Every this many steps the fit scores itself on fixed planes and keeps its best state, so
+# a fit never ends worse (by its own objective) than the code it started from.
+PROBE_EVERY = 25
 
 
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
@@ -48,7 +51,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                 "--variant", cfg.variant, "--dims", str(cfg.dims), "--short-side", str(cfg.exemplar_short_side),
                 "--minutes", str(minutes), "--patch", str(patch), "--batch", "2", "--lr", str(FIT_LR),
                 "--transform-lr", str(FIT_TRANSFORM_LR), "--warmup", "20", "--seed", str(seed), "--loss", loss,
-                "--ckpt-every", "1000000"]
+                "--ckpt-every", "1000000", "--probe-every", str(PROBE_EVERY)]
         argv += ["--no-nearest"] if not cfg.nearest_input else []
         argv += ["--smooth"] if cfg.smooth else []
         argv += ["--quiet"] if quiet else []
@@ -57,8 +60,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         model, ckpt = load_checkpoint(ckpt_path)
     # Weights, config and code without the optimiser: what model.evaluate needs to compare
     # the fit with the space's encoder code on the same exemplar.
-    torch.save({key: ckpt[key] for key in ("config", "model", "code", "step", "wall_seconds", "mode", "data",
-                                           "loss", "layers", "final_loss")} | {"init": str(init)},
+    torch.save({key: ckpt.get(key) for key in ("config", "model", "code", "step", "wall_seconds", "mode", "data",
+                                               "loss", "layers", "final_loss", "probe")} | {"init": str(init)},
                out_dir / "fit.pt")
     export_sampler(model.field, out_dir / "sampler.onnx")
     code = ckpt["code"].reshape(-1).tolist()
@@ -72,6 +75,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "steps": ckpt["step"],
         "wall_seconds": round(ckpt["wall_seconds"], 1),
         "final_loss": ckpt.get("final_loss"),
+        "probe": ckpt.get("probe"),
         "output_colour": "linear",
         "grain": ckpt["config"].get("grain"),
     }

@@ -76,6 +76,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "crops keep their orientation and every slice plane contains that world axis in the same "
                         "role, so tiles on the xy plane show the grain as the exemplar does")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--probe-every", type=int, default=0,
+                   help="single mode: every N steps (and at the start and end) score the exemplar on fixed "
+                        "planes and seeds; the run ends on the best-scoring weights and code (0: off)")
     p.add_argument("--ckpt-every", type=int, default=200)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -222,6 +225,8 @@ def train(args, progress=None) -> Path:
     objective = Objective(images, tuple(args.layers.split(",")), args.loss, args.colour_weight)
     log = (out / "log.jsonl").open("a")
 
+    extra = {}  # more checkpoint fields (the probe's choice)
+
     def save():
         ckpt = {
             "config": model.cfg.to_dict(), "model": model.state_dict(), "optimizer": optimizer.state_dict(),
@@ -230,6 +235,7 @@ def train(args, progress=None) -> Path:
             "loss": args.loss, "layers": args.layers, "args": vars(args),
             "final_loss": float(np.mean(history[-50:])) if history else None,
         }
+        ckpt.update(extra)
         if code is not None:
             ckpt["code"] = code.detach().clone()
         else:
@@ -237,6 +243,34 @@ def train(args, progress=None) -> Path:
         tmp = ckpt_path.with_suffix(".tmp")
         torch.save(ckpt, tmp)
         tmp.replace(ckpt_path)
+
+    # A fit keeps its best state, scored by its own objective on fixed planes and seeds (not
+    # the random ones of training, whose loss is too noisy to compare). A short fit at a
+    # fit's learning rate can first move away from a code that already matched well.
+    probe = None
+    if args.probe_every and code is not None:
+        probe_origins, probe_axes = random_planes(4, np.random.default_rng(12345), oblique_fraction=args.oblique,
+                                                  dims=args.dims, extent=extent, grain=args.grain)
+        probe_seeds = torch.arange(4, dtype=torch.int64) + 7
+
+        def probe_score() -> float:
+            with torch.no_grad():
+                patches = render_slices(model.field, code.expand(4, -1), probe_seeds, probe_origins, probe_axes,
+                                        args.patch * 2)
+                return float(objective(patches, np.zeros(4, dtype=np.int64)))
+
+        def snapshot() -> dict:
+            return {"model": {k: v.detach().clone() for k, v in model.state_dict().items()},
+                    "code": code.detach().clone(), "step": step}
+
+        probe = {"score": probe_score(), "state": snapshot()}
+        log.write(json.dumps({"step": step, "probe": round(probe["score"], 5)}) + "\n")
+
+        def probe_update() -> None:
+            score = probe_score()
+            log.write(json.dumps({"step": step, "probe": round(score, 5)}) + "\n")
+            if score < probe["score"]:
+                probe.update(score=score, state=snapshot())
 
     stop = {"now": False}
     if threading.current_thread() is threading.main_thread():  # a job thread cannot own signals
@@ -285,11 +319,20 @@ def train(args, progress=None) -> Path:
             if progress is not None:
                 by_time = (time.monotonic() - started) / (deadline - started) if args.minutes else 0.0
                 progress(min(1.0, max(step / total, by_time)))
+            if probe is not None and step % args.probe_every == 0:
+                probe_update()
             if step % args.ckpt_every == 0:
                 save()
                 log.flush()
     finally:
         bar.close()
+        if probe is not None:
+            if step % args.probe_every:
+                probe_update()
+            best = probe["state"]
+            model.load_state_dict(best["model"])
+            code.data.copy_(best["code"])
+            extra["probe"] = {"score": probe["score"], "step": best["step"]}
         save()
         log.close()
     return ckpt_path

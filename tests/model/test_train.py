@@ -1,6 +1,8 @@
 """Training: a few steps lower the loss for every variant; the CLI checkpoints and resumes."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -59,6 +61,22 @@ def test_cli_trains_checkpoints_and_resumes(tmp_path, brick, vgg):
     assert ckpt["step"] == 5  # resumed from 3, not restarted
     lines = (out / "log.jsonl").read_text().splitlines()
     assert len(lines) == 5
+
+
+def test_probe_keeps_the_best_scoring_state(tmp_path, brick, vgg):
+    image = tmp_path / "brick.png"
+    Image.fromarray((brick * 255).astype(np.uint8)).save(image)
+    out = tmp_path / "run"
+    # a learning rate high enough to make some steps worse, so the choice matters
+    train_main(["--mode", "single", "--exemplar", str(image), "--out", str(out), "--patch", "32", "--batch", "1",
+                "--short-side", "128", "--crop", "64", "--quiet", "--layers", "relu1_1,relu2_1", "--steps", "4",
+                "--lr", "0.05", "--warmup", "1", "--probe-every", "1"])
+    scores = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines() if "probe" in line]
+    assert [s["step"] for s in scores] == [0, 1, 2, 3, 4]
+    model, ckpt = load_checkpoint(out / "checkpoint.pt")
+    best = min(scores, key=lambda s: s["probe"])
+    assert ckpt["probe"]["step"] == best["step"] and ckpt["step"] == 4
+    assert abs(ckpt["probe"]["score"] - best["probe"]) < 1e-4
 
 
 @pytest.mark.parametrize("grain, axis, role", [("x", 0, 0), ("y", 1, 1)])
