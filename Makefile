@@ -95,7 +95,7 @@ fits: data
 
 evaluate-fits: data
 	$(PY) -m model.evaluate --checkpoint model/weights/space.pt --checkpoint-dir runs/fits \
-		--exemplars data/textures/val --out model/weights/eval-fits
+		--exemplars data/textures/val --out docs/eval/fits
 
 # Noise input and loss, measured: single-exemplar runs from scratch, the same steps for each
 # setting, on three validation photos (two structured, one stochastic).
@@ -110,8 +110,8 @@ ablation: data
 			$(PY) -m model.train $(ABLATION_ARGS) $$flags --exemplar data/textures/val/$$image.png \
 				--out runs/ablation/$$name/$$image || exit 1; done; done
 	$(PY) -m model.evaluate $(foreach s,$(ABLATION_SETTINGS),--group $(firstword $(subst :, ,$(s)))=runs/ablation/$(firstword $(subst :, ,$(s)))) \
-		--exemplars data/textures/val --out model/weights/eval-ablation
+		--exemplars data/textures/val --out docs/eval/ablation
 
 evaluate: data
 	$(PY) -m model.evaluate --checkpoint-dir runs/compare --group ours-shipped=model/weights \
-		--exemplars data/textures/val --out model/weights/eval
+		--exemplars data/textures/val --out docs/eval/compare
