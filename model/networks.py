@@ -248,12 +248,22 @@ class TextureField(nn.Module):
             scale[{"x": 0, "y": 1}[cfg.grain]] = 1.0 / cfg.grain_stretch
         self.register_buffer("world_scale", scale, persistent=False)
 
-    def lattice_points(self, points: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
-        """points float64 [B,P,D], transforms [B,K,D,D] -> float64 [B,P,K,D] (one matmul)."""
+    def lattice_points(self, points: torch.Tensor, transforms: torch.Tensor,
+                       anchor: torch.Tensor | None = None) -> torch.Tensor:
+        """points float64 [B,P,D], transforms [B,K,D,D] -> float64 [B,P,K,D] (one matmul).
+
+        ``anchor`` (float64 [B,D], training only) changes the gradient, not the value: the
+        lattice point M x is computed as M (x - a) + stop_gradient(M a). Without it, the
+        gradient of a transform at a patch 1000 units from the origin is ~1000x larger and
+        is nothing but "shift the noise", which leaves the texture's statistics unchanged
+        (the noise is stationary); under the global gradient clip that term starved every
+        other weight, and variants with transforms trained far slower than those without.
+        """
         b, p, d = points.shape
         k = self.cfg.n_octaves
         if self.cfg.grain:  # (a Python branch: isotropic exports carry no extra node)
             points = points * self.world_scale
+            anchor = anchor * self.world_scale if anchor is not None else None
         mats = self.octave_basis.unsqueeze(0)  # [1,K,D,D]
         if self.cfg.flags.transforms:
             mats = torch.matmul(transforms.to(torch.float64), mats)  # T_k (R_k 2^k)
@@ -261,9 +271,14 @@ class TextureField(nn.Module):
             mats = mats.expand(b, k, d, d)
         # p[b,n,k,i] = sum_j M[b,k,i,j] x[b,n,j]  ->  x [B,P,D] @ M' [B,D,K*D]
         stacked = mats.permute(0, 3, 1, 2).reshape(mats.shape[0], d, k * d)
+        if anchor is not None:
+            anchor = anchor[:, None, :d]  # [B,1,D]
+            local = torch.matmul(points - anchor, stacked) + torch.matmul(anchor, stacked).detach()
+            return local.reshape(b, p, k, d) + self.octave_offset
         return torch.matmul(points, stacked).reshape(b, p, k, d) + self.octave_offset
 
-    def forward(self, points: torch.Tensor, z: torch.Tensor, seed: torch.Tensor) -> torch.Tensor:
+    def forward(self, points: torch.Tensor, z: torch.Tensor, seed: torch.Tensor,
+                anchor: torch.Tensor | None = None) -> torch.Tensor:
         cfg, flags = self.cfg, self.cfg.flags
         points = points[..., : cfg.dims]
         extended, transforms, mix = self.translator(z)
@@ -274,7 +289,7 @@ class TextureField(nn.Module):
             seeds = octave_seeds(seed, cfg.n_octaves)  # [K] or [B,K]
             if seeds.dim() == 2:
                 seeds = seeds.unsqueeze(1)  # [B,1,K]
-            nearest, interpolated = noise_features(self.lattice_points(points, transforms), seeds, cfg.smooth)
+            nearest, interpolated = noise_features(self.lattice_points(points, transforms, anchor), seeds, cfg.smooth)
             noise = interpolated  # [B,P,K,3]
 
         if self.decoder is None:  # perlin / perlinT: octaves mixed by RGB weights, plus a bias

@@ -117,5 +117,6 @@ def render_slices(
     seeds int64 [B]; origins/axes from ``random_planes`` or ``fixed_planes``.
     """
     points = plane_points(origins, axes, size, field.cfg.pixels_per_unit)
-    rgb = field(points, z, seeds)  # [B, S*S, 3] linear
+    # anchored at each plane's origin: same colours, gradients without the far-field shift term
+    rgb = field(points, z, seeds, anchor=origins if torch.is_grad_enabled() else None)  # [B, S*S, 3] linear
     return linear_to_srgb(rgb).reshape(-1, size, size, 3).permute(0, 3, 1, 2)

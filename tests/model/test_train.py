@@ -91,3 +91,22 @@ def test_grain_planes_keep_the_grain_axis_in_the_exemplars_role(grain, axis, rol
     assert len({tuple(np.round(a, 6)) for a in axes[:, 1 - role].numpy()}) > 4  # turned about the grain
     with pytest.raises(ValueError):
         random_planes(2, np.random.default_rng(0), grain="z")
+
+
+def test_anchor_changes_the_transform_gradient_not_the_colours():
+    # Far from the origin the "shift the noise" part of a transform's gradient is ~|x| times
+    # larger and useless (the noise is stationary); anchoring at the plane removes it.
+    torch.manual_seed(0)
+    field = TextureSpace(ModelConfig(smooth=True, nearest_input=False)).field
+    with torch.no_grad():
+        field.translator.to_transform.bias.normal_(0, 0.1)
+    points = torch.rand(2, 300, 3, dtype=torch.float64) * 2 + 700
+    z, seeds = torch.randn(2, 8), torch.tensor([3, 4])
+    grads = []
+    for anchor in (None, points[:, 0]):
+        field.zero_grad()
+        rgb = field(points, z, seeds, anchor=anchor)
+        rgb.square().mean().backward()
+        grads.append((rgb.detach(), field.translator.to_transform.bias.grad.norm().item()))
+    assert torch.equal(grads[0][0], grads[1][0])
+    assert grads[1][1] * 100 < grads[0][1]
