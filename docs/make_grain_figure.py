@@ -17,6 +17,7 @@ import torch
 from PIL import Image, ImageDraw
 
 from model.data import load_exemplar
+from model.evaluate import centre_crop
 from model.networks import load_checkpoint
 from model.slices import render_slices
 
@@ -41,8 +42,7 @@ def main(fit_dir: str = "runs/fits-grain/miniworld_wood_1", image: str = "data/t
     seeds = torch.tensor([seed for _, seed, _ in PANELS])
     with torch.no_grad():
         slices = render_slices(model.field, ckpt["code"].expand(n, -1), seeds, origins, axes, SIZE)
-    top, left = [(s - SIZE) // 2 for s in exemplar.shape[:2]]
-    tiles = [exemplar[top:top + SIZE, left:left + SIZE]] + list(slices.permute(0, 2, 3, 1).numpy())
+    tiles = [centre_crop(exemplar, SIZE)] + list(slices.permute(0, 2, 3, 1).numpy())
     labels = ["exemplar"] + [label for label, _, _ in PANELS]
     gap, header = 4, 16
     sheet = Image.new("RGB", (len(tiles) * (SIZE + gap) - gap, SIZE + header), "white")
