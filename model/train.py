@@ -278,7 +278,12 @@ def train(args, progress=None) -> Path:
     started = time.monotonic()
     deadline = started + args.minutes * 60 if args.minutes else math.inf
     total = args.steps
-    bar = tqdm(total=total, initial=step, disable=args.quiet, dynamic_ncols=True, unit="step")
+    # A run bounded by time (a fit) shows seconds of its budget, not steps out of --steps,
+    # whose default (100,000) would promise an ETA of hours.
+    timed = args.minutes is not None
+    bar = (tqdm(total=round(args.minutes * 60), disable=args.quiet, dynamic_ncols=True, unit="s",
+                bar_format="{l_bar}{bar}| {n:.0f}/{total} s [{elapsed}<{remaining}{postfix}]") if timed
+           else tqdm(total=total, initial=step, disable=args.quiet, dynamic_ncols=True, unit="step"))
     model.train()
     try:
         while step < total and time.monotonic() < deadline and not stop["now"]:
@@ -311,8 +316,8 @@ def train(args, progress=None) -> Path:
             history.append(loss.item())
             # Output spread across the batch: a collapse to flat colour shows as ~0 here.
             spread = float(synth.detach().std(dim=(2, 3)).mean())
-            bar.set_postfix(loss=f"{np.mean(history[-20:]):.3f}", std=f"{spread:.3f}", refresh=False)
-            bar.update(1)
+            bar.set_postfix(step=step, loss=f"{np.mean(history[-20:]):.3f}", std=f"{spread:.3f}", refresh=False)
+            bar.update(min(bar.total, time.monotonic() - started) - bar.n if timed else 1)
             log.write(json.dumps({"step": step, "loss": round(loss.item(), 5), "std": round(spread, 4),
                                   "encoder": round(encoder_loss.item(), 5),
                                   "grad": round(float(grad_norm), 4), "wall": round(wall, 1)}) + "\n")
