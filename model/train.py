@@ -276,11 +276,11 @@ def train(args, progress=None) -> Path:
     if threading.current_thread() is threading.main_thread():  # a job thread cannot own signals
         signal.signal(signal.SIGTERM, lambda *_: stop.update(now=True))
     started = time.monotonic()
-    deadline = started + args.minutes * 60 if args.minutes else math.inf
+    timed = bool(args.minutes)
+    deadline = started + args.minutes * 60 if timed else math.inf
     total = args.steps
     # A run bounded by time (a fit) shows seconds of its budget, not steps out of --steps,
     # whose default (100,000) would promise an ETA of hours.
-    timed = args.minutes is not None
     bar = (tqdm(total=round(args.minutes * 60), disable=args.quiet, dynamic_ncols=True, unit="s",
                 bar_format="{l_bar}{bar}| {n:.0f}/{total} s [{elapsed}<{remaining}{postfix}]") if timed
            else tqdm(total=total, initial=step, disable=args.quiet, dynamic_ncols=True, unit="step"))
@@ -316,13 +316,14 @@ def train(args, progress=None) -> Path:
             history.append(loss.item())
             # Output spread across the batch: a collapse to flat colour shows as ~0 here.
             spread = float(synth.detach().std(dim=(2, 3)).mean())
+            elapsed = time.monotonic() - started
             bar.set_postfix(step=step, loss=f"{np.mean(history[-20:]):.3f}", std=f"{spread:.3f}", refresh=False)
-            bar.update(min(bar.total, time.monotonic() - started) - bar.n if timed else 1)
+            bar.update(min(bar.total, elapsed) - bar.n if timed else 1)
             log.write(json.dumps({"step": step, "loss": round(loss.item(), 5), "std": round(spread, 4),
                                   "encoder": round(encoder_loss.item(), 5),
                                   "grad": round(float(grad_norm), 4), "wall": round(wall, 1)}) + "\n")
             if progress is not None:
-                by_time = (time.monotonic() - started) / (deadline - started) if args.minutes else 0.0
+                by_time = elapsed / (deadline - started) if timed else 0.0
                 progress(min(1.0, max(step / total, by_time)))
             if probe is not None and step % args.probe_every == 0:
                 probe_update()
