@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import os
 import zipfile
 from collections.abc import Sequence
 from functools import lru_cache
@@ -144,7 +145,9 @@ def fetch_vgg16_weights(force: bool = False) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     torch.save(state, buffer)
-    temporary = path.with_suffix(".tmp")
+    # A name of our own: two first runs at once (`make -j2 compare`) must not write into
+    # one temporary file, or the rename publishes a half-written mix of both.
+    temporary = path.with_name(f"{path.stem}.{os.getpid()}.tmp")
     temporary.write_bytes(buffer.getvalue())
     temporary.replace(path)  # atomic: a concurrent reader never sees half a file
     return path
