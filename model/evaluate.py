@@ -337,6 +337,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--patch", type=int, default=EvalSettings.patch)
     parser.add_argument("--seeds", type=int, default=EvalSettings.seeds)
     parser.add_argument("--planes", type=int, default=EvalSettings.planes)
+    parser.add_argument("--plane-seed", type=int, default=EvalSettings.plane_seed,
+                        help="draws the planes, crops and seeds; another value measures the metrics' spread")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
     args = parser.parse_args(argv)
     if args.seeds < 2:
@@ -357,7 +359,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"no exemplar images in {args.exemplars}")
     if args.threads:
         torch.set_num_threads(args.threads)
-    settings = EvalSettings(patch=args.patch, seeds=args.seeds, planes=args.planes)
+    settings = EvalSettings(patch=args.patch, seeds=args.seeds, planes=args.planes, plane_seed=args.plane_seed)
     report, images = evaluate(load_candidates(paths, labels), exemplars, settings)
     write_report(report, images, args.out)
     print(to_markdown(report).split("### ")[0])

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -107,6 +108,10 @@ def test_evaluate_rows_metrics_and_determinism(setup):
     first = [r for r in report["results"] if r["variant"] == "ours" and r["exemplar"] == "brick"]
     assert [r["style_error"] for r in again["results"]] == [r["style_error"] for r in first]
     assert [r["diversity"] for r in again["results"]] == [r["diversity"] for r in first]
+    # another plane seed draws other planes and crops: how the spread of the metrics is measured
+    moved, _ = ev.evaluate(candidates[:1], exemplars[:1], replace(SETTINGS, plane_seed=1))
+    assert [r["style_error"] for r in moved["results"]] != [r["style_error"] for r in first]
+    assert moved["settings"]["plane_seed"] == 1
 
 
 @pytest.mark.slow
@@ -117,9 +122,10 @@ def test_cli_writes_json_markdown_and_grids(setup, tmp_path):
     shutil.copytree(root / "runs" / "fit", runs / "fit")
     out = tmp_path / "eval"
     code = ev.main(["--checkpoint-dir", str(runs), "--exemplars", str(exemplars[0].parent), "--out", str(out),
-                    "--patch", "32", "--seeds", "2", "--planes", "1"])
+                    "--patch", "32", "--seeds", "2", "--planes", "1", "--plane-seed", "3"])
     assert code == 0
     report = json.loads((out / "results.json").read_text())
+    assert report["settings"]["plane_seed"] == 3
     assert {c["label"] for c in report["checkpoints"]} == {"ours", "perlin-fit"}
     assert report["summary"]["3d_oblique"]["ours"]["n"] == 2
     markdown = (out / "results.md").read_text()
