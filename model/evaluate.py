@@ -338,7 +338,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=EvalSettings.seeds)
     parser.add_argument("--planes", type=int, default=EvalSettings.planes)
     parser.add_argument("--plane-seed", type=int, default=EvalSettings.plane_seed,
-                        help="draws the planes, crops and seeds; another value measures the metrics' spread")
+                        help="draws the planes and the code crops; another value measures the metrics' spread")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
     args = parser.parse_args(argv)
     if args.seeds < 2:
