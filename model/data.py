@@ -25,6 +25,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -49,6 +50,25 @@ def cache_dir() -> Path:
     ``TEXSPACE_CACHE_DIR`` if set, else ``~/.cache/texspace``.
     """
     return Path(os.environ.get("TEXSPACE_CACHE_DIR") or Path.home() / ".cache" / "texspace")
+
+
+def write_bytes_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that a reader sees the old file or the whole new one.
+
+    The temporary file has a name of its own (two processes fetching at once, as in
+    ``make -j2 compare`` on a fresh machine, must not write into one file and publish a
+    mix of both) and is removed if the write fails.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+        os.chmod(temporary, 0o644)  # mkstemp makes 0600; the cache and data are shared
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
 
 
 def file_sha256(path: Path) -> str:
@@ -291,9 +311,7 @@ def fetch_textures(out: Path = DEFAULT_DATA_DIR) -> dict:
         Image.fromarray(rgb).save(buffer, format="PNG")
         relative = f"{exemplar.split}/{exemplar.name}.png"
         target = out / relative
-        temporary = target.with_suffix(".tmp")
-        temporary.write_bytes(buffer.getvalue())
-        temporary.replace(target)
+        write_bytes_atomic(target, buffer.getvalue())
         package, licence = sources[exemplar.source]
         entries.append({
             "name": exemplar.name,
@@ -315,7 +333,7 @@ def fetch_textures(out: Path = DEFAULT_DATA_DIR) -> dict:
         "counts": {split: sum(e["split"] == split for e in entries) for split in SPLITS},
         "exemplars": entries,
     }
-    (out / INDEX_FILE).write_text(json.dumps(index, indent=2) + "\n")
+    write_bytes_atomic(out / INDEX_FILE, (json.dumps(index, indent=2) + "\n").encode())
     return index
 
 

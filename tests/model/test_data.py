@@ -161,3 +161,21 @@ def test_fetch_textures_is_deterministic_and_writes_rgb_pngs(tmp_path):
     assert sorted(p.name for p in (tmp_path / "one" / "val").iterdir()) == sorted(
         f"{e.name}.png" for e in CATALOGUE if e.split == "val"
     )
+
+
+def test_write_bytes_atomic_replaces_whole_and_leaves_no_temporary(tmp_path, monkeypatch):
+    target = tmp_path / "cache" / "weights.pt"
+    data.write_bytes_atomic(target, b"first")
+    data.write_bytes_atomic(target, b"second")
+    assert target.read_bytes() == b"second"
+    assert sorted(p.name for p in target.parent.iterdir()) == ["weights.pt"]
+
+    def fail(*_):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(data.os, "replace", fail)
+    with pytest.raises(OSError, match="disk full"):
+        data.write_bytes_atomic(target, b"third")
+    # the old file is intact and the failed write's temporary file is gone
+    assert target.read_bytes() == b"second"
+    assert sorted(p.name for p in target.parent.iterdir()) == ["weights.pt"]
