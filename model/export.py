@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from model.colour import KNOTS, apply_colour, colour_size, identity_colour
 from model.networks import TextureField, TextureSpace, load_checkpoint
 
 OPSET = 18  # BitwiseAnd / BitwiseXor need 18; onnxruntime 1.31 reads it
@@ -87,7 +88,8 @@ def _lower_shifts(graph) -> None:
 class SamplerGraph(nn.Module):
     """Contract 1 around a TextureField.
 
-    points float64 [P,3], z float32 [P,8] or [1,8], seed int64 [] or [1] -> rgb float32 [P,3]
+    points float64 [P,3], z float32 [P,8] or [1,8], seed int64 [] or [1],
+    colour float32 [P,K] or [1,K] (same rows as z; model/colour.py)  ->  rgb float32 [P,3]
     A shared code is one row evaluated for all P points; per-point codes are P rows of
     one point each. ``reshape(rows, -1, 3)`` covers both with one graph.
     """
@@ -96,10 +98,10 @@ class SamplerGraph(nn.Module):
         super().__init__()
         self.field = field
 
-    def forward(self, points, z, seed):
+    def forward(self, points, z, seed, colour):
         rows = z.shape[0]
-        rgb = self.field(points.reshape(rows, -1, 3), z, seed.reshape([]))
-        return rgb.reshape(-1, 3)
+        raw = self.field(points.reshape(rows, -1, 3), z, seed.reshape([]))
+        return apply_colour(raw, colour).reshape(-1, 3)
 
 
 def _export(module: nn.Module, args: tuple, path: Path, input_names, output_names, dynamic_axes):
@@ -137,13 +139,14 @@ def export_sampler(field: TextureField, path: Path) -> None:
     points = torch.rand(64, 3, dtype=torch.float64)
     z = torch.zeros(1, field.cfg.code_size)
     seed = torch.tensor(0, dtype=torch.int64)
+    colour = identity_colour(KNOTS)[None]
     _export(
         SamplerGraph(field),
-        (points, z, seed),
+        (points, z, seed, colour),
         path,
-        ["points", "z", "seed"],
+        ["points", "z", "seed", "colour"],
         ["rgb"],
-        {"points": {0: "P"}, "z": {0: "R"}, "rgb": {0: "P"}},
+        {"points": {0: "P"}, "z": {0: "R"}, "colour": {0: "R"}, "rgb": {0: "P"}},
     )
 
 
@@ -170,6 +173,8 @@ def write_manifest(outdir: Path, cfg_dict: dict, training: dict, extra: dict | N
         "encoder_input_range": ENCODER_INPUT_RANGE,
         "exemplar_short_side": cfg_dict["exemplar_short_side"],
         "output_colour": "linear",
+        # the sampler's colour input: a per-texture table of this many numbers (model/colour.py)
+        "colour_size": colour_size(KNOTS),
         "config": cfg_dict,
         "training": training,
         "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),

@@ -27,6 +27,7 @@ from typing import Iterable, Protocol
 import numpy as np
 import onnxruntime as ort
 
+from worker.colour_match import identity_colour
 from worker.errors import InvalidParameter, ModelInvalid, ModelNotFound
 
 log = logging.getLogger(__name__)
@@ -99,13 +100,20 @@ class SamplerSession:
         # Contract allows seed of shape [] or [1]; feed whatever the graph declares.
         self._seed_shape = (1,) if len(inputs["seed"].shape) == 1 else ()
         self.code_size = int(inputs["z"].shape[1]) if isinstance(inputs["z"].shape[1], int) else 8
+        # Samplers exported before the colour stage have no ``colour`` input (size 0): they
+        # are served as they were, and a texture's colour table is dropped for them.
+        colour = inputs.get("colour")
+        self.colour_size = int(colour.shape[1]) if colour is not None else 0
+        self._identity_colour = identity_colour(self.colour_size)[None] if self.colour_size else None
         self._output = self.session.get_outputs()[0].name
 
     def sample(self, points: np.ndarray, code: np.ndarray, seed: int) -> np.ndarray:
         """Evaluate the texture at ``points``.
 
         points : (P, 3) float64 world positions (converted only if needed).
-        code : (8,) or (1, 8) float32 shared code, or (P, 8) one code per point.
+        code : (C,) or (1, C) float32 shared code, or (P, C) one code per point, where C is
+            ``code_size`` (z alone: the identity colour table) or ``code_size +
+            colour_size`` (z followed by the texture's colour table, worker/colour_match.py).
         seed : int, texture instance.
         Returns (P, 3) float32 linear RGB, computed ``self.chunk`` points at a time so
         temporary memory stays bounded whatever P is.
@@ -113,20 +121,32 @@ class SamplerSession:
         points = np.ascontiguousarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise InvalidParameter(f"points must have shape (P, 3), got {points.shape}")
-        code = np.ascontiguousarray(code, dtype=np.float32)
+        code = np.asarray(code, dtype=np.float32)
         if code.ndim == 1:
             code = code[None, :]
         per_point = code.shape[0] != 1
-        if code.ndim != 2 or code.shape[1] != self.code_size or (per_point and code.shape[0] != len(points)):
-            raise InvalidParameter(f"code must be ({self.code_size},), (1, {self.code_size}) "
-                                   f"or (P, {self.code_size}); got {code.shape}")
+        widths = {self.code_size, self.code_size + self.colour_size}
+        # a sampler without a colour stage ignores a texture's table
+        width_ok = code.shape[1] in widths or (not self.colour_size and code.shape[1] > self.code_size)
+        if code.ndim != 2 or not width_ok or (per_point and code.shape[0] != len(points)):
+            raise InvalidParameter(f"code must be (C,), (1, C) or (P, C) with C in {sorted(widths)}; "
+                                   f"got {code.shape}")
+        z = np.ascontiguousarray(code[:, :self.code_size])
+        colour = None
+        if self.colour_size:
+            colour = (np.ascontiguousarray(code[:, self.code_size:]) if code.shape[1] > self.code_size
+                      else self._identity_colour)
+            if per_point and len(colour) == 1:
+                colour = np.broadcast_to(colour, (len(points), self.colour_size))
         seed_arr = np.full(self._seed_shape, int(seed), dtype=np.int64)
         out = np.empty((len(points), 3), dtype=np.float32)
 
         def run(start: int) -> None:
             stop = min(start + self.chunk, len(points))
             feed = {"points": points[start:stop], "seed": seed_arr,
-                    "z": code[start:stop] if per_point else code}
+                    "z": z[start:stop] if per_point else z}
+            if colour is not None:
+                feed["colour"] = np.ascontiguousarray(colour[start:stop] if per_point else colour)
             out[start:stop] = self.session.run([self._output], feed)[0]
 
         starts = range(0, len(points), self.chunk)

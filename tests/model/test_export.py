@@ -9,6 +9,7 @@ import pytest
 torch = pytest.importorskip("torch")
 ort = pytest.importorskip("onnxruntime")
 
+from model.colour import apply_colour, colour_size, identity_colour  # noqa: E402
 from model.export import MAX_IR_VERSION, export_model  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
 
@@ -23,14 +24,29 @@ def exported(tmp_path_factory):
     return model, session, manifest, out
 
 
-def run(session, points, z, seed):
-    return session.run(None, {"points": points, "z": z, "seed": np.asarray(seed, dtype=np.int64)})[0]
+def run(session, points, z, seed, colour=None):
+    """The sampler with the identity colour table unless one is given (rows as z)."""
+    if colour is None:
+        colour = np.repeat(identity_colour()[None].numpy(), len(z), axis=0)
+    feed = {"points": points, "z": z, "seed": np.asarray(seed, dtype=np.int64), "colour": colour}
+    return session.run(None, feed)[0]
+
+
+def random_colour_tables(rng, rows: int, knots: int = 64) -> np.ndarray:
+    """Valid colour tables (model/colour.py layout): random maps, increasing curves."""
+    start = rng.uniform(0.2, 0.6, (rows, 3))  # compressed colour lies in ~0.25..1
+    step = rng.uniform(0.3, 0.9, (rows, 3)) / knots
+    values = np.sort(rng.uniform(0.2, 1.1, (rows, 3, knots)), axis=-1).reshape(rows, -1)
+    parts = [rng.normal(0, 1, (rows, 9)), start, step, values, rng.normal(0, 0.7, (rows, 9))]
+    return np.concatenate(parts, axis=1).astype(np.float32)
 
 
 def test_sampler_io_names_shapes_dtypes(exported):
     _, session, manifest, out = exported
     inputs = {i.name: i for i in session.get_inputs()}
-    assert list(inputs) == ["points", "z", "seed"]
+    assert list(inputs) == ["points", "z", "seed", "colour"]
+    assert inputs["colour"].type == "tensor(float)" and inputs["colour"].shape[1] == colour_size()
+    assert manifest["colour_size"] == colour_size()
     assert inputs["points"].type == "tensor(double)" and inputs["points"].shape[1] == 3
     assert inputs["z"].type == "tensor(float)" and inputs["z"].shape[1] == 8
     assert inputs["seed"].type == "tensor(int64)"
@@ -69,6 +85,27 @@ def test_onnx_matches_torch(exported, scale):
     with torch.no_grad():
         ref = model.sample(torch.from_numpy(points)[:, None], torch.from_numpy(per_point), 11)[:, 0].numpy()
     assert np.abs(run(session, points, per_point, 11) - ref).max() < 1e-4
+
+
+def test_colour_stage_matches_torch_shared_and_per_point(exported):
+    # The graph's colour stage is model/colour.py's apply_colour, for one table shared by
+    # all points and for one table per point (blends); the identity table changes nothing.
+    model, session, _, _ = exported
+    rng = np.random.default_rng(7)
+    points = rng.random((3000, 3)) * 20
+    z = rng.standard_normal((1, 8)).astype(np.float32)
+    with torch.no_grad():
+        raw = model.sample(torch.from_numpy(points)[None], torch.from_numpy(z), 3)
+    assert np.abs(run(session, points, z, 3) - raw[0].numpy()).max() < 1e-5
+    table = random_colour_tables(rng, 1)
+    coloured = run(session, points, z, 3, table)
+    ref = apply_colour(raw, torch.from_numpy(table))[0].numpy()
+    assert np.abs(coloured - ref).max() < 1e-4  # steep random curves: summation order shows
+    assert np.abs(coloured - raw[0].numpy()).mean() > 0.01  # the table did something
+    tables = random_colour_tables(rng, len(points))
+    per_point = run(session, points, np.repeat(z, len(points), axis=0), 3, tables)
+    ref = apply_colour(raw[0][:, None], torch.from_numpy(tables))[:, 0].numpy()
+    assert np.abs(per_point - ref).max() < 1e-4
 
 
 def test_bit_identical_across_runs_and_batch_splits(exported):

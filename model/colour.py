@@ -1,0 +1,98 @@
+"""Per-texture colouring: the last stage of the sampler (DESIGN.md Contract 1, ``colour``).
+
+The decoder's raw output carries the texture's *structure*; its colours come from the
+texture's own colour table, computed from the photo when it is encoded
+(``worker/colour_match.py``) and applied here, inside ``sampler.onnx``:
+
+    raw rgb --(.)^1/4--> c [3] --A (3x3)--> u [3] --curve per channel--> d [3] --B (3x3)--> (.)^4 --> rgb
+
+* The statistics live in compressed colour, ``(rgb + FLOOR) ** (1/4)``, a stand-in for
+  log colour: a photo's colour is albedo times shading, and in a log-like space the two
+  separate, so chroma does not grow in the shadows. (Matched in linear RGB, the chroma
+  spread of gravel and granite tiles came out 1.5-1.9x the photo's in CIELAB; in log or
+  fourth-root colour 0.96-1.07x.) The fourth root is two square roots: unlike Log and
+  Exp, whose vectorised kernels round differently from their scalar tails, square roots
+  and products are exact IEEE operations, so a point's colour does not depend on how
+  the points were split into batches.
+* ``B`` holds the photo's principal axes in that space (orthonormal columns), ``d`` is
+  a colour in that decorrelated basis.
+* ``A`` projects the raw output on the same axes and whitens it there.
+* Each channel's curve maps the distribution of ``u`` (over many points and seeds of this
+  texture's own raw synthesis) onto the photo's distribution of ``d``: the photo's
+  quantile function after the raw cumulative distribution, sampled at ``knots`` evenly
+  spaced values of ``u`` from ``start`` in steps of ``step``, constant beyond.
+
+So every channel of ``d`` has the photo's histogram by construction (histogram-preserving
+synthesis, after Heitz and Neyret 2018), whatever colours the encoder got wrong. The curves
+are increasing, so dark stays dark and structure is untouched. The table is a flat vector
+of ``colour_size(knots)`` float32 numbers: ``A`` (9, row-major), ``start`` (3), ``step``
+(3), the curves' values (3 x knots, channel-major), ``B`` (9, row-major). A linear blend
+of two tables is a valid table (each knot moves linearly, curves stay increasing), so
+interpolation fields blend colour per point too.
+"""
+
+from __future__ import annotations
+
+import torch
+
+KNOTS = 64  # samples of each channel's curve
+FLOOR = 1.0 / 256.0  # compressed colour is (rgb + FLOOR) ** (1/4): a finite slope at black
+_MIN_STEP = 1e-12  # a grid step used as a divisor (zero only in hand-made tables)
+
+
+def colour_size(knots: int = KNOTS) -> int:
+    """Length of a colour table: A (9) + start (3) + step (3) + values (3 x knots) + B (9)."""
+    return 24 + 3 * knots
+
+
+def identity_colour(knots: int = KNOTS) -> torch.Tensor:
+    """The table that leaves colours in [0, 1] unchanged: float32 [colour_size(knots)]."""
+    eye = torch.eye(3).flatten()
+    low, high = FLOOR**0.25, (1.0 + FLOOR) ** 0.25
+    ramp = torch.linspace(low, high, knots).repeat(3)
+    grid = torch.tensor([low] * 3 + [(high - low) / (knots - 1)] * 3)
+    return torch.cat([eye, grid, ramp, eye])
+
+
+def _lookup(u: torch.Tensor, start: torch.Tensor, step: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """Curves sampled on uniform grids, read by linear interpolation, constant outside.
+
+    u [B, P, 3]; start, step [B, 1, 3] (knot k of a channel sits at start + k * step);
+    values [B, 3, K]  ->  [B, P, 3]. The knot is found by arithmetic, not a search, and
+    read with one Gather from the flattened tables: a few operations per point and
+    channel, each exact, so a point's value does not depend on how points are batched.
+    """
+    b, _, c = u.shape
+    knots = values.shape[-1]
+    t = ((u - start) / step.clamp_min(_MIN_STEP)).clamp(0.0, knots - 1.0)
+    knot = torch.floor(t).clamp(max=knots - 2.0)
+    frac = t - knot
+    rows = torch.arange(b, dtype=torch.int64, device=u.device).reshape(b, 1, 1) * (c * knots)
+    channels = torch.arange(c, dtype=torch.int64, device=u.device).reshape(1, 1, c) * knots
+    index = rows + channels + knot.to(torch.int64)
+    flat = values.reshape(-1)
+    below, above = flat[index], flat[index + 1]
+    return below + frac * (above - below)
+
+
+def _matvec3(m: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """m [B,1,3,3] times v [B,P,3] -> [B,P,3], as three products added in a fixed order."""
+    return m[..., 0] * v[..., 0:1] + m[..., 1] * v[..., 1:2] + m[..., 2] * v[..., 2:3]
+
+
+def apply_colour(rgb: torch.Tensor, colour: torch.Tensor) -> torch.Tensor:
+    """Colour raw decoder output with per-texture tables.
+
+    rgb float32 [B, P, 3] raw linear colour, colour float32 [B, colour_size] (one table
+    per row of codes)  ->  float32 [B, P, 3] linear colour clamped to [0, 1].
+    """
+    b, k = colour.shape[0], (colour.shape[1] - 24) // 3
+    a = colour[:, :9].reshape(b, 1, 3, 3)
+    start = colour[:, 9:12].reshape(b, 1, 3)
+    step = colour[:, 12:15].reshape(b, 1, 3)
+    values = colour[:, 15 : 15 + 3 * k].reshape(b, 3, k)
+    back = colour[:, 15 + 3 * k :].reshape(b, 1, 3, 3)
+    compressed = torch.sqrt(torch.sqrt(rgb.clamp(0.0, 1.0) + FLOOR))
+    d = _lookup(_matvec3(a, compressed), start, step, values)
+    squared = torch.square(_matvec3(back, d))
+    return (torch.square(squared) - FLOOR).clamp(0.0, 1.0)

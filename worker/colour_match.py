@@ -1,0 +1,152 @@
+"""A texture's colour table: the photo's colour statistics, matched to the sampler's output.
+
+The sampler applies the table as its last stage (``model/colour.py`` says how and what
+the flat vector holds). This module computes it when a texture is encoded or refitted.
+Statistics are taken in compressed colour, ``(rgb + FLOOR) ** (1/4)``, a log-like space
+(model/colour.py says why).
+
+1. The photo's principal colour axes ``B`` (eigenvectors of its compressed-colour
+   covariance, largest first).
+2. The texture's *raw* synthesis (the same sampler with the identity table) at many
+   random 3D points and a few seeds, projected on the same axes and whitened there
+   (symmetric whitening: the channels stay as aligned with the axes as they can) by ``A``.
+3. Per channel, the curve ``photo quantile(raw CDF(u))``, sampled on an even grid of
+   ``u`` from the raw sample's smallest to its largest value.
+
+The curves map each raw channel's distribution onto the photo's, so the tiles have the
+photo's colour histogram per decorrelated channel (and so its mean and covariance)
+whatever colours the encoder predicted. They are increasing, so structure (which pixels
+are darker than which) comes from the network unchanged. Deterministic: the same
+sampler, code and photo give the same table.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from worker.colour import srgb_to_linear
+from worker.errors import InvalidParameter
+
+# Raw-synthesis sample: random points in a cube of this many world units (hundreds of
+# exemplar widths, so the sample sees the texture's largest features many times) ...
+CALIBRATION_EXTENT = 64.0
+# ... this many points per seed, for these seeds. 16k points: the 1/32 quantiles are
+# known to ~0.3% of the range; it costs ~20 ms of sampling.
+CALIBRATION_POINTS = 4096
+CALIBRATION_SEEDS = (0, 1, 2, 3)
+MAX_PHOTO_PIXELS = 1 << 16  # photo pixels used for its statistics (a fixed-stride subset)
+FLOOR = 1.0 / 256.0  # as model/colour.py (the sampler graph applies the same)
+MIN_STEP = 1e-6  # the smallest raw range a curve spans (a flat raw channel)
+_WHITEN_FLOOR = 1e-8  # variance floor of the raw channels (a flat raw channel stays finite)
+
+
+def knots_of(colour_size: int) -> int:
+    """Curve samples per channel of a table of ``colour_size`` numbers (24 + 3 * knots)."""
+    knots, rest = divmod(colour_size - 24, 3)
+    if rest or knots < 2:
+        raise InvalidParameter(f"a colour table has 24 + 3 * knots numbers, got {colour_size}")
+    return knots
+
+
+def identity_colour(colour_size: int) -> np.ndarray:
+    """The table that leaves colours in [0, 1] unchanged. Returns (colour_size,) float32."""
+    knots = knots_of(colour_size)
+    eye = np.eye(3, dtype=np.float32).ravel()
+    low, high = FLOOR**0.25, (1.0 + FLOOR) ** 0.25
+    grid = [low] * 3 + [(high - low) / (knots - 1)] * 3
+    ramp = np.tile(np.linspace(low, high, knots), 3)
+    return np.concatenate([eye, grid, ramp, eye]).astype(np.float32)
+
+
+def photo_axes(pixels: np.ndarray) -> np.ndarray:
+    """Principal colour axes of pixels (N, 3) float: columns of an orthonormal (3, 3).
+
+    Largest variance first; each axis points the way its components sum positive
+    (brighter), so the table's channels are the same for two similar photos and a
+    blend of two tables does not flip a channel through zero.
+    """
+    covariance = np.cov(pixels, rowvar=False) + np.eye(3) * 1e-12
+    _, vectors = np.linalg.eigh(covariance)
+    vectors = vectors[:, ::-1]
+    signs = np.where(vectors.sum(axis=0) < 0, -1.0, 1.0)
+    return vectors * signs
+
+
+def compressed_colour(rgb: np.ndarray) -> np.ndarray:
+    """Linear RGB (..., 3) -> float64 compressed colour, as the sampler graph computes it."""
+    return np.sqrt(np.sqrt(np.clip(np.asarray(rgb, np.float64), 0.0, 1.0) + FLOOR))
+
+
+def colour_table(photo_linear: np.ndarray, raw: np.ndarray, knots: int) -> np.ndarray:
+    """Colour table that maps raw synthesis onto the photo's colour distribution.
+
+    photo_linear : (N, 3) float, the photo's linear-RGB pixels.
+    raw : (M, 3) float32, raw sampler output (identity table) at random points.
+    Returns (24 + 3 * knots,) float32 (layout in model/colour.py).
+    """
+    photo = compressed_colour(photo_linear).reshape(-1, 3)
+    raw = compressed_colour(raw).reshape(-1, 3)
+    if len(photo) < 2 or len(raw) < 2:
+        raise InvalidParameter("colour statistics need at least two photo pixels and two samples")
+    axes = photo_axes(photo)  # B: d -> rgb is axes @ d; rgb -> d is axes.T @ rgb
+    projected = raw @ axes
+    variance, vectors = np.linalg.eigh(np.cov(projected, rowvar=False))
+    whiten = vectors @ np.diag(1.0 / np.sqrt(np.maximum(variance, _WHITEN_FLOOR))) @ vectors.T
+    a = whiten @ axes.T  # u = A rgb
+    u = np.sort(raw @ a.T, axis=0)  # (M, 3)
+    d = np.sort(photo @ axes, axis=0)  # (N, 3)
+    start, stop = u[0], u[-1]
+    step = np.maximum(stop - start, MIN_STEP) / (knots - 1)
+    grid = start + np.arange(knots)[:, None] * step  # (knots, 3)
+    values = np.empty((3, knots))
+    for c in range(3):  # three channels: the work inside is vectorised
+        # the raw CDF at each grid value (mid-rank of ties), then the photo's quantile there
+        below = np.searchsorted(u[:, c], grid[:, c], side="left")
+        at_or_below = np.searchsorted(u[:, c], grid[:, c], side="right")
+        level = np.clip((below + at_or_below) / (2.0 * len(u)), 0.0, 1.0)
+        values[c] = np.quantile(d[:, c], level)
+    values[:, 0], values[:, -1] = d[0], d[-1]  # the grid's ends are the raw extremes
+    return np.concatenate([a.ravel(), start, step, values.ravel(), axes.ravel()]).astype(np.float32)
+
+
+def photo_pixels(image: np.ndarray, short_side: int | None = None) -> np.ndarray:
+    """Linear-RGB pixels (N, 3) float32 of an sRGB photo (H, W, 3), at most MAX_PHOTO_PIXELS.
+
+    ``short_side`` resizes first, to the resolution the texture is encoded at.
+    """
+    if short_side:
+        from worker.images import resize_short_side  # (images imports runtime; keep this module light)
+
+        image = resize_short_side(image, short_side)
+    flat = np.asarray(image, np.float32).reshape(-1, 3)
+    stride = max(1, len(flat) // MAX_PHOTO_PIXELS)
+    return srgb_to_linear(flat[::stride])
+
+
+def calibration_points() -> np.ndarray:
+    """The fixed random points (CALIBRATION_POINTS, 3) float64 the raw synthesis is read at."""
+    return np.random.default_rng(20200614).random((CALIBRATION_POINTS, 3)) * CALIBRATION_EXTENT
+
+
+def calibrate_texture(sampler, code: np.ndarray, image: np.ndarray, *, short_side: int | None = None) -> np.ndarray:
+    """The colour table of a texture: ``code`` (8,) synthesised by ``sampler``, photo ``image``.
+
+    sampler : a SamplerSession (worker/runtime.py) whose graph has a colour input.
+    image : (H, W, 3) float32 sRGB 0..1, the texture's exemplar.
+    Returns (sampler.colour_size,) float32; empty (0,) when the sampler has no colour stage.
+    """
+    size = getattr(sampler, "colour_size", 0)
+    if not size:
+        return np.zeros(0, np.float32)
+    code = np.asarray(code, np.float32).reshape(-1)[: sampler.code_size]
+    vector = np.concatenate([code, identity_colour(size)])
+    points = calibration_points()
+    raw = np.concatenate([sampler.sample(points, vector, seed) for seed in CALIBRATION_SEEDS])
+    return colour_table(photo_pixels(image, short_side), raw, knots_of(size))
+
+
+def texture_vector(code, colour) -> np.ndarray:
+    """What samplers take as a texture's code: z (8) followed by its colour table, if any."""
+    parts = [np.asarray(code, np.float32).reshape(-1)]
+    if colour is not None and len(colour):
+        parts.append(np.asarray(colour, np.float32).reshape(-1))
+    return np.concatenate(parts)
