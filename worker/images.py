@@ -33,6 +33,7 @@ from PIL import Image
 from skimage.transform import resize
 
 from worker.colour import linear_to_srgb, linear_to_srgb8, srgb_to_linear
+from worker.colour_match import calibrate_texture
 from worker.errors import InvalidImage, InvalidParameter, LimitExceeded
 from worker.runtime import ModelRuntime
 
@@ -160,6 +161,13 @@ def encode_image(runtime: ModelRuntime, image: np.ndarray, *, grid: int = 3) -> 
     """Texture code of an sRGB image: the mean of its crops' codes. Returns (8,) float32."""
     crops = encoder_crops(image, short_side=runtime.short_side, size=runtime.input_size, grid=grid)
     return runtime.encode(crops).mean(axis=0).astype(np.float32)
+
+
+def encode_texture(runtime: ModelRuntime, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What a texture stores of an sRGB photo: its code (8,) float32 and its colour table
+    for the model's sampler (worker/colour_match.py; empty if the sampler has no colour stage)."""
+    code = encode_image(runtime, image)
+    return code, calibrate_texture(runtime.sampler, code, image, short_side=runtime.short_side)
 
 
 def write_image(rgb: np.ndarray, fmt: str, *, colour: str = "linear", quality: int = 90) -> bytes:
