@@ -1,4 +1,5 @@
-# One CPU image for the API and the workers (no torch: fitting needs the train extra).
+# One CPU image for the API and the workers (no torch: fitting needs the train extra, so
+# uploads are not refined here: TEXSPACE_AUTO_FIT has no effect without torch on the API).
 #   docker build -t texspace .
 #   docker run -p 8000:8000 texspace serve        # embedded: SQLite + SqliteHuey + /data
 #   docker run texspace api | worker              # scale-out (see compose.yaml)

@@ -1,6 +1,7 @@
 # texspace: two commands on a fresh Debian / Python 3.11 machine.
-#   make run    virtual environment, runtime install (no torch), migrate, API + worker
-#               on SQLite at http://127.0.0.1:$(TEXSPACE_PORT) (default 8000)
+#   make run    virtual environment, runtime + train extra (torch==2.13.0, CPU: fits refine
+#               every upload), migrate, API + worker on SQLite at http://127.0.0.1:$(TEXSPACE_PORT)
+#               (default 8000)
 #   make test   test + train extras (torch==2.13.0, CPU), then pytest
 PYTHON ?= python3
 VENV ?= .venv
@@ -18,7 +19,7 @@ $(PY):
 
 # stamps: re-install only when pyproject.toml changes, so `make run` restarts quickly
 $(VENV)/.installed-run: pyproject.toml | $(PY)
-	$(PIP) install --disable-pip-version-check --no-compile -q -e .
+	$(PIP) install --disable-pip-version-check --no-compile -q -e '.[train]'
 	touch $@
 
 $(VENV)/.installed-test: pyproject.toml | $(PY)
@@ -118,3 +119,12 @@ ablation: data
 evaluate: data
 	$(PY) -m model.evaluate --checkpoint-dir runs/compare --group ours-shipped=model/weights \
 		--exemplars data/textures/val --out docs/eval/compare
+
+# Product-level quality (issue 14): colour (CIELAB), style against colour-matched value
+# noise, diversity and oblique / axis slices, all through encoder.onnx + sampler.onnx as
+# the service serves them. Another export side by side: QUALITY_ARGS='--model-dir DIR --label NAME'.
+QUALITY_ARGS ?=
+.PHONY: quality
+quality: data
+	$(PY) docs/eval/quality.py --model-dir model/weights --label shipped $(QUALITY_ARGS) \
+		--exemplars data/textures/val --out docs/eval/quality

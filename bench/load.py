@@ -66,7 +66,8 @@ def serve(extra_env: dict[str, str]):
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="texspace-load-") as data:
         env = {k: v for k, v in os.environ.items() if not k.startswith("TEXSPACE_")}
-        env |= {"TEXSPACE_DATA_DIR": data, "TEXSPACE_PORT": str(port), "TEXSPACE_LOG_LEVEL": "WARNING"} | extra_env
+        env |= {"TEXSPACE_DATA_DIR": data, "TEXSPACE_PORT": str(port), "TEXSPACE_LOG_LEVEL": "WARNING",
+                "TEXSPACE_AUTO_FIT": "false"} | extra_env  # measures serving, not fits behind the uploads
         log = open(Path(data) / "serve.log", "wb")
         proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True)

@@ -35,7 +35,8 @@ def embedded_server(model_dir: Path, log=print):
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="texspace-bench-") as data:
         env = dict(os.environ, TEXSPACE_DATA_DIR=data, TEXSPACE_PORT=str(port), TEXSPACE_HOST="127.0.0.1",
-                   TEXSPACE_MODEL_DIRS=str(model_dir), TEXSPACE_LOG_LEVEL="WARNING")
+                   TEXSPACE_MODEL_DIRS=str(model_dir), TEXSPACE_LOG_LEVEL="WARNING",
+                   TEXSPACE_AUTO_FIT="false")  # measures serving, not fits behind the uploads
         log_path = Path(data) / "serve.log"  # a file, not a pipe: nobody reads it while the server runs
         with open(log_path, "wb") as log_file:
             proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,

@@ -38,8 +38,11 @@ PROBE_EVERY = 25
 
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
                  patch: int = 64, grain: str | None = None, loss: str = "gram", progress=None, quiet: bool = True,
-                 seed: int = 0) -> dict:
-    """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps'}."""
+                 seed: int = 0, threads: int = 0) -> dict:
+    """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps'}.
+
+    ``threads``: torch threads (process-wide; 0 leaves torch's setting as it is).
+    """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     init = Path(init_checkpoint)
@@ -57,6 +60,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         argv += ["--smooth"] if cfg.smooth else []
         argv += ["--quiet"] if quiet else []
         argv += ["--grain", grain] if grain else []
+        argv += ["--threads", str(threads)] if threads else []
         ckpt_path = train(parse_args(argv), progress=progress)
         model, ckpt = load_checkpoint(ckpt_path)
     # Weights, config and code without the optimiser: what model.evaluate needs to compare

@@ -36,11 +36,13 @@ class TextureSource:
     def __init__(self, settings: Settings, ref: str) -> None:
         registry = _registry(settings)
         if Path(ref).is_file():
-            from worker.images import encode_image, read_image
+            from worker.colour_match import texture_vector
+            from worker.images import encode_texture, read_image
 
             runtime = registry.get(settings.default_model_version)
             image = read_image(Path(ref).read_bytes(), max_pixels=settings.max_image_pixels)
-            self.code, self.sampler, self.ppu = encode_image(runtime, image), runtime, runtime.pixels_per_unit
+            self.z, colour = encode_texture(runtime, image)
+            self.code, self.sampler, self.ppu = texture_vector(self.z, colour), runtime, runtime.pixels_per_unit
             self.model_version = runtime.version
             return
         from .context import build_services
@@ -54,7 +56,7 @@ class TextureSource:
         if texture is None:
             raise SystemExit(f"texspace: {ref!r} is neither an image file nor a texture id in "
                              f"{settings.resolved_database_url}")
-        self.code = np.asarray(texture.code, np.float32)
+        self.z, self.code = np.asarray(texture.code, np.float32), texture.sampling_code()
         self.sampler, self.ppu = services.sampler_for(texture), services.pixels_per_unit(texture)
         self.model_version = texture.model_version
 
@@ -100,7 +102,7 @@ def cmd_migrate(args: argparse.Namespace) -> None:
 
 def cmd_encode(args: argparse.Namespace) -> None:
     source = TextureSource(_settings(args), args.image)
-    print(json.dumps({"code": [round(float(c), 7) for c in source.code], "model_version": source.model_version}))
+    print(json.dumps({"code": [round(float(c), 7) for c in source.z], "model_version": source.model_version}))
 
 
 def cmd_tile(args: argparse.Namespace) -> None:

@@ -6,6 +6,7 @@ honestly even while a model export is missing).
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import socket
@@ -18,7 +19,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from . import db
 from .metrics import Metrics
-from .queue import make_huey
+from .queue import lane_of, make_huey
 from .settings import Settings
 from .storage import Storage, make_storage
 from .tables import ModelVersion, Texture
@@ -33,8 +34,10 @@ class Services:
     engine: Engine
     sessions: sessionmaker[Session]
     storage: Storage
-    huey: object
+    huey: object  # the main lane: volume, bake and region jobs (queue.lane_of)
     run_job: object = None  # huey task wrapper: run_job(job_id) enqueues
+    fit_huey: object = None  # the fit lane: fits, minutes of torch each
+    run_fit_job: object = None
     metrics: Metrics = field(default_factory=Metrics)
     tile_cache: TileCache | None = None
     worker_id: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
@@ -64,10 +67,24 @@ class Services:
                     session.add(ModelVersion(version=version, variant=str(runtime.manifest["variant"]),
                                              manifest=runtime.manifest))
 
+    def task_for(self, kind: str | None):  # -> huey task wrapper
+        """The task wrapper of the lane that carries ``kind`` jobs: calling it enqueues."""
+        return self.run_fit_job if lane_of(kind) == "fit" and self.run_fit_job else self.run_job
+
+    def pending_count(self) -> int:
+        """Messages waiting in the broker, over both lanes."""
+        return sum(int(h.pending_count()) for h in (self.huey, self.fit_huey) if h is not None)
+
+    def sampler_path(self, texture_id: str, sampler_key: str) -> Path:
+        """Local copy of a texture's own sampler, named by its storage key: a refinement
+        stores a new key, so a copy of an earlier sampler is never served for it."""
+        digest = hashlib.sha256(sampler_key.encode()).hexdigest()[:16]
+        return self.cache_dir / "samplers" / f"{texture_id}-{digest}.onnx"
+
     def sampler_for(self, texture: Texture):  # -> worker.runtime.Sampler
         """The sampler that renders ``texture``: its own fitted one, or its model's."""
         if texture.sampler_key:
-            cached = self.cache_dir / "samplers" / f"{texture.id}.onnx"
+            cached = self.sampler_path(texture.id, texture.sampler_key)
             if not cached.is_file():
                 self.storage.get_file(texture.sampler_key, cached)
             return self.registry.fitted_sampler(cached)
@@ -102,7 +119,9 @@ def build_services(settings: Settings, *, immediate: bool = False, migrate: bool
                         storage=make_storage(settings), huey=None,
                         tile_cache=TileCache(settings.tile_cache_bytes))
     services.huey = make_huey(settings, immediate=immediate)
+    services.fit_huey = make_huey(settings, immediate=immediate, lane="fit")
     from .runner import register_tasks
 
     services.run_job = register_tasks(services.huey, services)
+    services.run_fit_job = register_tasks(services.fit_huey, services)
     return services

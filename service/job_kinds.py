@@ -10,17 +10,20 @@ import hashlib
 import importlib.util
 import inspect
 import json
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from worker.colour_match import calibrate_texture
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
+from worker.images import read_image
 
 from .context import Services
 from .db import session_scope
-from .tables import Job, Texture
+from .tables import Job, Texture, utcnow
 
 Progress = Callable[[float], None]
 ShouldCancel = Callable[[], bool]
@@ -69,7 +72,7 @@ def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
     texture = _texture(services, job)
     params = job.params
     out_path = workdir / f"volume-{texture.id[:8]}-{params['resolution']}{EXTENSIONS[params['format']]}"
-    returned = render_volume(services.sampler_for(texture), np.asarray(texture.code, np.float32),
+    returned = render_volume(services.sampler_for(texture), texture.sampling_code(),
                              int(params["seed"]), resolution=int(params["resolution"]),
                              bounds=params["bounds"], fmt=params["format"], out_path=out_path,
                              progress=progress, should_cancel=should_cancel)
@@ -90,7 +93,7 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
                         max_vertices=services.settings.max_mesh_vertices,
                         max_resolution=services.settings.max_bake_resolution)
     scale = params.get("scale")
-    returned = bake_mesh(services.sampler_for(texture), np.asarray(texture.code, np.float32),
+    returned = bake_mesh(services.sampler_for(texture), texture.sampling_code(),
                          int(params["seed"]), mesh_bytes=mesh_bytes, filename=params.get("filename") or "mesh.obj",
                          resolution=int(params["resolution"]), scale=None if scale is None else float(scale),
                          fmt=params["format"], out_path=out_path, limits=limits,
@@ -109,7 +112,7 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
     out_path = workdir / f"region-{texture.id[:8]}-z{p['z']}.{ext}"
     limits = RegionLimits(max_pixels=services.settings.max_region_pixels,
                           max_tiles=services.settings.max_region_tiles)
-    returned = render_region(services.sampler_for(texture), np.asarray(texture.code, np.float32), int(p["seed"]),
+    returned = render_region(services.sampler_for(texture), texture.sampling_code(), int(p["seed"]),
                              z=int(p["z"]), x0=int(p["x0"]), y0=int(p["y0"]), width=int(p["width"]),
                              height=int(p["height"]), fmt=p["format"], out_path=out_path, size=int(p["size"]),
                              min_zoom=p.get("min_zoom"), plane=p["plane"], offset=float(p["offset"]),
@@ -127,18 +130,59 @@ def torch_available() -> bool:
     return importlib.util.find_spec("torch") is not None
 
 
+def auto_fit_params(services: Services, model_version: str) -> dict[str, Any] | None:
+    """Params of an upload's in-place refinement (TEXSPACE_AUTO_FIT), or None where none
+    can run here: the setting is off, torch is not installed, or the model ships no
+    space.pt (the checkpoint a fit starts from)."""
+    settings = services.settings
+    if not settings.auto_fit or not torch_available():
+        return None
+    if not (services.registry.get(model_version).model_dir / "space.pt").is_file():
+        return None
+    return {"seconds": min(settings.fit_seconds, settings.max_fit_seconds), "grain": None, "in_place": True}
+
+
 def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
             should_cancel: ShouldCancel) -> dict[str, Any]:
+    """Fit the texture's exemplar; ``params.in_place`` (an upload's automatic refinement)
+    makes the texture itself serve the result, otherwise a new texture does."""
     if not torch_available():
         raise FeatureUnavailable("fitting needs PyTorch on the worker: pip install 'texspace[train]'")
-    from model.fit import fit_exemplar  # torch lives in model/, imported only here
-
     texture = _texture(services, job)
     if not texture.exemplar_key:
         raise InvalidParameter(f"texture {texture.id} has no exemplar image to fit")
     # keep the extension: image readers pick the decoder by it
     image_path = services.storage.get_file(texture.exemplar_key, workdir / Path(texture.exemplar_key).name)
     out_dir = workdir / "fit"
+    _fit_exemplar(services, job, texture, image_path, out_dir, progress, should_cancel)
+    code = json.loads((out_dir / "code.json").read_text())
+    code = [float(c) for c in (code["code"] if isinstance(code, dict) else code)]
+    values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
+    if job.params.get("in_place"):
+        _refine_in_place(services, job, texture, out_dir / "sampler.onnx", code, image_path)
+        return {**values, "output_texture_id": texture.id}
+    new_id = fitted_texture_id(job.id)
+    sampler_key = f"textures/{new_id}/sampler.onnx"
+    services.storage.put_file(sampler_key, out_dir / "sampler.onnx")
+    colour = _fitted_colour(services, texture, out_dir / "sampler.onnx", code, image_path)
+    exemplar_key = f"textures/{new_id}/{Path(texture.exemplar_key).name}"  # own copy: outlives the parent
+    services.storage.put_file(exemplar_key, image_path)
+    with session_scope(services.sessions) as session:
+        if session.get(Texture, new_id) is None:
+            session.add(Texture(id=new_id, name=f"{texture.name or texture.id} (fitted)",
+                                code=code, colour=colour, model_version=texture.model_version,
+                                source="fit", parents={"texture": texture.id, "job": job.id},
+                                owner_id=texture.owner_id,
+                                exemplar_key=exemplar_key,
+                                exemplar_media_type=texture.exemplar_media_type,
+                                width=texture.width, height=texture.height, sampler_key=sampler_key))
+    return {**values, "output_texture_id": new_id}
+
+
+def _fit_exemplar(services: Services, job: Job, texture: Texture, image_path: Path, out_dir: Path,
+                  progress: Progress, should_cancel: ShouldCancel) -> None:
+    """Call model.fit.fit_exemplar (torch) with the options this worker's version takes."""
+    from model.fit import fit_exemplar  # torch lives in model/, imported only here
 
     def report(fraction: float, *_: Any, **__: Any) -> None:  # no cancel hook: stop at a report
         progress(float(fraction))
@@ -154,6 +198,8 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
         if "grain" not in accepted:
             raise FeatureUnavailable("this worker's model.fit has no grain option; update the worker")
         options["grain"] = grain
+    if "threads" in accepted:  # TEXSPACE_FIT_THREADS: a fit must not take the cores tiles need
+        options["threads"] = services.settings.fit_threads
     if "init_checkpoint" in accepted:  # model/fit.py starts from the space's training checkpoint
         checkpoint = model_dir / "space.pt"
         if not checkpoint.is_file():
@@ -162,24 +208,45 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
                      **options)
     else:
         fit_exemplar(image_path, out_dir, init_model_dir=model_dir, seconds=seconds, progress=report, **options)
-    code = json.loads((out_dir / "code.json").read_text())
-    code = code["code"] if isinstance(code, dict) else code
-    new_id = fitted_texture_id(job.id)
-    sampler_key = f"textures/{new_id}/sampler.onnx"
-    values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
-    services.storage.put_file(sampler_key, out_dir / "sampler.onnx")
-    exemplar_key = f"textures/{new_id}/{Path(texture.exemplar_key).name}"  # own copy: outlives the parent
-    services.storage.put_file(exemplar_key, image_path)
+
+
+def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],
+                     image_path: Path) -> None:
+    """Make ``texture`` serve the fitted sampler: store it under a key of this attempt's own
+    (so a tile ETag, which includes the key, never names two samplers' bytes), then update
+    the row if this attempt still holds the job. The encoder's code is kept for blends."""
+    folder = f"textures/{texture.id}/refined/{job.id}-{job.attempt}"
+    sampler_key = f"{folder}/sampler.onnx"
+    services.storage.put_file(sampler_key, sampler_path)
+    local = services.sampler_path(texture.id, sampler_key)  # where sampler_for looks: no second download
+    local.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(sampler_path, local)
+    colour = _fitted_colour(services, texture, local, code, image_path)
     with session_scope(services.sessions) as session:
-        if session.get(Texture, new_id) is None:
-            session.add(Texture(id=new_id, name=f"{texture.name or texture.id} (fitted)",
-                                code=[float(c) for c in code], model_version=texture.model_version,
-                                source="fit", parents={"texture": texture.id, "job": job.id},
-                                owner_id=texture.owner_id,
-                                exemplar_key=exemplar_key,
-                                exemplar_media_type=texture.exemplar_media_type,
-                                width=texture.width, height=texture.height, sampler_key=sampler_key))
-    return {**values, "output_texture_id": new_id}
+        current = session.get(Job, job.id)
+        row = session.get(Texture, texture.id)
+        if current is None or current.state != "running" or current.attempt != job.attempt or row is None:
+            services.storage.delete_prefix(folder)  # no row names it: leave no file behind
+            local.unlink(missing_ok=True)
+            raise Canceled("the job was taken over or deleted before its refinement was applied")
+        if row.encoder_code is None:
+            row.encoder_code = list(row.code)
+        row.code, row.sampler_key, row.updated_at = code, sampler_key, utcnow()
+        if row.encoder_colour is None:  # kept like encoder_code
+            row.encoder_colour = row.colour
+        row.colour = colour
+
+
+def _fitted_colour(services: Services, texture: Texture, sampler_path: Path, code: list[float],
+                   image_path: Path) -> list[float] | None:
+    """The texture's colour table for its fitted sampler (the table matches the photo to a
+    sampler's own raw output, so a new sampler needs a new table); None if it has no colour stage."""
+
+    image = read_image(image_path.read_bytes(), max_pixels=services.settings.max_image_pixels)
+    short_side = services.registry.get(texture.model_version).manifest.get("exemplar_short_side")
+    colour = calibrate_texture(services.registry.fitted_sampler(sampler_path), np.asarray(code, np.float32),
+                               image, short_side=short_side)
+    return [float(v) for v in colour] or None
 
 
 KINDS: dict[str, Callable[..., dict[str, Any]]] = {

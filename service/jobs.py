@@ -97,14 +97,16 @@ def get(services: Services, job_id: str) -> Job | None:
 
 
 def enqueue(services: Services, job_id: str) -> None:
-    """Send the job id to the queue (the row must be committed first)."""
+    """Send the job id to its kind's queue (the row must be committed first)."""
     with session_scope(services.sessions) as session:
         session.execute(update(Job).where(Job.id == job_id).values(enqueued_at=utcnow()))
+        kind = session.scalar(select(Job.kind).where(Job.id == job_id))
+    send = services.task_for(kind)
     try:
-        services.run_job(job_id)
+        send(job_id)
     except Exception:  # a broker connection dropped since its last use fails once, then reconnects
         log.warning("queue send failed; retrying once", exc_info=True)
-        services.run_job(job_id)
+        send(job_id)
 
 
 @dataclass
@@ -208,7 +210,7 @@ def reap(services: Services) -> dict[str, int]:
     with session_scope(services.sessions) as session:
         lost = session.scalars(select(Job.id).where(Job.state == "queued", Job.enqueued_at < stale)).all()
         queued = session.scalar(select(func.count()).select_from(Job).where(Job.state == "queued"))
-    if lost and services.huey.pending_count() >= queued:
+    if lost and services.pending_count() >= queued:
         lost = []  # the broker holds a message for every queued job: they are only waiting
     for job_id in lost:
         counts["resent"] += 1

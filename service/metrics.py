@@ -54,7 +54,7 @@ class _JobCollector:
         except Exception:  # a scrape must not fail because the database hiccups
             log.exception("job metrics unavailable")
         try:
-            depth.add_metric([], self.services.huey.pending_count())
+            depth.add_metric([], self.services.pending_count())
             yield depth
         except Exception:
             log.exception("queue depth unavailable")

@@ -40,9 +40,35 @@ def start_reaper(services, stop: threading.Event) -> threading.Thread:  # noqa: 
     return thread
 
 
+LANE_POLL_SECONDS = 0.5
+
+
+def start_lane(huey, stop: threading.Event) -> threading.Thread:  # noqa: ANN001
+    """One thread consuming a second lane beside the consumer's: its jobs run one at a
+    time (in ``texspace serve``, one fit at a time beside the other jobs)."""
+
+    def loop() -> None:
+        while not stop.is_set():
+            try:
+                task = huey.dequeue()
+                if task is None:
+                    stop.wait(LANE_POLL_SECONDS)
+                    continue
+                huey.execute(task)
+            except Exception:  # a broker hiccup or a crashed task: the job table has the truth
+                log.exception("lane %s: task failed", huey.name)
+                stop.wait(LANE_POLL_SECONDS)
+
+    thread = threading.Thread(target=loop, name=f"lane-{huey.name}", daemon=True)
+    thread.start()
+    return thread
+
+
 def run_worker(settings: Settings, *, migrate: bool = True) -> None:
-    """Consume the queue with ``settings.workers`` threads until SIGINT / SIGTERM."""
+    """Consume the lanes of ``settings.worker_kinds`` until SIGINT / SIGTERM: the first
+    with ``settings.workers`` threads, the fit lane beside it (if both) with one."""
     from .context import build_services
+    from .queue import worker_lanes
 
     services = build_services(settings, migrate=migrate)
     try:
@@ -51,10 +77,14 @@ def run_worker(settings: Settings, *, migrate: bool = True) -> None:
         log.exception("model registry not loaded")
     stop = threading.Event()
     start_reaper(services, stop)
-    consumer = services.huey.create_consumer(workers=settings.workers, worker_type="thread", periodic=False,
-                                             initial_delay=0.05, max_delay=0.5, graceful_signal="INT")
+    hueys = {"main": services.huey, "fit": services.fit_huey}
+    first, *others = worker_lanes(settings)
+    for lane in others:
+        start_lane(hueys[lane], stop)
+    consumer = hueys[first].create_consumer(workers=settings.workers, worker_type="thread", periodic=False,
+                                            initial_delay=0.05, max_delay=0.5, graceful_signal="INT")
     log.info("worker started", extra={"workers": settings.workers, "queue": settings.queue_backend,
-                                      "worker_id": services.worker_id})
+                                      "kinds": settings.worker_kinds, "worker_id": services.worker_id})
     try:
         consumer.run()
     finally:

@@ -29,7 +29,8 @@ def purge_texture(services: Services, texture_id: str) -> list[str]:
     for job_id in job_ids:
         forget_job_files(services, job_id)
     services.storage.delete_prefix(f"textures/{texture_id}")
-    (services.cache_dir / "samplers" / f"{texture_id}.onnx").unlink(missing_ok=True)
+    for cached in (services.cache_dir / "samplers").glob(f"{texture_id}*.onnx"):  # context.sampler_path
+        cached.unlink(missing_ok=True)
     if job_ids:
         log.info("texture deleted with its jobs", extra={"texture_id": texture_id, "jobs": job_ids})
     return job_ids

@@ -3,6 +3,11 @@
 ``queue_backend`` picks SqliteHuey (a file under data_dir, the embedded default),
 RedisHuey or PostgresHuey (scale-out), or MemoryHuey (tests). ``immediate`` mode runs
 each task synchronously at enqueue time, for unit tests without infrastructure.
+
+Two lanes, each a queue of its own on the same broker: ``main`` (``queue_name``) carries
+volume, bake and region jobs; ``fit`` (``<queue_name>-fit``) carries fits, which run for
+minutes on torch. A worker consumes the lanes of the kinds it runs (``worker_kinds``), so
+fits can have machines of their own and never wait behind, or hold up, the other jobs.
 """
 from __future__ import annotations
 
@@ -12,9 +17,22 @@ from huey.api import Huey
 from .settings import Settings
 
 
-def make_huey(settings: Settings, *, immediate: bool = False) -> Huey:
-    """The huey instance the settings ask for (tasks are registered by runner.register_tasks)."""
-    name = settings.queue_name
+LANES = ("main", "fit")
+
+
+def lane_of(kind: str | None) -> str:
+    """The lane (queue) that carries jobs of ``kind``."""
+    return "fit" if kind == "fit" else "main"
+
+
+def worker_lanes(settings: Settings) -> list[str]:
+    """The lanes a worker with ``settings.worker_kinds`` consumes, in LANES order."""
+    return [lane for lane in LANES if any(lane_of(kind) == lane for kind in settings.worker_kinds)]
+
+
+def make_huey(settings: Settings, *, immediate: bool = False, lane: str = "main") -> Huey:
+    """The huey instance of ``lane`` the settings ask for (tasks: runner.register_tasks)."""
+    name = settings.queue_name if lane == "main" else f"{settings.queue_name}-{lane}"
     common = {"results": False, "immediate": immediate}
     if immediate or settings.queue_backend == "memory":
         return MemoryHuey(name, **common)

@@ -23,25 +23,45 @@ class TextureLinks(BaseModel):
     regions: str
 
 
+class Refinement(BaseModel):
+    """An upload's in-place refinement: a fit job that, when it succeeds, makes the
+    texture serve its own fitted sampler (same id and URLs, new tile bytes and ETags)."""
+
+    job_id: str
+    state: Literal["queued", "running", "succeeded", "failed", "canceled"]
+    progress: float = Field(ge=0, le=1)
+
+
 class TextureOut(BaseModel):
     id: str
     name: str
     code: list[float] = Field(min_length=CODE_SIZE, max_length=CODE_SIZE)
+    colour: list[float] | None = Field(
+        None, description="the colour table the sampler applies last: the photo's colour statistics matched to "
+                          "this texture's sampler (docs/ARCHITECTURE.md, Contract 1); null: the identity")
     model_version: str
     source: Literal["upload", "interpolate", "fit"]
     parents: dict[str, Any] | None = None
     width: int | None = Field(None, description="exemplar width in pixels")
     height: int | None = None
     has_own_sampler: bool = Field(description="true for fitted textures (they carry their own sampler)")
+    sampler: Literal["encoder", "fitted"] = Field(
+        description="what tiles come from: the model's sampler at the encoder's code, or a sampler fitted "
+                    "to this exemplar (a fit's new texture, or an upload once its refinement succeeded)")
+    refinement: Refinement | None = Field(None, description="the upload's automatic refinement, if one was queued")
     created_at: dt.datetime
     updated_at: dt.datetime
     links: TextureLinks
 
     @classmethod
-    def of(cls, t: Texture) -> "TextureOut":
+    def of(cls, t: Texture, refinement: Job | None = None) -> "TextureOut":
+        """``refinement``: the job named by ``t.refinement_job_id``, if any."""
         base = f"/v1/textures/{t.id}"
-        return cls(id=t.id, name=t.name, code=t.code, model_version=t.model_version, source=t.source,
+        return cls(id=t.id, name=t.name, code=t.code, colour=t.colour, model_version=t.model_version, source=t.source,
                    parents=t.parents, width=t.width, height=t.height, has_own_sampler=bool(t.sampler_key),
+                   sampler="fitted" if t.sampler_key else "encoder",
+                   refinement=Refinement(job_id=refinement.id, state=refinement.state, progress=refinement.progress)
+                   if refinement is not None else None,
                    created_at=t.created_at, updated_at=t.updated_at,
                    links=TextureLinks(self=base, exemplar=f"{base}/exemplar" if t.exemplar_key else None,
                                       tiles=f"{base}/tiles/{{z}}/{{x}}/{{y}}.png", tilejson=f"{base}/tilejson.json",

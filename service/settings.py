@@ -13,6 +13,9 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+#: job kinds (tables.JOB_KINDS); a worker may run only some (``worker_kinds``)
+JOB_KINDS = ("volume", "bake", "region", "fit")
+JobKind = Literal["volume", "bake", "region", "fit"]
 #: the model export shipped inside the package (``model/weights``)
 PACKAGED_MODEL_DIR = Path(__file__).resolve().parent.parent / "model" / "weights"
 
@@ -61,7 +64,7 @@ class Settings(BaseSettings):
     max_region_tiles: int = Field(4096, ge=1)
     max_volume_resolution: int = Field(256, ge=2)
     max_bake_resolution: int = Field(4096, ge=16)
-    fit_seconds: float = Field(60.0, gt=0)
+    fit_seconds: float = Field(60.0, gt=0, description="time budget of an upload's automatic refinement")
     max_fit_seconds: float = Field(900.0, gt=0)
 
     # --- jobs --------------------------------------------------------------------------
@@ -74,6 +77,14 @@ class Settings(BaseSettings):
     max_queued_jobs: int = Field(1000, ge=1, description="back-pressure: submissions beyond this many "
                                  "queued jobs get 503 + Retry-After")
     queue_full_retry_after_seconds: int = Field(30, ge=1)
+    worker_kinds: Annotated[list[JobKind], NoDecode] = Field(
+        default_factory=lambda: list(JOB_KINDS), description="job kinds this worker process runs, comma-separated; "
+        "fits have a queue of their own (volume, bake and region share the other: list all three or none)")
+
+    # --- per-exemplar fits (the train extra) ------------------------------------------
+    auto_fit: bool = Field(True, description="refine every upload in place with a fit job; effective where "
+                           "torch is installed on the API and the model ships its space.pt")
+    fit_threads: int = Field(1, ge=0, description="torch threads of a fit job (0: torch's default, every core)")
 
     # --- HTTP ----------------------------------------------------------------------------
     tile_cache_bytes: int = Field(64 * 2**20, ge=0)
@@ -92,6 +103,23 @@ class Settings(BaseSettings):
         if isinstance(value, str):
             return [Path(p) for p in value.split(os.pathsep) if p.strip()]
         return value
+
+    @field_validator("worker_kinds", mode="before")
+    @classmethod
+    def _split_kinds(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [k.strip() for k in value.split(",") if k.strip()]
+        return value
+
+    @field_validator("worker_kinds")
+    @classmethod
+    def _whole_queues(cls, value: list[str]) -> list[str]:
+        shared = set(JOB_KINDS) - {"fit"}  # one queue carries these (service/queue.py)
+        if not value:
+            raise ValueError("name at least one job kind")
+        if 0 < len(shared & set(value)) < len(shared):
+            raise ValueError(f"{', '.join(sorted(shared))} share one queue: list all of them or none")
+        return list(dict.fromkeys(value))
 
     @cached_property
     def resolved_database_url(self) -> str:

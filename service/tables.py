@@ -9,8 +9,11 @@ import datetime as dt
 import uuid
 from typing import Any
 
+import numpy as np
 from sqlalchemy import JSON, Boolean, DateTime, Float, Integer, String, Text, TypeDecorator
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+
+from worker.colour_match import texture_vector
 
 JOB_STATES = ("queued", "running", "succeeded", "failed", "canceled")
 TERMINAL_STATES = frozenset({"succeeded", "failed", "canceled"})
@@ -77,8 +80,22 @@ class Texture(Base):
     height: Mapped[int | None] = mapped_column(Integer, nullable=True)
     sampler_key: Mapped[str | None] = mapped_column(String(300), nullable=True)
     owner_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)  # API key id (issue 6)
+    # An upload's in-place refinement (TEXSPACE_AUTO_FIT): the fit job, and the encoder's code
+    # in the model's latent space, kept when the job replaces code and sampler_key (blends use it).
+    refinement_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    encoder_code: Mapped[list | None] = mapped_column(JSON, nullable=True)
+    # The colour table the sampler applies last (worker/colour_match.py): the photo's colour
+    # statistics matched to this texture's sampler. None: the identity table (rows from
+    # before colour tables, and samplers without a colour stage). encoder_colour is the
+    # table of encoder_code with the model's sampler, kept for blends like encoder_code.
+    colour: Mapped[list | None] = mapped_column(JSON, nullable=True)
+    encoder_colour: Mapped[list | None] = mapped_column(JSON, nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
     updated_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
+
+    def sampling_code(self) -> np.ndarray:
+        """What this texture's sampler takes as its code: z, then the colour table if any."""
+        return texture_vector(self.code, self.colour)
 
 
 class Job(Base):

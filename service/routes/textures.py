@@ -1,25 +1,29 @@
 """Textures: upload (encode), list, read, rename, delete, exemplar, interpolate."""
 from __future__ import annotations
 
+import logging
 from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, Depends, File, Form, Response, UploadFile, status
 from fastapi.responses import StreamingResponse
-from sqlalchemy import select
+from sqlalchemy import select, update
 
-from worker.images import encode_image, read_image, sniff_format
+from worker.colour_match import identity_colour
+from worker.images import encode_texture, read_image, sniff_format
 
-from .. import auth
+from .. import auth, jobs
 from ..db import session_scope
 from ..deps import PageParams, ServicesDep, apply_cursor, page_of
 from ..errors import Problem, not_found, problem_responses
+from ..job_kinds import auto_fit_params
 from ..purge import purge_texture
 from ..schemas import InterpolateIn, TextureOut, TexturePage, TexturePatch
-from ..tables import Texture, new_id, utcnow
+from ..tables import Job, Texture, new_id, utcnow
 from ..uploads import IMAGE_MEDIA_TYPES, read_limited
 
 router = APIRouter(prefix="/v1/textures", tags=["textures"])
+log = logging.getLogger(__name__)
 
 
 def load_texture(services, texture_id: str) -> Texture:  # noqa: ANN001
@@ -41,28 +45,60 @@ def create_texture(
     """Encode an exemplar photo into a texture code and store it.
 
     The image is resized so its shorter side is the model's working resolution, then a
-    3 x 3 grid of 128 x 128 crops is encoded and the codes averaged.
+    3 x 3 grid of 128 x 128 crops is encoded and the codes averaged. Where fitting is
+    available (TEXSPACE_AUTO_FIT), a fit job then refines the texture in place.
     """
     data = read_limited(image, services.settings.max_upload_bytes, "the image")
     pixels = read_image(data, max_pixels=services.settings.max_image_pixels)
     ext = sniff_format(data)
     runtime = services.registry.get(services.settings.default_model_version)
-    code = encode_image(runtime, pixels)
+    code, colour = encode_texture(runtime, pixels)
     texture_id = new_id()
+    refine = auto_fit_params(services, runtime.version)
     key = f"textures/{texture_id}/exemplar.{ext}"
     services.storage.put_bytes(key, data)
+    colour = [float(c) for c in colour] or None
     texture = Texture(id=texture_id, name=(name or image.filename or "")[:200], code=[float(c) for c in code],
+                      colour=colour, encoder_colour=colour,
                       model_version=runtime.version, source="upload", exemplar_key=key,
                       exemplar_media_type=IMAGE_MEDIA_TYPES.get(ext, "application/octet-stream"),
-                      width=int(pixels.shape[1]), height=int(pixels.shape[0]), owner_id=auth.current_owner())
+                      width=int(pixels.shape[1]), height=int(pixels.shape[0]), owner_id=auth.current_owner(),
+                      refinement_job_id=new_id() if refine else None)
     try:
         with session_scope(services.sessions) as session:
             session.add(texture)
     except BaseException:  # no row, no file: nothing orphaned
         services.storage.delete_prefix(f"textures/{texture_id}")
         raise
+    if refine:
+        queue_refinement(services, texture, refine)
     response.headers["Location"] = f"/v1/textures/{texture_id}"
-    return TextureOut.of(texture)
+    return texture_out(services, load_texture(services, texture_id))
+
+
+def queue_refinement(services, texture: Texture, params: dict) -> None:  # noqa: ANN001
+    """Submit the upload's refinement job (id: ``texture.refinement_job_id``). The upload
+    never fails for it: with the queue full, the texture simply keeps its encoder code."""
+    try:
+        jobs.submit(services, kind="fit", texture_id=texture.id, params=params, job_id=texture.refinement_job_id)
+    except Exception as exc:
+        log.warning("upload not refined: %s", getattr(exc, "detail", exc), extra={"texture_id": texture.id})
+        with session_scope(services.sessions) as session:
+            session.execute(update(Texture).where(Texture.id == texture.id).values(refinement_job_id=None))
+
+
+def texture_outs(services, textures: list[Texture]) -> list[TextureOut]:  # noqa: ANN001
+    """The representations of ``textures``, with their refinement jobs (one query)."""
+    job_ids = [t.refinement_job_id for t in textures if t.refinement_job_id]
+    found: dict[str, Job] = {}
+    if job_ids:
+        with session_scope(services.sessions) as session:
+            found = {j.id: j for j in session.scalars(select(Job).where(Job.id.in_(job_ids)))}
+    return [TextureOut.of(t, found.get(t.refinement_job_id or "")) for t in textures]
+
+
+def texture_out(services, texture: Texture) -> TextureOut:  # noqa: ANN001
+    return texture_outs(services, [texture])[0]
 
 
 @router.get("", response_model=TexturePage, responses=problem_responses(422))
@@ -71,7 +107,7 @@ def list_textures(services: ServicesDep, page: Annotated[PageParams, Depends()])
     with session_scope(services.sessions) as session:
         rows = list(session.scalars(apply_cursor(auth.scoped(select(Texture), Texture), Texture, page)))
     rows, cursor = page_of(rows, page)
-    return TexturePage(items=[TextureOut.of(t) for t in rows], next_cursor=cursor)
+    return TexturePage(items=texture_outs(services, rows), next_cursor=cursor)
 
 
 @router.post("/interpolate", status_code=status.HTTP_201_CREATED, response_model=TextureOut,
@@ -83,12 +119,20 @@ def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) 
         raise Problem(409, f"textures were encoded by different models ({a.model_version} and "
                            f"{b.model_version}); codes from different spaces cannot be blended",
                       slug="model-mismatch")
-    if a.sampler_key or b.sampler_key:
+    # a refined upload blends by the code the encoder gave it, in the model's latent space
+    za, zb = (t.encoder_code or (None if t.sampler_key else t.code) for t in (a, b))
+    if za is None or zb is None:
         raise Problem(409, "fitted textures carry their own sampler and have no shared latent space; "
                            "interpolate the textures they were fitted from", slug="fitted-texture")
-    code = (1.0 - body.t) * np.asarray(a.code, np.float64) + body.t * np.asarray(b.code, np.float64)
+    code = (1.0 - body.t) * np.asarray(za, np.float64) + body.t * np.asarray(zb, np.float64)
+    # colour tables blend knot by knot (model/colour.py); a texture without one has the identity
+    size = services.registry.get(a.model_version).sampler.colour_size
+    ca, cb = (np.asarray(t.encoder_colour or (None if t.sampler_key else t.colour) or identity_colour(size),
+                         np.float64) if size else np.zeros(0) for t in (a, b))
+    colour = [float(c) for c in (1.0 - body.t) * ca + body.t * cb] or None
     texture = Texture(id=new_id(), name=body.name or f"{a.name or a.id} x {b.name or b.id} @ {body.t:g}",
-                      code=[float(c) for c in code], model_version=a.model_version, source="interpolate",
+                      code=[float(c) for c in code], colour=colour, encoder_colour=colour,
+                      model_version=a.model_version, source="interpolate",
                       parents={"a": a.id, "b": b.id, "t": body.t}, owner_id=auth.current_owner())
     with session_scope(services.sessions) as session:
         session.add(texture)
@@ -98,7 +142,7 @@ def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) 
 
 @router.get("/{texture_id}", response_model=TextureOut, responses=problem_responses(404))
 def get_texture(services: ServicesDep, texture_id: str) -> TextureOut:
-    return TextureOut.of(load_texture(services, texture_id))
+    return texture_out(services, load_texture(services, texture_id))
 
 
 @router.patch("/{texture_id}", response_model=TextureOut, responses=problem_responses(404, 422))
@@ -110,7 +154,7 @@ def patch_texture(services: ServicesDep, texture_id: str, body: TexturePatch) ->
             raise not_found("texture", texture_id)
         texture.name = body.name
         texture.updated_at = utcnow()
-    return TextureOut.of(texture)
+    return texture_out(services, texture)
 
 
 @router.delete("/{texture_id}", status_code=status.HTTP_204_NO_CONTENT, responses=problem_responses(404))

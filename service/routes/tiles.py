@@ -13,7 +13,8 @@ from .. import auth
 from ..deps import ServicesDep, TileAddress, TileFormat, TileParams, tile_address
 from ..errors import problem_responses
 from ..schemas import TileJSON
-from ..tiles import CACHE_CONTROL, TILE_MEDIA_TYPES, etag_matches, render_tile_bytes, tile_etag
+from ..tiles import (CACHE_CONTROL, REFINING_CACHE_CONTROL, TILE_MEDIA_TYPES, etag_matches, render_tile_bytes,
+                     tile_etag, tiles_final)
 from .textures import load_texture
 
 router = APIRouter(prefix="/v1/textures", tags=["tiles"])
@@ -43,8 +44,13 @@ async def get_tile(
     key = dict(z=address.z, x=address.x, y=address.y, size=params.size, seed=params.seed,
                plane=params.plane, offset=params.offset, fmt=fmt)
     etag = tile_etag(texture, **key)
+    cache_control = CACHE_CONTROL
+    refining = texture.refinement_job_id and not texture.sampler_key  # else final: no query
+    if refining and not await run_in_threadpool(tiles_final, services, texture):
+        cache_control = REFINING_CACHE_CONTROL  # same ETag, same bytes; the URL's bytes will change
     # with API keys, a tenant's tiles must not be served to others by a shared cache
-    cache_control = CACHE_CONTROL if auth.current_owner() is None else CACHE_CONTROL.replace("public", "private")
+    if auth.current_owner() is not None:
+        cache_control = cache_control.replace("public", "private")
     headers = {"ETag": etag, "Cache-Control": cache_control}
     if etag_matches(if_none_match, etag):
         services.metrics.tile_not_modified.inc()

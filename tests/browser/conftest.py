@@ -88,7 +88,8 @@ def base_url(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> Itera
         yield external.rstrip("/") + "/"
         return
     data_dir = tmp_path_factory.mktemp("texspace-data")
-    with _serve(data_dir, artifacts / "server.log", {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir)}) as url:
+    env = {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir), "TEXSPACE_AUTO_FIT": "false"}
+    with _serve(data_dir, artifacts / "server.log", env) as url:
         yield url
 
 
@@ -98,13 +99,25 @@ def keyed_server(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> I
     the key is made the way an admin does, with ``texspace keys create``."""
     data_dir = tmp_path_factory.mktemp("texspace-keyed-data")
     env = {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir), "TEXSPACE_API_KEYS_ENABLED": "true",
-           "TEXSPACE_API_KEY_PEPPER": "browser-test-pepper"}
+           "TEXSPACE_API_KEY_PEPPER": "browser-test-pepper", "TEXSPACE_AUTO_FIT": "false"}
     made = subprocess.run([sys.executable, "-m", "service.cli", "keys", "create", "browser-test"],
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=True)
     key = re.search(r"^key: +(\S+)$", made.stdout, re.M)
     assert key, f"no key in the output of texspace keys create:\n{made.stdout}\n{made.stderr}"
     with _serve(data_dir, artifacts / "server-keyed.log", env) as url:
         yield url, key[1]
+
+
+@pytest.fixture(scope="session")
+def refining_server(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> Iterator[str]:
+    """URL of a texspace service of its own that refines every upload (TEXSPACE_AUTO_FIT, the
+    default where torch is installed) with a short real fit."""
+    pytest.importorskip("torch", reason="refinement needs the train extra")
+    data_dir = tmp_path_factory.mktemp("texspace-refining-data")
+    env = {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir), "TEXSPACE_AUTO_FIT": "true",
+           "TEXSPACE_FIT_SECONDS": "3"}
+    with _serve(data_dir, artifacts / "server-refining.log", env) as url:
+        yield url
 
 
 @pytest.fixture(scope="session")

@@ -65,7 +65,7 @@ def _base_env(data_dir: Path) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("TEXSPACE_")}
     env.update(TEXSPACE_DATA_DIR=str(data_dir), TEXSPACE_LOG_JSON="true", TEXSPACE_HEARTBEAT_SECONDS="0.5",
                TEXSPACE_WORKERS="1", TEXSPACE_LEASE_SECONDS="4", TEXSPACE_REAPER_INTERVAL_SECONDS="1",
-               PYTHONUNBUFFERED="1")
+               TEXSPACE_AUTO_FIT="false", PYTHONUNBUFFERED="1")
     return env
 
 

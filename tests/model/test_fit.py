@@ -28,7 +28,9 @@ def test_fit_writes_a_contract_sampler_and_its_code(tmp_path, skimage_textures, 
     code = json.loads((tmp_path / "fit" / "code.json").read_text())["code"]
     assert len(code) == 8
     session = ort.InferenceSession(str(tmp_path / "fit" / "sampler.onnx"), providers=["CPUExecutionProvider"])
-    rgb = session.run(None, {"points": np.random.default_rng(0).random((100, 3)),
+    from model.colour import identity_colour  # the fitted sampler has the colour stage too
+
+    rgb = session.run(None, {"points": np.random.default_rng(0).random((100, 3)), "colour": identity_colour()[None].numpy(),
                              "z": np.asarray([code], np.float32), "seed": np.asarray(1, np.int64)})[0]
     assert rgb.shape == (100, 3) and np.isfinite(rgb).all()
     manifest = json.loads((tmp_path / "fit" / "manifest.json").read_text())

@@ -21,7 +21,7 @@ PROBLEM = "application/problem+json"
 
 def make_settings(root: Path, **overrides) -> Settings:
     values = dict(data_dir=root / "data", log_json=False, heartbeat_seconds=0.2, max_volume_resolution=32,
-                  max_mesh_faces=1000, max_mesh_vertices=1000)
+                  max_mesh_faces=1000, max_mesh_vertices=1000, auto_fit=False)
     return Settings(**(values | overrides))
 
 

@@ -21,6 +21,7 @@ FAST_JOBS = {  # short leases so a killed worker's job comes back within seconds
     "TEXSPACE_LEASE_SECONDS": "2", "TEXSPACE_HEARTBEAT_SECONDS": "0.3", "TEXSPACE_REAPER_INTERVAL_SECONDS": "0.5",
     "TEXSPACE_REQUEUE_AFTER_SECONDS": "3", "TEXSPACE_MAX_ATTEMPTS": "6", "TEXSPACE_WORKERS": "1",
     "TEXSPACE_LOG_JSON": "true", "PYTHONUNBUFFERED": "1",
+    "TEXSPACE_AUTO_FIT": "false",  # no minute-long fit job behind every upload
 }
 
 

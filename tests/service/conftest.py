@@ -36,8 +36,9 @@ def photo() -> bytes:
 
 @pytest.fixture
 def settings(tmp_path: Path) -> Settings:
+    # auto_fit off: an upload would otherwise run a real fit (torch, a minute) in immediate mode
     return Settings(data_dir=tmp_path / "data", log_json=False, heartbeat_seconds=0.2,
-                    max_volume_resolution=32)
+                    max_volume_resolution=32, auto_fit=False)
 
 
 @pytest.fixture

@@ -28,6 +28,7 @@ def cli_env(tmp_path: Path, monkeypatch) -> Path:
         if key.startswith("TEXSPACE_"):
             monkeypatch.delenv(key)
     monkeypatch.setenv("TEXSPACE_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setenv("TEXSPACE_AUTO_FIT", "false")  # uploads here are not refined by a real fit
     monkeypatch.chdir(tmp_path)
     (tmp_path / "brick.png").write_bytes(brick_png())
     return tmp_path

@@ -25,9 +25,9 @@ MODEL_DIR = REPO / "model" / "weights"
 
 def fake_fit_module(calls: list[dict]) -> types.ModuleType:
     def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain=None,  # noqa: ANN001, ANN202
-                     loss="gram", progress=None, quiet=True, seed=0):
+                     loss="gram", progress=None, quiet=True, seed=0, threads=0):
         calls.append({"image_path": Path(image_path), "init_checkpoint": Path(init_checkpoint),
-                      "minutes": minutes, "grain": grain})
+                      "minutes": minutes, "grain": grain, "threads": threads})
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
@@ -79,7 +79,7 @@ def test_real_fit_exemplar_takes_grain_and_init_checkpoint() -> None:
     tree = ast.parse((REPO / "model" / "fit.py").read_text())
     fn = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "fit_exemplar")
     names = {a.arg for a in fn.args.kwonlyargs}
-    assert {"grain", "init_checkpoint", "minutes", "progress"} <= names
+    assert {"grain", "init_checkpoint", "minutes", "progress", "threads"} <= names
 
 
 def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_calls) -> None:

@@ -37,7 +37,7 @@ def second_model(folder: Path) -> Path:
 
 
 def app_with(tmp_path: Path, model_dirs: list[Path]) -> TestClient:
-    settings = Settings(data_dir=tmp_path / "data", model_dirs=model_dirs, log_json=False)
+    settings = Settings(data_dir=tmp_path / "data", model_dirs=model_dirs, log_json=False, auto_fit=False)
     return TestClient(create_app(services=build_services(settings, immediate=True)))
 
 

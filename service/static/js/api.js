@@ -238,10 +238,20 @@ export function exemplarUrl(id) {
   return apiUrl(`textures/${id}/exemplar`);
 }
 
-/** URL template for Leaflet: {z}/{x}/{y} are filled in by the tile layer. */
-export function tileTemplate(id, { seed, plane, offset, size = 256 }) {
-  const query = new URLSearchParams({ seed, size, plane, offset }).toString();
+/**
+ * URL template for Leaflet: {z}/{x}/{y} are filled in by the tile layer. `v` (ignored by
+ * the server) names what the tiles come from, so a refined texture's tiles get new URLs
+ * and no cached image of its encoder tiles is shown for them (see tileVersion).
+ */
+export function tileTemplate(id, { seed, plane, offset, size = 256, v }) {
+  const query = new URLSearchParams({ seed, size, plane, offset });
+  if (v) query.set('v', v);
   return apiUrl(`textures/${id}/tiles/`) + `{z}/{x}/{y}.png?${query}`;
+}
+
+/** The `v` of a texture's tile URLs: 'fitted' once it serves a fitted sampler, else none. */
+export function tileVersion(texture) {
+  return texture?.sampler === 'fitted' ? 'fitted' : undefined;
 }
 
 export function tileUrl(id, z, x, y, params) {

@@ -22,7 +22,68 @@ export function describe(job) {
   const p = job.params || {};
   if (job.kind === 'bake') return `bake ${p.filename || 'mesh'} (${p.format || 'glb'})`;
   if (job.kind === 'volume') return `volume ${p.resolution}^3 (${p.format})`;
+  if (job.kind === 'fit' && p.in_place) return `refine ${(job.texture_id || job.id).slice(0, 8)}`;
   return `${job.kind || 'job'} ${job.id.slice(0, 8)}`;
+}
+
+/**
+ * Follow a job until it ends: `onState(state)` with every update (a JobOut, or the
+ * `{state, progress, attempt}` of a progress event), the last one a terminal state.
+ * Server-sent events (EventSource, or read with fetch while an API key is set), polling
+ * GET /v1/jobs/{id} once the stream breaks. `onError(error)`: polling got a 401 and
+ * stopped (retrying cannot help). Returns a function that stops following.
+ * @param {{id: string, state?: string}} job
+ */
+export function follow(job, onState, { onError = () => {} } = {}) {
+  let finished = false;
+  let stopped = false;
+  let stopStream = () => {};
+  const update = (state) => {
+    if (finished || stopped || !state) return;
+    if (TERMINAL.has(state.state || state.status)) { finished = true; stopStream(); }
+    onState(state);
+  };
+  const stop = () => { stopped = true; stopStream(); };
+
+  const poll = async () => {
+    while (!finished && !stopped) {
+      try {
+        update(await getJob(job.id));
+      } catch (error) {
+        // No (valid) API key: retrying cannot help; other errors are transient.
+        if (error.status === 401) { onError(error); return; }
+      }
+      await new Promise((resolve) => setTimeout(resolve, 1000));
+    }
+  };
+  const onEvent = (event) => {
+    let data;
+    try { data = JSON.parse(event.data); } catch { return; }
+    update(data.job || data);
+  };
+
+  if (TERMINAL.has(job.state)) {
+    update(job);
+    return stop;
+  }
+  if (hasApiKey()) {
+    const controller = new AbortController();
+    stopStream = () => controller.abort();
+    streamEvents(jobEventsUrl(job.id), onEvent, { signal: controller.signal })
+      .catch(() => {}) // network error or HTTP error: poll instead
+      .then(() => { if (!finished && !stopped) poll(); }); // ended early: poll
+    return stop;
+  }
+  const source = new EventSource(jobEventsUrl(job.id));
+  stopStream = () => source.close();
+  source.onmessage = onEvent;
+  for (const name of EVENT_NAMES) source.addEventListener(name, onEvent);
+  source.onerror = () => {
+    // The server closes the stream after the last event; EventSource would reconnect.
+    source.close();
+    if (!finished && !stopped) poll();
+  };
+  return stop;
 }
 
 export class JobList {
@@ -56,26 +117,16 @@ export class JobList {
     item.querySelector('progress').setAttribute('aria-label', `Progress of ${label}`);
     const cancel = item.querySelector('.cancel');
     cancel.setAttribute('aria-label', `Cancel ${label}`);
-    cancel.addEventListener('click', async () => {
-      cancel.disabled = true;
-      try { show(await cancelJob(job.id)); } catch { cancel.disabled = false; }
-    });
     this.list.prepend(item);
 
-    let finished = false;
-    let stopped = false;
-    let stopStream = () => {};
-    const stop = () => { stopped = true; stopStream(); this.stops.delete(stop); };
-    this.stops.add(stop);
+    let stop = () => {};
     const show = (state) => {
-      if (finished || stopped || !state) return;
       const status = state.state || state.status || 'running';
       item.dataset.state = status;
       item.querySelector('.state').textContent = status;
       item.querySelector('progress').value = status === 'succeeded' ? 1 : fraction(state.progress);
       if (!TERMINAL.has(status)) return;
-      finished = true;
-      stop();
+      this.stops.delete(stop);
       cancel.remove();
       if (status === 'succeeded') {
         const url = jobResultUrl(job.id);
@@ -105,50 +156,19 @@ export class JobList {
         item.querySelector('.state').textContent = `${status}${error ? `: ${error}` : ''}`;
       }
     };
-
-    const poll = async () => {
-      while (!finished && !stopped) {
-        try {
-          show(await getJob(job.id));
-        } catch (error) {
-          // No (valid) API key: retrying cannot help; other errors are transient.
-          if (error.status === 401) { item.querySelector('.state').textContent = 'needs an API key'; return; }
-        }
-        await new Promise((resolve) => setTimeout(resolve, 1000));
+    stop = follow(job, show, {
+      onError: () => { item.querySelector('.state').textContent = 'needs an API key'; },
+    });
+    if (TERMINAL.has(item.dataset.state)) return; // it had ended already
+    this.stops.add(stop);
+    cancel.addEventListener('click', async () => {
+      cancel.disabled = true;
+      try {
+        const state = await cancelJob(job.id); // a queued job is canceled at once
+        if (TERMINAL.has(state.state)) { stop(); show(state); }
+      } catch {
+        cancel.disabled = false;
       }
-    };
-
-    if (TERMINAL.has(job.state)) {
-      show(job);
-      return;
-    }
-    if (hasApiKey()) {
-      const controller = new AbortController();
-      stopStream = () => controller.abort();
-      const onEvent = (event) => {
-        let data;
-        try { data = JSON.parse(event.data); } catch { return; }
-        show(data.job || data);
-      };
-      streamEvents(jobEventsUrl(job.id), onEvent, { signal: controller.signal })
-        .catch(() => {}) // network error or HTTP error: poll instead
-        .then(() => { if (!finished && !stopped) poll(); }); // ended early: poll
-      return;
-    }
-    const source = new EventSource(jobEventsUrl(job.id));
-    stopStream = () => source.close();
-    const onEvent = (event) => {
-      let data;
-      try { data = JSON.parse(event.data); } catch { return; }
-      show(data.job || data);
-      if (finished) source.close();
-    };
-    source.onmessage = onEvent;
-    for (const name of EVENT_NAMES) source.addEventListener(name, onEvent);
-    source.onerror = () => {
-      // The server closes the stream after the last event; EventSource would reconnect.
-      source.close();
-      if (!finished) poll();
-    };
+    });
   }
 }

@@ -3,7 +3,7 @@ import * as api from './api.js';
 import { TextureMap } from './map.js';
 import { textureItem, wireDropZone } from './library.js';
 import { InterpolationPanel } from './interp.js';
-import { JobList } from './jobs.js';
+import { JobList, follow, fraction } from './jobs.js';
 import { sphereObjFile } from './sphere.js';
 import { readView, writeView } from './permalink.js';
 
@@ -87,6 +87,54 @@ async function sizeExemplar(texture) {
   } catch { /* natural size is the fallback */ }
 }
 
+// ---- refinement: an upload's fit job (TEXSPACE_AUTO_FIT) -----------------------------
+// A new upload is served from its encoder code at once; a fit job then refines the same
+// texture, which serves its own fitted sampler once the job succeeds: the page shows the
+// job's progress, then reloads the map's tiles under new URLs (api.tileVersion).
+
+const ENDED = new Set(['succeeded', 'failed', 'canceled']);
+let stopRefinement = () => {};
+
+function showRefinement(text = '', jobState = '') {
+  $('refinement').textContent = text;
+  $('refinement').hidden = !text;
+  $('refinement').dataset.state = jobState;
+}
+
+/** Follow the refinement of `texture` (the one on the map) while it is under way. */
+function followRefinement(texture) {
+  stopRefinement();
+  stopRefinement = () => {};
+  const refinement = texture.refinement;
+  if (!refinement || texture.sampler === 'fitted' || ENDED.has(refinement.state)) {
+    showRefinement();
+    return;
+  }
+  const refining = (job) => showRefinement(`refining… ${Math.round(fraction(job.progress) * 100)}%`, job.state);
+  refining(refinement);
+  stopRefinement = follow({ id: refinement.job_id, state: refinement.state }, (job) => {
+    if (state.current?.id !== texture.id) return;
+    if (job.state === 'succeeded') refined(texture.id);
+    else if (ENDED.has(job.state)) showRefinement(`refinement ${job.state}: tiles from the encoder's code`, job.state);
+    else refining(job);
+  });
+}
+
+/** The refinement succeeded: the texture's tiles now come from its fitted sampler. */
+async function refined(textureId) {
+  try {
+    const texture = await api.getTexture(textureId);
+    state.textures = state.textures.map((t) => (t.id === texture.id ? texture : t));
+    if (state.current?.id !== texture.id) return;
+    state.current = texture;
+    renderLibrary(); // its new code
+    textureMap.update({ v: api.tileVersion(texture) });
+    showRefinement('refined: tiles from the fitted sampler', 'succeeded');
+  } catch (error) {
+    sayError(error);
+  }
+}
+
 function rememberView() {
   if (state.current && textureMap.textureId) writeView({ t: state.current.id, ...tileParams(), ...textureMap.view() });
 }
@@ -105,8 +153,9 @@ async function showTexture(texture, view = null) {
   for (const button of document.querySelectorAll('#texture-list button')) {
     button.setAttribute('aria-pressed', String(button.dataset.id === texture.id));
   }
+  followRefinement(texture);
   try {
-    await textureMap.show(texture.id, tileParams(), view);
+    await textureMap.show(texture.id, { ...tileParams(), v: api.tileVersion(texture) }, view);
     document.body.dataset.texture = texture.id;
     rememberView();
   } catch (error) {
@@ -305,6 +354,8 @@ async function start() {
 async function restartWithKey(key) {
   api.setApiKey(key);
   jobs.clear();
+  stopRefinement();
+  showRefinement();
   textureMap.clear();
   Object.assign(state, { textures: [], current: null, nextCursor: null });
   $('current-name').textContent = '(pick a texture)';

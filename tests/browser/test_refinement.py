@@ -1,0 +1,48 @@
+"""Refinement by default, in the page: after an upload the page shows the fit job's
+progress ("refining… NN%"), then reloads the map's tiles, now from the fitted sampler
+(new URLs, new pixels). A real server with a real 3-second fit (the train extra)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from .helpers import ALL_TILES_LOADED, TileLog, a_drawn_tile, shoot, texture_photo_png, tile_image_pixels, upload
+
+pytestmark = [pytest.mark.browser, pytest.mark.e2e, pytest.mark.slow]
+FIT_TIMEOUT_MS = 180_000
+
+
+def test_upload_shows_refinement_progress_then_fitted_tiles(page, refining_server: str, artifacts: Path) -> None:
+    tiles = TileLog(page)
+    page.goto(refining_server)
+    page.wait_for_selector("#map.leaflet-container")
+    texture_id = upload(page, "gravel", texture_photo_png("gravel", (0.6, 0.7, 1.0)))
+    page.wait_for_function(ALL_TILES_LOADED, timeout=60_000)
+
+    # the encoder's tiles at once, and the refinement's progress beside them
+    page.wait_for_selector("#refinement:not([hidden])")
+    assert page.text_content("#refinement").startswith("refining… ")
+    page.wait_for_function(
+        "() => /^refining… \\d+%$/.test(document.getElementById('refinement').textContent)")
+    shoot(page, artifacts, "refine-1-refining")
+    tile = a_drawn_tile(page)
+    encoder_pixels = tile_image_pixels(page, *tile)
+    assert all("v=" not in query for *_, query in tiles.keys(texture_id))
+
+    # the job succeeds: the map reloads its tiles under new URLs, drawn by the fitted sampler
+    page.wait_for_function("() => document.getElementById('refinement').dataset.state === 'succeeded'",
+                           timeout=FIT_TIMEOUT_MS)
+    page.wait_for_function("""() => {
+      const tiles = [...document.querySelectorAll('#map img.leaflet-tile')];
+      return tiles.length > 0 && tiles.every((t) => t.src.includes('v=fitted') && t.classList.contains('leaflet-tile-loaded'));
+    }""", timeout=60_000)
+    shoot(page, artifacts, "refine-2-refined")
+    assert page.text_content("#refinement").startswith("refined")
+    assert any("v=fitted" in query for *_, query in tiles.keys(texture_id))
+    fitted_pixels = tile_image_pixels(page, *tile)
+    assert np.abs(fitted_pixels.astype(int) - encoder_pixels.astype(int)).mean() > 1.0
+    texture = page.evaluate("window.texspace.state.current")
+    assert texture["sampler"] == "fitted" and texture["refinement"]["state"] == "succeeded"
+    assert page.js_errors == []

@@ -1,0 +1,252 @@
+"""Refinement by default (TEXSPACE_AUTO_FIT): an upload queues a fit job on the fit lane
+that, when it succeeds, makes the same texture serve its own fitted sampler.
+
+The fit is the stand-in of test_fit_grain.py (no torch); the queue holds its messages
+(MemoryHuey, not immediate) so a test sees the texture before and after the job runs.
+"""
+from __future__ import annotations
+
+import functools
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.context import build_services
+from service.main import create_app
+from service.processes import start_lane
+from service.queue import worker_lanes
+from service.settings import Settings
+from service.tables import Texture
+from service.tiles import CACHE_CONTROL, REFINING_CACHE_CONTROL
+
+from .test_fit_grain import MODEL_DIR, fake_fit_module
+
+TILE = "/v1/textures/{}/tiles/6/0/0.png?size=64"
+
+
+@pytest.fixture
+def fit_calls(monkeypatch) -> list[dict]:
+    calls: list[dict] = []
+    monkeypatch.setitem(sys.modules, "model.fit", fake_fit_module(calls))
+    monkeypatch.setattr("service.job_kinds.torch_available", lambda: True)
+    return calls
+
+
+@pytest.fixture
+def refining(settings, tmp_path, fit_calls):
+    """(client, services) with auto-fit on, a model that ships a space.pt, and a queue
+    that keeps its messages until the test runs them."""
+    if not all((MODEL_DIR / f).is_file() for f in ("manifest.json", "encoder.onnx", "sampler.onnx")):
+        pytest.skip(f"no model export in {MODEL_DIR}")
+    model_dir = tmp_path / "model"
+    model_dir.mkdir()
+    for name in ("manifest.json", "encoder.onnx", "sampler.onnx"):
+        (model_dir / name).write_bytes((MODEL_DIR / name).read_bytes())
+    (model_dir / "space.pt").write_bytes(b"stand-in: the fake fit never reads it")
+    settings.model_dirs = [model_dir]
+    settings.auto_fit = True
+    settings.queue_backend = "memory"
+    services = build_services(settings)
+    with TestClient(create_app(services=services)) as client:
+        yield client, services
+    services.engine.dispose()
+
+
+def upload(client, photo) -> dict:
+    res = client.post("/v1/textures", files={"image": ("brick.png", photo, "image/png")})
+    assert res.status_code == 201, res.text
+    return res.json()
+
+
+def run_fit_lane(services) -> None:
+    task = services.fit_huey.dequeue()
+    assert task is not None, "no message on the fit lane"
+    services.fit_huey.execute(task)
+
+
+def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
+    client, services = refining
+    texture = upload(client, photo)
+    # served from the encoder's code at once; the refinement is queued on the fit lane
+    assert texture["sampler"] == "encoder" and not texture["has_own_sampler"]
+    refinement = texture["refinement"]
+    assert refinement["state"] == "queued" and refinement["progress"] == 0
+    assert services.fit_huey.pending_count() == 1 and services.huey.pending_count() == 0
+    job = client.get(f"/v1/jobs/{refinement['job_id']}").json()
+    assert job["kind"] == "fit" and job["texture_id"] == texture["id"]
+    assert job["params"] == {"seconds": services.settings.fit_seconds, "grain": None, "in_place": True}
+
+    before = client.get(TILE.format(texture["id"]))
+    assert before.status_code == 200
+    assert before.headers["cache-control"] == REFINING_CACHE_CONTROL  # its bytes will change
+
+    run_fit_lane(services)
+    assert len(fit_calls) == 1 and fit_calls[0]["threads"] == services.settings.fit_threads == 1
+    job = client.get(f"/v1/jobs/{refinement['job_id']}").json()
+    assert job["state"] == "succeeded", job
+    assert job["output_texture_id"] == texture["id"]           # the same texture, refined
+    refined = client.get(f"/v1/textures/{texture['id']}").json()
+    assert refined["sampler"] == "fitted" and refined["has_own_sampler"]
+    assert refined["refinement"] == {"job_id": job["id"], "state": "succeeded", "progress": 1.0}
+    assert refined["code"] == [0.0] * 8                         # the fit's code (the stand-in's)
+    assert refined["source"] == "upload" and refined["links"]["tiles"] == texture["links"]["tiles"]
+    assert client.get("/v1/textures").json()["items"][0]["sampler"] == "fitted"
+
+    # the same URL now serves the fitted sampler's bytes under a new ETag, immutable again
+    used: list[Path] = []
+    fitted_sampler = services.registry.fitted_sampler
+    services.registry.fitted_sampler = lambda path: used.append(Path(path)) or fitted_sampler(path)
+    after = client.get(TILE.format(texture["id"]), headers={"If-None-Match": before.headers["etag"]})
+    assert after.status_code == 200
+    assert after.headers["etag"] != before.headers["etag"] and after.content != before.content
+    assert after.headers["cache-control"] == CACHE_CONTROL
+    with services.sessions() as session:
+        row = session.get(Texture, texture["id"])
+    assert used == [services.sampler_path(texture["id"], row.sampler_key)]
+    assert used[0].read_bytes() == (MODEL_DIR / "sampler.onnx").read_bytes()  # what the fit wrote
+    assert row.encoder_code == texture["code"]                  # kept: blends use it
+    assert client.get(TILE.format(texture["id"]), headers={"If-None-Match": after.headers["etag"]}).status_code == 304
+
+
+def test_refined_upload_blends_by_its_encoder_code(refining, photo) -> None:
+    client, services = refining
+    a, b = upload(client, photo), upload(client, photo)
+    run_fit_lane(services)                                      # a is refined, b not yet
+    res = client.post("/v1/textures/interpolate", json={"a": a["id"], "b": b["id"], "t": 0.0})
+    assert res.status_code == 201, res.text
+    assert res.json()["code"] == pytest.approx(a["code"])       # a's encoder code, not the fit's
+    assert res.json()["sampler"] == "encoder" and res.json()["refinement"] is None
+
+
+def test_canceled_refinement_leaves_the_encoder_tiles_final(refining, photo) -> None:
+    client, services = refining
+    texture = upload(client, photo)
+    job_id = texture["refinement"]["job_id"]
+    assert client.post(f"/v1/jobs/{job_id}/cancel").status_code == 202
+    refreshed = client.get(f"/v1/textures/{texture['id']}").json()
+    assert refreshed["sampler"] == "encoder" and refreshed["refinement"]["state"] == "canceled"
+    assert client.get(TILE.format(texture["id"])).headers["cache-control"] == CACHE_CONTROL
+
+
+def test_texture_deleted_during_its_refinement_leaves_no_files(refining, photo, monkeypatch) -> None:
+    client, services = refining
+    texture = upload(client, photo)
+    module = sys.modules["model.fit"]
+
+    @functools.wraps(module.fit_exemplar)
+    def fit_then_delete(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        written = module_fit(*args, **kwargs)
+        assert client.delete(f"/v1/textures/{texture['id']}").status_code == 204
+        return written
+
+    module_fit = module.fit_exemplar
+    monkeypatch.setattr(module, "fit_exemplar", fit_then_delete)
+    deleted: list[str] = []
+    delete_prefix = services.storage.delete_prefix
+    monkeypatch.setattr(services.storage, "delete_prefix", lambda prefix: deleted.append(prefix) or delete_prefix(prefix))
+    run_fit_lane(services)
+    assert any(prefix.startswith(f"textures/{texture['id']}/refined/") for prefix in deleted)  # its own upload
+    root = services.storage.root
+    assert [str(p.relative_to(root)) for p in root.rglob("*") if p.is_file()] == []
+    assert list((services.cache_dir / "samplers").glob(f"{texture['id']}*")) == []
+
+
+def test_auto_fit_off_queues_nothing(refining, photo, fit_calls) -> None:
+    client, services = refining
+    services.settings.auto_fit = False
+    texture = upload(client, photo)
+    assert texture["refinement"] is None and texture["sampler"] == "encoder"
+    assert client.get("/v1/jobs").json()["items"] == []
+    assert services.pending_count() == 0 and fit_calls == []
+    assert client.get(TILE.format(texture["id"])).headers["cache-control"] == CACHE_CONTROL
+
+
+def test_without_torch_auto_fit_is_skipped_silently(refining, photo, monkeypatch) -> None:
+    client, services = refining
+    monkeypatch.setattr("service.job_kinds.torch_available", lambda: False)
+    texture = upload(client, photo)
+    assert texture["refinement"] is None
+    assert client.get("/v1/jobs").json()["items"] == []
+
+
+def test_model_without_checkpoint_is_not_refined(refining, photo) -> None:
+    client, services = refining
+    (services.settings.model_dirs[0] / "space.pt").unlink()
+    assert upload(client, photo)["refinement"] is None
+
+
+def test_full_queue_does_not_fail_the_upload(refining, photo) -> None:
+    client, services = refining
+    services.settings.max_queued_jobs = 1
+    first, second = upload(client, photo), upload(client, photo)
+    assert first["refinement"]["state"] == "queued"
+    assert second["refinement"] is None                         # the queue was full: not refined
+    assert len(client.get("/v1/jobs").json()["items"]) == 1
+
+
+def test_refinement_recomputes_the_colour_with_the_fitted_sampler(refining, photo, monkeypatch) -> None:
+    from service import job_kinds
+    from worker.colour_match import calibrate_texture as real
+
+    client, services = refining
+    calls = []
+
+    def calibrate(sampler, code, image, *, short_side=None):  # noqa: ANN001, ANN202
+        calls.append((sampler, np.asarray(code).tolist(), image.shape, short_side))
+        return real(sampler, code, image, short_side=short_side)
+
+    monkeypatch.setattr(job_kinds, "calibrate_texture", calibrate)
+    texture = upload(client, photo)
+    calls.clear()
+    run_fit_lane(services)
+    with services.sessions() as session:
+        row = session.get(Texture, texture["id"])
+    sampler, code, shape, short_side = calls[-1]
+    assert sampler is services.registry.fitted_sampler(services.sampler_path(row.id, row.sampler_key))
+    assert code == [0.0] * 8 and shape[2] == 3
+    assert short_side == services.registry.get(row.model_version).manifest.get("exemplar_short_side")
+    assert row.colour is not None and len(row.colour) == len(real(sampler, np.zeros(8, np.float32),
+                                                                   np.full((64, 64, 3), 0.5, np.float32)))
+
+
+def test_the_fit_lane_thread_runs_fit_jobs(refining, photo) -> None:
+    client, services = refining
+    texture = upload(client, photo)
+    stop = threading.Event()
+    thread = start_lane(services.fit_huey, stop)
+    try:
+        for _ in range(200):
+            state = client.get(f"/v1/jobs/{texture['refinement']['job_id']}").json()["state"]
+            if state == "succeeded":
+                break
+            stop.wait(0.05)
+    finally:
+        stop.set()
+        thread.join(5)
+    assert state == "succeeded"
+    assert client.get(f"/v1/textures/{texture['id']}").json()["sampler"] == "fitted"
+
+
+@pytest.mark.parametrize(("kinds", "lanes"), [
+    ("volume,bake,region,fit", ["main", "fit"]), ("fit", ["fit"]), ("volume, bake, region", ["main"])])
+def test_worker_kinds_pick_the_lanes(tmp_path, kinds, lanes) -> None:
+    settings = Settings(data_dir=tmp_path, worker_kinds=kinds)
+    assert worker_lanes(settings) == lanes
+
+
+@pytest.mark.parametrize("kinds", ["volume", "bake,fit", "", "tiles"])
+def test_worker_kinds_must_take_whole_queues(tmp_path, kinds) -> None:
+    with pytest.raises(ValueError):
+        Settings(data_dir=tmp_path, worker_kinds=kinds)
+
+
+def test_defaults(monkeypatch) -> None:
+    for key in ("TEXSPACE_AUTO_FIT", "TEXSPACE_FIT_THREADS", "TEXSPACE_WORKER_KINDS"):
+        monkeypatch.delenv(key, raising=False)
+    settings = Settings()
+    assert settings.auto_fit and settings.fit_threads == 1
+    assert worker_lanes(settings) == ["main", "fit"]
