@@ -74,6 +74,27 @@ train: data
 export: install-test
 	$(PY) -m model.export runs/space/checkpoint.pt model/weights
 
+# make train-gpu: the same space on a CUDA GPU, in bounded calls. Each call resumes
+# runs/space-gpu for GPU_MINUTES of steps (default 9, so that one call with its start and
+# export fits a 10-minute command limit; call again to go on), then exports to GPU_EXPORT
+# (runs/space-gpu/weights; GPU_EXPORT=model/weights ships it). An empty runs/space-gpu is
+# seeded from GPU_INIT, a full training checkpoint (weights, Adam state, code table; not an
+# exported space.pt): by default the run that model/weights/space.pt was exported from.
+# It installs nothing: the install targets keep torch CPU-only, so PY must be a Python whose
+# torch sees CUDA, with data/textures (make data) and the VGG16 cache (python -m model.vgg
+# fetch, TEXSPACE_CACHE_DIR) already in place.
+GPU_INIT ?= model/checkpoints/space-train.pt
+GPU_MINUTES ?= 9
+GPU_STEPS ?= 100000
+GPU_EXPORT ?= runs/space-gpu/weights
+GPU_ARGS ?= --batch 16 --patch 256 --lr 5e-4 --no-nearest --smooth --ckpt-every 500 --quiet
+.PHONY: train-gpu
+train-gpu:
+	@if [ ! -f runs/space-gpu/checkpoint.pt ] && [ -f "$(GPU_INIT)" ]; then \
+		mkdir -p runs/space-gpu && cp "$(GPU_INIT)" runs/space-gpu/checkpoint.pt; fi
+	$(PY) -m model.train --out runs/space-gpu --device cuda --steps $(GPU_STEPS) --minutes $(GPU_MINUTES) $(GPU_ARGS)
+	$(PY) -m model.export runs/space-gpu/checkpoint.pt $(GPU_EXPORT)
+
 # The comparison: every variant trained as a space from scratch with the same settings and
 # the same number of steps (runs/compare/<variant>), then evaluated on the validation
 # exemplars together with the shipped space. One thread per run: `make -j2 compare` runs two at once

@@ -96,3 +96,29 @@ def apply_colour(rgb: torch.Tensor, colour: torch.Tensor) -> torch.Tensor:
     d = _lookup(_matvec3(a, compressed), start, step, values)
     squared = torch.square(_matvec3(back, d))
     return (torch.square(squared) - FLOOR).clamp(0.0, 1.0)
+
+
+def compressed_moments(linear: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean [N,3] and covariance [N,3,3] of images [N,3,H,W] (linear RGB) in compressed colour."""
+    flat = torch.sqrt(torch.sqrt(linear.clamp(0.0, 1.0) + FLOOR)).flatten(2)  # [N,3,HW]
+    mean = flat.mean(dim=2)
+    centred = flat - mean.unsqueeze(2)
+    return mean, centred @ centred.transpose(1, 2) / flat.shape[2]
+
+
+def transfer_colour_moments(linear: torch.Tensor, mean: torch.Tensor, covariance: torch.Tensor) -> torch.Tensor:
+    """Give images [N,3,H,W] (linear RGB) a compressed-colour mean [N,3] and covariance
+    [N,3,3] by an affine map in compressed colour (Cholesky whitening, then colouring).
+
+    Training's stand-in for the colour table: the loss then judges structure under the
+    exemplar's colours, whatever colours the decoder produced, as the sampler will show
+    them. Differentiable; a tiny ridge keeps flat patches finite.
+    """
+    eye = torch.eye(3, dtype=linear.dtype, device=linear.device)
+    own_mean, own_covariance = compressed_moments(linear)
+    own = torch.linalg.cholesky(own_covariance + 1e-6 * eye)
+    target = torch.linalg.cholesky(covariance + 1e-6 * eye)
+    flat = torch.sqrt(torch.sqrt(linear.clamp(0.0, 1.0) + FLOOR)).flatten(2) - own_mean.unsqueeze(2)
+    white = torch.linalg.solve_triangular(own, flat, upper=False)
+    coloured = (target @ white + mean.unsqueeze(2)).clamp_min(0.0)
+    return (torch.square(torch.square(coloured)) - FLOOR).clamp(0.0, 1.0).reshape(linear.shape)

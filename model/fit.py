@@ -1,6 +1,6 @@
 """Fit one exemplar (the paper's *single* mode), starting from the shipped space.
 
-    python -m model.fit IMAGE OUTDIR [--minutes 4] [--init model/weights/space.pt]
+    python -m model.fit IMAGE OUTDIR [--minutes 4] [--init model/weights/space.pt] [--device auto]
 
 Starts from the space's encoder code for IMAGE and its decoder, then optimises the
 code, the translator (so the per-octave transforms) and the decoder for this one
@@ -38,10 +38,12 @@ PROBE_EVERY = 25
 
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
                  patch: int = 64, grain: str | None = None, loss: str = "gram", progress=None, quiet: bool = True,
-                 seed: int = 0, threads: int = 0) -> dict:
+                 seed: int = 0, threads: int = 0, device: str = "cpu") -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps'}.
 
     ``threads``: torch threads (process-wide; 0 leaves torch's setting as it is).
+    ``device``: where the steps run, ``cpu`` | ``cuda`` | ``auto`` (cuda when available);
+    the export and the files written are the same either way.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -55,7 +57,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                 "--variant", cfg.variant, "--dims", str(cfg.dims), "--short-side", str(cfg.exemplar_short_side),
                 "--minutes", str(minutes), "--patch", str(patch), "--batch", "2", "--lr", str(FIT_LR),
                 "--transform-lr", str(FIT_TRANSFORM_LR), "--warmup", "20", "--seed", str(seed), "--loss", loss,
-                "--ckpt-every", "1000000", "--probe-every", str(PROBE_EVERY)]
+                "--ckpt-every", "1000000", "--probe-every", str(PROBE_EVERY), "--device", device]
         argv += ["--no-nearest"] if not cfg.nearest_input else []
         argv += ["--smooth"] if cfg.smooth else []
         argv += ["--quiet"] if quiet else []
@@ -100,10 +102,13 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--grain", choices=["x", "y"], help="anisotropic exemplar: its grain runs along image x or y")
     p.add_argument("--loss", choices=["gram", "swd"], default="gram", help="VGG feature statistics to match")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu",
+                   help="where the fit's steps run (auto: cuda when available)")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
-                          patch=args.patch, grain=args.grain, loss=args.loss, quiet=False, seed=args.seed)
+                          patch=args.patch, grain=args.grain, loss=args.loss, quiet=False, seed=args.seed,
+                          device=args.device)
     print(json.dumps({k: result[k] for k in ("version", "steps", "sampler")}))
 
 

@@ -52,6 +52,11 @@ class ModelConfig:
     octave_rotations: bool = True  # fixed random rotation per octave: hides the lattice axes
     pixels_per_unit: float = 256.0  # exemplar pixels per world unit; octave k has 2^k cells per unit
     encoder_width: int = 32
+    # The encoder sees each crop with its colour removed (every channel to zero mean, unit
+    # spread), so codes carry structure only: colour is the texture's colour table
+    # (model/colour.py), measured from the photo itself. False: the original encoder,
+    # which also read the crop's channel means and spreads.
+    colour_blind_encoder: bool = False
     exemplar_short_side: int = 256  # working resolution of exemplars (shorter side, pixels)
     # Anisotropic textures (wood, brushed metal): the world axis the grain runs along ("x" or
     # "y"; None: isotropic) and how much longer every noise cell is along it. Value-noise
@@ -102,12 +107,15 @@ class Encoder(nn.Module):
     """Exemplar -> code z. A ResNet-18-like layout (one block per stage, instance norm).
 
     Instance norm discards each channel's mean and contrast, which *are* the texture's
-    colour, so the input's per-channel mean and std join the pooled features.
+    colour, so the input's per-channel mean and std join the pooled features; a
+    ``colour_blind`` encoder instead normalises every channel of its input first and
+    feeds zeros there (the layout stays the same, so either warm-starts the other).
     image float32 [B,3,H,W] in [-1,1] (sRGB-encoded, RGB)  ->  z float32 [B,code_size]
     """
 
-    def __init__(self, code_size: int = 8, width: int = 32):
+    def __init__(self, code_size: int = 8, width: int = 32, colour_blind: bool = False):
         super().__init__()
+        self.colour_blind = colour_blind
         w = width
         self.stem = nn.Sequential(
             nn.Conv2d(3, w, 5, 2, 2, bias=False), nn.InstanceNorm2d(w, affine=True), nn.ReLU()
@@ -122,6 +130,9 @@ class Encoder(nn.Module):
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         stats = torch.cat([image.mean(dim=(2, 3)), image.std(dim=(2, 3))], dim=1)  # [B,6]
+        if self.colour_blind:
+            image = (image - stats[:, :3, None, None]) / (stats[:, 3:, None, None] + 1e-3)
+            stats = torch.zeros_like(stats)
         pooled = self.stages(self.stem(image)).mean(dim=(2, 3))  # [B,8w]
         return self.head(torch.cat([pooled, stats], dim=1))
 
@@ -311,7 +322,7 @@ class TextureSpace(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.cfg = cfg
-        self.encoder = Encoder(cfg.code_size, cfg.encoder_width)
+        self.encoder = Encoder(cfg.code_size, cfg.encoder_width, cfg.colour_blind_encoder)
         self.field = TextureField(cfg)
 
     def encode(self, image: torch.Tensor) -> torch.Tensor:

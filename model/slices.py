@@ -19,7 +19,7 @@ def plane_points(origins: torch.Tensor, axes: torch.Tensor, size: int, pixels_pe
 
     origins : float64 [B,3], axes : float64 [B,2,3] (u, v)  ->  float64 [B, size*size, 3]
     """
-    steps = (torch.arange(size, dtype=torch.float64) + 0.5) / pixels_per_unit
+    steps = (torch.arange(size, dtype=torch.float64, device=origins.device) + 0.5) / pixels_per_unit
     rows, cols = torch.meshgrid(steps, steps, indexing="ij")  # [S,S]
     offsets = cols.reshape(1, -1, 1) * axes[:, None, 0, :] + rows.reshape(1, -1, 1) * axes[:, None, 1, :]
     return origins[:, None, :] + offsets

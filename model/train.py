@@ -1,6 +1,7 @@
-"""Train a texture space (or fit one exemplar) on the CPU.
+"""Train a texture space (or fit one exemplar) on the CPU or a CUDA GPU.
 
     python -m model.train --out runs/space                 # the shipped space, 3D
+    python -m model.train --out runs/space-gpu --device cuda --batch 16 --patch 256
     python -m model.train --mode single --exemplar IMG --out runs/wood --minutes 5
     python -m model.train --variant perlin --out runs/perlin --steps 2000
 
@@ -11,6 +12,8 @@ and match VGG16 statistics of the exemplar (Gram matrices, or sliced Wasserstein
 Targets are computed once per exemplar from the whole image at the working
 resolution. Checkpoints carry weights + config + step + RNG state, so
 ``--out`` an existing run resumes it, and export rebuilds the model from the file alone.
+Checkpoints always hold CPU tensors, whatever ``--device`` ran the steps, so a run
+started on a GPU resumes on the CPU and the other way round.
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ from tqdm import tqdm
 from model.data import TextureDataset, load_exemplar, sample_batch
 from model.losses import gram_loss, gram_matrices, sliced_wasserstein_loss
 from model.networks import ModelConfig, TextureSpace, VARIANTS, load_checkpoint
-from model.slices import random_planes, render_slices
+from model.colour import compressed_moments, transfer_colour_moments
+from model.slices import linear_to_srgb, random_planes, render_slices, srgb_to_linear
 from model.vgg import GATYS_LAYERS, shared_vgg
 
 
@@ -67,6 +71,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--layers", default=",".join(GATYS_LAYERS))
     p.add_argument("--colour-weight", type=float, default=50.0,
                    help="weight of the sRGB colour mean + covariance match (0: VGG statistics only)")
+    p.add_argument("--colour-normalise", action="store_true",
+                   help="judge structure only: give every synthesised patch its exemplar's colour moments "
+                        "before the loss (the sampler's colour table does the same at inference), "
+                        "train a colour-blind encoder; --colour-weight is then unused")
+    p.add_argument("--decay-start", type=int, default=None,
+                   help="step at which the learning rates start to fall linearly, to 10%% at --decay-end")
+    p.add_argument("--decay-end", type=int, default=None, help="step at which the decay ends (default: --steps)")
     p.add_argument("--oblique", type=float, default=0.5, help="fraction of oblique slice planes")
     p.add_argument("--no-nearest", action="store_true", help="decoder gets interpolated noise only")
     p.add_argument("--smooth", action="store_true", help="smoothstep noise interpolation")
@@ -81,6 +92,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "planes and seeds; the run ends on the best-scoring weights and code (0: off)")
     p.add_argument("--ckpt-every", type=int, default=200)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu",
+                   help="where steps run (auto: cuda when available); checkpoints always hold CPU tensors")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p.parse_args(argv)
 
@@ -101,20 +114,28 @@ class Objective:
     wrong hues (olive wood, blue-grey marble) whose deeper-layer statistics matched.
     """
 
-    def __init__(self, images: list[np.ndarray], layers: tuple[str, ...], kind: str, colour_weight: float = 0.0):
-        self.vgg = shared_vgg(layers)
+    def __init__(self, images: list[np.ndarray], layers: tuple[str, ...], kind: str, colour_weight: float = 0.0,
+                 colour_normalise: bool = False, device: torch.device | str = "cpu"):
+        self.vgg = shared_vgg(layers, device)  # one per device: moving the shared one would move it for all
         self.kind = kind
-        self.colour_weight = colour_weight
+        self.colour_weight = 0.0 if colour_normalise else colour_weight
+        self.colour_normalise = colour_normalise
         self.targets = []  # per exemplar: Grams (gram) or features (swd)
         self.colours = []  # per exemplar: (mean [1,3], covariance [1,3,3])
+        self.compressed = []  # per exemplar: compressed-colour (mean [1,3], covariance [1,3,3])
         with torch.no_grad():
             for image in images:
-                tensor = torch.from_numpy(image.transpose(2, 0, 1).copy())[None]
+                tensor = torch.from_numpy(image.transpose(2, 0, 1).copy())[None].to(device)
                 feats = self.vgg(tensor)
                 self.targets.append(gram_matrices(feats) if kind == "gram" else feats)
                 self.colours.append(colour_moments(tensor))
+                self.compressed.append(compressed_moments(srgb_to_linear(tensor)))
 
     def __call__(self, synth: torch.Tensor, indices: np.ndarray) -> torch.Tensor:
+        if self.colour_normalise:
+            mean = torch.cat([self.compressed[k][0] for k in indices])
+            covariance = torch.cat([self.compressed[k][1] for k in indices])
+            synth = linear_to_srgb(transfer_colour_moments(srgb_to_linear(synth), mean, covariance))
         feats = self.vgg(synth)
         losses = []
         means, covariances = colour_moments(synth)
@@ -133,16 +154,19 @@ class Objective:
 
 def build(args) -> tuple[TextureSpace, torch.nn.Parameter | None, dict]:
     cfg = ModelConfig(variant=args.variant, dims=args.dims, nearest_input=not args.no_nearest,
-                      smooth=args.smooth, exemplar_short_side=args.short_side, grain=args.grain)
+                      smooth=args.smooth, exemplar_short_side=args.short_side, grain=args.grain,
+                      colour_blind_encoder=args.colour_normalise)
     model = TextureSpace(cfg)
     state = {}
     if args.init:
         init, ckpt = load_checkpoint(args.init)
-        # A grain fit starts from an isotropic space: the stretch is a fixed input transform.
-        if init.cfg.to_dict() | {"grain": cfg.grain} != cfg.to_dict():
+        # A grain fit starts from an isotropic space: the stretch is a fixed input transform;
+        # a colour-normalised run may start from a space whose encoder still read colour.
+        if init.cfg.to_dict() | {"grain": cfg.grain, "colour_blind_encoder": cfg.colour_blind_encoder} != cfg.to_dict():
             raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {cfg.to_dict()}")
         model.load_state_dict(init.state_dict())
         state["init"] = str(args.init)
+        state["init_codes"] = ckpt.get("codes")  # a space's learned code table, if it has one
     code = torch.nn.Parameter(torch.zeros(1, cfg.code_size)) if args.mode == "single" else None
     return model, code, state
 
@@ -150,16 +174,48 @@ def build(args) -> tuple[TextureSpace, torch.nn.Parameter | None, dict]:
 def initial_code(model: TextureSpace, image: np.ndarray, crop: int, rng) -> torch.Tensor:
     """The encoder's code for an exemplar: mean over a few crops."""
     crops = sample_batch([image], 8, crop, rng, flips=False, rotations=False)
+    device = next(model.parameters()).device
     with torch.no_grad():
-        return model.encode(torch.from_numpy(crops) * 2 - 1).mean(0, keepdim=True)
+        return model.encode(torch.from_numpy(crops).to(device) * 2 - 1).mean(0, keepdim=True)
 
 
-def learning_rate(step: int, base: float, warmup: int) -> float:
-    return base * min(1.0, (step + 1) / max(1, warmup))
+def resolve_device(name: str) -> torch.device:
+    """``auto`` | ``cpu`` | ``cuda`` -> a torch device; ``cuda`` without CUDA is an error."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda":
+        if not torch.cuda.is_available():
+            raise SystemExit("--device cuda: this torch build or machine has no CUDA device (use cpu or auto)")
+        # TF32 convolutions and matmuls: the VGG loss dominates a step, and its Gram targets
+        # need no more than TF32's 10-bit mantissa. The noise stays exact int64 arithmetic.
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    return torch.device(name)
+
+
+def to_cpu(value):
+    """A copy of nested dicts / lists of tensors with every tensor on the CPU (checkpoints)."""
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, dict):
+        return {k: to_cpu(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(to_cpu(v) for v in value)
+    return value
+
+
+def learning_rate(step: int, base: float, warmup: int, decay: tuple[int, int] | None = None) -> float:
+    """Linear warm-up over ``warmup`` steps; then, with ``decay = (start, end)``, a linear
+    fall to 10% between those steps (the GPU space's loss went flat at a constant rate)."""
+    rate = base * min(1.0, (step + 1) / max(1, warmup))
+    if decay is not None and step > decay[0]:
+        rate *= 1.0 - 0.9 * min(1.0, (step - decay[0]) / max(1, decay[1] - decay[0]))
+    return rate
 
 
 def train(args, progress=None) -> Path:
     """Run (or resume) training; ``progress(fraction)`` is called after every step."""
+    device = resolve_device(args.device)  # first: a missing GPU fails before any loading
     if args.threads:
         torch.set_num_threads(args.threads)
     out = Path(args.out)
@@ -180,6 +236,9 @@ def train(args, progress=None) -> Path:
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     model, code, meta = build(args)
+    model.to(device)
+    if code is not None:
+        code = torch.nn.Parameter(code.data.to(device))
     if code is not None and args.init:
         code.data.copy_(initial_code(model, images[0], crop, rng))
     # Space mode learns one code per exemplar (an auto-decoder table) that the synthesis
@@ -187,8 +246,11 @@ def train(args, progress=None) -> Path:
     # each code directly; through the encoder alone they were too weak, and a CPU-hours
     # space ignored the code and collapsed to one texture.
     if code is None:
-        code_table = torch.nn.Parameter(torch.randn(len(images), model.cfg.code_size, generator=torch.Generator()
-                                                    .manual_seed(args.seed)) * 0.5)
+        code_table = torch.nn.Parameter((torch.randn(len(images), model.cfg.code_size, generator=torch.Generator()
+                                                     .manual_seed(args.seed)) * 0.5).to(device))
+        init_codes = meta.get("init_codes")
+        if init_codes is not None and tuple(init_codes.shape) == tuple(code_table.shape):
+            code_table.data.copy_(init_codes)  # warm start: the decoder knows these codes
         codes = code_table
     else:
         code_table, codes = None, code
@@ -208,9 +270,12 @@ def train(args, progress=None) -> Path:
     step, wall, history = 0, 0.0, []
     if ckpt_path.exists():  # resume
         ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        if "optimizer" not in ckpt:
+            raise SystemExit(f"{ckpt_path} holds weights only (an exported space.pt?), not a training "
+                             "checkpoint: start a new --out with --init FILE instead")
         model.load_state_dict(ckpt["model"])
         base_lrs = [group["base_lr"] for group in optimizer.param_groups]
-        optimizer.load_state_dict(ckpt["optimizer"])
+        optimizer.load_state_dict(ckpt["optimizer"])  # casts the (CPU) moments to each parameter's device
         for group, base_lr in zip(optimizer.param_groups, base_lrs):  # this run's rates, not the saved ones
             group["base_lr"] = base_lr
         codes.data.copy_(ckpt["code"] if code is not None else ckpt["codes"])
@@ -222,14 +287,16 @@ def train(args, progress=None) -> Path:
     # Position-input baselines (mlp, oursP) only work near the origin they saw in training;
     # noise-only models are trained everywhere, which is what makes them infinite.
     extent = POSITION_EXTENT if model.cfg.flags.position else 1000.0
-    objective = Objective(images, tuple(args.layers.split(",")), args.loss, args.colour_weight)
+    objective = Objective(images, tuple(args.layers.split(",")), args.loss, args.colour_weight,
+                          args.colour_normalise, device)
     log = (out / "log.jsonl").open("a")
 
     extra = {}  # more checkpoint fields (the probe's choice)
 
     def save():
         ckpt = {
-            "config": model.cfg.to_dict(), "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+            "config": model.cfg.to_dict(), "model": to_cpu(model.state_dict()),
+            "optimizer": to_cpu(optimizer.state_dict()),
             "step": step, "wall_seconds": wall, "numpy_rng": rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(), "mode": args.mode, "data": names,
             "loss": args.loss, "layers": args.layers, "args": vars(args),
@@ -237,9 +304,9 @@ def train(args, progress=None) -> Path:
         }
         ckpt.update(extra)
         if code is not None:
-            ckpt["code"] = code.detach().clone()
+            ckpt["code"] = to_cpu(code)
         else:
-            ckpt["codes"] = code_table.detach().clone()
+            ckpt["codes"] = to_cpu(code_table)
         tmp = ckpt_path.with_suffix(".tmp")
         torch.save(ckpt, tmp)
         tmp.replace(ckpt_path)
@@ -251,7 +318,8 @@ def train(args, progress=None) -> Path:
     if args.probe_every and code is not None:
         probe_origins, probe_axes = random_planes(4, np.random.default_rng(12345), oblique_fraction=args.oblique,
                                                   dims=args.dims, extent=extent, grain=args.grain)
-        probe_seeds = torch.arange(4, dtype=torch.int64) + 7
+        probe_origins, probe_axes = probe_origins.to(device), probe_axes.to(device)
+        probe_seeds = torch.arange(4, dtype=torch.int64, device=device) + 7
 
         def probe_score() -> float:
             with torch.no_grad():
@@ -291,20 +359,24 @@ def train(args, progress=None) -> Path:
             crops, indices = sample_batch(images, args.batch, crop, rng, return_indices=True,
                                           rotations=not (args.no_rotations or args.grain))
             if code_table is not None:
-                z = code_table[torch.from_numpy(indices)]
-                predicted = model.encode(torch.from_numpy(crops) * 2 - 1)
+                z = code_table[torch.from_numpy(indices).to(device)]
+                if args.colour_normalise:  # a colour-blind encoder also ignores tone curves
+                    crops = crops ** rng.uniform(0.7, 1.4, (len(crops), 1, 1, 1)).astype(np.float32)
+                predicted = model.encode(torch.from_numpy(crops).to(device) * 2 - 1)
                 encoder_loss = (predicted - z.detach()).square().mean()
             else:
                 z = code.expand(args.batch, -1)
-                encoder_loss = torch.zeros(())
+                encoder_loss = torch.zeros((), device=device)
             origins, axes = random_planes(args.batch, rng, oblique_fraction=args.oblique, dims=args.dims,
                                           extent=extent, grain=args.grain)
-            seeds = torch.from_numpy(rng.integers(0, 2**31, size=args.batch))
+            origins, axes = origins.to(device), axes.to(device)
+            seeds = torch.from_numpy(rng.integers(0, 2**31, size=args.batch)).to(device)
             synth = render_slices(model.field, z, seeds, origins, axes, args.patch)
             loss = objective(synth, indices)
 
+            decay = (args.decay_start, args.decay_end or total) if args.decay_start is not None else None
             for group in optimizer.param_groups:
-                group["lr"] = learning_rate(step, group["base_lr"], args.warmup)
+                group["lr"] = learning_rate(step, group["base_lr"], args.warmup, decay)
             optimizer.zero_grad(set_to_none=True)
             (loss + encoder_loss).backward()
             # Clip the synthesis gradients only: the encoder's regression loss is separate.

@@ -213,10 +213,17 @@ class VGG16Features(nn.Module):
         return {name: found[name] for name in self.layers}
 
 
-@lru_cache(maxsize=4)
-def shared_vgg(layers: tuple[str, ...] = GATYS_LAYERS) -> VGG16Features:
-    """One frozen instance per layer set, shared by losses and metrics."""
-    return VGG16Features(layers)
+def shared_vgg(layers: tuple[str, ...] = GATYS_LAYERS, device: torch.device | str = "cpu") -> VGG16Features:
+    """One frozen instance per layer set and device, shared by losses and metrics.
+
+    Never move the returned module (``.to``): it is shared; ask for the device instead.
+    """
+    return _shared_vgg(tuple(layers), str(torch.device(device)))
+
+
+@lru_cache(maxsize=8)
+def _shared_vgg(layers: tuple[str, ...], device: str) -> VGG16Features:
+    return VGG16Features(layers).to(device)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -110,3 +110,28 @@ def test_anchor_changes_the_transform_gradient_not_the_colours():
         grads.append((rgb.detach(), field.translator.to_transform.bias.grad.norm().item()))
     assert torch.equal(grads[0][0], grads[1][0])
     assert grads[1][1] * 100 < grads[0][1]
+
+
+def test_colour_normalised_run_warm_starts_codes_and_decays(tmp_path, brick, vgg):
+    # A space run, then a --colour-normalise run from it: the code table starts from the
+    # space's learned codes (not random ones), the encoder becomes colour-blind, and the
+    # learning rate falls linearly to 10% between --decay-start and --decay-end.
+    from model.train import learning_rate
+
+    data = tmp_path / "data"
+    data.mkdir()
+    for k, tint in enumerate([(1.0, 0.6, 0.3), (0.4, 0.5, 1.0)]):
+        grey = brick if brick.ndim == 3 else brick[..., None]
+        Image.fromarray((grey * np.array(tint) * 255).astype(np.uint8)).save(data / f"t{k}.png")
+    common = ["--data", str(data), "--patch", "32", "--batch", "2", "--short-side", "128", "--crop", "64",
+              "--quiet", "--layers", "relu1_1,relu2_1", "--exclude", ""]
+    train_main(common + ["--out", str(tmp_path / "space"), "--steps", "2"])
+    _, space = load_checkpoint(tmp_path / "space" / "checkpoint.pt")
+    train_main(common + ["--out", str(tmp_path / "cn"), "--steps", "1", "--code-lr", "1e-6",
+                         "--init", str(tmp_path / "space" / "checkpoint.pt"), "--colour-normalise"])
+    model, ckpt = load_checkpoint(tmp_path / "cn" / "checkpoint.pt")
+    assert model.cfg.colour_blind_encoder and not space["config"]["colour_blind_encoder"]
+    assert torch.allclose(ckpt["codes"], space["codes"], atol=1e-4)
+    assert learning_rate(50, 1.0, 10, (100, 200)) == 1.0
+    assert learning_rate(150, 1.0, 10, (100, 200)) == pytest.approx(0.55)
+    assert learning_rate(500, 1.0, 10, (100, 200)) == pytest.approx(0.1)

@@ -1,0 +1,312 @@
+"""Product-level quality protocol (issue 14): what a user gets from an upload, measured.
+
+    make quality
+    python docs/eval/quality.py --model-dir model/weights [--model-dir DIR --label NAME ...] \
+        --exemplars data/textures/val --out docs/eval/quality
+
+Everything goes through the product path, never through torch models: the photo is
+decoded by ``worker.images.read_image`` (sRGB 0..1), its texture code comes from
+``encoder.onnx`` (``encode_image``) followed by the texture's colour table when the
+worker has one (``texture_code``, the only place that knows), and every pixel comes from
+``sampler.onnx`` through ``worker`` (ONNX Runtime). Torch only runs the VGG16 metric.
+
+Per photo and model, at native zoom (zoom 6: one tile pixel = one exemplar pixel at the
+model's working resolution, short side ``exemplar_short_side``):
+
+* tiles: ``render_tile`` of tiles (x, y) in {0, 1}^2, 256 px, seeds 1 and 2 (8 tiles),
+  linear RGB -> sRGB (``worker.colour.linear_to_srgb``);
+* colour: CIELAB (skimage, D65) of the photo at working resolution vs the tiles: deltaE
+  of the means (CIE76 and CIEDE2000) and per-channel Lab std ratio tile / photo, for
+  all 8 tiles pooled and for the worst single tile (largest deltaE; for std, the ratio
+  furthest from 1 per channel). Targets: deltaE76 < 5, std ratio in [0.7, 1.4];
+* style: VGG16 Gram error (``model.losses.gram_loss``, the fixed default layer weights,
+  Gatys layers, target = Gram of the whole photo at working resolution, as
+  ``model/evaluate.py``), mean over the 8 tiles, against a baseline at the same tile
+  positions and seeds: 8-octave value noise (octave k has 2^k cells per world unit,
+  amplitude 2^-k, smoothstep interpolation, random sub-cell offset per octave),
+  colour-matched to the photo's per-channel sRGB mean and std. Two baselines are made,
+  independent per channel (``rgb``) and luminance-only (``lum``: one noise scaled per
+  channel); the one with the lower error on that photo is the baseline (the stronger
+  one; its name is reported). Win: ours < baseline. Target: wins on >= 80% of photos;
+* diversity: VGG feature distance (``model.losses.feature_distance``) between the seed-1
+  and seed-2 tile at each position, mean over positions. Target: > 0 on every photo;
+* 3D: style error of 256 px slices on 3 axis-aligned planes (xy, xz, yz at random
+  offsets, not the tile plane) and 3 oblique planes (``model.slices.fixed_planes``),
+  seeds 1 and 2, pixel spacing 1 / pixels_per_unit, sampled by ``runtime.sampler.sample``.
+  Reported: oblique / axis mean style error. Target: <= 1.5.
+
+Writes ``results.json`` (settings, per-photo numbers, summary) and ``results.md``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from skimage.color import deltaE_ciede2000, rgb2lab
+
+from model.losses import feature_distance, gram_loss, gram_matrices
+from model.slices import fixed_planes
+from model.vgg import GATYS_LAYERS, shared_vgg
+from worker.colour import linear_to_srgb
+from worker.images import encode_image, read_image, resize_short_side
+from worker.runtime import ModelRuntime
+from worker.tiles import NATIVE_ZOOM, render_tile
+
+TILE = 256
+POSITIONS = ((0, 0), (1, 0), (0, 1), (1, 1))  # tile (x, y) at native zoom
+SEEDS = (1, 2)
+OCTAVES = 8
+SLICE_PLANES = 3  # per kind (axis, oblique)
+PLANE_SEED = 0  # fixes the slice planes (as model/evaluate.py's default)
+MAX_PIXELS = 1 << 26
+TARGET_DELTA_E, TARGET_STD, TARGET_WINS, TARGET_OBLIQUE = 5.0, (0.7, 1.4), 0.8, 1.5
+
+
+def texture_code(runtime: ModelRuntime, image: np.ndarray) -> np.ndarray:
+    """What the product stores for a photo: z (8,) plus its colour table when there is one."""
+    code = encode_image(runtime, image)
+    try:
+        from worker.colour_match import calibrate_texture
+    except ImportError:
+        return code
+    return np.concatenate([code, calibrate_texture(runtime.sampler, code, image, short_side=runtime.short_side)])
+
+
+def render_tiles(runtime: ModelRuntime, code: np.ndarray) -> np.ndarray:
+    """Native-zoom tiles, sRGB: (len(SEEDS) * len(POSITIONS), TILE, TILE, 3) float32, seed-major."""
+    return np.stack([linear_to_srgb(render_tile(runtime.sampler, code, seed, NATIVE_ZOOM, x, y, TILE,
+                                                pixels_per_unit=runtime.pixels_per_unit))
+                     for seed in SEEDS for x, y in POSITIONS])
+
+
+def render_slices(runtime: ModelRuntime, code: np.ndarray, kind: str) -> np.ndarray:
+    """256 px slices on ``fixed_planes(kind)``, sRGB: (len(SEEDS) * SLICE_PLANES, TILE, TILE, 3)."""
+    origins, axes = (t.numpy() for t in fixed_planes(kind, SLICE_PLANES, PLANE_SEED))
+    steps = (np.arange(TILE) + 0.5) / runtime.pixels_per_unit
+    # point (i, j) = origin + step_j * u + step_i * v; (planes, rows, cols, 3) float64
+    points = (origins[:, None, None] + steps[None, None, :, None] * axes[:, None, None, 0]
+              + steps[None, :, None, None] * axes[:, None, None, 1])
+    return np.stack([linear_to_srgb(runtime.sampler.sample(p.reshape(-1, 3), code, seed)).reshape(TILE, TILE, 3)
+                     for seed in SEEDS for p in points])
+
+
+def _interpolation_matrix(coords: np.ndarray, frequency: float, offset: float) -> np.ndarray:
+    """(n, m) weights: row i blends the two lattice values around coords[i] * frequency + offset
+    with smoothstep weights; column 0 is the lowest lattice index touched."""
+    t = coords * frequency + offset
+    cell = np.floor(t).astype(np.int64)
+    f = t - cell
+    w = f * f * (3.0 - 2.0 * f)
+    cell -= cell.min()
+    matrix = np.zeros((len(coords), cell.max() + 2))
+    rows = np.arange(len(coords))
+    matrix[rows, cell] = 1.0 - w
+    matrix[rows, cell + 1] = w
+    return matrix
+
+
+def value_noise(height: int, width: int, pixels_per_unit: float, channels: int, seed: int,
+                octaves: int = OCTAVES) -> np.ndarray:
+    """Multi-octave value noise on pixels [0, width) x [0, height) of the native raster.
+
+    Octave k has 2^k cells per world unit (pixel centre (i + 0.5) / pixels_per_unit),
+    amplitude 2^-k, lattice values uniform in [0, 1), smoothstep interpolation, random
+    sub-cell offset per octave and axis. Separable: octave = A_rows @ lattice @ A_cols^T.
+    Returns (height, width, channels) float64 (unnormalised).
+    """
+    rng = np.random.default_rng(seed)
+    rows, cols = ((np.arange(n) + 0.5) / pixels_per_unit for n in (height, width))
+    out = np.zeros((height, width, channels))
+    for k in range(octaves):
+        a_rows = _interpolation_matrix(rows, 2.0**k, rng.random())
+        a_cols = _interpolation_matrix(cols, 2.0**k, rng.random())
+        lattice = rng.random((a_rows.shape[1], a_cols.shape[1], channels))
+        out += 2.0**-k * np.einsum("ri,ijc,wj->rwc", a_rows, lattice, a_cols, optimize=True)
+    return out
+
+
+def colour_match(noise: np.ndarray, photo: np.ndarray) -> np.ndarray:
+    """Noise (..., 1 or 3) -> sRGB (..., 3) float32 with the photo's per-channel mean and std
+    (noise standardised over all its pixels; a 1-channel noise drives all three), clipped to 0..1."""
+    flat = noise.reshape(-1, noise.shape[-1])
+    standard = (noise - flat.mean(0)) / np.maximum(flat.std(0), 1e-12)
+    pixels = photo.reshape(-1, 3)
+    return np.clip(pixels.mean(0) + pixels.std(0) * standard, 0.0, 1.0).astype(np.float32)
+
+
+def baseline_tiles(photo: np.ndarray, pixels_per_unit: float, kind: str) -> np.ndarray:
+    """Colour-matched value noise at the tiles' positions and seeds, like ``render_tiles``."""
+    span = TILE * (1 + max(max(p) for p in POSITIONS))
+    tiles = []
+    for seed in SEEDS:
+        field = colour_match(value_noise(span, span, pixels_per_unit, 3 if kind == "rgb" else 1, seed), photo)
+        tiles += [field[y * TILE:(y + 1) * TILE, x * TILE:(x + 1) * TILE] for x, y in POSITIONS]
+    return np.stack(tiles)
+
+
+def vgg_features(images: np.ndarray, batch: int = 4) -> dict[str, torch.Tensor]:
+    """VGG16 Gatys-layer features of sRGB images (N, H, W, 3) -> {layer: (N, C, h, w)}."""
+    vgg = shared_vgg(GATYS_LAYERS)
+    parts = []
+    with torch.no_grad():
+        for start in range(0, len(images), batch):
+            parts.append(vgg(torch.from_numpy(np.ascontiguousarray(images[start:start + batch].transpose(0, 3, 1, 2)))))
+    return {name: torch.cat([p[name] for p in parts]) for name in parts[0]}
+
+
+def style_errors(images: np.ndarray, targets: dict[str, torch.Tensor]) -> np.ndarray:
+    """Gram error (default layer weights) of each image against the photo's Grams: (N,)."""
+    with torch.no_grad():
+        return gram_loss(vgg_features(images), targets, reduction="none").numpy()
+
+
+def colour_figures(photo_lab: np.ndarray, tiles: np.ndarray) -> dict:
+    """deltaE of mean Lab and Lab std ratios, pooled over tiles (N, H, W, 3) and worst tile."""
+    lab = rgb2lab(tiles).reshape(len(tiles), -1, 3)
+    p_mean, p_std = photo_lab.mean(0), photo_lab.std(0)
+    t_mean, t_std = lab.mean(1), lab.std(1)  # (N, 3)
+    pooled_mean, pooled_std = lab.reshape(-1, 3).mean(0), lab.reshape(-1, 3).std(0)
+    de76 = np.linalg.norm(t_mean - p_mean, axis=1)
+    de00 = deltaE_ciede2000(np.broadcast_to(p_mean, t_mean.shape), t_mean)
+    ratios = t_std / p_std
+    worst_ratio = ratios[np.abs(np.log(ratios)).argmax(0), [0, 1, 2]]
+    return {"pooled": {"de76": float(np.linalg.norm(pooled_mean - p_mean)),
+                       "de2000": float(deltaE_ciede2000(p_mean, pooled_mean)),
+                       "std_ratio": (pooled_std / p_std).tolist()},
+            "worst_tile": {"de76": float(de76.max()), "de2000": float(de00.max()), "std_ratio": worst_ratio.tolist()},
+            "photo_lab_mean": p_mean.tolist(), "photo_lab_std": p_std.tolist(), "tiles_lab_mean": pooled_mean.tolist()}
+
+
+def measure_photo(runtime: ModelRuntime, image: np.ndarray, baselines: dict) -> dict:
+    """Every figure of one photo under one model (``baselines``: per-kind style errors, cached)."""
+    photo = resize_short_side(image, runtime.short_side)
+    with torch.no_grad():
+        targets = gram_matrices(vgg_features(photo[None]))
+    code = texture_code(runtime, image)
+    tiles = render_tiles(runtime, code)
+    features = vgg_features(tiles)
+    with torch.no_grad():
+        ours = gram_loss(features, targets, reduction="none").numpy()
+        n = len(POSITIONS)
+        diversity = feature_distance({k: v[:n] for k, v in features.items()},
+                                     {k: v[n:] for k, v in features.items()}).numpy()
+    key = (runtime.short_side, runtime.pixels_per_unit)
+    if key not in baselines:  # the baseline depends on the working resolution only
+        baselines[key] = {kind: float(style_errors(baseline_tiles(photo, runtime.pixels_per_unit, kind), targets).mean())
+                          for kind in ("rgb", "lum")}
+    base = baselines[key]
+    kind = min(base, key=base.get)
+    axis = style_errors(render_slices(runtime, code, "axis"), targets)
+    oblique = style_errors(render_slices(runtime, code, "oblique"), targets)
+    return {"colour": colour_figures(rgb2lab(photo).reshape(-1, 3), tiles),
+            "style": {"ours": float(ours.mean()), "ours_worst_tile": float(ours.max()),
+                      "baseline": base[kind], "baseline_kind": kind, "baseline_rgb": base["rgb"],
+                      "baseline_lum": base["lum"], "win": bool(ours.mean() < base[kind])},
+            "diversity": float(diversity.mean()), "diversity_min": float(diversity.min()),
+            "style_axis": float(axis.mean()), "style_oblique": float(oblique.mean()),
+            "oblique_over_axis": float(oblique.mean() / axis.mean()), "code_length": int(code.size)}
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Worst cases over photos and pass / fail against the targets, for one model."""
+    ratios = np.array([[r["colour"][w]["std_ratio"] for w in ("pooled", "worst_tile")] for r in rows])  # (P, 2, 3)
+    wins = sum(r["style"]["win"] for r in rows)
+    oblique = np.mean([r["style_oblique"] for r in rows]) / np.mean([r["style_axis"] for r in rows])
+    summary = {
+        "max_de76_pooled": max(r["colour"]["pooled"]["de76"] for r in rows),
+        "max_de76_worst_tile": max(r["colour"]["worst_tile"]["de76"] for r in rows),
+        "max_de2000_pooled": max(r["colour"]["pooled"]["de2000"] for r in rows),
+        "std_ratio_range_pooled": [ratios[:, 0].min(0).tolist(), ratios[:, 0].max(0).tolist()],
+        "std_ratio_range_worst_tile": [ratios[:, 1].min(0).tolist(), ratios[:, 1].max(0).tolist()],
+        "wins": [wins, len(rows)], "min_diversity": min(r["diversity_min"] for r in rows),
+        "oblique_over_axis": float(oblique), "max_oblique_over_axis": max(r["oblique_over_axis"] for r in rows),
+        "mean_style": float(np.mean([r["style"]["ours"] for r in rows])),
+    }
+    low, high = TARGET_STD
+    summary["pass"] = {
+        "de76_pooled": summary["max_de76_pooled"] < TARGET_DELTA_E,
+        "de76_worst_tile": summary["max_de76_worst_tile"] < TARGET_DELTA_E,
+        "std_ratio_pooled": bool(((ratios[:, 0] >= low) & (ratios[:, 0] <= high)).all()),
+        "std_ratio_worst_tile": bool(((ratios[:, 1] >= low) & (ratios[:, 1] <= high)).all()),
+        "wins": wins >= TARGET_WINS * len(rows), "diversity": summary["min_diversity"] > 0,
+        "oblique_over_axis": summary["oblique_over_axis"] <= TARGET_OBLIQUE,
+    }
+    return summary
+
+
+def to_markdown(report: dict) -> str:
+    """Summary table (one row per model), then one per-photo table per model."""
+    f3 = lambda values: "/".join(f"{v:.2f}" for v in values)  # noqa: E731
+    mark = lambda ok: "" if ok else " **x**"  # noqa: E731
+    lines = ["# Product quality (issue 14)", "", "Through encoder.onnx + sampler.onnx (worker/). Colour: CIELAB of the "
+             "photo vs native-zoom tiles (x, y in {0,1}, seeds 1, 2). Std ratio: tile / photo, L/a/b. Style: VGG Gram "
+             "error, ours vs the stronger colour-matched value-noise baseline. Targets: dE76 < 5, std ratio in "
+             "[0.7, 1.4], wins >= 80%, diversity > 0, oblique / axis <= 1.5. **x**: target missed.", "",
+             "| model | max dE76 pooled | max dE76 worst tile | max dE2000 pooled | std ratio pooled min..max "
+             "| std ratio worst tile min..max | wins | min diversity | oblique / axis | mean style |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for label, entry in report["models"].items():
+        s, ok = entry["summary"], entry["summary"]["pass"]
+        lines.append(
+            f"| {label} | {s['max_de76_pooled']:.2f}{mark(ok['de76_pooled'])} | {s['max_de76_worst_tile']:.2f}"
+            f"{mark(ok['de76_worst_tile'])} | {s['max_de2000_pooled']:.2f} | {f3(s['std_ratio_range_pooled'][0])} .. "
+            f"{f3(s['std_ratio_range_pooled'][1])}{mark(ok['std_ratio_pooled'])} | "
+            f"{f3(s['std_ratio_range_worst_tile'][0])} .. {f3(s['std_ratio_range_worst_tile'][1])}"
+            f"{mark(ok['std_ratio_worst_tile'])} | {s['wins'][0]}/{s['wins'][1]}{mark(ok['wins'])} | "
+            f"{s['min_diversity']:.3f}{mark(ok['diversity'])} | {s['oblique_over_axis']:.2f}"
+            f"{mark(ok['oblique_over_axis'])} | {s['mean_style']:.3f} |")
+    for label, entry in report["models"].items():
+        lines += ["", f"## {label} ({entry['model_dir']}, version {entry['version']}, step {entry['step']})", "",
+                  "| photo | dE76 pooled | dE2000 pooled | dE76 worst tile | std ratio pooled | std ratio worst tile "
+                  "| style ours | baseline (kind) | win | diversity | oblique / axis |", "|---" * 11 + "|"]
+        for photo, r in entry["photos"].items():
+            c, st = r["colour"], r["style"]
+            lines.append(f"| {photo} | {c['pooled']['de76']:.2f} | {c['pooled']['de2000']:.2f} | "
+                         f"{c['worst_tile']['de76']:.2f} | {f3(c['pooled']['std_ratio'])} | "
+                         f"{f3(c['worst_tile']['std_ratio'])} | {st['ours']:.3f} | {st['baseline']:.3f} "
+                         f"({st['baseline_kind']}) | {'yes' if st['win'] else 'no'} | {r['diversity']:.3f} | "
+                         f"{r['oblique_over_axis']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model-dir", type=Path, action="append", required=True, help="exported model (repeatable)")
+    parser.add_argument("--label", action="append", default=[], help="name of each --model-dir, in order")
+    parser.add_argument("--exemplars", type=Path, default=Path("data/textures/val"))
+    parser.add_argument("--out", type=Path, default=Path("docs/eval/quality"))
+    args = parser.parse_args(argv)
+    if len(args.label) > len(args.model_dir):
+        parser.error("more --label than --model-dir")
+    labels = args.label + [d.name for d in args.model_dir[len(args.label):]]
+    photos = sorted(p for p in args.exemplars.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    if not photos:
+        parser.error(f"no photos in {args.exemplars}")
+    torch.set_num_threads(2)
+    images = {p.stem: read_image(p.read_bytes(), max_pixels=MAX_PIXELS) for p in photos}
+    baselines: dict[str, dict] = {name: {} for name in images}
+    report = {"settings": {"tile": TILE, "zoom": NATIVE_ZOOM, "positions": POSITIONS, "seeds": SEEDS,
+                           "octaves": OCTAVES, "slice_planes": SLICE_PLANES, "plane_seed": PLANE_SEED,
+                           "layers": GATYS_LAYERS, "exemplars": str(args.exemplars)}, "models": {}}
+    for label, model_dir in zip(labels, args.model_dir):
+        runtime, start = ModelRuntime(model_dir), time.perf_counter()
+        rows = {name: measure_photo(runtime, image, baselines[name]) for name, image in images.items()}
+        report["models"][label] = {
+            "model_dir": str(model_dir), "version": runtime.version,
+            "step": runtime.manifest["training"].get("steps"), "seconds": round(time.perf_counter() - start, 1),
+            "summary": summarise(list(rows.values())), "photos": rows}
+        print(f"{label}: {len(rows)} photos in {report['models'][label]['seconds']} s", flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "results.json").write_text(json.dumps(report, indent=2) + "\n")
+    markdown = to_markdown(report)
+    (args.out / "results.md").write_text(markdown)
+    print(markdown + f"\nwrote {args.out}/results.json, results.md")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,58 @@
+"""docs/eval/quality.py: the value-noise baseline (pure numpy; no model, no VGG run)."""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch", reason="docs/eval/quality.py imports model/ (the train extra)")
+
+SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "eval" / "quality.py"
+
+
+@pytest.fixture(scope="module")
+def quality():
+    spec = importlib.util.spec_from_file_location("eval_quality", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_value_noise_is_deterministic_per_seed(quality):
+    a = quality.value_noise(64, 48, 16.0, 3, seed=1)
+    assert a.shape == (64, 48, 3)
+    np.testing.assert_array_equal(a, quality.value_noise(64, 48, 16.0, 3, seed=1))
+    assert np.abs(a - quality.value_noise(64, 48, 16.0, 3, seed=2)).mean() > 0.05
+
+
+def test_value_noise_is_stationary(quality):
+    """Quadrants of a window many octave-0 cells wide have the same mean and spread."""
+    noise = quality.value_noise(256, 256, 16.0, 1, seed=3)[..., 0]
+    quadrants = [noise[:128, :128], noise[:128, 128:], noise[128:, :128], noise[128:, 128:]]
+    means, stds = np.array([q.mean() for q in quadrants]), np.array([q.std() for q in quadrants])
+    assert np.ptp(means) < 0.5 * noise.std()
+    assert stds.max() / stds.min() < 1.25
+
+
+def test_colour_match_gives_the_photo_mean_and_std(quality):
+    rng = np.random.default_rng(0)
+    photo = (0.4 + 0.05 * rng.standard_normal((64, 64, 3)) * [1.0, 0.5, 2.0]).astype(np.float32)
+    for channels in (3, 1):
+        matched = quality.colour_match(quality.value_noise(128, 128, 32.0, channels, seed=4), photo)
+        assert matched.shape == (128, 128, 3) and matched.dtype == np.float32
+        np.testing.assert_allclose(matched.reshape(-1, 3).mean(0), photo.reshape(-1, 3).mean(0), atol=1e-4)
+        np.testing.assert_allclose(matched.reshape(-1, 3).std(0), photo.reshape(-1, 3).std(0), rtol=1e-3)
+    # luminance-only: one noise drives all three channels (perfectly correlated)
+    assert np.corrcoef(matched.reshape(-1, 3), rowvar=False).min() > 0.999
+
+
+def test_baseline_tiles_sit_at_the_tile_positions(quality):
+    photo = np.full((32, 32, 3), 0.5, np.float32)
+    photo[::2] = 0.3
+    tiles = quality.baseline_tiles(photo, 256.0, "lum")
+    assert tiles.shape == (len(quality.SEEDS) * len(quality.POSITIONS), quality.TILE, quality.TILE, 3)
+    # tiles (0, 0) and (1, 0) of one seed are neighbours on one field: they join without a seam
+    seam = np.abs(tiles[0][:, -1] - tiles[1][:, 0]).mean()
+    assert seam < 2 * np.abs(np.diff(tiles[0], axis=1)).mean()
