@@ -194,3 +194,49 @@ def model_config(model_dir: Path) -> dict:
     manifest = json.loads((model_dir / "manifest.json").read_text())
     return manifest.get("config") or {"n_octaves": 8, "hidden": 128, "n_hidden_layers": 4,
                                       "nearest_input": True, "variant": manifest["variant"], "dims": 3}
+
+
+def colour_stage_cost(model_dir: Path, threads: int, chunk: int, rounds: int = 5, log=print) -> dict | None:
+    """The sampler with its colour stage against the same weights exported without it.
+
+    Issue 14's budget: the colour table may cost the sampler at most 10%. Both graphs run
+    through worker/runtime at the same setting, alternated ``rounds`` times so a change in
+    the shared machine's load hits both; returns their medians. None without torch.
+    """
+    try:
+        import torch
+    except ImportError:
+        return None
+    import tempfile
+
+    from model.export import _export
+    from model.networks import load_checkpoint
+    from worker.runtime import SamplerSession
+
+    class RawSampler(torch.nn.Module):  # Contract 1 before the colour stage (points, z, seed -> rgb)
+        def __init__(self, field):
+            super().__init__()
+            self.field = field
+
+        def forward(self, points, z, seed):
+            return self.field(points.reshape(z.shape[0], -1, 3), z, seed.reshape([])).reshape(-1, 3)
+
+    model, _ = load_checkpoint(model_dir / "space.pt")
+    points, code = bench_points(), bench_code()
+    with tempfile.TemporaryDirectory() as tmp:
+        raw_path = Path(tmp) / "sampler.onnx"
+        _export(RawSampler(model.field), (torch.rand(64, 3, dtype=torch.float64), torch.zeros(1, 8),
+                                          torch.tensor(0)), raw_path, ["points", "z", "seed"], ["rgb"],
+                {"points": {0: "P"}, "z": {0: "R"}, "rgb": {0: "P"}})
+        sessions = {"with_colour": SamplerSession(model_dir / "sampler.onnx", threads=threads, chunk=chunk),
+                    "without_colour": SamplerSession(raw_path, threads=threads, chunk=chunk)}
+        times: dict[str, list[float]] = {name: [] for name in sessions}
+        for session in sessions.values():
+            session.sample(points[:4096], code, 0)
+        for _ in range(rounds):
+            for name, session in sessions.items():
+                times[name].append(best_of(partial(session.sample, points, code, 7), 1))
+    rates = {name: len(points) / float(np.median(t)) for name, t in times.items()}
+    log(f"  colour stage: with {rates['with_colour'] / 1e6:.3f} / without {rates['without_colour'] / 1e6:.3f} "
+        f"M points/s (median of {rounds}, alternated)")
+    return rates

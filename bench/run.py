@@ -80,6 +80,10 @@ def measure(only: set[str], quick: bool) -> dict:
         else:
             results["torch_eager_points_per_s"] = eager["points_per_s"]
             results["torch_eager_setting"] = {k: eager[k] for k in ("batch", "threads")}
+        colour = kernels.colour_stage_cost(model_dir, sweep["best"]["threads"], sweep["best"]["chunk"], log=log)
+        if colour is not None:
+            results["sampler_with_colour_points_per_s"] = colour["with_colour"]
+            results["sampler_without_colour_points_per_s"] = colour["without_colour"]
         results["tile_256_render_in_process_s"] = serving.tile_in_process(model_dir)
         log(f"  tile 256^2 rendered in process (no HTTP, no PNG): {results['tile_256_render_in_process_s']:.3f} s")
 
@@ -145,6 +149,11 @@ def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
         x = sampler / r["torch_eager_points_per_s"]
         ratio("sampler_vs_torch_eager", x, ">= 1.5", x >= 1.5, "sampler vs torch eager",
               f"{sampler / 1e6:.3f} M", f"{x:.2f} x torch {r['torch_eager_points_per_s'] / 1e6:.3f} M")
+    if r.get("sampler_with_colour_points_per_s") and r.get("sampler_without_colour_points_per_s"):
+        x = r["sampler_with_colour_points_per_s"] / r["sampler_without_colour_points_per_s"]
+        ratio("colour_stage_cost", x, ">= 0.9", x >= 0.9, "sampler with colour stage",
+              f"{r['sampler_with_colour_points_per_s'] / 1e6:.3f} M",
+              f"{x:.2f} x without it {r['sampler_without_colour_points_per_s'] / 1e6:.3f} M")
     if sampler and "tile_256_cold_p50_s" in r:
         ref = 65536 / sampler
         x = r["tile_256_cold_p50_s"] / ref

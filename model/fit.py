@@ -60,6 +60,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                 "--ckpt-every", "1000000", "--probe-every", str(PROBE_EVERY), "--device", device]
         argv += ["--no-nearest"] if not cfg.nearest_input else []
         argv += ["--smooth"] if cfg.smooth else []
+        # a space trained for colour tables fits the same way: structure under the photo's colours
+        argv += ["--colour-normalise"] if cfg.colour_blind_encoder else []
         argv += ["--quiet"] if quiet else []
         argv += ["--grain", grain] if grain else []
         argv += ["--threads", str(threads)] if threads else []
@@ -104,11 +106,12 @@ def main(argv=None):
     p.add_argument("--loss", choices=["gram", "swd"], default="gram", help="VGG feature statistics to match")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu",
                    help="where the fit's steps run (auto: cuda when available)")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
                           patch=args.patch, grain=args.grain, loss=args.loss, quiet=False, seed=args.seed,
-                          device=args.device)
+                          device=args.device, threads=args.threads)
     print(json.dumps({k: result[k] for k in ("version", "steps", "sampler")}))
 
 

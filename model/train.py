@@ -273,6 +273,11 @@ def train(args, progress=None) -> Path:
         if "optimizer" not in ckpt:
             raise SystemExit(f"{ckpt_path} holds weights only (an exported space.pt?), not a training "
                              "checkpoint: start a new --out with --init FILE instead")
+        saved = ModelConfig(**ckpt["config"]).to_dict()  # (fills fields added since it was written)
+        if saved != model.cfg.to_dict():
+            changed = sorted(k for k in saved if saved[k] != model.cfg.to_dict().get(k))
+            raise SystemExit(f"{ckpt_path} was trained with other settings ({', '.join(changed)}); resume it "
+                             "with the same flags, or start a new --out with --init")
         model.load_state_dict(ckpt["model"])
         base_lrs = [group["base_lr"] for group in optimizer.param_groups]
         optimizer.load_state_dict(ckpt["optimizer"])  # casts the (CPU) moments to each parameter's device

@@ -19,6 +19,8 @@ model's working resolution, short side ``exemplar_short_side``):
   of the means (CIE76 and CIEDE2000) and per-channel Lab std ratio tile / photo, for
   all 8 tiles pooled and for the worst single tile (largest deltaE; for std, the ratio
   furthest from 1 per channel). Targets: deltaE76 < 5, std ratio in [0.7, 1.4];
+* fits (``--fits``): the same figures for each photo's fitted sampler (``model.fit``
+  output), with its fitted code and a colour table computed for that sampler;
 * style: VGG16 Gram error (``model.losses.gram_loss``, the fixed default layer weights,
   Gatys layers, target = Gram of the whole photo at working resolution, as
   ``model/evaluate.py``), mean over the 8 tiles, against a baseline at the same tile
@@ -52,8 +54,9 @@ from model.losses import feature_distance, gram_loss, gram_matrices
 from model.slices import fixed_planes
 from model.vgg import GATYS_LAYERS, shared_vgg
 from worker.colour import linear_to_srgb
+from worker.colour_match import calibrate_texture, texture_vector
 from worker.images import encode_image, read_image, resize_short_side
-from worker.runtime import ModelRuntime
+from worker.runtime import ModelRuntime, SamplerSession
 from worker.tiles import NATIVE_ZOOM, render_tile
 
 TILE = 256
@@ -67,13 +70,22 @@ TARGET_DELTA_E, TARGET_STD, TARGET_WINS, TARGET_OBLIQUE = 5.0, (0.7, 1.4), 0.8, 
 
 
 def texture_code(runtime: ModelRuntime, image: np.ndarray) -> np.ndarray:
-    """What the product stores for a photo: z (8,) plus its colour table when there is one."""
-    code = encode_image(runtime, image)
-    try:
-        from worker.colour_match import calibrate_texture
-    except ImportError:
-        return code
-    return np.concatenate([code, calibrate_texture(runtime.sampler, code, image, short_side=runtime.short_side)])
+    """What the product stores for a photo: z (8,) plus its colour table when there is one
+    (a ``FittedRuntime`` brings its fitted code instead of the encoder's)."""
+    code = getattr(runtime, "fitted_code", None)
+    if code is None:
+        code = encode_image(runtime, image)
+    return texture_vector(code, calibrate_texture(runtime.sampler, code, image, short_side=runtime.short_side))
+
+
+class FittedRuntime:
+    """A photo's fitted sampler (``model.fit`` output folder) in place of a model's encoder
+    code and sampler, as a refined upload serves it: its own colour table is computed here."""
+
+    def __init__(self, model: ModelRuntime, fit_dir: Path):
+        self.sampler = SamplerSession(fit_dir / "sampler.onnx")
+        self.fitted_code = np.asarray(json.loads((fit_dir / "code.json").read_text())["code"], np.float32)
+        self.short_side, self.pixels_per_unit = model.short_side, model.pixels_per_unit
 
 
 def render_tiles(runtime: ModelRuntime, code: np.ndarray) -> np.ndarray:
@@ -279,6 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--label", action="append", default=[], help="name of each --model-dir, in order")
     parser.add_argument("--exemplars", type=Path, default=Path("data/textures/val"))
     parser.add_argument("--out", type=Path, default=Path("docs/eval/quality"))
+    parser.add_argument("--fits", type=Path, help="folder of model.fit outputs, one per photo (FITS/<photo stem>/), "
+                                                 "fitted from the first --model-dir: measured as one more model")
     args = parser.parse_args(argv)
     if len(args.label) > len(args.model_dir):
         parser.error("more --label than --model-dir")
@@ -300,6 +314,13 @@ def main(argv: list[str] | None = None) -> int:
             "step": runtime.manifest["training"].get("steps"), "seconds": round(time.perf_counter() - start, 1),
             "summary": summarise(list(rows.values())), "photos": rows}
         print(f"{label}: {len(rows)} photos in {report['models'][label]['seconds']} s", flush=True)
+    if args.fits:
+        model, start = ModelRuntime(args.model_dir[0]), time.perf_counter()
+        rows = {name: measure_photo(FittedRuntime(model, args.fits / name), image, baselines[name])
+                for name, image in images.items() if (args.fits / name / "sampler.onnx").is_file()}
+        report["models"][f"{labels[0]}-fit"] = {
+            "model_dir": str(args.fits), "version": "per photo", "step": "fit",
+            "seconds": round(time.perf_counter() - start, 1), "summary": summarise(list(rows.values())), "photos": rows}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(report, indent=2) + "\n")
     markdown = to_markdown(report)

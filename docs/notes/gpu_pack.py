@@ -1,0 +1,75 @@
+"""Training on a lent GPU machine that takes at most 64 MiB of files and has no network.
+
+    python docs/notes/gpu_pack.py pack CHECKPOINT OUT       # here: writes OUT/ (~18 MiB)
+    python3 OUT/gpu_pack.py train -- TRAIN_ARGS...           # there: model.train with the packed files
+
+``pack`` writes into OUT: the VGG16 convs conv1_1..conv5_1 quantised to int8 per output
+channel (the verified fp32 cache is 59 MB; the int8 features at relu1_1..relu5_1 are within
+0.2-3% of the exact ones), the training photos resized to the working resolution (short
+side 256, as training loads them), CHECKPOINT's weights and code table without the Adam
+state (for ``--init``), and a copy of this script. ``train`` restores the VGG weights to
+fp32, hands them to model.vgg in place of its cache and runs ``model.train`` with
+``--data OUT/data --init OUT/init.pt`` added. How the shipped space was made with it:
+model/weights/MODEL_CARD.md, "The shipped space".
+"""
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+import torch
+
+VGG_CONVS = ("conv1_1", "conv1_2", "conv2_1", "conv2_2", "conv3_1", "conv3_2", "conv3_3",
+             "conv4_1", "conv4_2", "conv4_3", "conv5_1")
+HERE = Path(__file__).resolve().parent
+
+
+def pack(checkpoint: str, out: str, data: str = "data/textures/train", short_side: int = 256) -> None:
+    from PIL import Image
+
+    from model.vgg import fetch_vgg16_weights
+
+    out_dir = Path(out)
+    (out_dir / "data").mkdir(parents=True, exist_ok=True)
+    state = torch.load(fetch_vgg16_weights(), weights_only=True)
+    packed = {}
+    for name in VGG_CONVS:
+        weight = state[f"{name}.weight"]
+        scale = weight.abs().amax(dim=(1, 2, 3), keepdim=True) / 127
+        packed[f"{name}.weight.q"] = torch.round(weight / scale).clamp(-127, 127).to(torch.int8)
+        packed[f"{name}.weight.scale"] = scale
+        packed[f"{name}.bias"] = state[f"{name}.bias"]
+    torch.save(packed, out_dir / "vgg16_int8.pt")
+    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    torch.save({k: ckpt[k] for k in ("config", "model", "step", "codes", "data", "mode") if k in ckpt},
+               out_dir / "init.pt")
+    for photo in sorted(Path(data).glob("*.png")):
+        image = Image.open(photo).convert("RGB")
+        scale = short_side / min(image.size)
+        if scale < 1:
+            image = image.resize((round(image.width * scale), round(image.height * scale)), Image.LANCZOS)
+        image.save(out_dir / "data" / photo.name, optimize=True)
+    shutil.copy(__file__, out_dir / "gpu_pack.py")
+
+
+def train(argv: list[str]) -> None:
+    sys.path.insert(0, str(HERE.parent))  # the repository root, OUT's parent
+    import model.vgg as vgg
+
+    packed = torch.load(HERE / "vgg16_int8.pt")
+    state = {f"{n}.weight": packed[f"{n}.weight.q"].float() * packed[f"{n}.weight.scale"] for n in VGG_CONVS}
+    state.update({f"{n}.bias": packed[f"{n}.bias"] for n in VGG_CONVS})
+    vgg._cached_state = lambda: state  # the forward pass never reaches conv5_2 for relu5_1
+    from model.train import main
+
+    main(["--data", str(HERE / "data"), "--init", str(HERE / "init.pt"), *argv])
+
+
+if __name__ == "__main__":
+    if len(sys.argv) >= 4 and sys.argv[1] == "pack":
+        pack(*sys.argv[2:])
+    elif len(sys.argv) >= 2 and sys.argv[1] == "train":
+        train([a for a in sys.argv[2:] if a != "--"])
+    else:
+        sys.exit(__doc__)
