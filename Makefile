@@ -59,7 +59,7 @@ clean-data:
 # make train resumes runs/space (seeded from the committed checkpoint when present),
 # stops after TRAIN_STEPS steps in total, then exports to model/weights/.
 TRAIN_STEPS ?= 20000
-TRAIN_ARGS ?= --patch 64 --batch 4 --lr 2e-4 --warmup 200 --no-nearest --smooth --colour-normalise --threads 2 --ckpt-every 100
+TRAIN_ARGS ?= --patch 64 --batch 4 --lr 2e-4 --warmup 200 --no-nearest --smooth --colour-normalise --isotropic-transforms --threads 2 --ckpt-every 100
 .PHONY: data train export evaluate
 
 data: install-test
@@ -87,7 +87,7 @@ GPU_INIT ?= model/checkpoints/space-train.pt
 GPU_MINUTES ?= 9
 GPU_STEPS ?= 100000
 GPU_EXPORT ?= runs/space-gpu/weights
-GPU_ARGS ?= --batch 16 --patch 256 --lr 2e-4 --warmup 100 --no-nearest --smooth --colour-normalise --ckpt-every 500 --quiet
+GPU_ARGS ?= --batch 16 --patch 256 --lr 2e-4 --warmup 100 --no-nearest --smooth --colour-normalise --isotropic-transforms --ckpt-every 500 --quiet
 .PHONY: train-gpu
 train-gpu:
 	@if [ ! -f runs/space-gpu/checkpoint.pt ] && [ -f "$(GPU_INIT)" ]; then \

@@ -62,6 +62,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         argv += ["--smooth"] if cfg.smooth else []
         # a space trained for colour tables fits the same way: structure under the photo's colours
         argv += ["--colour-normalise"] if cfg.colour_blind_encoder else []
+        argv += ["--isotropic-transforms"] if cfg.isotropic_transforms else []
         argv += ["--quiet"] if quiet else []
         argv += ["--grain", grain] if grain else []
         argv += ["--threads", str(threads)] if threads else []

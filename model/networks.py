@@ -50,6 +50,11 @@ class ModelConfig:
     nearest_input: bool = True  # feed the nearest-cell value as well as the interpolated one
     smooth: bool = False  # smoothstep interpolation weights instead of linear
     octave_rotations: bool = True  # fixed random rotation per octave: hides the lattice axes
+    # Each learned per-octave transform is replaced by the isotropic scale of the same volume,
+    # |det T|^(1/D) I. Free transforms learned one stretch direction shared by many textures
+    # (a 3D diagonal that shows on every slice plane): blobs and streaks leaned 20-30 degrees
+    # in every 2D tile. Grain is a fixed input stretch (``grain``), unaffected.
+    isotropic_transforms: bool = False
     pixels_per_unit: float = 256.0  # exemplar pixels per world unit; octave k has 2^k cells per unit
     encoder_width: int = 32
     # The encoder sees each crop with its colour removed (every channel to zero mean, unit
@@ -151,6 +156,15 @@ def _fixed_rotations(n: int, dims: int, seed: int = 20200614) -> torch.Tensor:
     return q
 
 
+def _determinant(m: torch.Tensor) -> torch.Tensor:
+    """det of [..., D, D] matrices, D in (2, 3), written out (ONNX Runtime has no float Det)."""
+    if m.shape[-1] == 2:
+        return m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
+    return (m[..., 0, 0] * (m[..., 1, 1] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 1])
+            - m[..., 0, 1] * (m[..., 1, 0] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 0])
+            + m[..., 0, 2] * (m[..., 1, 0] * m[..., 2, 1] - m[..., 1, 1] * m[..., 2, 0]))
+
+
 class Translator(nn.Module):
     """z [B,8] -> extended code e [B,64], transforms T [B,K,D,D], RGB octave weights [B,K+1,3]."""
 
@@ -180,6 +194,10 @@ class Translator(nn.Module):
         h = self.body(z)
         eye = torch.eye(d, dtype=z.dtype, device=z.device)
         transforms = eye + self.to_transform(h).reshape(-1, k, d, d)
+        if self.cfg.isotropic_transforms:
+            # float64: the scale multiplies lattice coordinates in the thousands at the finest octave
+            scale = _determinant(transforms.to(torch.float64)).abs().clamp_min(1e-12) ** (1.0 / d)
+            transforms = scale[..., None, None] * eye.to(torch.float64)
         mix = self.to_mix(h).reshape(-1, k + 1, 3)
         return self.to_extended(h), transforms, mix
 

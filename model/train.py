@@ -75,6 +75,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="judge structure only: give every synthesised patch its exemplar's colour moments "
                         "before the loss (the sampler's colour table does the same at inference), "
                         "train a colour-blind encoder; --colour-weight is then unused")
+    p.add_argument("--isotropic-transforms", action="store_true",
+                   help="per-octave transforms keep only their isotropic scale (|det T|^(1/D) I): no learned "
+                        "stretch direction, so 2D tiles do not lean")
     p.add_argument("--decay-start", type=int, default=None,
                    help="step at which the learning rates start to fall linearly, to 10%% at --decay-end")
     p.add_argument("--decay-end", type=int, default=None, help="step at which the decay ends (default: --steps)")
@@ -155,14 +158,15 @@ class Objective:
 def build(args) -> tuple[TextureSpace, torch.nn.Parameter | None, dict]:
     cfg = ModelConfig(variant=args.variant, dims=args.dims, nearest_input=not args.no_nearest,
                       smooth=args.smooth, exemplar_short_side=args.short_side, grain=args.grain,
-                      colour_blind_encoder=args.colour_normalise)
+                      colour_blind_encoder=args.colour_normalise, isotropic_transforms=args.isotropic_transforms)
     model = TextureSpace(cfg)
     state = {}
     if args.init:
         init, ckpt = load_checkpoint(args.init)
         # A grain fit starts from an isotropic space: the stretch is a fixed input transform;
         # a colour-normalised run may start from a space whose encoder still read colour.
-        if init.cfg.to_dict() | {"grain": cfg.grain, "colour_blind_encoder": cfg.colour_blind_encoder} != cfg.to_dict():
+        if init.cfg.to_dict() | {"grain": cfg.grain, "colour_blind_encoder": cfg.colour_blind_encoder,
+                                 "isotropic_transforms": cfg.isotropic_transforms} != cfg.to_dict():
             raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {cfg.to_dict()}")
         model.load_state_dict(init.state_dict())
         state["init"] = str(args.init)
