@@ -4,10 +4,12 @@ from __future__ import annotations
 import base64
 import datetime as dt
 import json
+import unicodedata
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
 from fastapi import Depends, Header, Path, Query, Request
+from pydantic import AfterValidator
 from sqlalchemy import Select, and_, or_
 
 from worker.tiles import MAX_TILE_SIZE, MAX_ZOOM, MIN_TILE_SIZE, MIN_ZOOM
@@ -20,11 +22,32 @@ TileFormat = Literal["png", "webp", "exr"]
 COORD_LIMIT = 2**36  # |x|, |y| of tiles: beyond, float64 raster positions lose exactness
 
 
+def printable(value: str) -> str:
+    """``value`` unchanged, or ValueError (a 422) if it holds a control character (NUL
+    included: PostgreSQL text cannot store it) or a lone surrogate (not UTF-8)."""
+    for char in value:
+        if unicodedata.category(char) in ("Cc", "Cs"):
+            raise ValueError(f"control characters are not allowed (found U+{ord(char):04X})")
+    return value
+
+
+#: free text and ids from clients: refused at the edge (422) when they hold control characters
+SafeText = Annotated[str, AfterValidator(printable)]
+TextureId = Annotated[SafeText, Path(description="texture id")]
+JobId = Annotated[SafeText, Path(description="job id")]
+
+
 def get_services(request: Request) -> Services:
     return request.app.state.services
 
 
 ServicesDep = Annotated[Services, Depends(get_services)]
+
+
+def public_base_url(request: Request, services: Services) -> str:
+    """The API's public URL, no trailing slash: TEXSPACE_PUBLIC_BASE_URL where set, never
+    the client's Host header then; else the URL the request came to."""
+    return (services.settings.public_base_url or str(request.base_url)).rstrip("/")
 
 
 @dataclass
@@ -63,7 +86,7 @@ def idempotency_key(
 @dataclass
 class PageParams:
     limit: Annotated[int, Query(ge=1, le=200, description="items per page")] = 50
-    cursor: Annotated[str | None, Query(max_length=200, description="next_cursor of the previous page")] = None
+    cursor: Annotated[SafeText | None, Query(max_length=200, description="next_cursor of the previous page")] = None
 
 
 def encode_cursor(created_at: dt.datetime, ident: str) -> str:
@@ -78,7 +101,10 @@ def apply_cursor(query: Select, table, page: PageParams) -> Select:  # noqa: ANN
     try:
         padded = page.cursor + "=" * (-len(page.cursor) % 4)
         stamp, ident = json.loads(base64.urlsafe_b64decode(padded))
-        created = dt.datetime.fromisoformat(stamp)
+        if not isinstance(stamp, str) or not isinstance(ident, str):  # a tampered cursor: 422, not 500
+            raise TypeError("cursor fields must be strings")
+        created = dt.datetime.fromisoformat(printable(stamp))
+        printable(ident)
     except (ValueError, TypeError) as exc:
         raise Problem(422, "invalid cursor", slug="validation-error") from exc
     return query.where(or_(table.created_at < created, and_(table.created_at == created, table.id < ident)))

@@ -19,7 +19,7 @@ import numpy as np
 
 from worker.colour_match import calibrate_texture
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
-from worker.images import read_image
+from worker.images import read_image, write_image
 
 from .context import Services
 from .db import session_scope
@@ -153,6 +153,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
         raise InvalidParameter(f"texture {texture.id} has no exemplar image to fit")
     # keep the extension: image readers pick the decoder by it
     image_path = services.storage.get_file(texture.exemplar_key, workdir / Path(texture.exemplar_key).name)
+    image_path = _as_png(services, image_path)
     out_dir = workdir / "fit"
     _fit_exemplar(services, job, texture, image_path, out_dir, progress, should_cancel)
     code = json.loads((out_dir / "code.json").read_text())
@@ -177,6 +178,16 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
                                 exemplar_media_type=texture.exemplar_media_type,
                                 width=texture.width, height=texture.height, sampler_key=sampler_key))
     return {**values, "output_texture_id": new_id}
+
+
+def _as_png(services: Services, image_path: Path) -> Path:
+    """The exemplar as decoded by the service's one reader (worker.images.read_image: EXR,
+    16-bit, grey, alpha...), written as an 8-bit sRGB PNG beside it: model.fit reads images
+    with Pillow, which knows fewer formats, and a fit must see what the upload saw."""
+    image = read_image(image_path.read_bytes(), max_pixels=services.settings.max_image_pixels)
+    png = image_path.with_name("exemplar-decoded.png")
+    png.write_bytes(write_image(image, "png", colour="srgb"))
+    return png
 
 
 def _fit_exemplar(services: Services, job: Job, texture: Texture, image_path: Path, out_dir: Path,

@@ -1,5 +1,6 @@
-"""ASGI middleware: request id (X-Request-ID in and out), metrics, access log, and a
-request body limit enforced while the body streams in."""
+"""ASGI middleware: request id (X-Request-ID in and out), metrics, access log, a
+request body limit enforced while the body streams in, HEAD wherever GET (RFC 9110), and
+the 500 problem for an unexpected error (answered here, so it carries the request id)."""
 from __future__ import annotations
 
 import logging
@@ -8,13 +9,21 @@ import time
 import uuid
 
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect, Request
 
-from .errors import Problem, problem_response
+from .errors import Problem, problem_for, problem_response
 from .logs import request_id_var
 from .metrics import Metrics
 
 log = logging.getLogger("service.access")
+error_log = logging.getLogger("service.errors")
 _SAFE_ID = re.compile(r"^[A-Za-z0-9._:\-]{1,128}$")
+#: metric label values for methods; any other method is counted as "other" (one series)
+KNOWN_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS", "TRACE", "CONNECT"})
+
+
+class _HeadDone(OSError):
+    """Raised from ``send`` once a HEAD answer is complete: stops a streaming GET body."""
 
 
 class BodyTooLarge(StarletteHTTPException):
@@ -42,7 +51,11 @@ class RequestContextMiddleware:
         request_id = incoming if _SAFE_ID.match(incoming) else uuid.uuid4().hex
         token = request_id_var.set(request_id)
         started = time.perf_counter()
-        status = {"code": 500, "sent": False}
+        status = {"code": 500, "sent": False, "done": False}
+        method = scope["method"]
+        head = method == "HEAD"
+        if head:  # answered by the GET route, without its body
+            scope = dict(scope, method="GET")
 
         async def send_with_id(message) -> None:  # noqa: ANN001
             if message["type"] == "http.response.start":
@@ -50,6 +63,13 @@ class RequestContextMiddleware:
                 status["sent"] = True
                 message.setdefault("headers", [])
                 message["headers"] = list(message["headers"]) + [(b"x-request-id", request_id.encode())]
+            elif head and message["type"] == "http.response.body":
+                if status["done"]:
+                    if message.get("more_body", False):
+                        raise _HeadDone()
+                    return
+                status["done"] = True
+                message = {"type": "http.response.body", "body": b"", "more_body": False}
             await send(message)
 
         received = 0
@@ -73,13 +93,22 @@ class RequestContextMiddleware:
                 problem = Problem(413, f"request body larger than {self.max_body_bytes} bytes",
                                   slug="limit-exceeded")
                 await problem_response(problem)(scope, receive, send_with_id)
+        except (_HeadDone, ClientDisconnect):
+            if not status["done"]:
+                raise
+        except Exception as exc:  # here, not in Starlette's outer handler: the id is still ours
+            if status["sent"]:
+                raise
+            error_log.exception("unhandled error on %s %s", method, scope["path"])
+            await problem_response(problem_for(exc), Request(scope))(scope, receive, send_with_id)
         finally:
             route = scope.get("route")
             route_path = getattr(route, "path", None) or "unmatched"
             elapsed = time.perf_counter() - started
-            self.metrics.requests.labels(scope["method"], route_path, str(status["code"])).inc()
-            self.metrics.latency.labels(scope["method"], route_path).observe(elapsed)
-            log.info("%s %s %s", scope["method"], scope["path"], status["code"],
+            label = method if method in KNOWN_METHODS else "other"
+            self.metrics.requests.labels(label, route_path, str(status["code"])).inc()
+            self.metrics.latency.labels(label, route_path).observe(elapsed)
+            log.info("%s %s %s", method, scope["path"], status["code"],
                      extra={"status": status["code"], "ms": round(elapsed * 1000, 2), "route": route_path,
                             "request_id": request_id})
             request_id_var.reset(token)

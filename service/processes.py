@@ -19,7 +19,50 @@ def run_api(settings: Settings) -> None:
     import uvicorn
 
     uvicorn.run("service.main:app_from_env", factory=True, host=settings.host, port=settings.port,
-                log_config=None, timeout_graceful_shutdown=5)
+                log_config=None, timeout_graceful_shutdown=5, http=read_timeout_protocol(settings),
+                timeout_keep_alive=settings.http_keep_alive_seconds,
+                limit_concurrency=settings.http_limit_concurrency)
+
+
+def read_timeout_protocol(settings: Settings) -> type:
+    """uvicorn's h11 protocol with a read deadline (uvicorn has none): a connection whose
+    request headers and body have not all arrived ``http_read_timeout_seconds`` after it
+    opened (or after its previous response) is closed, so slowloris clients and bodies
+    shorter than their Content-Length do not hold connections forever. Requests already
+    read (a long tile, an event stream) are not affected."""
+    import h11
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    timeout = settings.http_read_timeout_seconds
+
+    class ReadTimeoutProtocol(H11Protocol):
+        _read_deadline = None
+
+        def _arm_read_deadline(self) -> None:
+            if self._read_deadline is not None:
+                self._read_deadline.cancel()
+            self._read_deadline = self.loop.call_later(timeout, self._read_timed_out)
+
+        def connection_made(self, transport) -> None:  # noqa: ANN001
+            super().connection_made(transport)
+            self._arm_read_deadline()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            self._arm_read_deadline()
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            if self._read_deadline is not None:
+                self._read_deadline.cancel()
+            super().connection_lost(exc)
+
+        def _read_timed_out(self) -> None:
+            self._read_deadline = None
+            if not self.transport.is_closing() and self.conn.their_state in (h11.IDLE, h11.SEND_BODY):
+                log.info("closing a connection: request not read within %ss", timeout)
+                self.transport.close()
+
+    return ReadTimeoutProtocol
 
 
 def start_reaper(services, stop: threading.Event) -> threading.Thread:  # noqa: ANN001

@@ -4,8 +4,11 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
+from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM
+
+from .deps import SafeText
 from .tables import Job, Texture
 
 CODE_SIZE = 8
@@ -76,15 +79,15 @@ class TexturePage(BaseModel):
 
 class TexturePatch(BaseModel):
     model_config = {"extra": "forbid"}
-    name: str = Field(max_length=200)
+    name: SafeText = Field(max_length=200)
 
 
 class InterpolateIn(BaseModel):
     model_config = {"extra": "forbid"}
-    a: str = Field(description="texture id at t = 0")
-    b: str = Field(description="texture id at t = 1")
+    a: SafeText = Field(description="texture id at t = 0")
+    b: SafeText = Field(description="texture id at t = 1")
     t: float = Field(ge=0.0, le=1.0)
-    name: str | None = Field(None, max_length=200)
+    name: SafeText | None = Field(None, max_length=200)
 
 
 Bounds = Annotated[list[list[float]], Field(min_length=2, max_length=2, description="[[x0,y0,z0],[x1,y1,z1]] world units")]
@@ -121,13 +124,16 @@ class FitIn(BaseModel):
                           "axis so tiles keep the grain in the photo's orientation. null: isotropic")
 
 
+RASTER_LIMIT = COORD_LIMIT * MAX_TILE_SIZE  # the raster window worker/tiles.py renders exactly
+
+
 class RegionIn(BaseModel):
     """A large 2D export of the infinite plane (issue 5), rendered by a job."""
 
     model_config = {"extra": "forbid"}
-    z: int = Field(description="zoom level, as for tiles")
-    x0: int = Field(description="first raster column at zoom z")
-    y0: int = Field(description="first raster row at zoom z")
+    z: int = Field(ge=MIN_ZOOM, le=MAX_ZOOM, description="zoom level, as for tiles")
+    x0: int = Field(ge=-RASTER_LIMIT, le=RASTER_LIMIT, description="first raster column at zoom z")
+    y0: int = Field(ge=-RASTER_LIMIT, le=RASTER_LIMIT, description="first raster row at zoom z")
     width: int = Field(ge=1, le=16384)
     height: int = Field(ge=1, le=16384)
     seed: Seed = 0
@@ -137,7 +143,16 @@ class RegionIn(BaseModel):
         "png", description="png: 8-bit sRGB; tiff: tiled 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
                            "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json")
     size: int = Field(256, ge=64, le=1024, description="pyramid tile size")
-    min_zoom: int | None = Field(None, description="pyramid: lowest zoom (default: the minimum zoom)")
+    min_zoom: int | None = Field(None, ge=MIN_ZOOM, le=MAX_ZOOM,
+                                 description="pyramid: lowest zoom, at most z (default: the minimum zoom)")
+
+    @model_validator(mode="after")
+    def _within_raster(self) -> RegionIn:
+        if max(abs(self.x0 + self.width), abs(self.y0 + self.height)) > RASTER_LIMIT:
+            raise ValueError(f"the region must stay within +-{RASTER_LIMIT} raster pixels")
+        if self.min_zoom is not None and self.min_zoom > self.z:
+            raise ValueError(f"min_zoom {self.min_zoom} is above z {self.z}")
+        return self
 
 
 class JobResult(BaseModel):

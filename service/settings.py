@@ -60,6 +60,10 @@ class Settings(BaseSettings):
     max_mesh_faces: int = Field(200_000, ge=1)
     max_mesh_vertices: int = Field(200_000, ge=3)
     max_tile_size: int = Field(1024, ge=16)
+    max_tile_samples: int = Field(4 * 2**20, ge=64 * 64, description="sampler calls of one tile: "
+                                  "(size x supersampling factor)^2, the factor 2^(6 - z) capped at 4")
+    decode_budget_pixels: int = Field(64 * 2**20, ge=64 * 64, description="pixels the API's decoded "
+                                      "uploads may hold together; a decode waits for room")
     max_region_pixels: int = Field(8192 * 8192, ge=64 * 64)
     max_region_tiles: int = Field(4096, ge=1)
     max_volume_resolution: int = Field(256, ge=2)
@@ -88,6 +92,14 @@ class Settings(BaseSettings):
 
     # --- HTTP ----------------------------------------------------------------------------
     tile_cache_bytes: int = Field(64 * 2**20, ge=0)
+    http_read_timeout_seconds: float = Field(60.0, gt=0, description="a request's headers and body must "
+                                             "arrive within this long of the connection opening or "
+                                             "its previous response ending")
+    http_keep_alive_seconds: float = Field(5.0, gt=0, description="idle keep-alive connections close after")
+    http_limit_concurrency: int = Field(256, ge=1, description="connections + running requests of one API "
+                                        "process; beyond, 503")
+    public_base_url: str | None = Field(None, description="scheme://host[:port][/prefix] clients reach the API "
+                                        "at; tilejson's tile URLs use it (default: the request's own URL)")
     api_keys_enabled: bool = False
     api_key_pepper: str = Field("texspace-dev-pepper", description="server-side secret mixed into "
                                 "API key hashes; set your own in production")

@@ -1,6 +1,8 @@
 """Fixtures shared by every test folder. Keep small: folder conftests hold the rest."""
 from __future__ import annotations
 
+import contextlib
+
 import os
 import socket
 import uuid
@@ -32,21 +34,29 @@ def moto_s3_url() -> Iterator[str]:
         server.stop()
 
 
-@pytest.fixture
-def postgres_url() -> Iterator[str]:
-    """A fresh, empty PostgreSQL database on the local server (dropped afterwards)."""
+@contextlib.contextmanager
+def fresh_postgres_database(prefix: str = "texspace_test") -> Iterator[str]:
+    """The URL of a new, empty database on the local PostgreSQL server, dropped on exit;
+    a skip saying why when the server does not answer."""
     psycopg = pytest.importorskip("psycopg")
     try:
         admin = psycopg.connect(PG_ADMIN_URL, autocommit=True, connect_timeout=3)
     except psycopg.Error as exc:
         pytest.skip(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {exc}")
-    name = f"texspace_test_{uuid.uuid4().hex[:10]}"
+    name = f"{prefix}_{uuid.uuid4().hex[:10]}"
     admin.execute(f'CREATE DATABASE "{name}"')
     try:
         yield PG_ADMIN_URL.rsplit("/", 1)[0] + "/" + name
     finally:
         admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
         admin.close()
+
+
+@pytest.fixture
+def postgres_url() -> Iterator[str]:
+    """A fresh, empty PostgreSQL database on the local server (dropped afterwards)."""
+    with fresh_postgres_database() as url:
+        yield url
 
 
 @pytest.fixture

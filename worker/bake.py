@@ -3,8 +3,8 @@
 Steps, each reported through ``progress`` and preceded by a ``should_cancel`` check:
 
 1. Load with trimesh (OBJ, PLY, STL, GLB/glTF binary; ``process=False`` so seam
-   vertices stay split) and validate: parse errors, no faces, non-finite vertices,
-   out-of-range indices, all-degenerate faces -> InvalidMesh; face/vertex counts over
+   vertices stay split) and validate: parse errors, no faces, non-finite vertices or
+   coordinates beyond +-``MAX_COORDINATE``, out-of-range indices, all-degenerate faces -> InvalidMesh; face/vertex counts over
    the limits -> LimitExceeded. Degenerate (zero-area) faces are kept in the output
    but cover no texel.
 2. UVs: the mesh's own are kept when present, finite, inside [0, 1] and not
@@ -51,6 +51,8 @@ MESH_TYPES = {"obj": "obj", "ply": "ply", "stl": "stl", "glb": "glb"}
 MAX_UV_OVERLAP = 0.01
 DEFAULT_SPAN_PIXELS = 512.0
 AREA_EPS = 1e-20           # squared-length scale below which a face counts as degenerate
+# |coordinate| limit: beyond it xatlas (float32) spins for minutes and extent ** 4 overflows
+MAX_COORDINATE = 1e9
 _ZIP_TIME = (2020, 1, 1, 0, 0, 0)
 
 
@@ -101,6 +103,8 @@ def load_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
         raise LimitExceeded(f"mesh has {len(vertices)} vertices, limit is {limits.max_vertices}")
     if not np.isfinite(vertices).all():
         raise InvalidMesh("mesh has NaN or infinite vertex coordinates")
+    if np.abs(vertices).max() > MAX_COORDINATE:
+        raise InvalidMesh(f"mesh has vertex coordinates beyond +-{MAX_COORDINATE:g}")
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise InvalidMesh(f"face indices out of range [0, {len(vertices)})")
     tri = vertices[faces]
@@ -187,7 +191,7 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
         vmap, faces, uv = atlas.parametrize(
             vertices, faces, resolution=resolution, padding=max(1, padding // 2),
             timeout=limits.atlas_timeout, memory_bytes=limits.atlas_memory_bytes,
-            crash_for_test=atlas_crash_for_test)
+            crash_for_test=atlas_crash_for_test, should_cancel=should_cancel)
         vertices, uv_source = vertices[vmap], "xatlas"
         timings["atlas"] = time.perf_counter() - clock
     step(0.3)

@@ -7,7 +7,12 @@ Python binding has no in-memory reader). Conventions of what comes out:
 * The format is recognised from the first bytes (PNG, JPEG, TIFF, EXR, WebP, GIF, BMP),
   never from the file name; anything else is refused.
 * Declared width x height (and channel count) are checked against ``max_pixels`` from
-  the header, *before* any pixel is decoded (decompression bombs).
+  the header, *before* any pixel is decoded (decompression bombs), and so is the aspect
+  ratio (at most ``MAX_ASPECT``: a 16 x 1,000,000 strip would be upscaled to gigapixels).
+* Decoding goes in bands of scanlines into the one (H, W, 3) float32 output, so a decode
+  costs the output plus ~``DECODE_BAND_PIXELS`` pixels; with ``set_decode_budget`` (the
+  API) the outputs of concurrent decodes hold at most that many pixels together (a decode
+  waits for room; its pixels count until the returned array is freed).
 * 8/16-bit integer data are normalised by OIIO to 0..1. Float data (EXR, float TIFF)
   are taken as linear light: NaN/inf become 0, values are clipped to 0..1 (no tone
   mapping) and sRGB-encoded.
@@ -26,6 +31,8 @@ from __future__ import annotations
 import io
 import os
 import tempfile
+import threading
+import weakref
 
 import numpy as np
 import OpenImageIO as oiio
@@ -38,6 +45,10 @@ from worker.errors import InvalidImage, InvalidParameter, LimitExceeded
 from worker.runtime import ModelRuntime
 
 MIN_SIDE = 16             # smaller uploads carry no usable texture
+MAX_ASPECT = 16           # long side / short side of an upload (else upscaling explodes)
+DECODE_BAND_PIXELS = 1 << 20   # pixels decoded (as float) at a time
+RESIZE_DIRECT_PIXELS = 1 << 22  # larger images are box-reduced in bands before resizing
+MAX_WORK_PIXELS = 1 << 24       # resize_short_side refuses to produce more pixels than this
 MID_GREY = np.float32(0.5)
 OUTPUT_FORMATS = ("png", "webp", "jpeg", "exr", "tiff")
 _MAGIC = (  # (prefix, offset, extension)
@@ -60,11 +71,45 @@ def sniff_format(data: bytes) -> str:
     raise InvalidImage("unrecognised image format (expected PNG, JPEG, TIFF, EXR, WebP, GIF or BMP)")
 
 
+class PixelBudget:
+    """A weighted semaphore counted in pixels: ``take(n)`` blocks until n fit (a request
+    larger than the whole budget waits until it runs alone)."""
+
+    def __init__(self, pixels: int) -> None:
+        self.pixels = int(pixels)
+        self.used = 0
+        self._cond = threading.Condition()
+
+    def take(self, n: int) -> int:
+        n = min(int(n), self.pixels)
+        with self._cond:
+            self._cond.wait_for(lambda: self.used + n <= self.pixels)
+            self.used += n
+        return n
+
+    def give(self, n: int) -> None:
+        with self._cond:
+            self.used -= n
+            self._cond.notify_all()
+
+
+_budget: PixelBudget | None = None
+
+
+def set_decode_budget(pixels: int | None) -> None:
+    """Bound the pixels that this process's live decoded images hold together (None: no
+    bound). The API sets it (TEXSPACE_DECODE_BUDGET_PIXELS); code that keeps several decoded
+    images alive at once must not (it would wait on itself)."""
+    global _budget
+    _budget = PixelBudget(pixels) if pixels else None
+
+
 def read_image(data: bytes, *, max_pixels: int, min_side: int = MIN_SIDE) -> np.ndarray:
     """Decode an uploaded image. Returns (H, W, 3) float32 sRGB-encoded 0..1.
 
-    Raises InvalidImage (empty, unknown, truncated, too small) or LimitExceeded
-    (width * height > max_pixels, checked from the header before decoding).
+    Raises InvalidImage (empty, unknown, truncated, too small, aspect ratio over
+    MAX_ASPECT) or LimitExceeded (width * height > max_pixels, checked from the header
+    before decoding).
     """
     if not data:
         raise InvalidImage("empty upload (0 bytes)")
@@ -89,16 +134,40 @@ def read_image(data: bytes, *, max_pixels: int, min_side: int = MIN_SIDE) -> np.
                 raise LimitExceeded(f"image is {w}x{h} = {w * h} pixels, limit is {max_pixels}")
             if min(w, h) < min_side:
                 raise InvalidImage(f"image is {w}x{h}; both sides must be at least {min_side} pixels")
+            if max(w, h) > MAX_ASPECT * min(w, h):
+                raise InvalidImage(f"image is {w}x{h}; the long side may be at most {MAX_ASPECT} "
+                                   "times the short side")
             if not 1 <= c <= 16:
                 raise InvalidImage(f"unsupported channel count {c}")
-            pixels = inp.read_image(0, 0, 0, c, "float")
-            if pixels is None or inp.has_error:
-                raise InvalidImage(f"corrupt or truncated {ext} image: {inp.geterror().strip()}")
-            is_float = spec.format.basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
-            alpha = spec.alpha_channel
+            budget = _budget
+            held = budget.take(w * h) if budget is not None else 0
+            try:
+                out = _decode_bands(inp, ext, spec)
+            except BaseException:
+                if held:
+                    budget.give(held)
+                raise
+            if held:
+                weakref.finalize(out, budget.give, held)
         finally:
             inp.close()
-    return _to_srgb_rgb(np.asarray(pixels, dtype=np.float32).reshape(h, w, c), is_float, alpha)
+    return out
+
+
+def _decode_bands(inp, ext: str, spec) -> np.ndarray:  # noqa: ANN001 (OIIO objects)
+    """Decode in bands of scanlines into one (H, W, 3) float32 sRGB array."""
+    w, h, c = spec.width, spec.height, spec.nchannels
+    is_float = spec.format.basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
+    out = np.empty((h, w, 3), dtype=np.float32)
+    rows = max(1, DECODE_BAND_PIXELS // w)
+    for y0 in range(0, h, rows):
+        y1 = min(h, y0 + rows)
+        band = inp.read_scanlines(0, 0, spec.y + y0, spec.y + y1, 0, 0, c, "float")
+        if band is None or inp.has_error:
+            raise InvalidImage(f"corrupt or truncated {ext} image: {inp.geterror().strip()}")
+        band = np.asarray(band, dtype=np.float32).reshape(y1 - y0, w, c)
+        out[y0:y1] = _to_srgb_rgb(band, is_float, spec.alpha_channel)
+    return out
 
 
 def _to_srgb_rgb(px: np.ndarray, is_float: bool, alpha_channel: int) -> np.ndarray:
@@ -132,8 +201,29 @@ def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
     shape = (max(short_side, round(h * scale)), max(short_side, round(w * scale)))
     if shape == (h, w):
         return image
+    if shape[0] * shape[1] > MAX_WORK_PIXELS:
+        raise LimitExceeded(f"resizing {w}x{h} to a short side of {short_side} gives "
+                            f"{shape[0] * shape[1]} pixels, limit is {MAX_WORK_PIXELS}")
+    factor = min(h, w) // short_side
+    if h * w > RESIZE_DIRECT_PIXELS and factor >= 2:
+        # scikit-image filters the whole image in float64: box-reduce a large one first,
+        # in bands (float32, bounded memory), to a short side in [short_side, 2 * short_side)
+        image = _box_reduce(image, factor)
     out = resize(image, shape + (3,), order=1, anti_aliasing=scale < 1, preserve_range=True)
     return out.astype(np.float32, copy=False)
+
+
+def _box_reduce(image: np.ndarray, factor: int) -> np.ndarray:
+    """Mean of factor x factor blocks of (H, W, 3) float32, a band of rows at a time
+    (trailing rows / columns that fill no whole block are dropped)."""
+    h, w = image.shape[0] // factor, image.shape[1] // factor
+    out = np.empty((h, w, 3), dtype=np.float32)
+    rows = max(1, DECODE_BAND_PIXELS // (w * factor * factor))
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        band = image[r0 * factor:r1 * factor, :w * factor]
+        out[r0:r1] = band.reshape(r1 - r0, factor, w, factor, 3).mean(axis=(1, 3), dtype=np.float32)
+    return out
 
 
 def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: int = 3) -> np.ndarray:

@@ -61,6 +61,17 @@ def _pyramid_levels(z: int, min_zoom: int, tiles: tuple[int, int, int, int]):
     return levels
 
 
+def pyramid_tile_count(z: int, min_zoom: int, x0: int, y0: int, width: int, height: int, size: int) -> int:
+    """Tiles of a pyramid of the region, all levels together (what ``max_tiles`` bounds)."""
+    return sum((xb - xa) * (yb - ya) for _, xa, ya, xb, yb in
+               _pyramid_levels(z, min_zoom, _tile_box(x0, y0, width, height, size)))
+
+
+def _tile_box(x0: int, y0: int, width: int, height: int, size: int) -> tuple[int, int, int, int]:
+    """(tx0, ty0, tx1, ty1): the size-pixel tiles covering the pixel rectangle."""
+    return x0 // size, y0 // size, -(-(x0 + width) // size), -(-(y0 + height) // size)
+
+
 def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: int, y0: int,
                   width: int, height: int, fmt: str = "png", out_path: str | os.PathLike,
                   size: int = 256, min_zoom: int | None = None, plane: str = "xy",
@@ -91,8 +102,7 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
             low = MIN_ZOOM if min_zoom is None else int(min_zoom)
             if not MIN_ZOOM <= low <= z:
                 raise InvalidParameter(f"min_zoom must be in [{MIN_ZOOM}, {z}]")
-            tiles = (x0 // size, y0 // size, -(-(x0 + width) // size), -(-(y0 + height) // size))
-            levels = _pyramid_levels(z, low, tiles)
+            levels = _pyramid_levels(z, low, _tile_box(x0, y0, width, height, size))
 
             def tile(level, x, y):
                 return render_tile(sampler, code, seed, level, x, y, size, pixels_per_unit=ppu,

@@ -27,6 +27,8 @@ tile (z, 0, 0).
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from worker.errors import InvalidParameter
@@ -144,15 +146,25 @@ def resolve_pixels_per_unit(sampler: Sampler, pixels_per_unit: float | None) -> 
 
 def render_tile(sampler: Sampler, code: np.ndarray, seed: int, z: int, x: int, y: int,
                 size: int = 256, *, pixels_per_unit: float | None = None, plane: str = "xy",
-                offset: float = 0.0, supersample: int | None = None) -> np.ndarray:
+                offset: float = 0.0, supersample: int | None = None, band_samples: int | None = None,
+                before_band: Callable[[], None] | None = None) -> np.ndarray:
     """Linear RGB of tile (z, x, y).
 
     code : (8,) float32 texture code. pixels_per_unit defaults to ``sampler.pixels_per_unit``
     (a ModelRuntime has one). supersample defaults to ``supersample_for(z)``.
+    band_samples : render in bands of whole rows of about this many sampler calls, calling
+    ``before_band()`` before each (the API lets small tiles go first there).
     Returns (size, size, 3) float32 linear 0..1.
     """
     ppu = resolve_pixels_per_unit(sampler, pixels_per_unit)
     s = supersample_for(z) if supersample is None else int(supersample)
     _check_tile(z, x, y, size, s, plane)
-    return render_window(sampler, code, seed, z, x * size, y * size, size, size,
-                         pixels_per_unit=ppu, plane=plane, offset=offset, supersample=s)
+    rows = size if not band_samples else max(1, min(size, band_samples // (size * s * s)))
+    out = np.empty((size, size, 3), dtype=np.float32)
+    for r0 in range(0, size, rows):
+        if before_band is not None:
+            before_band()
+        n = min(rows, size - r0)
+        out[r0:r0 + n] = render_window(sampler, code, seed, z, x * size, y * size + r0, size, n,
+                                       pixels_per_unit=ppu, plane=plane, offset=offset, supersample=s)
+    return out

@@ -12,17 +12,18 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from worker.errors import FeatureUnavailable, LimitExceeded
+from worker.tiles import MIN_ZOOM
 
 from .. import auth, jobs
 from ..db import session_scope
-from ..deps import PageParams, ServicesDep, apply_cursor, idempotency_key, page_of
+from ..deps import JobId, PageParams, SafeText, ServicesDep, TextureId, apply_cursor, idempotency_key, page_of
 from ..errors import Problem, not_found, problem_responses
 from ..job_kinds import torch_available
 from ..limits import check_mesh, check_queue_room
 from ..schemas import FitIn, JobOut, JobPage, RegionIn, Seed, VolumeIn
 from ..tables import TERMINAL_STATES, Job, new_id
 from ..uploads import read_limited, safe_filename, sha256
-from .textures import load_texture
+from .textures import NOSNIFF, load_texture
 
 router = APIRouter(tags=["jobs"])
 IdempotencyKey = Annotated[str | None, Depends(idempotency_key)]
@@ -43,7 +44,7 @@ def _submit(services, response: Response, kind: str, texture_id: str, params: di
 
 
 @router.post("/v1/textures/{texture_id}/volumes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503))
-def submit_volume(services: ServicesDep, response: Response, texture_id: str, body: VolumeIn,
+def submit_volume(services: ServicesDep, response: Response, texture_id: TextureId, body: VolumeIn,
                   key: IdempotencyKey) -> JobOut:
     """Render an N x N x N block of the solid texture (a job)."""
     load_texture(services, texture_id)
@@ -57,7 +58,7 @@ def submit_volume(services: ServicesDep, response: Response, texture_id: str, bo
 def submit_bake(
     services: ServicesDep,
     response: Response,
-    texture_id: str,
+    texture_id: TextureId,
     key: IdempotencyKey,
     mesh: Annotated[UploadFile, File(description="OBJ, PLY, STL or GLB mesh (by file extension)")],
     resolution: Annotated[int, Form(ge=16, le=8192, description="texture atlas side in pixels")] = 1024,
@@ -93,7 +94,7 @@ def submit_bake(
 
 
 @router.post("/v1/textures/{texture_id}/fit", **ACCEPTED, responses=problem_responses(404, 409, 413, 422, 501, 503))
-def submit_fit(services: ServicesDep, response: Response, texture_id: str, key: IdempotencyKey,
+def submit_fit(services: ServicesDep, response: Response, texture_id: TextureId, key: IdempotencyKey,
                body: FitIn | None = None) -> JobOut:
     """Optimise a sampler for this one exemplar (needs the torch extra on the workers)."""
     body = body or FitIn()
@@ -108,7 +109,7 @@ def submit_fit(services: ServicesDep, response: Response, texture_id: str, key: 
 
 
 @router.post("/v1/textures/{texture_id}/regions", **ACCEPTED, responses=problem_responses(404, 413, 422, 501, 503))
-def submit_region(services: ServicesDep, response: Response, texture_id: str, body: RegionIn,
+def submit_region(services: ServicesDep, response: Response, texture_id: TextureId, body: RegionIn,
                   key: IdempotencyKey) -> JobOut:
     """Render a large rectangle of the infinite plane to one image (a job)."""
     load_texture(services, texture_id)
@@ -117,6 +118,14 @@ def submit_region(services: ServicesDep, response: Response, texture_id: str, bo
     if body.width * body.height > services.settings.max_region_pixels:
         raise LimitExceeded(f"{body.width}x{body.height} exceeds the limit of "
                             f"{services.settings.max_region_pixels} pixels")
+    if body.format == "pyramid":  # the worker's own count, checked now rather than after queueing
+        from worker.regions import pyramid_tile_count
+
+        low = MIN_ZOOM if body.min_zoom is None else body.min_zoom
+        tiles = pyramid_tile_count(body.z, low, body.x0, body.y0, body.width, body.height, body.size)
+        if tiles > services.settings.max_region_tiles:
+            raise LimitExceeded(f"pyramid of {tiles} tiles exceeds the limit of "
+                                f"{services.settings.max_region_tiles}")
     return _submit(services, response, "region", texture_id, body.model_dump(), key)
 
 
@@ -125,7 +134,7 @@ def list_jobs(
     services: ServicesDep,
     page: Annotated[PageParams, Depends()],
     state: Annotated[Literal["queued", "running", "succeeded", "failed", "canceled"] | None, Query()] = None,
-    texture_id: Annotated[str | None, Query(max_length=64)] = None,
+    texture_id: Annotated[SafeText | None, Query(max_length=64)] = None,
 ) -> JobPage:
     query = auth.scoped(select(Job), Job)
     if state:
@@ -146,12 +155,12 @@ def load_job(services, job_id: str) -> Job:  # noqa: ANN001
 
 
 @router.get("/v1/jobs/{job_id}", response_model=JobOut, responses=problem_responses(404))
-def get_job(services: ServicesDep, job_id: str) -> JobOut:
+def get_job(services: ServicesDep, job_id: JobId) -> JobOut:
     return JobOut.of(load_job(services, job_id))
 
 
 @router.post("/v1/jobs/{job_id}/cancel", **ACCEPTED, responses=problem_responses(404, 409))
-def cancel_job(services: ServicesDep, response: Response, job_id: str) -> JobOut:
+def cancel_job(services: ServicesDep, response: Response, job_id: JobId) -> JobOut:
     """Cancel: a queued job at once; a running one stops at its next slab (poll the job)."""
     load_job(services, job_id)  # 404 for another tenant's job
     job = jobs.cancel(services, job_id)
@@ -162,37 +171,44 @@ def cancel_job(services: ServicesDep, response: Response, job_id: str) -> JobOut
 @router.get("/v1/jobs/{job_id}/result",
             responses={200: {"description": "the result file (its own media type)", "content": {"*/*": {}}},
                        **problem_responses(404, 409)})
-def get_result(services: ServicesDep, job_id: str) -> Response:
+def get_result(services: ServicesDep, job_id: JobId) -> Response:
     job = load_job(services, job_id)
     if job.state != "succeeded" or not job.result_key:
         raise Problem(409, f"job {job_id} is {job.state}; the result exists once it has succeeded",
                       slug="result-not-ready")
-    disposition = f'attachment; filename="{job.result_filename}"'
+    headers = {"Content-Disposition": f'attachment; filename="{job.result_filename}"', **NOSNIFF}
     local = services.storage.local_path(job.result_key)
     if local is not None:
-        return FileResponse(local, media_type=job.result_media_type, headers={"Content-Disposition": disposition})
+        return FileResponse(local, media_type=job.result_media_type, headers=headers)
     size = services.storage.size(job.result_key)
     return StreamingResponse(services.storage.iter_chunks(job.result_key), media_type=job.result_media_type,
-                             headers={"Content-Disposition": disposition, "Content-Length": str(size)})
+                             headers={**headers, "Content-Length": str(size)})
 
 
 SSE_POLL_SECONDS = 0.25
 SSE_KEEPALIVE_SECONDS = 15.0
+DELETED = {"type": "urn:texspace:problem:canceled", "title": "The job was canceled", "status": 409,
+           "detail": "the job was deleted with its texture"}
 
 
 @router.get("/v1/jobs/{job_id}/events",
             responses={200: {"description": "server-sent events: `progress` while running, then one "
-                                            "final event named after the end state, with the job",
+                                            "final event named after the end state, with the job (a job deleted "
+                                            "with its texture ends with `canceled`)",
                              "content": {"text/event-stream": {}}}, **problem_responses(404)})
-async def job_events(services: ServicesDep, request: Request, job_id: str) -> StreamingResponse:
-    await run_in_threadpool(load_job, services, job_id)
+async def job_events(services: ServicesDep, request: Request, job_id: JobId) -> StreamingResponse:
+    first = await run_in_threadpool(load_job, services, job_id)
 
     async def stream():  # noqa: ANN202
-        last, idle, event_id = None, 0.0, 0
+        last, idle, event_id, seen = None, 0.0, 0, first
         while True:
             job = await run_in_threadpool(jobs.get, services, job_id)
-            if job is None:
+            if job is None:  # deleted with its texture while running: it ends canceled
+                event_id += 1
+                gone = JobOut.of(seen).model_copy(update={"state": "canceled", "error": DELETED})
+                yield f"id: {event_id}\nevent: canceled\ndata: {gone.model_dump_json()}\n\n"
                 return
+            seen = job
             snapshot = (job.state, round(job.progress, 4), job.attempt)
             if job.state in TERMINAL_STATES:
                 event_id += 1

@@ -14,7 +14,7 @@ from worker.images import encode_texture, read_image, sniff_format
 
 from .. import auth, jobs
 from ..db import session_scope
-from ..deps import PageParams, ServicesDep, apply_cursor, page_of
+from ..deps import PageParams, SafeText, ServicesDep, TextureId, apply_cursor, page_of, printable
 from ..errors import Problem, not_found, problem_responses
 from ..job_kinds import auto_fit_params
 from ..purge import purge_texture
@@ -24,9 +24,20 @@ from ..uploads import IMAGE_MEDIA_TYPES, read_limited
 
 router = APIRouter(prefix="/v1/textures", tags=["textures"])
 log = logging.getLogger(__name__)
+NAME_LENGTH = 200  # Texture.name's column
+NOSNIFF = {"X-Content-Type-Options": "nosniff"}  # stored files are served as their media type, never sniffed
+
+
+def checked_text(value: str, field: str) -> str:
+    """``value``, or a 422 problem if it holds control characters (deps.printable)."""
+    try:
+        return printable(value)
+    except ValueError as exc:
+        raise Problem(422, f"{field}: {exc}", slug="validation-error", title="Request validation failed") from exc
 
 
 def load_texture(services, texture_id: str) -> Texture:  # noqa: ANN001
+    checked_text(texture_id, "texture_id")  # routes without the typed TextureId parameter
     with session_scope(services.sessions) as session:
         texture = session.get(Texture, texture_id)
     if texture is None or not auth.visible(texture):  # another tenant's texture does not exist for you
@@ -40,7 +51,7 @@ def create_texture(
     services: ServicesDep,
     response: Response,
     image: Annotated[UploadFile, File(description="PNG, JPEG, TIFF, EXR or WebP; 8/16-bit, float, grey, RGBA")],
-    name: Annotated[str | None, Form(max_length=200)] = None,
+    name: Annotated[SafeText | None, Form(max_length=NAME_LENGTH)] = None,
 ) -> TextureOut:
     """Encode an exemplar photo into a texture code and store it.
 
@@ -48,6 +59,7 @@ def create_texture(
     3 x 3 grid of 128 x 128 crops is encoded and the codes averaged. Where fitting is
     available (TEXSPACE_AUTO_FIT), a fit job then refines the texture in place.
     """
+    checked_text(image.filename or "", "image filename")
     data = read_limited(image, services.settings.max_upload_bytes, "the image")
     pixels = read_image(data, max_pixels=services.settings.max_image_pixels)
     ext = sniff_format(data)
@@ -58,7 +70,7 @@ def create_texture(
     key = f"textures/{texture_id}/exemplar.{ext}"
     services.storage.put_bytes(key, data)
     colour = [float(c) for c in colour] or None
-    texture = Texture(id=texture_id, name=(name or image.filename or "")[:200], code=[float(c) for c in code],
+    texture = Texture(id=texture_id, name=(name or image.filename or "")[:NAME_LENGTH], code=[float(c) for c in code],
                       colour=colour, encoder_colour=colour,
                       model_version=runtime.version, source="upload", exemplar_key=key,
                       exemplar_media_type=IMAGE_MEDIA_TYPES.get(ext, "application/octet-stream"),
@@ -130,7 +142,7 @@ def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) 
     ca, cb = (np.asarray(t.encoder_colour or (None if t.sampler_key else t.colour) or identity_colour(size),
                          np.float64) if size else np.zeros(0) for t in (a, b))
     colour = [float(c) for c in (1.0 - body.t) * ca + body.t * cb] or None
-    texture = Texture(id=new_id(), name=body.name or f"{a.name or a.id} x {b.name or b.id} @ {body.t:g}",
+    texture = Texture(id=new_id(), name=body.name or blend_name(a.name or a.id, b.name or b.id, body.t),
                       code=[float(c) for c in code], colour=colour, encoder_colour=colour,
                       model_version=a.model_version, source="interpolate",
                       parents={"a": a.id, "b": b.id, "t": body.t}, owner_id=auth.current_owner())
@@ -140,13 +152,21 @@ def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) 
     return TextureOut.of(texture)
 
 
+def blend_name(a: str, b: str, t: float) -> str:
+    """``"{a} x {b} @ t"`` within the name column: long names are cut, each to half the room."""
+    suffix = f" @ {t:g}"
+    room = (NAME_LENGTH - len(suffix) - len(" x ")) // 2
+    a, b = (n if len(n) <= room else n[:room - 1] + "\u2026" for n in (a, b))
+    return f"{a} x {b}{suffix}"
+
+
 @router.get("/{texture_id}", response_model=TextureOut, responses=problem_responses(404))
-def get_texture(services: ServicesDep, texture_id: str) -> TextureOut:
+def get_texture(services: ServicesDep, texture_id: TextureId) -> TextureOut:
     return texture_out(services, load_texture(services, texture_id))
 
 
 @router.patch("/{texture_id}", response_model=TextureOut, responses=problem_responses(404, 422))
-def patch_texture(services: ServicesDep, texture_id: str, body: TexturePatch) -> TextureOut:
+def patch_texture(services: ServicesDep, texture_id: TextureId, body: TexturePatch) -> TextureOut:
     """Rename a texture (its code, and so its tiles, never change)."""
     with session_scope(services.sessions) as session:
         texture = session.get(Texture, texture_id)
@@ -158,7 +178,7 @@ def patch_texture(services: ServicesDep, texture_id: str, body: TexturePatch) ->
 
 
 @router.delete("/{texture_id}", status_code=status.HTTP_204_NO_CONTENT, responses=problem_responses(404))
-def delete_texture(services: ServicesDep, texture_id: str) -> Response:
+def delete_texture(services: ServicesDep, texture_id: TextureId) -> Response:
     """Delete the texture, cancel and delete its jobs, and remove all their stored files."""
     with session_scope(services.sessions) as session:
         texture = session.get(Texture, texture_id)
@@ -171,7 +191,7 @@ def delete_texture(services: ServicesDep, texture_id: str) -> Response:
 @router.get("/{texture_id}/exemplar", response_class=StreamingResponse,
             responses={200: {"description": "the uploaded image, as uploaded",
                              "content": {"image/*": {}}}, **problem_responses(404)})
-def get_exemplar(services: ServicesDep, texture_id: str) -> StreamingResponse:
+def get_exemplar(services: ServicesDep, texture_id: TextureId) -> StreamingResponse:
     texture = load_texture(services, texture_id)
     if not texture.exemplar_key:
         raise Problem(404, f"texture {texture_id} was made by interpolation and has no exemplar",
@@ -179,4 +199,4 @@ def get_exemplar(services: ServicesDep, texture_id: str) -> StreamingResponse:
     size = services.storage.size(texture.exemplar_key)
     return StreamingResponse(services.storage.iter_chunks(texture.exemplar_key),
                              media_type=texture.exemplar_media_type,
-                             headers={"Content-Length": str(size), "Cache-Control": "public, max-age=86400"})
+                             headers={"Content-Length": str(size), "Cache-Control": "public, max-age=86400", **NOSNIFF})

@@ -10,11 +10,11 @@ from worker.errors import LimitExceeded
 from worker.tiles import MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM
 
 from .. import auth
-from ..deps import ServicesDep, TileAddress, TileFormat, TileParams, tile_address
+from ..deps import ServicesDep, TileAddress, TileFormat, TileParams, public_base_url, tile_address
 from ..errors import problem_responses
 from ..schemas import TileJSON
-from ..tiles import (CACHE_CONTROL, REFINING_CACHE_CONTROL, TILE_MEDIA_TYPES, etag_matches, render_tile_bytes,
-                     tile_etag, tiles_final)
+from ..tiles import (CACHE_CONTROL, REFINING_CACHE_CONTROL, TILE_MEDIA_TYPES, check_tile_work, etag_matches,
+                     render_tile_async, tile_etag, tiles_final)
 from .textures import load_texture
 
 router = APIRouter(prefix="/v1/textures", tags=["tiles"])
@@ -40,6 +40,7 @@ async def get_tile(
 ) -> Response:
     if params.size > services.settings.max_tile_size:
         raise LimitExceeded(f"tile size {params.size} exceeds the limit of {services.settings.max_tile_size}")
+    check_tile_work(services.settings, address.z, params.size)
     texture = await run_in_threadpool(load_texture, services, texture_id)
     key = dict(z=address.z, x=address.x, y=address.y, size=params.size, seed=params.seed,
                plane=params.plane, offset=params.offset, fmt=fmt)
@@ -58,7 +59,7 @@ async def get_tile(
     data = services.tile_cache.get(etag)
     if data is None:
         services.metrics.tile_cache_misses.inc()
-        data = await run_in_threadpool(render_tile_bytes, services, texture, **key)
+        data = await render_tile_async(services, texture, **key)
         services.tile_cache.put(etag, data)
     else:
         services.metrics.tile_cache_hits.inc()
@@ -70,7 +71,7 @@ def get_tilejson(services: ServicesDep, request: Request, texture_id: str,
                  params: Annotated[TileParams, Depends()]) -> TileJSON:
     """TileJSON 3.0 for map viewers (Leaflet, OpenLayers, MapLibre) with a simple CRS."""
     texture = load_texture(services, texture_id)
-    base = str(request.base_url).rstrip("/")
+    base = public_base_url(request, services)  # TEXSPACE_PUBLIC_BASE_URL, else the request's own
     query = f"seed={params.seed}&size={params.size}"
     if params.plane != "xy" or params.offset:
         query += f"&plane={params.plane}&offset={params.offset:g}"

@@ -153,6 +153,6 @@ def test_failed_database_insert_leaves_no_file(held, monkeypatch) -> None:
         return scope()
 
     monkeypatch.setattr("service.routes.textures.session_scope", failing_scope)
-    with pytest.raises(Broken):
-        client.post("/v1/textures", files={"image": ("t.png", brick_png())})
+    res = client.post("/v1/textures", files={"image": ("t.png", brick_png())})  # answered, with its request id
+    assert res.status_code == 500 and res.json()["type"] == "urn:texspace:problem:internal-error"
     assert stored_files(services) == [] and row_counts(services) == (0, 0)

@@ -7,12 +7,14 @@ shipped sampler.onnx and a code), so this runs in a second without the train ext
 from __future__ import annotations
 
 import ast
+import io
 import json
 import shutil
 import sys
 import types
 from pathlib import Path
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -26,7 +28,8 @@ MODEL_DIR = REPO / "model" / "weights"
 def fake_fit_module(calls: list[dict]) -> types.ModuleType:
     def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain=None,  # noqa: ANN001, ANN202
                      loss="gram", progress=None, quiet=True, seed=0, threads=0):
-        calls.append({"image_path": Path(image_path), "init_checkpoint": Path(init_checkpoint),
+        calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),
+                      "init_checkpoint": Path(init_checkpoint),
                       "minutes": minutes, "grain": grain, "threads": threads})
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -116,3 +119,21 @@ def test_bad_grain_is_a_422_problem_naming_the_allowed_values(fit_client, fit_te
     assert "grain" in problem["detail"] and "'x' or 'y'" in problem["detail"]
     assert fit_calls == []
     assert fit_client.get("/v1/jobs").json()["items"] == []    # nothing queued
+
+
+def test_fit_of_an_exr_exemplar_reads_it_with_the_service_reader(fit_client, fit_calls) -> None:
+    # The fit gets the upload as the service decoded it (an 8-bit sRGB PNG), not the EXR
+    # that model.fit's Pillow loader cannot read (it failed and was retried before).
+    from PIL import Image
+
+    from worker.images import write_image
+
+    linear = np.random.default_rng(0).random((64, 64, 3)).astype(np.float32) * 0.5
+    created = fit_client.post("/v1/textures", files={"image": ("t.exr", write_image(linear, "exr"), "image/x-exr")})
+    assert created.status_code == 201, created.text
+    job = fit_client.post(f"/v1/textures/{created.json()['id']}/fit", json={}).json()
+    assert fit_client.get(f"/v1/jobs/{job['id']}").json()["state"] == "succeeded"
+    (call,) = fit_calls
+    assert call["image_path"].suffix == ".png"
+    with Image.open(io.BytesIO(call["image_bytes"])) as image:
+        assert image.format == "PNG" and image.mode == "RGB" and image.size == (64, 64)

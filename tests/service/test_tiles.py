@@ -101,3 +101,34 @@ def test_tilejson(client, texture) -> None:
     assert "seed=3" in body["tiles"][0] and "{z}/{x}/{y}.png" in body["tiles"][0]
     assert body["minzoom"] <= NATIVE_ZOOM <= body["maxzoom"]
     assert body["center"] == [0, 0, NATIVE_ZOOM]  # viewers open at one tile pixel = one exemplar pixel
+
+
+def test_tilejson_uses_the_public_base_url_not_the_host_header(client, texture, services) -> None:
+    services.settings.public_base_url = "https://tiles.example.com/api/"
+    try:
+        res = client.get(f"/v1/textures/{texture['id']}/tilejson.json", headers={"Host": "evil.example"})
+    finally:
+        services.settings.public_base_url = None
+    assert res.json()["tiles"][0].startswith("https://tiles.example.com/api/v1/textures/")
+
+
+def test_tile_work_is_bounded(client, texture, services) -> None:
+    """size x supersampling: 1024 px at zoom 4 is 16 M sampler calls (~20 s), over the
+    4 M budget: 413 at once (tests/reliability/test_costly_requests.py renders the largest)."""
+    res = client.get(tile_url(texture, 4, 0, 0), params={"size": 1024})
+    assert res.status_code == 413, res.text
+    assert "samples" in res.json()["detail"] and "limit" in res.json()["detail"]
+    assert services.settings.max_tile_samples == 4 * 2**20
+
+
+def test_banded_tiles_match_whole_tiles(services) -> None:
+    """Large tiles render in bands (so small tiles can go between); same pixels."""
+    from worker.tiles import render_tile
+
+    runtime = services.registry.get(None)
+    code = np.zeros(8, np.float32)
+    whole = render_tile(runtime, code, 3, 4, 1, -2, 128)
+    calls = []
+    banded = render_tile(runtime, code, 3, 4, 1, -2, 128, band_samples=5 * 128 * 16,
+                         before_band=lambda: calls.append(1))
+    assert len(calls) == 26 and np.allclose(banded, whole, atol=1e-6)

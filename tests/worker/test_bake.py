@@ -2,6 +2,8 @@
 import os
 import zipfile
 
+import time
+
 import numpy as np
 import pytest
 import trimesh
@@ -126,6 +128,9 @@ BAD_MESHES = [
     ("garbage.glb", b"glTF not really" * 10, "cannot parse"),
     ("empty.obj", b"", "empty"),
     ("mesh.fbx", b"anything", "unsupported"),
+    ("huge.obj", b"v 0 0 0\nv 1e100 0 0\nv 0 1e100 0\nf 1 2 3\n", "beyond"),        # was 500 (overflow)
+    ("far.obj", b"v 1e30 0 0\nv 1e60 0 0\nv 0 1e45 0\nv 0 0 1e30\nf 1 2 3\nf 1 3 4\nf 1 2 4\nf 2 3 4\n",
+     "beyond"),                                                                    # was 120 s of xatlas
 ]
 
 
@@ -165,3 +170,13 @@ def test_cancel(waves, meshes, tmp_path):
                   filename="bunny_uv.obj", resolution=64, out_path=tmp_path / "x.glb",
                   should_cancel=lambda: True)
     assert os.listdir(tmp_path) == []
+
+
+def test_cancel_ends_the_atlas_child(waves, meshes, tmp_path):
+    """A cancel while xatlas runs kills its child within a poll, not at the atlas timeout."""
+    started = time.monotonic()
+    with pytest.raises(Canceled, match="atlas"):
+        bake_mesh(waves, None, 0, mesh_bytes=(meshes / "bunny.obj").read_bytes(), filename="bunny.obj",
+                  resolution=64, out_path=tmp_path / "x.glb", atlas_crash_for_test="hang",
+                  should_cancel=lambda: time.monotonic() - started > 1.0)
+    assert time.monotonic() - started < 10

@@ -1,6 +1,7 @@
 """read_image on good and broken inputs, encoder crops, writers."""
 import io
 import struct
+import threading
 import zlib
 
 import numpy as np
@@ -9,9 +10,10 @@ import pytest
 from PIL import Image
 
 from worker.colour import linear_to_srgb, srgb_to_linear
+from worker import images
 from worker.errors import InvalidImage, InvalidParameter, LimitExceeded
-from worker.images import (encode_image, encoder_crops, read_image, sniff_format, thumbnail,
-                           write_image)
+from worker.images import (encode_image, encoder_crops, read_image, resize_short_side, sniff_format,
+                           thumbnail, write_image)
 
 MAX = 4096 * 4096
 RNG = np.random.default_rng(5)
@@ -163,3 +165,44 @@ def test_thumbnail(brick):
     img = read_image(thumbnail(brick, max_side=100, fmt="png"), max_pixels=MAX)
     assert img.shape == (100, 100, 3)
     assert abs(img.mean() - brick.mean()) < 0.02
+
+
+def test_long_thin_images_are_refused_from_the_header():
+    """16 x 1,000,000 (under the pixel limit) used to be upscaled to 256 x 16,000,000."""
+    with pytest.raises(InvalidImage, match="at most 16 times"):
+        read_image(pil_bytes(np.zeros((16_000, 16), np.uint8), "L", "PNG"), max_pixels=MAX)
+    assert read_image(pil_bytes(np.zeros((256, 16), np.uint8), "L", "PNG"), max_pixels=MAX).shape == (256, 16, 3)
+
+
+def test_banded_decode_matches_a_whole_decode(monkeypatch):
+    rgba = RNG.integers(0, 256, (61, 37, 4), dtype=np.uint8)
+    whole = read_image(pil_bytes(rgba, "RGBA", "PNG"), max_pixels=MAX)
+    monkeypatch.setattr(images, "DECODE_BAND_PIXELS", 37 * 5)      # 13 bands, the last short
+    assert np.array_equal(read_image(pil_bytes(rgba, "RGBA", "PNG"), max_pixels=MAX), whole)
+
+
+def test_large_images_are_box_reduced_before_resizing(monkeypatch):
+    smooth = np.linspace(0, 1, 1031 * 2063 * 3, dtype=np.float32).reshape(1031, 2063, 3)
+    direct = resize_short_side(smooth, 256)
+    monkeypatch.setattr(images, "RESIZE_DIRECT_PIXELS", 1000)
+    reduced = resize_short_side(smooth, 256)
+    assert reduced.shape == direct.shape == (256, 512, 3)
+    assert np.abs(reduced - direct).max() < 0.01
+    with pytest.raises(LimitExceeded, match="limit"):
+        resize_short_side(np.zeros((16, 4096, 3), np.float32), 4096)
+
+
+def test_decode_budget_holds_pixels_while_the_image_lives():
+    data = pil_bytes(RGB8, "RGB", "PNG")
+    images.set_decode_budget(RGB8.shape[0] * RGB8.shape[1])
+    try:
+        first = read_image(data, max_pixels=MAX)
+        assert images._budget.used == first.shape[0] * first.shape[1]
+        done = threading.Event()
+        threading.Thread(target=lambda: (read_image(data, max_pixels=MAX), done.set()), daemon=True).start()
+        assert not done.wait(0.3)          # waits for room
+        del first
+        assert done.wait(5)
+        assert images._budget.used == 0
+    finally:
+        images.set_decode_budget(None)
