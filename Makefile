@@ -3,6 +3,7 @@
 #               every upload), migrate, API + worker on SQLite at http://127.0.0.1:$(TEXSPACE_PORT)
 #               (default 8000)
 #   make test   test + train extras (torch==2.13.0, CPU), then pytest
+#   make test-fast   the same without the e2e, scaleout, browser and slow tests (the edit loop)
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -12,7 +13,7 @@ TEXSPACE_DATA_DIR ?= data
 export TEXSPACE_PORT TEXSPACE_DATA_DIR
 PYTEST_ARGS ?=
 
-.PHONY: run test install install-test migrate serve bench readme-figure grain-figure clean-data
+.PHONY: run test test-fast install install-test migrate serve bench readme-figure grain-figure clean-data
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -38,6 +39,9 @@ run: install
 
 test: install-test
 	$(PY) -m pytest $(PYTEST_ARGS)
+
+test-fast: install-test
+	$(PY) -m pytest -m "not e2e and not scaleout and not browser and not slow" $(PYTEST_ARGS)
 
 bench: install-test
 	$(PY) bench/run.py

@@ -15,11 +15,10 @@ Keys are 256-bit random tokens shown once at creation; only HMAC-SHA256(pepper, 
 stored (the pepper is a server-side setting, never in the database). A slow KDF (scrypt)
 buys nothing for keys of this entropy and would cost every request.
 
-Admin: ``texspace keys create NAME | list | revoke KEY_ID`` (see :func:`add_cli`).
+Admin: ``texspace keys create NAME | list | revoke KEY_ID`` (the ``keys`` command in :mod:`service.cli`).
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
 import hmac
 import logging
@@ -198,35 +197,3 @@ def revoke_key(services, key_id: str) -> bool:  # noqa: ANN001
         row.revoked_at = utcnow()
     _state(services)[0].clear()
     return True
-
-
-def _cmd_keys(args: argparse.Namespace) -> None:
-    from .cli import _settings
-    from .context import build_services
-
-    services = build_services(_settings(args), immediate=True)
-    if args.action == "create":
-        row, key = create_key(services, args.name, args.note)
-        print(f"id:  {row.id}\nkey: {key}\n(store the key now: only its hash is kept)")
-    elif args.action == "list":
-        for row in list_keys(services):
-            state = f"revoked {row.revoked_at:%Y-%m-%d %H:%M}" if row.revoked_at else "active"
-            print(f"{row.id}  {state:<24} {row.created_at:%Y-%m-%d %H:%M}  {row.name}")
-    elif not revoke_key(services, args.key_id):
-        raise SystemExit(f"texspace: no active key with id {args.key_id!r}")
-    else:
-        print(f"revoked {args.key_id}")
-
-
-def add_cli(sub: argparse._SubParsersAction) -> None:
-    """``texspace keys create NAME [--note] | list | revoke KEY_ID``."""
-    p = sub.add_parser("keys", help="API keys: create, list, revoke")
-    p.add_argument("--data-dir", dest="data_dir", help="overrides TEXSPACE_DATA_DIR")
-    p.set_defaults(func=_cmd_keys)
-    actions = p.add_subparsers(dest="action", required=True)
-    create = actions.add_parser("create", help="make a key and print it once")
-    create.add_argument("name")
-    create.add_argument("--note")
-    actions.add_parser("list", help="ids, states and names (never the keys)")
-    revoke = actions.add_parser("revoke", help="revoke a key by id")
-    revoke.add_argument("key_id")

@@ -10,8 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
+from . import auth, db, processes
+from .context import build_services
 from .logs import setup_logging
 from .settings import Settings
+from .tables import Texture
 
 
 def _settings(args: argparse.Namespace) -> Settings:
@@ -45,13 +48,9 @@ class TextureSource:
             self.code, self.sampler, self.ppu = texture_vector(self.z, colour), runtime, runtime.pixels_per_unit
             self.model_version = runtime.version
             return
-        from .context import build_services
-        from .db import session_scope
-        from .tables import Texture
-
         services = build_services(settings, immediate=True)
         services._registry = registry
-        with session_scope(services.sessions) as session:
+        with db.session_scope(services.sessions) as session:
             texture = session.get(Texture, ref)
         if texture is None:
             raise SystemExit(f"texspace: {ref!r} is neither an image file nor a texture id in "
@@ -74,29 +73,21 @@ def _progress_bar(description: str):  # noqa: ANN202
 
 
 def cmd_api(args: argparse.Namespace) -> None:
-    from .processes import run_api
-
-    run_api(_settings(args))
+    processes.run_api(_settings(args))
 
 
 def cmd_worker(args: argparse.Namespace) -> None:
-    from .processes import run_worker
-
-    run_worker(_settings(args), migrate=not args.no_migrate)
+    processes.run_worker(_settings(args), migrate=not args.no_migrate)
 
 
 def cmd_serve(args: argparse.Namespace) -> None:
-    from .processes import run_serve
-
-    run_serve(_settings(args))
+    processes.run_serve(_settings(args))
 
 
 def cmd_migrate(args: argparse.Namespace) -> None:
-    from .db import migrate
-
     settings = _settings(args)
     settings.ensure_dirs()
-    migrate(settings.resolved_database_url)
+    db.migrate(settings.resolved_database_url)
     print(f"database at head: {settings.resolved_database_url}")
 
 
@@ -143,6 +134,22 @@ def cmd_bake(args: argparse.Namespace) -> None:
                            filename=mesh.name, resolution=args.resolution, scale=args.scale, fmt=args.format,
                            out_path=out, pixels_per_unit=source.ppu, limits=BakeLimits(), progress=report)
     print(result.path)
+
+
+def cmd_keys(args: argparse.Namespace) -> None:
+    """``texspace keys create NAME [--note] | list | revoke KEY_ID`` (see :mod:`service.auth`)."""
+    services = build_services(_settings(args), immediate=True)
+    if args.action == "create":
+        row, key = auth.create_key(services, args.name, args.note)
+        print(f"id:  {row.id}\nkey: {key}\n(store the key now: only its hash is kept)")
+    elif args.action == "list":
+        for row in auth.list_keys(services):
+            state = f"revoked {row.revoked_at:%Y-%m-%d %H:%M}" if row.revoked_at else "active"
+            print(f"{row.id}  {state:<24} {row.created_at:%Y-%m-%d %H:%M}  {row.name}")
+    elif not auth.revoke_key(services, args.key_id):
+        raise SystemExit(f"texspace: no active key with id {args.key_id!r}")
+    else:
+        print(f"revoked {args.key_id}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -197,9 +204,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scale", type=float, default=None, help="world units per mesh unit (default: auto)")
     p.add_argument("--format", choices=("glb", "obj"), default="glb")
 
-    from .auth import add_cli  # texspace keys create|list|revoke
-
-    add_cli(sub)
+    p = proc("keys", cmd_keys, "API keys: create, list, revoke")
+    actions = p.add_subparsers(dest="action", required=True)
+    create = actions.add_parser("create", help="make a key and print it once")
+    create.add_argument("name")
+    create.add_argument("--note")
+    actions.add_parser("list", help="ids, states and names (never the keys)")
+    revoke = actions.add_parser("revoke", help="revoke a key by id")
+    revoke.add_argument("key_id")
     return parser
 
 

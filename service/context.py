@@ -1,111 +1,20 @@
-"""The long-lived things every process needs, built once from the settings.
+"""Building the services container from the settings, once per process.
 
-:class:`Services` holds the database engine and session factory, storage, the huey
-queue and the model registry (loaded lazily so the API starts and answers ``/readyz``
-honestly even while a model export is missing).
+:func:`build_services` opens the database, storage and queue lanes and registers the
+job task (:mod:`service.runner`) on each lane: process wiring, above the domain modules.
+:class:`~service.container.Services` itself lives in :mod:`service.container`.
 """
 from __future__ import annotations
 
-import hashlib
-import logging
-import os
-import socket
-import threading
-from dataclasses import dataclass, field
-from pathlib import Path
-
-from sqlalchemy import Engine, select
-from sqlalchemy.orm import Session, sessionmaker
-
 from . import db
-from .metrics import Metrics
-from .queue import lane_of, make_huey
+from .container import Services
+from .queue import make_huey
+from .runner import register_tasks
 from .settings import Settings
-from .storage import Storage, make_storage
-from .tables import ModelVersion, Texture
+from .storage import make_storage
 from .tilecache import TileCache
 
-log = logging.getLogger(__name__)
-
-
-@dataclass
-class Services:
-    settings: Settings
-    engine: Engine
-    sessions: sessionmaker[Session]
-    storage: Storage
-    huey: object  # the main lane: volume, bake and region jobs (queue.lane_of)
-    run_job: object = None  # huey task wrapper: run_job(job_id) enqueues
-    fit_huey: object = None  # the fit lane: fits, minutes of torch each
-    run_fit_job: object = None
-    metrics: Metrics = field(default_factory=Metrics)
-    tile_cache: TileCache | None = None
-    worker_id: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
-    _registry: object | None = None
-    _registry_lock: threading.Lock = field(default_factory=threading.Lock)
-
-    @property
-    def registry(self):  # -> worker.runtime.ModelRegistry
-        """The model registry, loaded on first use (raises ModelNotFound if no export exists)."""
-        if self._registry is None:
-            with self._registry_lock:
-                if self._registry is None:
-                    from worker.runtime import ModelRegistry
-
-                    registry = ModelRegistry(self.settings.model_dirs,
-                                             default=self.settings.default_model_version)
-                    self._record_models(registry)
-                    self._registry = registry
-        return self._registry
-
-    def _record_models(self, registry) -> None:  # noqa: ANN001
-        """Remember every loaded model version in the ``models`` table."""
-        with db.session_scope(self.sessions) as session:
-            known = set(session.scalars(select(ModelVersion.version)))
-            for version, runtime in registry.models.items():
-                if version not in known:
-                    session.add(ModelVersion(version=version, variant=str(runtime.manifest["variant"]),
-                                             manifest=runtime.manifest))
-
-    def task_for(self, kind: str | None):  # -> huey task wrapper
-        """The task wrapper of the lane that carries ``kind`` jobs: calling it enqueues."""
-        return self.run_fit_job if lane_of(kind) == "fit" and self.run_fit_job else self.run_job
-
-    def pending_count(self) -> int:
-        """Messages waiting in the broker, over both lanes."""
-        return sum(int(h.pending_count()) for h in (self.huey, self.fit_huey) if h is not None)
-
-    def sampler_path(self, texture_id: str, sampler_key: str) -> Path:
-        """Local copy of a texture's own sampler, named by its storage key: a refinement
-        stores a new key, so a copy of an earlier sampler is never served for it."""
-        digest = hashlib.sha256(sampler_key.encode()).hexdigest()[:16]
-        return self.cache_dir / "samplers" / f"{texture_id}-{digest}.onnx"
-
-    def sampler_for(self, texture: Texture):  # -> worker.runtime.Sampler
-        """The sampler that renders ``texture``: its own fitted one, or its model's."""
-        if texture.sampler_key:
-            cached = self.sampler_path(texture.id, texture.sampler_key)
-            if not cached.is_file():
-                self.storage.get_file(texture.sampler_key, cached)
-            return self.registry.fitted_sampler(cached)
-        return self.registry.get(texture.model_version)
-
-    def pixels_per_unit(self, texture: Texture) -> float:
-        """World scale of the texture's model (fitted samplers share their parent's)."""
-        return self.registry.get(texture.model_version).pixels_per_unit
-
-    @property
-    def cache_dir(self) -> Path:
-        path = (self.settings.data_dir / "cache").resolve()
-        path.mkdir(parents=True, exist_ok=True)
-        return path
-
-    @property
-    def work_dir(self) -> Path:
-        """Scratch space for jobs (inputs downloaded, outputs before upload)."""
-        path = (self.settings.data_dir / "work").resolve()
-        path.mkdir(parents=True, exist_ok=True)
-        return path
+__all__ = ["Services", "build_services"]
 
 
 def build_services(settings: Settings, *, immediate: bool = False, migrate: bool = True) -> Services:
@@ -120,8 +29,6 @@ def build_services(settings: Settings, *, immediate: bool = False, migrate: bool
                         tile_cache=TileCache(settings.tile_cache_bytes))
     services.huey = make_huey(settings, immediate=immediate)
     services.fit_huey = make_huey(settings, immediate=immediate, lane="fit")
-    from .runner import register_tasks
-
     services.run_job = register_tasks(services.huey, services)
     services.run_fit_job = register_tasks(services.fit_huey, services)
     return services

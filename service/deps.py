@@ -14,7 +14,7 @@ from sqlalchemy import Select, and_, or_
 
 from worker.tiles import MAX_TILE_SIZE, MAX_ZOOM, MIN_TILE_SIZE, MIN_ZOOM
 
-from .context import Services
+from .container import Services
 from .errors import Problem
 
 Plane = Literal["xy", "xz", "yz"]

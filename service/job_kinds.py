@@ -21,7 +21,7 @@ from worker.colour_match import calibrate_texture
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
 from worker.images import read_image, write_image
 
-from .context import Services
+from .container import Services
 from .db import session_scope
 from .tables import Job, Texture, utcnow
 

@@ -14,9 +14,11 @@ from typing import Any
 from sqlalchemy import and_, func, select, update
 from sqlalchemy.exc import IntegrityError
 
-from .context import Services
+from .auth import current_owner
+from .container import Services
 from .db import session_scope
 from .errors import Problem
+from .limits import check_queue_room
 from .tables import TERMINAL_STATES, Job, new_id, utcnow
 
 log = logging.getLogger(__name__)
@@ -37,16 +39,12 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
     a different request under the same key is a 422 problem.
     """
     fingerprint = fingerprint or request_hash(kind, texture_id, params)
-    from .auth import current_owner
-
     idempotency_key = tenant_key(idempotency_key)
     if idempotency_key:
         existing = find_by_idempotency_key(services, idempotency_key)
         if existing is not None:
             return same_request(existing, fingerprint), False
-    from .limits import check_queue_room  # back-pressure: 503 + Retry-After when full
-
-    check_queue_room(services)
+    check_queue_room(services)  # back-pressure: 503 + Retry-After when full
     job = Job(id=job_id or new_id(), kind=kind, texture_id=texture_id, params=params, input_key=input_key,
               state="queued", attempt=0, max_attempts=services.settings.max_attempts, progress=0.0,
               cancel_requested=False, idempotency_key=idempotency_key, request_hash=fingerprint,
@@ -77,8 +75,6 @@ def same_request(job: Job, fingerprint: str) -> Job:
 def tenant_key(key: str | None) -> str | None:
     """The stored form of an Idempotency-Key: per API key when keys are enabled, so two
     tenants using the same key never see each other's job (idempotent: applied once)."""
-    from .auth import current_owner
-
     owner = current_owner()
     if not key or not owner or key.startswith(owner + ":"):
         return key

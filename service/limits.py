@@ -15,7 +15,7 @@ from sqlalchemy import func, select
 
 from worker.bake import BakeLimits, load_mesh
 
-from .context import Services
+from .container import Services
 from .db import session_scope
 from .errors import Problem
 from .settings import Settings

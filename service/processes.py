@@ -10,6 +10,10 @@ import sys
 import threading
 import time
 
+from . import db
+from .context import build_services
+from .jobs import reap, release_worker
+from .queue import worker_lanes
 from .settings import Settings
 
 log = logging.getLogger(__name__)
@@ -67,8 +71,6 @@ def read_timeout_protocol(settings: Settings) -> type:
 
 def start_reaper(services, stop: threading.Event) -> threading.Thread:  # noqa: ANN001
     """A thread that periodically re-queues jobs with expired leases."""
-    from .jobs import reap
-
     def loop() -> None:
         while not stop.wait(services.settings.reaper_interval_seconds):
             try:
@@ -110,9 +112,6 @@ def start_lane(huey, stop: threading.Event) -> threading.Thread:  # noqa: ANN001
 def run_worker(settings: Settings, *, migrate: bool = True) -> None:
     """Consume the lanes of ``settings.worker_kinds`` until SIGINT / SIGTERM: the first
     with ``settings.workers`` threads, the fit lane beside it (if both) with one."""
-    from .context import build_services
-    from .queue import worker_lanes
-
     services = build_services(settings, migrate=migrate)
     try:
         services.registry  # load models now, not inside the first job
@@ -132,8 +131,6 @@ def run_worker(settings: Settings, *, migrate: bool = True) -> None:
         consumer.run()
     finally:
         stop.set()
-        from .jobs import release_worker
-
         try:
             released = release_worker(services)
             if released:
@@ -156,10 +153,8 @@ def _die_with_parent() -> None:
 
 def run_serve(settings: Settings) -> None:
     """Migrate, start one worker process (restarted if it dies), and run the API here."""
-    from .db import migrate
-
     settings.ensure_dirs()
-    migrate(settings.resolved_database_url)
+    db.migrate(settings.resolved_database_url)
     command = [sys.executable, "-m", "service.cli", "worker", "--no-migrate"]
     stopping = threading.Event()
     state: dict[str, subprocess.Popen] = {}

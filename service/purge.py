@@ -12,7 +12,7 @@ import logging
 
 from sqlalchemy import delete, select
 
-from .context import Services
+from .container import Services
 from .db import session_scope
 from .tables import Job, Texture
 

@@ -14,9 +14,11 @@ import time
 from worker.errors import Canceled, TexspaceError
 
 from . import jobs
-from .context import Services
+from .container import Services
 from .errors import problem_for
+from .job_kinds import KINDS
 from .logs import job_id_var
+from .purge import forget_job_files
 
 log = logging.getLogger(__name__)
 TASK_NAME = "texspace.run_job"
@@ -83,8 +85,6 @@ class Lease:
 
 def run_job_attempt(services: Services, job_id: str) -> str | None:
     """Run one attempt of ``job_id`` if it is queued; return the state it ended in."""
-    from .job_kinds import KINDS
-
     token = job_id_var.set(job_id)
     try:
         claim = jobs.claim(services, job_id)
@@ -124,8 +124,6 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
         else:
             log.warning("job ended as %s but its lease was taken over; result discarded", state)
             if jobs.get(services, job_id) is None:  # deleted with its texture meanwhile: leave no files
-                from .purge import forget_job_files
-
                 forget_job_files(services, job_id)
         return state
     finally:

@@ -18,7 +18,7 @@ from worker.images import write_image
 from worker.errors import LimitExceeded
 from worker.tiles import render_tile, supersample_for
 
-from .context import Services
+from .container import Services
 from .db import session_scope
 from .settings import Settings
 from .tables import Job, Texture

@@ -1,0 +1,128 @@
+"""Imports run one way. Every ``import`` / ``from`` statement is read with :mod:`ast`, at
+module level and inside functions alike (a lazy import that dodges a circle is still a
+circle), and:
+
+* the modules of ``service/`` import each other without a cycle, in layers: settings and
+  the services container at the bottom, domain modules above them, process wiring above
+  those, the CLI at the top;
+* ``worker/`` never imports ``service/``; ``model/`` imports neither;
+* torch is imported only under ``model/`` (the service and the worker run on ONNX).
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: lowest first; a module may import its own layer or those below, never one above
+LAYERS = (
+    ("settings and container", {"service.settings", "service.container"}),
+    ("domain", {"service.auth", "service.jobs", "service.limits", "service.purge", "service.job_kinds"}),
+    ("process wiring", {"service.context", "service.runner", "service.processes"}),
+    ("CLI", {"service.cli"}),
+)
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def modules(package: str) -> dict[str, Path]:
+    """Dotted name -> file, for every module of ``package`` (a top-level folder)."""
+    return {module_name(p): p for p in sorted((ROOT / package).rglob("*.py")) if "__pycache__" not in p.parts}
+
+
+def imported(name: str, path: Path) -> list[tuple[str, int]]:
+    """(dotted name, line) of everything ``path`` imports, anywhere in the file. ``from X
+    import y`` yields ``X.y`` (a submodule, or an attribute of ``X``) after ``X``."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found += [(alias.name, node.lineno) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                source = ".".join(base + ([node.module] if node.module else []))
+            else:
+                source = node.module or ""
+            found.append((source, node.lineno))
+            found += [(f"{source}.{alias.name}", node.lineno) for alias in node.names]
+    return found
+
+
+def service_graph() -> dict[str, dict[str, int]]:
+    """service module -> {service module it imports: line}."""
+    known = modules("service")
+    graph: dict[str, dict[str, int]] = {name: {} for name in known}
+    for name, path in known.items():
+        for target, line in imported(name, path):
+            if target in known and target != name and target != "service":  # the package: version only
+                graph[name].setdefault(target, line)
+    return graph
+
+
+def find_cycle(graph: dict[str, dict[str, int]]) -> list[str] | None:
+    """One import cycle as [a, b, ..., a], or None."""
+    state: dict[str, str] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = "open"
+        stack.append(node)
+        for target in graph[node]:
+            if state.get(target) == "open":
+                return stack[stack.index(target):] + [target]
+            if target not in state and (cycle := visit(target)):
+                return cycle
+        stack.pop()
+        state[node] = "done"
+        return None
+
+    for node in graph:
+        if node not in state and (cycle := visit(node)):
+            return cycle
+    return None
+
+
+def test_cycle_finder_sees_a_cycle() -> None:
+    assert find_cycle({"a": {"b": 1}, "b": {"c": 1}, "c": {"a": 1}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b": 1}, "b": {}, "c": {"a": 1, "b": 1}}) is None
+
+
+def test_service_imports_have_no_cycle() -> None:
+    graph = service_graph()
+    assert {"service.cli", "service.context", "service.container", "service.runner"} <= set(graph)
+    cycle = find_cycle(graph)
+    assert cycle is None, "import cycle in service/: " + " -> ".join(
+        f"{a} (line {graph[a][b]})" for a, b in zip(cycle, cycle[1:])) + f" -> {cycle[-1]}"
+
+
+def test_service_layers_import_downwards() -> None:
+    graph = service_graph()
+    level = {name: i for i, (_, members) in enumerate(LAYERS) for name in members}
+    assert set(level) <= set(graph), "a layer names a module that does not exist"
+    upward = [f"{name} ({LAYERS[level[name]][0]}) imports {target} ({LAYERS[level[target]][0]}) "
+              f"on line {line}"
+              for name, targets in graph.items() if name in level
+              for target, line in targets.items() if level.get(target, -1) > level[name]]
+    assert not upward, "\n".join(upward)
+
+
+@pytest.mark.parametrize(("package", "forbidden"), [("worker", ("service",)), ("model", ("service", "worker"))])
+def test_lower_packages_do_not_import_upper_ones(package: str, forbidden: tuple[str, ...]) -> None:
+    bad = [f"{path.relative_to(ROOT)}:{line} imports {target}"
+           for name, path in modules(package).items() for target, line in imported(name, path)
+           if target.split(".")[0] in forbidden]
+    assert not bad, "\n".join(bad)
+
+
+def test_torch_is_imported_only_under_model() -> None:
+    bad = [f"{path.relative_to(ROOT)}:{line}"
+           for package in ("service", "worker") for name, path in modules(package).items()
+           for target, line in imported(name, path) if target.split(".")[0] == "torch"]
+    assert not bad, "torch imported outside model/: " + ", ".join(bad)
