@@ -19,7 +19,7 @@ import numpy as np
 
 from worker.colour_match import calibrate_texture
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
-from worker.images import read_image, write_image
+from worker.images import read_image, resize_short_side, write_image
 
 from .container import Services
 from .db import session_scope
@@ -252,11 +252,10 @@ def _fitted_colour(services: Services, texture: Texture, sampler_path: Path, cod
                    image_path: Path) -> list[float] | None:
     """The texture's colour table for its fitted sampler (the table matches the photo to a
     sampler's own raw output, so a new sampler needs a new table); None if it has no colour stage."""
-
     image = read_image(image_path.read_bytes(), max_pixels=services.settings.max_image_pixels)
     short_side = services.registry.get(texture.model_version).manifest.get("exemplar_short_side")
     colour = calibrate_texture(services.registry.fitted_sampler(sampler_path), np.asarray(code, np.float32),
-                               image, short_side=short_side)
+                               resize_short_side(image, short_side))
     return [float(v) for v in colour] or None
 
 

@@ -55,15 +55,20 @@ def imported(name: str, path: Path) -> list[tuple[str, int]]:
     return found
 
 
-def service_graph() -> dict[str, dict[str, int]]:
-    """service module -> {service module it imports: line}."""
-    known = modules("service")
+def package_graph(package: str) -> dict[str, dict[str, int]]:
+    """module of ``package`` -> {module of the same package it imports: line}."""
+    known = modules(package)
     graph: dict[str, dict[str, int]] = {name: {} for name in known}
     for name, path in known.items():
         for target, line in imported(name, path):
-            if target in known and target != name and target != "service":  # the package: version only
+            if target in known and target != name and target != package:  # the package: version only
                 graph[name].setdefault(target, line)
     return graph
+
+
+def service_graph() -> dict[str, dict[str, int]]:
+    """service module -> {service module it imports: line}."""
+    return package_graph("service")
 
 
 def find_cycle(graph: dict[str, dict[str, int]]) -> list[str] | None:
@@ -100,6 +105,14 @@ def test_service_imports_have_no_cycle() -> None:
     cycle = find_cycle(graph)
     assert cycle is None, "import cycle in service/: " + " -> ".join(
         f"{a} (line {graph[a][b]})" for a, b in zip(cycle, cycle[1:])) + f" -> {cycle[-1]}"
+
+
+def test_worker_imports_have_no_cycle() -> None:
+    # (colour_match once reached back into images, which imports runtime, which imports colour_match)
+    graph = package_graph("worker")
+    assert {"worker.runtime", "worker.images", "worker.colour_match"} <= set(graph)
+    cycle = find_cycle(graph)
+    assert cycle is None, "import cycle in worker/: " + " -> ".join(cycle)
 
 
 def test_service_layers_import_downwards() -> None:

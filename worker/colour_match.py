@@ -108,15 +108,8 @@ def colour_table(photo_linear: np.ndarray, raw: np.ndarray, knots: int) -> np.nd
     return np.concatenate([a.ravel(), start, step, values.ravel(), axes.ravel()]).astype(np.float32)
 
 
-def photo_pixels(image: np.ndarray, short_side: int | None = None) -> np.ndarray:
-    """Linear-RGB pixels (N, 3) float32 of an sRGB photo (H, W, 3), at most MAX_PHOTO_PIXELS.
-
-    ``short_side`` resizes first, to the resolution the texture is encoded at.
-    """
-    if short_side:
-        from worker.images import resize_short_side  # (images imports runtime; keep this module light)
-
-        image = resize_short_side(image, short_side)
+def photo_pixels(image: np.ndarray) -> np.ndarray:
+    """Linear-RGB pixels (N, 3) float32 of an sRGB photo (H, W, 3), at most MAX_PHOTO_PIXELS."""
     flat = np.asarray(image, np.float32).reshape(-1, 3)
     stride = max(1, len(flat) // MAX_PHOTO_PIXELS)
     return srgb_to_linear(flat[::stride])
@@ -127,11 +120,12 @@ def calibration_points() -> np.ndarray:
     return np.random.default_rng(20200614).random((CALIBRATION_POINTS, 3)) * CALIBRATION_EXTENT
 
 
-def calibrate_texture(sampler, code: np.ndarray, image: np.ndarray, *, short_side: int | None = None) -> np.ndarray:
+def calibrate_texture(sampler, code: np.ndarray, image: np.ndarray) -> np.ndarray:
     """The colour table of a texture: ``code`` (8,) synthesised by ``sampler``, photo ``image``.
 
     sampler : a SamplerSession (worker/runtime.py) whose graph has a colour input.
-    image : (H, W, 3) float32 sRGB 0..1, the texture's exemplar.
+    image : (H, W, 3) float32 sRGB 0..1, the texture's exemplar at the model's working
+        resolution (``worker.images.resize_short_side(image, exemplar_short_side)``).
     Returns (sampler.colour_size,) float32; empty (0,) when the sampler has no colour stage.
     """
     size = getattr(sampler, "colour_size", 0)
@@ -141,7 +135,7 @@ def calibrate_texture(sampler, code: np.ndarray, image: np.ndarray, *, short_sid
     vector = np.concatenate([code, identity_colour(size)])
     points = calibration_points()
     raw = np.concatenate([sampler.sample(points, vector, seed) for seed in CALIBRATION_SEEDS])
-    return colour_table(photo_pixels(image, short_side), raw, knots_of(size))
+    return colour_table(photo_pixels(image), raw, knots_of(size))
 
 
 def texture_vector(code, colour) -> np.ndarray:

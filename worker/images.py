@@ -257,7 +257,7 @@ def encode_texture(runtime: ModelRuntime, image: np.ndarray) -> tuple[np.ndarray
     """What a texture stores of an sRGB photo: its code (8,) float32 and its colour table
     for the model's sampler (worker/colour_match.py; empty if the sampler has no colour stage)."""
     code = encode_image(runtime, image)
-    return code, calibrate_texture(runtime.sampler, code, image, short_side=runtime.short_side)
+    return code, calibrate_texture(runtime.sampler, code, resize_short_side(image, runtime.short_side))
 
 
 def write_image(rgb: np.ndarray, fmt: str, *, colour: str = "linear", quality: int = 90) -> bytes:

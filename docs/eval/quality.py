@@ -75,7 +75,8 @@ def texture_code(runtime: ModelRuntime, image: np.ndarray) -> np.ndarray:
     code = getattr(runtime, "fitted_code", None)
     if code is None:
         code = encode_image(runtime, image)
-    return texture_vector(code, calibrate_texture(runtime.sampler, code, image, short_side=runtime.short_side))
+    working = resize_short_side(image, runtime.short_side)
+    return texture_vector(code, calibrate_texture(runtime.sampler, code, working))
 
 
 class FittedRuntime:

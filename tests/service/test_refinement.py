@@ -195,9 +195,9 @@ def test_refinement_recomputes_the_colour_with_the_fitted_sampler(refining, phot
     client, services = refining
     calls = []
 
-    def calibrate(sampler, code, image, *, short_side=None):  # noqa: ANN001, ANN202
-        calls.append((sampler, np.asarray(code).tolist(), image.shape, short_side))
-        return real(sampler, code, image, short_side=short_side)
+    def calibrate(sampler, code, image):  # noqa: ANN001, ANN202
+        calls.append((sampler, np.asarray(code).tolist(), image.shape))
+        return real(sampler, code, image)
 
     monkeypatch.setattr(job_kinds, "calibrate_texture", calibrate)
     texture = upload(client, photo)
@@ -205,10 +205,11 @@ def test_refinement_recomputes_the_colour_with_the_fitted_sampler(refining, phot
     run_fit_lane(services)
     with services.sessions() as session:
         row = session.get(Texture, texture["id"])
-    sampler, code, shape, short_side = calls[-1]
+    sampler, code, shape = calls[-1]
     assert sampler is services.registry.fitted_sampler(services.sampler_path(row.id, row.sampler_key))
     assert code == [0.0] * 8 and shape[2] == 3
-    assert short_side == services.registry.get(row.model_version).manifest.get("exemplar_short_side")
+    # the photo at the model's working resolution (its shorter side), as at upload
+    assert min(shape[:2]) == services.registry.get(row.model_version).manifest.get("exemplar_short_side")
     assert row.colour is not None and len(row.colour) == len(real(sampler, np.zeros(8, np.float32),
                                                                    np.full((64, 64, 3), 0.5, np.float32)))
 
