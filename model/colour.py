@@ -54,6 +54,16 @@ def identity_colour(knots: int = KNOTS) -> torch.Tensor:
     return torch.cat([eye, grid, ramp, eye])
 
 
+def compress(linear: torch.Tensor) -> torch.Tensor:
+    """Linear colour in [0, 1] -> compressed colour (linear + FLOOR) ** (1/4), as two square roots."""
+    return torch.sqrt(torch.sqrt(linear.clamp(0.0, 1.0) + FLOOR))
+
+
+def expand(compressed: torch.Tensor) -> torch.Tensor:
+    """Compressed colour -> linear colour clamped to [0, 1]: the inverse of ``compress``, as two squares."""
+    return (torch.square(torch.square(compressed)) - FLOOR).clamp(0.0, 1.0)
+
+
 def _lookup(u: torch.Tensor, start: torch.Tensor, step: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
     """Curves sampled on uniform grids, read by linear interpolation, constant outside.
 
@@ -92,15 +102,17 @@ def apply_colour(rgb: torch.Tensor, colour: torch.Tensor) -> torch.Tensor:
     step = colour[:, 12:15].reshape(b, 1, 3)
     values = colour[:, 15 : 15 + 3 * k].reshape(b, 3, k)
     back = colour[:, 15 + 3 * k :].reshape(b, 1, 3, 3)
-    compressed = torch.sqrt(torch.sqrt(rgb.clamp(0.0, 1.0) + FLOOR))
-    d = _lookup(_matvec3(a, compressed), start, step, values)
-    squared = torch.square(_matvec3(back, d))
-    return (torch.square(squared) - FLOOR).clamp(0.0, 1.0)
+    d = _lookup(_matvec3(a, compress(rgb)), start, step, values)
+    return expand(_matvec3(back, d))
 
 
 def compressed_moments(linear: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean [N,3] and covariance [N,3,3] of images [N,3,H,W] (linear RGB) in compressed colour."""
-    flat = torch.sqrt(torch.sqrt(linear.clamp(0.0, 1.0) + FLOOR)).flatten(2)  # [N,3,HW]
+    return _moments(compress(linear).flatten(2))
+
+
+def _moments(flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean [N,3] and covariance [N,3,3] of colours [N,3,M]."""
     mean = flat.mean(dim=2)
     centred = flat - mean.unsqueeze(2)
     return mean, centred @ centred.transpose(1, 2) / flat.shape[2]
@@ -115,10 +127,10 @@ def transfer_colour_moments(linear: torch.Tensor, mean: torch.Tensor, covariance
     them. Differentiable; a tiny ridge keeps flat patches finite.
     """
     eye = torch.eye(3, dtype=linear.dtype, device=linear.device)
-    own_mean, own_covariance = compressed_moments(linear)
+    flat = compress(linear).flatten(2)  # [N,3,HW]
+    own_mean, own_covariance = _moments(flat)
     own = torch.linalg.cholesky(own_covariance + 1e-6 * eye)
     target = torch.linalg.cholesky(covariance + 1e-6 * eye)
-    flat = torch.sqrt(torch.sqrt(linear.clamp(0.0, 1.0) + FLOOR)).flatten(2) - own_mean.unsqueeze(2)
-    white = torch.linalg.solve_triangular(own, flat, upper=False)
-    coloured = (target @ white + mean.unsqueeze(2)).clamp_min(0.0)
-    return (torch.square(torch.square(coloured)) - FLOOR).clamp(0.0, 1.0).reshape(linear.shape)
+    white = torch.linalg.solve_triangular(own, flat - own_mean.unsqueeze(2), upper=False)
+    # clamped at 0 first: a negative compressed value would square back to a bright colour
+    return expand((target @ white + mean.unsqueeze(2)).clamp_min(0.0)).reshape(linear.shape)

@@ -152,22 +152,26 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     if not texture.exemplar_key:
         raise InvalidParameter(f"texture {texture.id} has no exemplar image to fit")
     # keep the extension: image readers pick the decoder by it
-    image_path = services.storage.get_file(texture.exemplar_key, workdir / Path(texture.exemplar_key).name)
-    image_path = _as_png(services, image_path)
+    original = services.storage.get_file(texture.exemplar_key, workdir / Path(texture.exemplar_key).name)
+    image = read_image(original.read_bytes(), max_pixels=services.settings.max_image_pixels)
+    # model.fit reads with Pillow, which knows fewer formats (EXR, float TIFF): it gets the
+    # photo as this one reader decoded it at upload, an 8-bit sRGB PNG
+    decoded = workdir / "exemplar-decoded.png"
+    decoded.write_bytes(write_image(image, "png", colour="srgb"))
     out_dir = workdir / "fit"
-    _fit_exemplar(services, job, texture, image_path, out_dir, progress, should_cancel)
+    _fit_exemplar(services, job, texture, decoded, out_dir, progress, should_cancel)
     code = json.loads((out_dir / "code.json").read_text())
     code = [float(c) for c in (code["code"] if isinstance(code, dict) else code)]
     values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
     if job.params.get("in_place"):
-        _refine_in_place(services, job, texture, out_dir / "sampler.onnx", code, image_path)
+        _refine_in_place(services, job, texture, out_dir / "sampler.onnx", code, image)
         return {**values, "output_texture_id": texture.id}
     new_id = fitted_texture_id(job.id)
     sampler_key = f"textures/{new_id}/sampler.onnx"
     services.storage.put_file(sampler_key, out_dir / "sampler.onnx")
-    colour = _fitted_colour(services, texture, out_dir / "sampler.onnx", code, image_path)
+    colour = _fitted_colour(services, texture, out_dir / "sampler.onnx", code, image)
     exemplar_key = f"textures/{new_id}/{Path(texture.exemplar_key).name}"  # own copy: outlives the parent
-    services.storage.put_file(exemplar_key, image_path)
+    services.storage.put_file(exemplar_key, original)
     with session_scope(services.sessions) as session:
         if session.get(Texture, new_id) is None:
             session.add(Texture(id=new_id, name=f"{texture.name or texture.id} (fitted)",
@@ -178,16 +182,6 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
                                 exemplar_media_type=texture.exemplar_media_type,
                                 width=texture.width, height=texture.height, sampler_key=sampler_key))
     return {**values, "output_texture_id": new_id}
-
-
-def _as_png(services: Services, image_path: Path) -> Path:
-    """The exemplar as decoded by the service's one reader (worker.images.read_image: EXR,
-    16-bit, grey, alpha...), written as an 8-bit sRGB PNG beside it: model.fit reads images
-    with Pillow, which knows fewer formats, and a fit must see what the upload saw."""
-    image = read_image(image_path.read_bytes(), max_pixels=services.settings.max_image_pixels)
-    png = image_path.with_name("exemplar-decoded.png")
-    png.write_bytes(write_image(image, "png", colour="srgb"))
-    return png
 
 
 def _fit_exemplar(services: Services, job: Job, texture: Texture, image_path: Path, out_dir: Path,
@@ -222,7 +216,7 @@ def _fit_exemplar(services: Services, job: Job, texture: Texture, image_path: Pa
 
 
 def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],
-                     image_path: Path) -> None:
+                     image: np.ndarray) -> None:
     """Make ``texture`` serve the fitted sampler: store it under a key of this attempt's own
     (so a tile ETag, which includes the key, never names two samplers' bytes), then update
     the row if this attempt still holds the job. The encoder's code is kept for blends."""
@@ -232,7 +226,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
     local = services.sampler_path(texture.id, sampler_key)  # where sampler_for looks: no second download
     local.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(sampler_path, local)
-    colour = _fitted_colour(services, texture, local, code, image_path)
+    colour = _fitted_colour(services, texture, local, code, image)
     with session_scope(services.sessions) as session:
         current = session.get(Job, job.id)
         row = session.get(Texture, texture.id)
@@ -240,19 +234,16 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
             services.storage.delete_prefix(folder)  # no row names it: leave no file behind
             local.unlink(missing_ok=True)
             raise Canceled("the job was taken over or deleted before its refinement was applied")
-        if row.encoder_code is None:
-            row.encoder_code = list(row.code)
-        row.code, row.sampler_key, row.updated_at = code, sampler_key, utcnow()
-        if row.encoder_colour is None:  # kept like encoder_code
-            row.encoder_colour = row.colour
-        row.colour = colour
+        if row.encoder_code is None:  # the first refinement: keep what the encoder gave, for blends
+            row.encoder_code, row.encoder_colour = list(row.code), row.colour
+        row.code, row.colour, row.sampler_key, row.updated_at = code, colour, sampler_key, utcnow()
 
 
 def _fitted_colour(services: Services, texture: Texture, sampler_path: Path, code: list[float],
-                   image_path: Path) -> list[float] | None:
+                   image: np.ndarray) -> list[float] | None:
     """The texture's colour table for its fitted sampler (the table matches the photo to a
-    sampler's own raw output, so a new sampler needs a new table); None if it has no colour stage."""
-    image = read_image(image_path.read_bytes(), max_pixels=services.settings.max_image_pixels)
+    sampler's own raw output, so a new sampler needs a new table); None if it has no colour stage.
+    ``image``: the exemplar, (H, W, 3) float32 sRGB as read_image decoded it."""
     short_side = services.registry.get(texture.model_version).manifest.get("exemplar_short_side")
     colour = calibrate_texture(services.registry.fitted_sampler(sampler_path), np.asarray(code, np.float32),
                                resize_short_side(image, short_side))

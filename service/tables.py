@@ -87,7 +87,7 @@ class Texture(Base):
     # The colour table the sampler applies last (worker/colour_match.py): the photo's colour
     # statistics matched to this texture's sampler. None: the identity table (rows from
     # before colour tables, and samplers without a colour stage). encoder_colour is the
-    # table of encoder_code with the model's sampler, kept for blends like encoder_code.
+    # table of encoder_code with the model's sampler, kept with it when a refinement replaces both.
     colour: Mapped[list | None] = mapped_column(JSON, nullable=True)
     encoder_colour: Mapped[list | None] = mapped_column(JSON, nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)

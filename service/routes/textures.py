@@ -71,8 +71,7 @@ def create_texture(
     services.storage.put_bytes(key, data)
     colour = [float(c) for c in colour] or None
     texture = Texture(id=texture_id, name=(name or image.filename or "")[:NAME_LENGTH], code=[float(c) for c in code],
-                      colour=colour, encoder_colour=colour,
-                      model_version=runtime.version, source="upload", exemplar_key=key,
+                      colour=colour, model_version=runtime.version, source="upload", exemplar_key=key,
                       exemplar_media_type=IMAGE_MEDIA_TYPES.get(ext, "application/octet-stream"),
                       width=int(pixels.shape[1]), height=int(pixels.shape[0]), owner_id=auth.current_owner(),
                       refinement_job_id=new_id() if refine else None)
@@ -97,6 +96,17 @@ def queue_refinement(services, texture: Texture, params: dict) -> None:  # noqa:
         log.warning("upload not refined: %s", getattr(exc, "detail", exc), extra={"texture_id": texture.id})
         with session_scope(services.sessions) as session:
             session.execute(update(Texture).where(Texture.id == texture.id).values(refinement_job_id=None))
+
+
+def in_model_space(texture: Texture) -> tuple[list, list | None] | None:
+    """The texture's code and colour table for its model's own sampler, what blends mix: a
+    refined upload's kept encoder values, any other texture's own; None for a fit's new
+    texture, which only its own sampler can draw."""
+    if texture.encoder_code is not None:
+        return texture.encoder_code, texture.encoder_colour
+    if texture.sampler_key:
+        return None
+    return texture.code, texture.colour
 
 
 def texture_outs(services, textures: list[Texture]) -> list[TextureOut]:  # noqa: ANN001
@@ -131,19 +141,18 @@ def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) 
         raise Problem(409, f"textures were encoded by different models ({a.model_version} and "
                            f"{b.model_version}); codes from different spaces cannot be blended",
                       slug="model-mismatch")
-    # a refined upload blends by the code the encoder gave it, in the model's latent space
-    za, zb = (t.encoder_code or (None if t.sampler_key else t.code) for t in (a, b))
-    if za is None or zb is None:
+    ends = [in_model_space(t) for t in (a, b)]
+    if None in ends:
         raise Problem(409, "fitted textures carry their own sampler and have no shared latent space; "
                            "interpolate the textures they were fitted from", slug="fitted-texture")
+    (za, ca), (zb, cb) = ends
     code = (1.0 - body.t) * np.asarray(za, np.float64) + body.t * np.asarray(zb, np.float64)
     # colour tables blend knot by knot (model/colour.py); a texture without one has the identity
     size = services.registry.get(a.model_version).sampler.colour_size
-    ca, cb = (np.asarray(t.encoder_colour or (None if t.sampler_key else t.colour) or identity_colour(size),
-                         np.float64) if size else np.zeros(0) for t in (a, b))
+    ca, cb = (np.asarray(c or identity_colour(size), np.float64) if size else np.zeros(0) for c in (ca, cb))
     colour = [float(c) for c in (1.0 - body.t) * ca + body.t * cb] or None
     texture = Texture(id=new_id(), name=body.name or blend_name(a.name or a.id, b.name or b.id, body.t),
-                      code=[float(c) for c in code], colour=colour, encoder_colour=colour,
+                      code=[float(c) for c in code], colour=colour,
                       model_version=a.model_version, source="interpolate",
                       parents={"a": a.id, "b": b.id, "t": body.t}, owner_id=auth.current_owner())
     with session_scope(services.sessions) as session:

@@ -129,11 +129,17 @@ def test_fit_of_an_exr_exemplar_reads_it_with_the_service_reader(fit_client, fit
     from worker.images import write_image
 
     linear = np.random.default_rng(0).random((64, 64, 3)).astype(np.float32) * 0.5
-    created = fit_client.post("/v1/textures", files={"image": ("t.exr", write_image(linear, "exr"), "image/x-exr")})
+    exr = write_image(linear, "exr")
+    created = fit_client.post("/v1/textures", files={"image": ("t.exr", exr, "image/x-exr")})
     assert created.status_code == 201, created.text
     job = fit_client.post(f"/v1/textures/{created.json()['id']}/fit", json={}).json()
-    assert fit_client.get(f"/v1/jobs/{job['id']}").json()["state"] == "succeeded"
+    done = fit_client.get(f"/v1/jobs/{job['id']}").json()
+    assert done["state"] == "succeeded"
     (call,) = fit_calls
     assert call["image_path"].suffix == ".png"
     with Image.open(io.BytesIO(call["image_bytes"])) as image:
         assert image.format == "PNG" and image.mode == "RGB" and image.size == (64, 64)
+    # the fitted texture keeps the uploaded file itself as its exemplar, not the decoded PNG
+    texture_id = done.get("output_texture_id") or done["result"]["output_texture_id"]
+    exemplar = fit_client.get(f"/v1/textures/{texture_id}/exemplar")
+    assert exemplar.content == exr and exemplar.headers["content-type"] == "image/x-exr"
