@@ -33,7 +33,7 @@ def create_app(settings: Settings | None = None, *, services: Services | None = 
                               "volumes and UV-baked meshes from its 8-number code.")
     app.state.services = services
     services.metrics.watch(services)
-    images.set_decode_budget(settings.decode_budget_pixels)  # uploads: bounded decoded pixels (README)
+    images.set_decode_budget(settings.decode_budget_pixels)  # uploads: bounded decoded pixels (docs/OPERATIONS.md)
     install_error_handlers(app)
     for module in (system, textures, tiles, jobs):
         app.include_router(module.router, **({} if module is system else auth.router_options()))

@@ -100,7 +100,7 @@ def test_interrupted_write_leaves_no_partial_object(tmp_path: Path, monkeypatch)
 
 
 def test_backup_and_restore_as_the_readme_says(tmp_path: Path) -> None:
-    """README "Backup and restore", embedded setup: an online SQLite backup plus a copy of
+    """docs/OPERATIONS.md "Backup and restore", embedded setup: an online SQLite backup plus a copy of
     the storage folder bring back every texture and job result, byte for byte."""
     import sqlite3
 
