@@ -29,11 +29,15 @@ MAX_IR_VERSION = 13  # onnxruntime 1.31 refuses newer IR
 DEFAULT_OUTDIR = Path(__file__).resolve().parent / "weights"
 ENCODER_INPUT_SIZE = 128
 ENCODER_INPUT_RANGE = [-1.0, 1.0]
+TILEABLE_SAMPLER = "sampler_tileable.onnx"  # file name beside sampler.onnx, also in a fit's folder
 _SHIFT_DOMAIN = "texspace"  # placeholder op domain, gone from the written file
 
 
 def _register_bitwise_symbolics() -> None:
-    """Teach the TorchScript exporter the ONNX 18 bitwise ops it does not map itself."""
+    """Teach the TorchScript exporter the ONNX 18 bitwise ops it does not map itself.
+
+    (Right shifts are model/noise.py's own autograd Function, whose ``symbolic`` writes
+    the placeholder ShiftRight node that ``_hash_in_uint32`` replaces.)"""
     from torch.onnx import register_custom_op_symbolic
 
     def xor(g, a, b):
@@ -42,44 +46,61 @@ def _register_bitwise_symbolics() -> None:
     def and_(g, a, b):
         return g.op("BitwiseAnd", a, b)
 
-    def shift_right(g, a, bits):
-        # A placeholder node, lowered by _lower_shifts once the graph is written: the
-        # exporter's shape inference knows no uint64, which ONNX BitShift requires.
-        from torch.onnx import symbolic_helper
-
-        out = g.op(f"{_SHIFT_DOMAIN}::ShiftRight", a, bits_i=symbolic_helper._get_const(bits, "i", "bits"))
-        return out.setType(a.type())
-
     register_custom_op_symbolic("aten::bitwise_xor", xor, OPSET)
     register_custom_op_symbolic("aten::bitwise_and", and_, OPSET)
-    register_custom_op_symbolic("aten::bitwise_right_shift", shift_right, OPSET)
 
 
-def _lower_shifts(graph) -> None:
-    """Replace each placeholder ShiftRight(x, bits) by Cast(uint64) -> BitShift -> Cast(int64).
+# Ops whose result depends on reading an int32 as signed: none may touch the hash.
+_SIGNED_OPS = {"Less", "Greater", "LessOrEqual", "GreaterOrEqual", "Div", "Mod", "Min", "Max", "Abs", "Neg", "Sign"}
 
-    ONNX BitShift takes unsigned types only; the noise shifts non-negative int64 values
-    (model/noise.py), for which the uint64 shift is the same number. Measured in
-    onnxruntime 1.31: 0.75 ns per element against 2.0 for the integer Div it replaces.
+
+def _hash_in_uint32(graph) -> None:
+    """Run the noise hash in uint32: every int32 tensor becomes uint32, and each
+    placeholder ShiftRight(x, bits) becomes one ONNX BitShift.
+
+    The noise (model/noise.py) holds 32-bit patterns in int32 because torch has no
+    usable uint32; every op it applies to them (Add, Mul, BitwiseXor/And, Equal, Where,
+    casts from int64) gives the same bits read as uint32, its field casts to float read
+    bits that exclude the sign bit, and its right shifts are logical, which is what the
+    uint32 BitShift does. ONNX BitShift takes unsigned types only; as uint32 the shifts
+    need no casts around them, and the graph none of the 5 casts per mix32 it needed.
     """
-    from onnx import TensorProto, helper, numpy_helper
+    from onnx import TensorProto, helper, numpy_helper, shape_inference
 
+    g = graph.graph
+    typed = shape_inference.infer_shapes(graph).graph
+    int32 = {v.name for v in list(typed.value_info) + list(typed.input) + list(typed.output)
+             if v.type.tensor_type.elem_type == TensorProto.INT32}
+    int32 |= {t.name for t in g.initializer if t.data_type == TensorProto.INT32}
+    for node in g.node:
+        if node.op_type in _SIGNED_OPS and int32.intersection(node.input):
+            raise ValueError(f"{node.op_type} {node.name} reads an int32 hash value as signed")
+
+    def unsigned(tensor):
+        return numpy_helper.from_array(numpy_helper.to_array(tensor).view(np.uint32), tensor.name)
+
+    for i, init in enumerate(g.initializer):
+        if init.data_type == TensorProto.INT32:
+            g.initializer[i].CopyFrom(unsigned(init))
+    for info in list(g.value_info) + list(g.input) + list(g.output):
+        if info.type.tensor_type.elem_type == TensorProto.INT32:
+            info.type.tensor_type.elem_type = TensorProto.UINT32
     nodes = []
-    for node in graph.graph.node:
+    for node in g.node:
+        for attr in node.attribute:
+            if node.op_type == "Cast" and attr.name == "to" and attr.i == TensorProto.INT32:
+                attr.i = TensorProto.UINT32
+            if node.op_type == "Constant" and attr.name == "value" and attr.t.data_type == TensorProto.INT32:
+                attr.t.CopyFrom(unsigned(attr.t))
         if node.domain != _SHIFT_DOMAIN:
             nodes.append(node)
             continue
         bits = next(a.i for a in node.attribute if a.name == "bits")
-        x, y, name = node.input[0], node.output[0], node.output[0]
-        amount = numpy_helper.from_array(np.array(bits, dtype=np.uint64), f"{name}_bits")
-        graph.graph.initializer.append(amount)
-        nodes += [
-            helper.make_node("Cast", [x], [f"{name}_u64"], to=TensorProto.UINT64),
-            helper.make_node("BitShift", [f"{name}_u64", amount.name], [f"{name}_shr"], direction="RIGHT"),
-            helper.make_node("Cast", [f"{name}_shr"], [y], to=TensorProto.INT64),
-        ]
-    del graph.graph.node[:]
-    graph.graph.node.extend(nodes)
+        amount = numpy_helper.from_array(np.array(bits, dtype=np.uint32), f"{node.output[0]}_bits")
+        g.initializer.append(amount)
+        nodes.append(helper.make_node("BitShift", [node.input[0], amount.name], [node.output[0]], direction="RIGHT"))
+    del g.node[:]
+    g.node.extend(nodes)
     kept = [o for o in graph.opset_import if o.domain != _SHIFT_DOMAIN]
     del graph.opset_import[:]
     graph.opset_import.extend(kept)
@@ -104,6 +125,16 @@ class SamplerGraph(nn.Module):
         return apply_colour(raw, colour).reshape(-1, 3)
 
 
+class TileableSamplerGraph(SamplerGraph):
+    """Contract 1 plus ``period`` float64 [] (world units): the same texture made periodic
+    in x and y with that period (``TextureField.periodic_lattice``), for tileable images."""
+
+    def forward(self, points, z, seed, colour, period):
+        rows = z.shape[0]
+        raw = self.field(points.reshape(rows, -1, 3), z, seed.reshape([]), period=period.reshape([]))
+        return apply_colour(raw, colour).reshape(-1, 3)
+
+
 def _export(module: nn.Module, args: tuple, path: Path, input_names, output_names, dynamic_axes):
     import onnx
 
@@ -124,7 +155,7 @@ def _export(module: nn.Module, args: tuple, path: Path, input_names, output_name
                 do_constant_folding=True,
             )
         graph = onnx.load(str(raw))
-    _lower_shifts(graph)
+    _hash_in_uint32(graph)
     if graph.ir_version > MAX_IR_VERSION:
         graph.ir_version = MAX_IR_VERSION
     graph.producer_name = "texspace"
@@ -145,6 +176,22 @@ def export_sampler(field: TextureField, path: Path) -> None:
         (points, z, seed, colour),
         path,
         ["points", "z", "seed", "colour"],
+        ["rgb"],
+        {"points": {0: "P"}, "z": {0: "R"}, "colour": {0: "R"}, "rgb": {0: "P"}},
+    )
+
+
+def export_tileable_sampler(field: TextureField, path: Path) -> None:
+    points = torch.rand(64, 3, dtype=torch.float64)
+    z = torch.zeros(1, field.cfg.code_size)
+    seed = torch.tensor(0, dtype=torch.int64)
+    colour = identity_colour(KNOTS)[None]
+    period = torch.tensor(4.0, dtype=torch.float64)
+    _export(
+        TileableSamplerGraph(field),
+        (points, z, seed, colour, period),
+        path,
+        ["points", "z", "seed", "colour", "period"],
         ["rgb"],
         {"points": {0: "P"}, "z": {0: "R"}, "colour": {0: "R"}, "rgb": {0: "P"}},
     )
@@ -201,8 +248,9 @@ def export_model(model: TextureSpace, outdir: Path, training: dict | None = None
     training = training or {}
     export_encoder(model, outdir / "encoder.onnx")
     export_sampler(model.field, outdir / "sampler.onnx")
+    export_tileable_sampler(model.field, outdir / TILEABLE_SAMPLER)
     save_weights(model, outdir / "space.pt", training)
-    return write_manifest(outdir, model.cfg.to_dict(), training)
+    return write_manifest(outdir, model.cfg.to_dict(), training, {"tileable_sampler": TILEABLE_SAMPLER})
 
 
 def training_summary(ckpt: dict) -> dict:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from model.export import export_sampler, model_version
+from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
 from model.networks import load_checkpoint
 from model.train import parse_args, train
 
@@ -74,11 +74,13 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                                                "loss", "layers", "final_loss", "probe")} | {"init": str(init)},
                out_dir / "fit.pt")
     export_sampler(model.field, out_dir / "sampler.onnx")
+    export_tileable_sampler(model.field, out_dir / TILEABLE_SAMPLER)
     code = ckpt["code"].reshape(-1).tolist()
     (out_dir / "code.json").write_text(json.dumps({"code": code}) + "\n")
     manifest = {
         "version": model_version(out_dir / "sampler.onnx"),
         "kind": "fitted",
+        "tileable_sampler": TILEABLE_SAMPLER,
         "base_model": init.name,
         "pixels_per_unit": cfg.pixels_per_unit,
         "code": code,

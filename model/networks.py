@@ -145,6 +145,14 @@ class Encoder(nn.Module):
 # ----------------------------------------------------------------------------- field
 
 
+# Octave k's turn about z in periodic (tileable) synthesis, as (a, b, c) with cos = a/c,
+# sin = b/c: a lattice turned by a rational angle repeats after whole cells along both
+# tile axes, an irrational one never. Octave 0 stays axis-aligned as in
+# ``_fixed_rotations``; small c for the coarse octaves (a period spans fewest of their
+# cells); alternating signs so neighbouring octaves do not share a direction.
+TILEABLE_ROTATIONS = ((1, 0, 1), (0, 1, 1), (4, 3, 5), (3, -4, 5), (12, 5, 13), (5, -12, 13), (15, 8, 17), (8, -15, 17))
+
+
 def _fixed_rotations(n: int, dims: int, seed: int = 20200614) -> torch.Tensor:
     """n deterministic random rotation matrices [n, dims, dims] (QR of Gaussians)."""
     g = torch.Generator().manual_seed(seed)
@@ -232,6 +240,9 @@ class Decoder(nn.Module):
         nn.init.normal_(self.out.weight, std=0.5 / hidden**0.5)
 
     def forward(self, noise, position, code):
+        points = noise if noise is not None else position  # [B,P,*]
+        if code.shape[0] == 1 or points.shape[1] == 1:
+            return self._forward_rows(noise, position, code)
         biases = self.from_code(code).unsqueeze(1)  # [B,1,H*L+3]
         h = biases[..., : self.hidden]
         if self.from_noise is not None:
@@ -242,6 +253,25 @@ class Decoder(nn.Module):
         for i, layer in enumerate(self.layers, start=1):
             h = F.relu(layer(h) + biases[..., i * self.hidden : (i + 1) * self.hidden])
         return self.out(h) + biases[..., -3:]
+
+    def _forward_rows(self, noise, position, code):
+        """``forward`` where one code serves all points (B = 1) or each code one point
+        (P = 1), the two shapes the exported sampler sees: then the points flatten to
+        rows and each layer is one ``addmm`` with its code bias (an ONNX Gemm, which
+        adds the bias and, fused by ONNX Runtime, the ReLU in the GEMM's own pass)."""
+        biases = self.from_code(code)  # [B,H*L+3]: broadcast over the P rows when B = 1
+        hidden = self.hidden
+        h = biases[:, :hidden]
+        if self.from_noise is not None:
+            h = torch.addmm(h, noise.reshape(-1, noise.shape[-1]), self.from_noise.weight.t())
+        if self.from_position is not None:
+            h = h + self.from_position(position.reshape(-1, position.shape[-1]))
+        h = F.relu(h)
+        for i, layer in enumerate(self.layers, start=1):
+            h = F.relu(torch.addmm(biases[:, i * hidden : (i + 1) * hidden], h, layer.weight.t()))
+        rgb = torch.addmm(biases[:, -3:], h, self.out.weight.t())
+        points = noise if noise is not None else position
+        return rgb.reshape(points.shape[:-1] + (3,))
 
 
 class TextureField(nn.Module):
@@ -306,8 +336,45 @@ class TextureField(nn.Module):
             return local.reshape(b, p, k, d) + self.octave_offset
         return torch.matmul(points, stacked).reshape(b, p, k, d) + self.octave_offset
 
+    def periodic_lattice(self, points: torch.Tensor, transforms: torch.Tensor,
+                         period: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Lattice points of the texture made to repeat every ``period`` world units in x and
+        y (the plane of 2D tiles), and each octave's wrap: points float64 [B,P,D], period
+        float64 []  ->  (float64 [B,P,K,D], float64 [2,2,B,1,K]).
+
+        Each octave keeps its learned volume scale and grain, turns about z by its angle
+        in ``TILEABLE_ROTATIONS`` (cos = a/c, sin = b/c), and has its frequency along x
+        and y rounded so that one period spans m = round(f L / c) >= 1 steps: a period
+        then moves the octave's lattice by the integer vectors m_x (a, b) and m_y (-b, a),
+        which the noise wraps (``wrap_cells`` in model/noise.py). The rounding moves a
+        frequency by at most c / (2 f L) of itself: ~6% for a 1024^2 tile (L = 4 units).
+        """
+        b, p, d = points.shape
+        k = self.cfg.n_octaves
+        dev = points.device
+        scale = torch.ones(b, k, dtype=torch.float64, device=dev)
+        if self.cfg.flags.transforms:
+            scale = _determinant(transforms.to(torch.float64)).abs().clamp_min(1e-12) ** (1.0 / d)
+        freq = scale * torch.tensor([2.0**i for i in range(k)], dtype=torch.float64, device=dev)  # [B,K]
+        a, s, c = torch.tensor([TILEABLE_ROTATIONS[i % len(TILEABLE_ROTATIONS)] for i in range(k)],
+                               dtype=torch.float64, device=dev).unbind(-1)  # [K] each
+        grain = self.world_scale.to(dev)
+        steps_x = torch.clamp_min(torch.round(freq * grain[0] * period / c), 1.0)  # [B,K]
+        steps_y = torch.clamp_min(torch.round(freq * grain[1] * period / c), 1.0)
+        fx, fy = (steps_x / period).unsqueeze(1), (steps_y / period).unsqueeze(1)  # [B,1,K] (x c / c)
+        x, y = points[..., 0:1], points[..., 1:2]  # [B,P,1]
+        axes = [a * fx * x - s * fy * y, s * fx * x + a * fy * y]
+        if d == 3:
+            axes.append(freq.unsqueeze(1) * points[..., 2:3])
+        lattice = torch.stack(axes, dim=-1) + self.octave_offset  # [B,P,K,D]
+        u = torch.stack([steps_x * a, steps_x * s])  # [2,B,K]
+        v = torch.stack([-steps_y * s, steps_y * a])
+        return lattice, torch.stack([u, v]).unsqueeze(3)  # [2,2,B,1,K]
+
     def forward(self, points: torch.Tensor, z: torch.Tensor, seed: torch.Tensor,
-                anchor: torch.Tensor | None = None) -> torch.Tensor:
+                anchor: torch.Tensor | None = None, period: torch.Tensor | None = None) -> torch.Tensor:
+        """``period`` (float64 [], world units): synthesise the texture made periodic in x
+        and y with that period (``periodic_lattice``) instead of the infinite one."""
         cfg, flags = self.cfg, self.cfg.flags
         points = points[..., : cfg.dims]
         extended, transforms, mix = self.translator(z)
@@ -318,7 +385,11 @@ class TextureField(nn.Module):
             seeds = octave_seeds(seed, cfg.n_octaves)  # [K] or [B,K]
             if seeds.dim() == 2:
                 seeds = seeds.unsqueeze(1)  # [B,1,K]
-            nearest, interpolated = noise_features(self.lattice_points(points, transforms, anchor), seeds, cfg.smooth)
+            if period is None:
+                lattice, wrap = self.lattice_points(points, transforms, anchor), None
+            else:
+                lattice, wrap = self.periodic_lattice(points, transforms, period)
+            nearest, interpolated = noise_features(lattice, seeds, cfg.smooth, wrap)
             noise = interpolated  # [B,P,K,3]
 
         if self.decoder is None:  # perlin / perlinT: octaves mixed by RGB weights, plus a bias

@@ -2,16 +2,17 @@
 
 Training (torch autograd) and inference (the exported ``sampler.onnx``) run this same
 code, so the two agree by construction. Every operation here is chosen to export to
-plain ONNX and to mean the same thing in torch, numpy and ONNX Runtime:
+plain ONNX and to mean the same thing in torch, numpy, ONNX Runtime and a GPU shader:
 
-* Integer hashing keeps every value a non-negative 32-bit number held in int64.
-  ``& 0xFFFFFFFF`` masks, every multiplier is below 2**31 so no product overflows
-  int64, and right shifts export as Cast(uint64) -> BitShift -> Cast(int64) (ONNX
-  ``BitShift`` rejects int64; see ``_shr``).
+* Hashing is 32-bit integer arithmetic held in int32: additions and multiplications
+  wrap modulo 2**32 (two's complement, as in torch, ONNX Runtime and GLSL ``uint``),
+  and every right shift is logical (``_shr``; exported as Cast(uint32) -> BitShift ->
+  Cast(int32), since ONNX ``BitShift`` takes unsigned types only). 32-bit lanes are
+  twice as many per SIMD register as the int64 this replaced, and need no masks.
 * Lattice coordinates are float64 until the cell index is taken, so a point at 1e7
   world units still lands in exactly the right cell at the finest octave.
-* The lattice is infinite: the cell index is hashed in two 32-bit halves, so there
-  is no period.
+* The lattice is infinite: a cell index is hashed as its low 32 bits plus a term for
+  the bits above, so there is no period.
 
 Layout of the result (``n_octaves`` octaves, 3 colour channels):
 
@@ -26,93 +27,156 @@ from __future__ import annotations
 
 import torch
 
-MASK32 = 0xFFFFFFFF
-# Multipliers of the 32-bit mixer (below 2**31; from the "lowbias32" family of
-# xorshift-multiply mixers, retuned to fit int64 without overflow).
-_MIX_A = 0x7FEB352D
-_MIX_B = 0x2C1B3C6D
-# Odd constants that spread the lattice coordinates before mixing.
-_COORD_LO = (0x5BD1E995, 0x27D4EB2F, 0x165667B1)
-_COORD_HI = (0x3C6EF373, 0x1B873593, 0x61C88647)
-_SEED_MULT = 0x68E31DA5
-_OCTAVE_MULT = 0x2545F491
-# Three colour channels share one 32-bit hash: 10 bits each.
+def _int32(value: int) -> int:
+    """A 32-bit pattern as the signed int32 number with the same bits."""
+    value &= 0xFFFFFFFF
+    return value - (1 << 32) if value >= 1 << 31 else value
+
+
+# The "lowbias32" xorshift-multiply mixer (Chris Wellons' hash prospector): two
+# multiplies, three logical shifts; bias 0.17 on its avalanche measure.
+_MIX_A = _int32(0x7FEB352D)
+_MIX_B = _int32(0x846CA68B)
+# Odd constants that spread a cell's coordinates (low 32 bits, and the bits above)
+# before mixing.
+_COORD_LO = tuple(_int32(c) for c in (0x9E3779B1, 0x85EBCA77, 0xC2B2AE3D))
+_COORD_HI = tuple(_int32(c) for c in (0x27D4EB2F, 0x165667B1, 0x61C88647))
+_SEED_MULT = _int32(0x68E31DA5)
+_OCTAVE_MULT = _int32(0x2545F491)
+# Three colour channels share one 32-bit hash: bits 1-30, 10 per channel. Bit 31 is left
+# out so that a field reads the same as a signed or an unsigned number (the exported
+# graph runs the hash in uint32, model/export.py).
 _CHANNEL_BITS = 10
 _CHANNEL_LEVELS = 1 << _CHANNEL_BITS
-_CHANNEL_MASKS = torch.tensor([(_CHANNEL_LEVELS - 1) << (_CHANNEL_BITS * c) for c in range(3)], dtype=torch.int64)
-_CHANNEL_SCALES = torch.tensor([2.0 ** -(_CHANNEL_BITS * (c + 1)) for c in range(3)], dtype=torch.float32)
+_CHANNEL_LOW_BIT = (1, 11, 21)
+_CHANNEL_MASKS = torch.tensor([(_CHANNEL_LEVELS - 1) << b for b in _CHANNEL_LOW_BIT], dtype=torch.int32)
+_CHANNEL_SCALES = torch.tensor([2.0 ** -(b + _CHANNEL_BITS) for b in _CHANNEL_LOW_BIT], dtype=torch.float32)
 _HALF_BIN = 0.5 / _CHANNEL_LEVELS  # bin centres: added after interpolation (weights sum to 1)
+_TWO32 = 2.0 ** 32
+
+
+class _LogicalShiftRight(torch.autograd.Function):
+    """``h >> bits`` with zeros shifted in, on int32 (torch shifts signed ints arithmetically).
+
+    The exporter writes one placeholder node, lowered by ``model/export.py`` to
+    Cast(uint32) -> BitShift -> Cast(int32); in torch the sign-extended bits are masked.
+    """
+
+    @staticmethod
+    def forward(ctx, h: torch.Tensor, bits: int) -> torch.Tensor:
+        return torch.bitwise_and(torch.bitwise_right_shift(h, bits), (1 << (32 - bits)) - 1)
+
+    @staticmethod
+    def symbolic(g, h, bits: int):
+        return g.op("texspace::ShiftRight", h, bits_i=bits).setType(h.type())
 
 
 def _shr(h: torch.Tensor, bits: int) -> torch.Tensor:
-    """Right shift of a non-negative int64.
-
-    ONNX ``BitShift`` rejects int64, so ``model/export.py`` exports this op as
-    Cast(uint64) -> BitShift -> Cast(int64): the same number for every non-negative
-    value, and 2.7x cheaper in onnxruntime than the integer Div it replaced (bench/).
-    """
-    return torch.bitwise_right_shift(h, bits)
+    return _LogicalShiftRight.apply(h, bits)
 
 
 def mix32(h: torch.Tensor) -> torch.Tensor:
-    """Avalanche a 32-bit value held in int64 (values stay in [0, 2**32))."""
-    h = torch.bitwise_xor(h, _shr(h, 16))
-    h = torch.bitwise_and(h * _MIX_A, MASK32)
-    h = torch.bitwise_xor(h, _shr(h, 15))
-    h = torch.bitwise_and(h * _MIX_B, MASK32)
-    h = torch.bitwise_xor(h, _shr(h, 16))
-    return h
+    """Avalanche a 32-bit value: int32 [...] -> int32 [...] (a bijection)."""
+    h = torch.bitwise_xor(h, _shr(h, 16)) * _MIX_A
+    h = torch.bitwise_xor(h, _shr(h, 15)) * _MIX_B
+    return torch.bitwise_xor(h, _shr(h, 16))
 
 
 def _split32(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Signed int64 -> (low 32 bits, high 32 bits), both as non-negative int64."""
-    lo = torch.bitwise_and(c, MASK32)
-    # torch shifts a negative int64 arithmetically, the export (uint64 BitShift)
-    # logically: the two differ only in the top 32 bits of the result, which the mask
-    # drops. Same value as the (c - lo) / 2**32 it replaces, without an integer Div.
-    hi = torch.bitwise_and(torch.bitwise_right_shift(c, 32), MASK32)
+    """Integer-valued float64 -> (low 32 bits, the bits above), both int32.
+
+    Both halves pass through int64 and wrap to 32 bits there (exact for |c| < 2**63; a
+    float64 -> 32-bit cast of an out-of-range value is undefined in C). The high half is
+    taken in float64: exact, as c is an integer and the division a power of two.
+    """
+    lo = c.to(torch.int64).to(torch.int32)
+    hi = torch.floor(c * (1.0 / _TWO32)).to(torch.int64).to(torch.int32)
     return lo, hi
 
 
 def octave_seeds(seed: torch.Tensor, n_octaves: int) -> torch.Tensor:
     """One 32-bit seed per octave from the request seed.
 
-    seed : int64 [] or [B]  ->  int64 [..., n_octaves]
+    seed : int64 [] or [B]  ->  int32 [..., n_octaves]
     """
-    lo, hi = _split32(seed.to(torch.int64))
-    base = mix32(torch.bitwise_xor(mix32(lo), torch.bitwise_and(hi * _SEED_MULT, MASK32)))
+    seed = seed.to(torch.int64)
+    lo = seed.to(torch.int32)
+    hi = torch.div(seed, 1 << 32, rounding_mode="floor").to(torch.int32)  # a scalar: Div is fine
+    base = mix32(torch.bitwise_xor(mix32(lo), hi * _SEED_MULT))
     # A constant (not arange) so the exported graph holds no Range op.
-    octave = torch.tensor(list(range(1, n_octaves + 1)), dtype=torch.int64, device=seed.device)
-    return mix32(torch.bitwise_xor(base.unsqueeze(-1), torch.bitwise_and(octave * _OCTAVE_MULT, MASK32)))
+    octave = torch.tensor([_int32(k * _OCTAVE_MULT) for k in range(1, n_octaves + 1)],
+                          dtype=torch.int32, device=seed.device)
+    return mix32(torch.bitwise_xor(base.unsqueeze(-1), octave))
 
 
-def _axis_terms(cells: torch.Tensor, dims: int) -> torch.Tensor:
+def _axis_terms(cells: torch.Tensor, first_axis: int = 0) -> torch.Tensor:
     """Each axis' share of the cell hash, for a cell and its upper neighbour.
 
-    cells : int64 [D, ...] lower corner cell per axis (axis-major)
-    returns int64 [D, 2, ...]: index [d, i] is the term of cell ``cells[d] + i``
+    cells : float64 [D, ...] lower corner cell per axis (axis-major, integer-valued), of
+            lattice axes ``first_axis`` .. ``first_axis + D - 1``
+    returns int32 [D, 2, ...]: index [d, i] is the term of cell ``cells[d] + i``
 
-    The hash of a cell is mix32 of (seed + sum over axes of these terms) mod 2**32, so a
-    cell's 2**D corners need only 2 terms per axis, summed by broadcasting.
+    The hash of a cell is mix32 of (seed + sum over axes of these terms), all mod 2**32,
+    so a cell's 2**D corners need only 2 terms per axis, summed by broadcasting. The
+    upper neighbour's term is the lower one + the axis constant, plus the high-half
+    constant where the low half wraps (lo = -1, once every 2**32 cells).
     """
+    dims = cells.shape[0]
     rest = [1] * (cells.dim() - 1)
-    pair = torch.tensor([0, 1], dtype=torch.int64, device=cells.device).reshape([1, 2] + rest)
-    lo, hi = _split32(cells.unsqueeze(1) + pair)
-    lo_mult = torch.tensor(_COORD_LO[:dims], dtype=torch.int64, device=cells.device).reshape([dims, 1] + rest)
-    hi_mult = torch.tensor(_COORD_HI[:dims], dtype=torch.int64, device=cells.device).reshape([dims, 1] + rest)
-    return torch.bitwise_and(lo * lo_mult, MASK32) + torch.bitwise_and(hi * hi_mult, MASK32)
+    lo, hi = _split32(cells)
+    axes = slice(first_axis, first_axis + dims)
+    lo_mult = torch.tensor(_COORD_LO[axes], dtype=torch.int32, device=cells.device).reshape([dims] + rest)
+    hi_mult = torch.tensor(_COORD_HI[axes], dtype=torch.int32, device=cells.device).reshape([dims] + rest)
+    term = lo * lo_mult + hi * hi_mult  # [D, ...]
+    wraps = lo == torch.tensor(-1, dtype=torch.int32, device=cells.device)  # (an int32 constant: no cast)
+    upper = term + torch.where(wraps, lo_mult + hi_mult, lo_mult)
+    return torch.stack([term, upper], dim=1)
 
 
-def _corner_hashes_major(cells: torch.Tensor, seeds: torch.Tensor) -> torch.Tensor:
-    """Corner-major form of ``corner_hashes``: int64 [D, ...] -> int64 [2, 2(, 2), ...].
+def _cell_term(cells: torch.Tensor, axis: int) -> torch.Tensor:
+    """One axis' share of the cell hash for cells anywhere: float64 (integer-valued) -> int32."""
+    lo, hi = _split32(cells)
+    return lo * _COORD_LO[axis] + hi * _COORD_HI[axis]
+
+
+def wrap_cells(i: torch.Tensor, j: torch.Tensor, wrap: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cells (i, j) reduced to one representative per class of a periodic lattice.
+
+    i, j : float64 (integer-valued), broadcastable
+    wrap : float64 [2, 2, ...] integer basis vectors u = wrap[0], v = wrap[1] (x, y
+           components) of the sublattice of cells that repeat, broadcastable to i
+    Cells that differ by a u, v combination get the same (i, j) back, so their hashes,
+    and the noise, repeat with those periods. Exact: every number here is an integer
+    below 2**53 but the two divisions, which floor the same for an exact quotient.
+    """
+    (ux, uy), (vx, vy) = wrap[0], wrap[1]
+    det = ux * vy - uy * vx
+    alpha = torch.floor((vy * i - vx * j) / det)
+    beta = torch.floor((ux * j - uy * i) / det)
+    return i - alpha * ux - beta * vx, j - alpha * uy - beta * vy
+
+
+def _corner_hashes_major(cells: torch.Tensor, seeds: torch.Tensor, wrap: torch.Tensor | None = None) -> torch.Tensor:
+    """Corner-major form of ``corner_hashes``: float64 [D, ...] -> int32 [2, 2(, 2), ...].
 
     Corner axes lead and the points' axes trail, so every broadcast in the sum below
     (and in the blends of ``noise_features``) repeats long contiguous rows: the fast
     path of ONNX Runtime's elementwise kernels (a trailing size-2 or size-3 axis made
-    the same ops 2-4x slower).
+    the same ops 2-4x slower). With ``wrap`` (see ``wrap_cells``) the lattice repeats in
+    its first two axes; each of the 4 corners in that plane is then wrapped on its own.
     """
     dims = cells.shape[0]
-    terms = _axis_terms(cells, dims)  # [D, 2, ...]
+    if wrap is not None:
+        rest = [1] * (cells.dim() - 1)
+        step = torch.tensor([0.0, 1.0], dtype=cells.dtype, device=cells.device)
+        i = cells[0] + step.reshape([2, 1] + rest)  # [2, 1, ...]
+        j = cells[1] + step.reshape([1, 2] + rest)  # [1, 2, ...]
+        i, j = wrap_cells(i, j, wrap)
+        h = seeds + _cell_term(i, 0) + _cell_term(j, 1)  # [2, 2, ...]
+        if dims == 3:
+            h = h.unsqueeze(2) + _axis_terms(cells[2:], first_axis=2)[0]  # + [2, ...]: third corner axis
+        return mix32(h)
+    terms = _axis_terms(cells)  # [D, 2, ...]
     h = seeds
     for d in range(dims):
         t = terms[d]  # [2, ...] along corner axis d
@@ -121,46 +185,53 @@ def _corner_hashes_major(cells: torch.Tensor, seeds: torch.Tensor) -> torch.Tens
         for _ in range(d):
             t = t.unsqueeze(0)
         h = h + t
-    # One mixing round suffices: neighbour-cell correlation measured below 0.002.
-    return mix32(torch.bitwise_and(h, MASK32))
+    return mix32(h)
 
 
 def corner_hashes(base: torch.Tensor, seeds: torch.Tensor) -> torch.Tensor:
     """32-bit hashes of the 2**D cells around each lattice point.
 
-    base  : int64 [..., D]  the lower corner cell
-    seeds : int64 broadcastable to base[..., 0]
-    returns int64 [..., 2, 2(, 2)]: index [..., i, j(, k)] is cell base + (i, j(, k))
+    base  : integer-valued [..., D]  the lower corner cell (any integer or float dtype)
+    seeds : int32 broadcastable to base[..., 0]
+    returns int32 [..., 2, 2(, 2)]: index [..., i, j(, k)] is cell base + (i, j(, k))
     """
     dims = base.shape[-1]
-    h = _corner_hashes_major(base.movedim(base.dim() - 1, 0), seeds)
+    h = _corner_hashes_major(base.to(torch.float64).movedim(base.dim() - 1, 0), seeds)
     for _ in range(dims):
         h = h.movedim(0, h.dim() - 1)
     return h
 
 
-def channel_levels(h: torch.Tensor, axis: int = -1) -> torch.Tensor:
-    """The three 10-bit fields of a 32-bit hash as level / 1024: int64 [...] -> float32,
-    with a new channel axis of size 3 inserted at ``axis`` (last by default).
+def channel_fields(h: torch.Tensor, axis: int = -1) -> torch.Tensor:
+    """The three 10-bit fields of a 32-bit hash, masked in place, as float32: int32 [...]
+    -> float32 with a new channel axis of size 3 at ``axis`` (last by default).
 
-    Masked in place and scaled by a power of two instead of shifted down: a field
-    ``level << 10c`` has at most 10 significant bits, so the float32 cast and the scaling
-    are exact, and the graph needs no integer division.
+    A field has at most 10 significant bits, so the cast is exact, and ``channel_scales``
+    (powers of two) turn it into level / 1024 exactly, also after a blend: the blends
+    below are linear, so they run on the unscaled fields and one multiply per channel
+    follows instead of one per corner.
     """
     h = h.unsqueeze(axis)
     shape = [1] * h.dim()
     shape[axis] = 3
-    fields = torch.bitwise_and(h, _CHANNEL_MASKS.to(h.device).reshape(shape))
-    return fields.to(torch.float32) * _CHANNEL_SCALES.to(h.device).reshape(shape)
+    return torch.bitwise_and(h, _CHANNEL_MASKS.to(h.device).reshape(shape)).to(torch.float32)
+
+
+def channel_scales(ndim: int, axis: int, device=None) -> torch.Tensor:
+    """The per-channel powers of two of ``channel_fields``, shaped to broadcast along ``axis``."""
+    shape = [1] * ndim
+    shape[axis] = 3
+    return _CHANNEL_SCALES.to(device).reshape(shape)
 
 
 def channel_values(h: torch.Tensor) -> torch.Tensor:
-    """Three uniform values in (0, 1) from one 32-bit hash: int64 [...] -> float32 [..., 3].
+    """Three uniform values in (0, 1) from one 32-bit hash: int32 [...] -> float32 [..., 3].
 
     10 bits per channel; values are the centres of 1024 equal bins, so the mean is
     exactly 0.5 and the variance (1 - 1024**-2) / 12.
     """
-    return channel_levels(h) + _HALF_BIN
+    fields = channel_fields(h)
+    return fields * channel_scales(fields.dim(), -1, h.device) + _HALF_BIN
 
 
 def _blend(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
@@ -171,7 +242,7 @@ def _blend(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     returns [C, ...]
     """
     for d in range(weights.shape[0]):
-        v0, v1 = values[0], values[1]
+        v0, v1 = values.unbind(0)  # one Split in the graph, not two Gathers
         values = v0 + weights[d] * (v1 - v0)
     return values
 
@@ -179,7 +250,8 @@ def _blend(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
 def _pick(values: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
     """The corner each axis' flag picks: values [2, 2(, 2), C, ...], upper bool [D, ...] -> [C, ...]."""
     for d in range(upper.shape[0]):
-        values = torch.where(upper[d], values[1], values[0])
+        v0, v1 = values.unbind(0)
+        values = torch.where(upper[d], v1, v0)
     return values
 
 
@@ -187,13 +259,16 @@ def noise_features(
     lattice_points: torch.Tensor,
     seeds: torch.Tensor,
     smooth: bool = False,
+    wrap: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Value noise at points already mapped into each octave's lattice.
 
     lattice_points : float64 [..., K, D]  position of each point in octave k's lattice
                      (transform and frequency already applied), K octaves
-    seeds          : int64 broadcastable to [..., K] (from ``octave_seeds``)
+    seeds          : int32 broadcastable to [..., K] (from ``octave_seeds``)
     smooth         : apply smoothstep to the interpolation weights (C1 continuous)
+    wrap           : float64 [2, 2, ..., K] or None: make the lattice periodic in its first
+                     two axes with these integer basis vectors per octave (``wrap_cells``)
     returns (nearest, interpolated), float32 [..., K, 3] each
     """
     # Axis-major inside (see _corner_hashes_major); one transpose in, one per output out.
@@ -201,14 +276,15 @@ def noise_features(
     q = lattice_points.movedim(lattice_points.dim() - 1, 0) - 0.5  # [D, ..., K] (ONNX: no negative perm)
     base = torch.floor(q)
     frac = (q - base).to(torch.float32)  # keeps the gradient w.r.t. transforms
-    # Levels without the half-bin offset: both blends below have weights summing to 1,
-    # so the offset is added once per octave instead of once per corner.
+    # Unscaled fields, without the half-bin offset: both blends below are linear with
+    # weights summing to 1, so scale and offset are applied once per octave after them.
     dims = q.shape[0]
-    levels = channel_levels(_corner_hashes_major(base.to(torch.int64), seeds), axis=dims)  # [2,2(,2), 3, ..., K]
+    fields = channel_fields(_corner_hashes_major(base, seeds, wrap), axis=dims)  # [2,2(,2), 3, ..., K]
 
     weights = frac * frac * (3.0 - 2.0 * frac) if smooth else frac
-    interpolated = _blend(levels, weights) + _HALF_BIN  # [3, ..., K]
+    scales = channel_scales(q.dim(), 0, q.device)  # [3, 1, ...]
+    interpolated = _blend(fields, weights) * scales + _HALF_BIN  # [3, ..., K]
     # The nearest cell centre is the corner each rounded fraction picks.
-    nearest = _pick(levels, frac >= 0.5) + _HALF_BIN
+    nearest = _pick(fields, frac >= 0.5) * scales + _HALF_BIN
     last = interpolated.dim() - 1
     return nearest.movedim(0, last), interpolated.movedim(0, last)

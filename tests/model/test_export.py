@@ -191,3 +191,66 @@ def test_isotropic_transforms_keep_the_volume_and_export(tmp_path):
     # scales of 3-5 make the finest octave ~5x finer than an untrained model's: rounding
     # differences grow with it (2e-4 seen, 0.05 of an 8-bit level)
     assert np.abs(run(session, points, zz, 4) - ref).max() < 1e-3
+
+
+def test_noise_hash_runs_in_uint32_without_casts(exported):
+    # The 32-bit hash is the sampler's hottest part: its shifts must be plain uint32
+    # BitShifts (no Cast pairs around them) and no tensor of the graph may stay int32.
+    import onnx
+    from onnx import TensorProto, shape_inference
+
+    _, _, _, out = exported
+    graph = shape_inference.infer_shapes(onnx.load(str(out / "sampler.onnx"))).graph
+    types = {v.name: v.type.tensor_type.elem_type for v in list(graph.value_info) + list(graph.input)}
+    types |= {t.name: t.data_type for t in graph.initializer}
+    shifts = [n for n in graph.node if n.op_type == "BitShift"]
+    assert len(shifts) >= 6  # three per mix32, for the seeds and for the cell corners
+    assert all(types[n.input[0]] == TensorProto.UINT32 for n in shifts)
+    consumers = {i: n for n in graph.node for i in n.input}
+    assert {consumers[n.output[0]].op_type for n in shifts} == {"BitwiseXor"}  # no Cast back
+    assert TensorProto.INT32 not in types.values()
+
+
+def test_tileable_sampler_repeats_exactly_and_matches_torch(exported):
+    from model.export import TILEABLE_SAMPLER, TileableSamplerGraph
+
+    model, _, manifest, out = exported
+    assert manifest["tileable_sampler"] == TILEABLE_SAMPLER
+    session = ort.InferenceSession(str(out / TILEABLE_SAMPLER), providers=["CPUExecutionProvider"])
+    assert [i.name for i in session.get_inputs()] == ["points", "z", "seed", "colour", "period"]
+    rng = np.random.default_rng(5)
+    z = rng.standard_normal((1, 8)).astype(np.float32)
+    colour = identity_colour()[None].numpy()
+    for period in (1.0, 4.0):
+        points = np.concatenate([rng.random((3000, 2)) * period, rng.random((3000, 1))], axis=1)
+        feed = {"points": points, "z": z, "seed": np.asarray(4), "colour": colour, "period": np.asarray(period)}
+        rgb = session.run(None, feed)[0]
+        for shift in ([period, 0, 0], [0, -3 * period, 0], [7 * period, 2 * period, 0]):
+            moved = session.run(None, feed | {"points": points + shift})[0]
+            assert np.array_equal(moved, rgb), shift
+        not_a_period = session.run(None, feed | {"points": points + [period / 2, 0, 0]})[0]
+        assert np.abs(not_a_period - rgb).mean() > 1e-3
+        with torch.no_grad():
+            ref = TileableSamplerGraph(model.field)(*(torch.from_numpy(np.asarray(feed[k])) for k in
+                                                     ("points", "z", "seed", "colour", "period"))).numpy()
+        assert np.abs(rgb - ref).max() < 1e-4
+
+
+def test_tileable_image_has_no_seam(exported):
+    # A 256^2 image of one period, tiled: the step across the wrap is like any other step.
+    _, _, _, out = exported
+    session = ort.InferenceSession(str(out / "sampler_tileable.onnx"), providers=["CPUExecutionProvider"])
+    n, ppu = 256, 256.0
+    g = (np.arange(n) + 0.5) / ppu
+    y, x = np.meshgrid(g, g, indexing="ij")
+    points = np.stack([x, y, np.zeros_like(x)], axis=-1).reshape(-1, 3)
+    z = np.random.default_rng(2).standard_normal((1, 8)).astype(np.float32)
+    feed = {"points": points, "z": z, "seed": np.asarray(1), "colour": identity_colour()[None].numpy(),
+            "period": np.asarray(n / ppu)}
+    image = session.run(None, feed)[0].reshape(n, n, 3)
+    columns = np.abs(np.diff(image, axis=1)).mean(axis=(0, 2))  # each interior vertical line
+    rows = np.abs(np.diff(image, axis=0)).mean(axis=(1, 2))
+    wrap_x = np.abs(image[:, 0] - image[:, -1]).mean()
+    wrap_y = np.abs(image[0] - image[-1]).mean()
+    assert columns.min() <= wrap_x <= columns.max() and rows.min() <= wrap_y <= rows.max()
+    assert abs(wrap_x - columns.mean()) < 3 * columns.std() and abs(wrap_y - rows.mean()) < 3 * rows.std()

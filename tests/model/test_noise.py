@@ -72,3 +72,42 @@ def test_interpolation_is_continuous_and_nearest_is_a_cell_value():
     centre = torch.tensor([[[2.5, 0.5, 0.5]]], dtype=torch.float64)
     n, i = noise_features(centre, seeds)
     assert torch.allclose(n, i, atol=1e-6)
+
+
+def test_interpolation_is_continuous_across_the_32_bit_carry():
+    # Cell -1 -> 0 and 2**32 - 1 -> 2**32 change the high half of the cell index: the
+    # upper corner's hash must carry it (else the noise jumps there).
+    seeds = octave_seeds(torch.tensor(3), 1)
+    for border in (0.0, 2.0**32, -(2.0**32)):
+        x = border + torch.linspace(-1.0, 1.0, 2001, dtype=torch.float64)
+        pts = torch.stack([x, torch.full_like(x, 0.3), torch.full_like(x, 0.7)], -1)[:, None, :]
+        _, interp = noise_features(pts, seeds)
+        assert (interp[1:, 0] - interp[:-1, 0]).abs().max() < 0.01, border
+
+
+def test_wrapped_lattice_repeats_with_its_basis():
+    from model.noise import wrap_cells
+
+    wrap = torch.tensor([[3.0, 4.0], [-8.0, 6.0]], dtype=torch.float64)  # u = 1 (3, 4), v = 2 (-4, 3)
+    i, j = torch.meshgrid(torch.arange(-20.0, 20.0, dtype=torch.float64),
+                          torch.arange(-20.0, 20.0, dtype=torch.float64), indexing="ij")
+    ri, rj = wrap_cells(i, j, wrap[..., None, None])
+    for a, b in ((1, 0), (0, 1), (-2, 3)):
+        si, sj = wrap_cells(i + a * 3 - b * 8, j + a * 4 + b * 6, wrap[..., None, None])
+        assert torch.equal(si, ri) and torch.equal(sj, rj)
+    # one representative per class: |det| = 50 classes
+    assert len(set(zip(ri.flatten().tolist(), rj.flatten().tolist()))) == 50
+
+
+def test_decoder_row_path_equals_the_batched_path():
+    # The exported sampler evaluates the decoder as one GEMM per layer over rows (one
+    # code, or one point per code); training batches many codes of many points.
+    from model.networks import Decoder
+
+    torch.manual_seed(0)
+    decoder = Decoder(24, 0, 64, 32, 3)
+    noise, code = torch.randn(3, 50, 24), torch.randn(3, 64)
+    batched = decoder(noise, None, code)
+    for b in range(3):
+        assert torch.allclose(decoder(noise[b:b + 1], None, code[b:b + 1])[0], batched[b], atol=1e-5)
+        assert torch.allclose(decoder(noise[b][:, None], None, code[b].expand(50, 64))[:, 0], batched[b], atol=1e-5)

@@ -25,9 +25,9 @@ def second_model(folder: Path) -> Path:
 
     shutil.copytree(PACKAGED_MODEL_DIR, folder)
     graph = onnx.load(folder / "sampler.onnx")
-    # the decoder's output layer: the last float matrix with 3 columns (RGB)
+    # the decoder's output layer: the last float matrix with 3 rows or columns (RGB)
     last = [t for t in graph.graph.initializer
-            if t.data_type == onnx.TensorProto.FLOAT and len(t.dims) == 2 and t.dims[-1] == 3][-1]
+            if t.data_type == onnx.TensorProto.FLOAT and len(t.dims) == 2 and 3 in t.dims and max(t.dims) > 3][-1]
     last.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(last) * 1.5 + 0.05, last.name))
     onnx.save(graph, folder / "sampler.onnx")
     manifest = json.loads((folder / "manifest.json").read_text())
