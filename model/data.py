@@ -12,8 +12,11 @@ photo of every family (9 of 41) is held out for validation, so validation covers
 bricks, grass, gravel, stone, wood, plaster, tiles, paper and metal while training
 still sees every family.
 
-This module needs numpy and Pillow only (no torch): ``load_exemplar`` and
+This module needs numpy, Pillow and OpenImageIO only (no torch): ``load_exemplar`` and
 ``sample_batch`` return numpy arrays that training wraps with ``torch.from_numpy``.
+Photos are decoded by the service's one reader, ``worker.decode.read_image`` (a leaf
+module: the same pixels as an upload, EXR and every other upload format included);
+Pillow only converts the packaged source images in ``fetch`` and resizes.
 """
 
 from __future__ import annotations
@@ -34,8 +37,11 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageOps
 
+from worker.decode import SUFFIXES, read_image
+
 DEFAULT_DATA_DIR = Path("data/textures")
 DEFAULT_SHORT_SIDE = 256
+MAX_EXEMPLAR_PIXELS = 1 << 28  # a training photo is a trusted file; this only stops a runaway
 INDEX_FILE = "index.json"
 SPLITS = ("train", "val")
 
@@ -203,13 +209,17 @@ def resize_short_side(rgb: np.ndarray, short_side: int) -> np.ndarray:
 
 
 def load_exemplar(path: str | Path, short_side: int | None = DEFAULT_SHORT_SIDE) -> np.ndarray:
-    """Read a texture photo for fitting or evaluation.
+    """Read a texture photo for fitting, training or evaluation, with the upload's reader
+    (``worker.decode.read_image``: any upload format; alpha over mid grey), quantised to
+    8 bits as training always saw it (PNG/JPEG: the same values as the earlier Pillow
+    reader, tests/model/test_data.py).
 
     Returns (H, W, 3) float32 sRGB-encoded RGB in [0, 1], resized so the shorter side is
     ``short_side`` pixels (``None`` keeps the original size).
     """
-    with Image.open(path) as image:
-        rgb = to_rgb_uint8(image)
+    srgb = read_image(Path(path).read_bytes(), max_pixels=MAX_EXEMPLAR_PIXELS)
+    rgb = (srgb * np.float32(255) + np.float32(0.5)).astype(np.uint8)
+    del srgb
     if short_side is not None:
         rgb = resize_short_side(rgb, short_side)
     return rgb.astype(np.float32) / 255.0
@@ -247,7 +257,8 @@ def sample_batch(
 
 
 class TextureDataset:
-    """All PNG exemplars of one folder (e.g. data/textures/train), loaded once.
+    """All exemplar images of one folder (e.g. data/textures/train: PNGs; any format the
+    reader knows, by file suffix), loaded once.
 
     ``names[k]`` is the file stem, ``images[k]`` its (H, W, 3) float32 array at the
     working resolution (shorter side ``short_side``).
@@ -255,9 +266,9 @@ class TextureDataset:
 
     def __init__(self, folder: str | Path, short_side: int = DEFAULT_SHORT_SIDE):
         self.folder = Path(folder)
-        paths = sorted(self.folder.glob("*.png"))
+        paths = sorted(p for p in self.folder.glob("*") if p.suffix.lower() in SUFFIXES)
         if not paths:
-            raise FileNotFoundError(f"no PNG exemplars in {self.folder}; run `python -m model.data fetch`")
+            raise FileNotFoundError(f"no exemplar images in {self.folder}; run `python -m model.data fetch`")
         self.short_side = short_side
         self.names = [path.stem for path in paths]
         self.images = [load_exemplar(path, short_side) for path in paths]

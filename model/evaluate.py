@@ -40,6 +40,7 @@ from model.losses import feature_distance, gram_loss, gram_matrices
 from model.networks import TextureSpace, load_checkpoint
 from model.slices import fixed_planes, render_slices
 from model.vgg import GATYS_LAYERS, shared_vgg
+from worker.decode import SUFFIXES
 
 DOMAINS = ("2d", "3d_axis", "3d_oblique")
 GRID_DOMAINS = ("2d", "3d_oblique")
@@ -354,7 +355,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         labels += [label] * len(found)
     if not paths:
         parser.error("give --checkpoint-dir, --checkpoint or --group")
-    exemplars = sorted(p for p in args.exemplars.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    exemplars = sorted(p for p in args.exemplars.iterdir() if p.suffix.lower() in SUFFIXES)
     if not exemplars:
         parser.error(f"no exemplar images in {args.exemplars}")
     if args.threads:

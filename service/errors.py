@@ -24,8 +24,14 @@ PROBLEM_MEDIA_TYPE = "application/problem+json"
 TYPE_PREFIX = "urn:texspace:problem:"
 BODY_PARSE_ERROR = "There was an error parsing the body"  # FastAPI's 400 for bodies it cannot decode
 
+
+class ClientGone(domain.TexspaceError):
+    """The client closed the connection before its response was ready; its work was dropped."""
+
+
 #: domain exception class -> (HTTP status, problem type slug, title)
 ERROR_TABLE: dict[type[Exception], tuple[int, str, str]] = {
+    ClientGone: (499, "client-closed-request", "The client closed the request"),
     domain.InvalidImage: (422, "invalid-image", "The image cannot be used"),
     domain.InvalidMesh: (422, "invalid-mesh", "The mesh cannot be used"),
     domain.InvalidParameter: (422, "invalid-parameter", "A parameter is out of range"),
@@ -33,6 +39,7 @@ ERROR_TABLE: dict[type[Exception], tuple[int, str, str]] = {
     domain.AtlasFailed: (422, "atlas-failed", "The mesh could not be UV-unwrapped"),
     domain.Canceled: (409, "canceled", "The job was canceled"),
     domain.ModelNotFound: (503, "model-unavailable", "The texture's model is not loaded"),
+    domain.Busy: (503, "busy", "The service is busy; retry later"),
     domain.ModelInvalid: (500, "model-invalid", "A model export is broken"),
     domain.FeatureUnavailable: (501, "feature-unavailable", "This feature is not installed"),
     domain.TexspaceError: (400, "bad-request", "The request cannot be processed"),
@@ -73,7 +80,9 @@ def problem_for(exc: BaseException) -> Problem:
     for cls in type(exc).__mro__:
         if cls in ERROR_TABLE:
             status, slug, title = ERROR_TABLE[cls]
-            return Problem(status, getattr(exc, "detail", str(exc)), slug=slug, title=title)
+            retry = getattr(exc, "retry_after", None)
+            return Problem(status, getattr(exc, "detail", str(exc)), slug=slug, title=title,
+                           headers={"Retry-After": str(retry)} if retry else None)
     return Problem(500, "internal error; the request id in the logs tells more", slug="internal-error")
 
 

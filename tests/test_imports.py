@@ -5,7 +5,10 @@ circle), and:
 * the modules of ``service/`` import each other without a cycle, in layers: settings and
   the services container at the bottom, domain modules above them, process wiring above
   those, the CLI at the top;
-* ``worker/`` never imports ``service/``; ``model/`` imports neither;
+* ``worker/`` never imports ``service/``; ``model/`` never imports ``service/``, and of
+  ``worker/`` only the leaves (``WORKER_LEAVES``: the one image reader, the sRGB curves, the
+  domain errors), which import nothing of the project but each other and no onnxruntime,
+  scikit-image or torch, so that training reads photos exactly as an upload is read;
 * torch is imported only under ``model/`` (the service and the worker run on ONNX).
 """
 from __future__ import annotations
@@ -24,6 +27,11 @@ LAYERS = (
     ("process wiring", {"service.context", "service.runner", "service.processes"}),
     ("CLI", {"service.cli"}),
 )
+
+
+#: modules of worker/ that model/ may import: numpy / OpenImageIO / stdlib, and each other
+WORKER_LEAVES = {"worker.decode", "worker.colour", "worker.errors"}
+LEAF_THIRD_PARTY = {"numpy", "OpenImageIO"}
 
 
 def module_name(path: Path) -> str:
@@ -130,12 +138,48 @@ def test_service_layers_import_downwards() -> None:
 def test_lower_packages_do_not_import_upper_ones(package: str, forbidden: tuple[str, ...]) -> None:
     bad = [f"{path.relative_to(ROOT)}:{line} imports {target}"
            for name, path in modules(package).items() for target, line in imported(name, path)
-           if target.split(".")[0] in forbidden]
+           if target.split(".")[0] in forbidden and not is_leaf_import(target)]
     assert not bad, "\n".join(bad)
 
 
-def test_torch_is_imported_only_under_model() -> None:
-    bad = [f"{path.relative_to(ROOT)}:{line}"
-           for package in ("service", "worker") for name, path in modules(package).items()
-           for target, line in imported(name, path) if target.split(".")[0] == "torch"]
-    assert not bad, "torch imported outside model/: " + ", ".join(bad)
+def is_leaf_import(target: str) -> bool:
+    """``target`` is a worker leaf, or a name taken from one (``worker.decode.read_image``);
+    the bare ``worker`` package of ``from worker import x`` counts by its ``x``."""
+    return any(target == leaf or target.startswith(leaf + ".") for leaf in WORKER_LEAVES) or target == "worker"
+
+
+def test_worker_leaves_import_only_each_other_numpy_and_openimageio() -> None:
+    """The leaves model/ may import pull in nothing else of the project (no runtime, no
+    onnxruntime, no scikit-image, no torch): standard library, numpy, OpenImageIO."""
+    import sys
+
+    known = modules("worker")
+    assert WORKER_LEAVES <= set(known), "a leaf named here does not exist"
+    bad = []
+    for leaf in sorted(WORKER_LEAVES):
+        for target, line in imported(leaf, known[leaf]):
+            top = target.split(".")[0]
+            if top == "__future__" or top in sys.stdlib_module_names or top in LEAF_THIRD_PARTY:
+                continue
+            if top == "worker" and is_leaf_import(target):
+                continue
+            bad.append(f"{known[leaf].relative_to(ROOT)}:{line} imports {target}")
+    assert not bad, "\n".join(bad)
+
+
+def test_model_reads_photos_with_the_upload_reader() -> None:
+    """model/ decodes exemplars through worker.decode (issue 19: one reader for upload, fit,
+    training and evaluation); Pillow opens files only where ``fetch`` converts the packaged
+    source images into the PNG data set (model/data.py: _read_source)."""
+    readers = [str(path.relative_to(ROOT)) for name, path in modules("model").items()
+               if any(target == "worker.decode.read_image" for target, _ in imported(name, path))]
+    assert readers == ["model/data.py"], readers
+    opened = []
+    for path in modules("model").values():
+        for func in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)) or func.name == "_read_source":
+                continue
+            opened += [f"{path.relative_to(ROOT)}:{node.lineno} ({func.name})" for node in ast.walk(func)
+                       if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                       and node.func.attr == "open" and getattr(node.func.value, "id", None) == "Image"]
+    assert not opened, "Pillow reads a photo outside fetch: " + ", ".join(opened)

@@ -48,3 +48,12 @@ class ModelInvalid(TexspaceError):
 
 class FeatureUnavailable(TexspaceError):
     """An optional dependency (e.g. torch for fitting) is not installed."""
+
+
+class Busy(TexspaceError):
+    """A shared resource (the API's decode budget) had no room in time; try again after
+    ``retry_after`` seconds."""
+
+    def __init__(self, detail: str, *, retry_after: int = 1):
+        super().__init__(detail)
+        self.retry_after = retry_after

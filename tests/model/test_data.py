@@ -13,6 +13,7 @@ from PIL import Image
 from model import data
 from model.data import (
     CATALOGUE,
+    DEFAULT_SHORT_SIDE,
     AssetUnavailable,
     TextureDataset,
     fetch_wheel,
@@ -66,6 +67,63 @@ def test_resize_and_load_exemplar(tmp_path):
     assert exemplar.shape == (128, 213, 3) and exemplar.dtype == np.float32
     assert 0.0 <= exemplar.min() and exemplar.max() <= 1.0
     assert np.array_equal(load_exemplar(path, None), np.repeat(rgb[..., :1], 3, axis=2) / np.float32(255))
+
+
+REPO = Path(__file__).resolve().parents[2]
+#: the repository's decodable test photos: PNG (RGB, palette, 16-bit grey), JPEG (CMYK)
+REPO_IMAGES = ["tests/data/bad/png_named.jpg", "tests/data/bad/grey16.png", "tests/data/bad/cmyk.jpg",
+               "tests/data/bad/polyglot_png_zip.png", "tests/data/meshes/cube.png", "tests/data/meshes/duckCM.png"]
+
+
+def pillow_load_exemplar(path: Path, short_side: int | None) -> np.ndarray:
+    """load_exemplar as it was before the shared reader: Pillow decode, then the same resize."""
+    with Image.open(path) as image:
+        rgb = to_rgb_uint8(image)
+    if short_side is not None:
+        rgb = resize_short_side(rgb, short_side)
+    return rgb.astype(np.float32) / 255.0
+
+
+def photos(tmp_path: Path) -> list[Path]:
+    """The repository's test images plus JPEG and PNG encodings of real texture photos."""
+    import skimage.data
+
+    paths = [REPO / name for name in REPO_IMAGES]
+    for name in ("brick", "gravel", "grass"):
+        grey = getattr(skimage.data, name)()
+        rgb = np.stack([grey, (grey * 0.85).astype(np.uint8), (grey * 0.6).astype(np.uint8)], axis=-1)
+        for fmt, options in (("PNG", {}), ("JPEG", {"quality": 90}), ("JPEG", {"quality": 75, "subsampling": 0})):
+            path = tmp_path / f"{name}-{fmt}-{len(paths)}.{fmt.lower()}"
+            Image.fromarray(rgb).save(path, fmt, **options)
+            paths.append(path)
+    return paths
+
+
+@pytest.mark.parametrize("short_side", [None, DEFAULT_SHORT_SIDE])
+def test_shared_reader_keeps_training_inputs_of_png_and_jpeg(tmp_path, short_side):
+    """load_exemplar now decodes with the upload's reader (worker.decode, OpenImageIO); on
+    PNG and JPEG it gives what the Pillow reader gave, within 1/255 (measured: identical)."""
+    for path in photos(tmp_path):
+        new, old = load_exemplar(path, short_side), pillow_load_exemplar(path, short_side)
+        assert new.shape == old.shape and new.dtype == old.dtype == np.float32, path
+        assert np.abs(new - old).max() <= 1 / 255 + 1e-6, (path.name, np.abs(new - old).max() * 255)
+
+
+def test_exemplars_in_any_upload_format_are_read(tmp_path):
+    """An EXR (which Pillow cannot read) trains and evaluates like an upload: the reader's
+    pixels, 8-bit as training sees them; a folder of mixed formats is one dataset."""
+    from worker.decode import read_image
+
+    exr = REPO / "tests/data/bad/half_hdr.exr"
+    upload = read_image(exr.read_bytes(), max_pixels=1 << 20)
+    exemplar = load_exemplar(exr, None)
+    assert exemplar.shape == upload.shape
+    assert np.abs(exemplar - upload).max() <= 0.5 / 255 + 1e-6
+    for name in ("half_hdr.exr", "float32.tif", "png_named.jpg"):
+        (tmp_path / name).write_bytes((REPO / "tests/data/bad" / name).read_bytes())
+    (tmp_path / "notes.txt").write_text("not an exemplar")
+    dataset = TextureDataset(tmp_path, short_side=32)
+    assert dataset.names == ["float32", "half_hdr", "png_named"]
 
 
 def orientation_of(patch: np.ndarray, image: np.ndarray) -> int | None:

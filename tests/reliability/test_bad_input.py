@@ -1,6 +1,7 @@
 """Hostile and odd files (``tests/data/bad``, made by ``make_corpus.py``): each gets a clear
 answer. Refused input is a 4xx problem+json with a useful detail and leaves nothing in
-storage or the database; valid-but-odd input is accepted; the service keeps serving."""
+storage or the database; valid-but-odd input is accepted; the service keeps serving. Every
+case runs on the embedded SQLite database and on PostgreSQL (conftest: ``database_url``)."""
 from __future__ import annotations
 
 import math
@@ -19,6 +20,8 @@ IMAGES = {
     "text_named.png": (422, "invalid-image", "unrecognised"),
     "one_pixel.png": (422, "invalid-image", "16 pixels"),
     "bomb_60000x60000.png": (413, "limit-exceeded", "large"),
+    "thin_16x1000000.png": (422, "invalid-image", "16 times"),   # once tried to allocate 45.8 GiB
+    "strip_16x16000.png": (422, "invalid-image", "16 times"),    # once 10-25 s and +800 MB
     "polyglot_png_zip.png": (201, None, None),   # a valid PNG; the appended zip is ignored
     "png_named.jpg": (201, None, None),          # the format comes from the bytes, not the name
     "grey16.png": (201, None, None),
@@ -36,6 +39,8 @@ MESHES = {
     "faces_over_limit.obj": (413, "limit-exceeded", "1152 faces"),
     "junk.obj": (422, "invalid-mesh", "no faces"),
     "broken_header.glb": (422, "invalid-mesh", "GLB"),
+    "huge_coordinates.obj": (422, "invalid-mesh", "beyond"),       # once a 500 (extent ** 4 overflow)
+    "far_coordinates.obj": (422, "invalid-mesh", "beyond"),        # once 120 s of xatlas at 1 GB
     "one_face.obj": (202, None, None),
     "non_manifold.obj": (202, None, None),
     "some_degenerate.obj": (202, None, None),
@@ -80,7 +85,7 @@ def test_image_upload(client, module_services, name: str) -> None:
         exemplar = client.get(texture["links"]["exemplar"])
         assert exemplar.content == (BAD / name).read_bytes()
         assert exemplar.headers["content-type"].startswith("image/")
-    if name.startswith("bomb"):
+    if name.startswith(("bomb", "thin", "strip")):
         assert time.monotonic() - started < 2.0, "refused from the header, without decoding"
     assert_still_serving(client)
 

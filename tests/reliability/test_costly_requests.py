@@ -1,9 +1,12 @@
-"""Requests that cost far more than they look (issue 19), against a real ``texspace api``:
-the worst upload shapes stay under 1.5 GB of API memory, a maximal tile does not hold
-up small ones, and slow or lying clients lose their connection."""
+"""Requests that cost far more than they look (issue 19), against a real ``texspace api``
+on the embedded SQLite database and on PostgreSQL (conftest: ``database_url``): the worst
+upload shapes stay under 1.5 GB of API memory, a maximal tile does not hold up small ones,
+slow or lying clients lose their connection, and an upload that finds no room in the
+decode budget in time is a 503 with Retry-After. Each ends with the service healthy."""
 from __future__ import annotations
 
 import io
+import math
 import socket
 import statistics
 import threading
@@ -12,13 +15,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 from PIL import Image
 
+from service.context import build_services
+from service.main import create_app
 from tests.service.conftest import brick_png
+from worker import images
 
+from .conftest import BAD, PROBLEM, database_settings, make_settings, row_counts, stored_files
 from .procs import Cluster, base_env
 
-RSS_LIMIT = int(1.5 * 2**30)
+RSS_LIMIT = 1_500_000_000  # bytes: "1.5 GB" (issue 19)
 
 
 def png(width: int, height: int, channels: int = 3) -> bytes:
@@ -40,9 +48,12 @@ def peak_rss(pid: int) -> int:
 
 
 @pytest.fixture(scope="module")
-def cluster(tmp_path_factory) -> Cluster:
+def cluster(tmp_path_factory, database_url: str | None) -> Cluster:
     root = tmp_path_factory.mktemp("costly")
-    cluster = Cluster(root, base_env(root / "data", TEXSPACE_HTTP_READ_TIMEOUT_SECONDS="1.5"))
+    database = {"TEXSPACE_DATABASE_URL": database_url} if database_url else {}
+    # uploads wait for decode room as long as two maximal ones take on a busy machine
+    cluster = Cluster(root, base_env(root / "data", TEXSPACE_HTTP_READ_TIMEOUT_SECONDS="1.5",
+                                     TEXSPACE_DECODE_WAIT_SECONDS="150", **database))
     cluster.start_api()
     yield cluster
     cluster.stop()
@@ -50,15 +61,21 @@ def cluster(tmp_path_factory) -> Cluster:
 
 @pytest.mark.slow
 def test_worst_upload_shapes_stay_under_1_5_gb(cluster: Cluster) -> None:
-    """A 16 x 1,000,000 PNG (46 kB, under the pixel limit) once tried to allocate 45.8 GiB;
-    an 8192^2 RGBA PNG (the pixel limit) cost 2.8 GB. Two of the latter at once share the
-    decode budget instead of doubling the peak."""
+    """With the default limits (64 Mpx, 64 MiB, decode budget 64 Mpx): a 16 x 1,000,000 PNG
+    (under the pixel limit) once tried to allocate 45.8 GiB and 16 x 16,000 cost +800 MB
+    (both refused from the header now); a 2048 x 32768 RGBA PNG is the longest strip
+    allowed at the pixel limit; an 8192^2 RGBA PNG (the pixel limit) cost 2.8 GB, and two
+    of them at once share the decode budget instead of doubling the peak."""
     with cluster.client() as http:
-        thin = http.post("/v1/textures", files={"image": ("thin.png", png(16, 1_000_000, 1), "image/png")})
-        assert thin.status_code == 422 and "16 times" in thin.json()["detail"], thin.text
+        http.timeout = 120
+        for name in ("thin_16x1000000.png", "strip_16x16000.png"):
+            res = http.post("/v1/textures", files={"image": (name, (BAD / name).read_bytes(), "image/png")})
+            assert res.status_code == 422 and "16 times" in res.json()["detail"], res.text
+        strip = http.post("/v1/textures", files={"image": ("strip.png", png(2048, 32768, 4), "image/png")})
+        assert strip.status_code == 201, strip.text
+        assert (strip.json()["width"], strip.json()["height"]) == (2048, 32768)
+        assert http.get("/healthz").status_code == 200
         big = png(8192, 8192, 4)
-        with http.stream("GET", "/healthz"):
-            pass
         results: list[int] = []
 
         def upload() -> None:
@@ -73,9 +90,10 @@ def test_worst_upload_shapes_stay_under_1_5_gb(cluster: Cluster) -> None:
             t.join(180)
         assert results == [201, 201], cluster.log_tail()
         assert http.get("/healthz").status_code == 200
+        assert http.get("/v1/textures", params={"limit": 1}).status_code == 200
     peak = peak_rss(cluster.api.pid)
-    print(f"API peak RSS {peak / 2**30:.2f} GiB")
-    assert peak < RSS_LIMIT, f"API peak RSS {peak / 2**30:.2f} GiB"
+    print(f"API peak RSS {peak / 1e9:.2f} GB")
+    assert peak < RSS_LIMIT, f"API peak RSS {peak / 1e9:.2f} GB"
 
 
 @pytest.mark.slow
@@ -114,6 +132,7 @@ def test_small_tiles_do_not_wait_behind_a_maximal_tile(cluster: Cluster) -> None
         assert done, "the maximal tile did not render"
         print(f"small cold tile: {idle:.3f} s idle, {busy:.3f} s beside a maximal tile ({done[0]:.1f} s)")
         assert busy <= 2 * idle + 0.02, f"small tile {busy:.3f} s while busy, {idle:.3f} s idle"
+        assert http.get("/healthz").status_code == 200
 
 
 def test_slow_and_lying_clients_are_disconnected(cluster: Cluster) -> None:
@@ -135,3 +154,36 @@ def test_slow_and_lying_clients_are_disconnected(cluster: Cluster) -> None:
             assert not data or data.startswith(b"HTTP/1.1 "), data  # closed, perhaps after a status line
     with cluster.client() as http:
         assert http.get("/healthz").status_code == 200
+
+
+@pytest.mark.parametrize("wait, max_waiting, seconds", [(0.3, 4, (0.25, 5)), (30.0, 0, (0, 0.25))],
+                         ids=["wait ran out", "too many waiting"])
+def test_upload_without_decode_room_is_503(database_url: str | None, tmp_path, wait: float, max_waiting: int,
+                                           seconds: tuple[float, float]) -> None:
+    """An upload waits for room in the decode budget at most TEXSPACE_DECODE_WAIT_SECONDS and
+    only behind fewer than TEXSPACE_DECODE_MAX_WAITING others (each waiter holds a thread
+    and its bytes); else it gets 503 busy with Retry-After at once, storing nothing. Once
+    the room is free, the same upload succeeds."""
+    services = build_services(make_settings(tmp_path, decode_budget_pixels=64 * 64, decode_wait_seconds=wait,
+                                            decode_max_waiting=max_waiting, **database_settings(database_url)),
+                              immediate=True)
+    try:
+        with TestClient(create_app(services=services)) as client:
+            held = images.read_image(brick_png(64), max_pixels=1 << 20)    # fills the whole budget
+            before = stored_files(services), row_counts(services)
+            started = time.monotonic()
+            res = client.post("/v1/textures", files={"image": ("b.png", brick_png(64), "image/png")})
+            elapsed = time.monotonic() - started
+            assert res.status_code == 503 and res.headers["content-type"] == PROBLEM, res.text
+            assert res.json()["type"] == "urn:texspace:problem:busy" and f"{wait:g} s" in res.json()["detail"]
+            assert res.headers["retry-after"] == str(math.ceil(wait))
+            assert seconds[0] < elapsed < seconds[1], elapsed
+            assert (stored_files(services), row_counts(services)) == before
+            assert client.get("/healthz").status_code == 200
+            del held                                                         # room again
+            assert client.post("/v1/textures", files={"image": ("b.png", brick_png(64), "image/png")}
+                               ).status_code == 201
+            assert images._budget is not None and images._budget.used == images._budget.waiting == 0
+    finally:
+        images.set_decode_budget(None)
+        services.engine.dispose()

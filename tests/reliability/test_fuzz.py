@@ -17,7 +17,7 @@ from service.context import build_services
 from service.main import create_app
 from tests.service.conftest import brick_png
 
-from .conftest import make_settings
+from .conftest import database_settings, make_settings
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 SPEC = Path(__file__).resolve().parents[2] / "openapi.yaml"
@@ -30,10 +30,13 @@ REAL_ID_SKIP = {"DELETE", "submitFit"}
 
 
 @pytest.fixture(scope="module")
-def fuzzed_app(tmp_path_factory):
+def fuzzed_app(tmp_path_factory, database_url):
+    """The app on the embedded SQLite database, then on PostgreSQL (conftest: database_url),
+    which refuses what SQLite stores (NUL in text, over-long varchars)."""
     services = build_services(make_settings(tmp_path_factory.mktemp("fuzz"), max_volume_resolution=8,
                                             max_region_pixels=64 * 64, max_bake_resolution=64,
-                                            max_fit_seconds=0.001, max_tile_size=128), immediate=True)
+                                            max_fit_seconds=0.001, max_tile_size=128,
+                                            **database_settings(database_url)), immediate=True)
     app = create_app(services=services)
     from fastapi.testclient import TestClient
 

@@ -19,27 +19,16 @@ from service.logs import request_id_var
 from service.main import create_app
 from service.purge import purge_texture
 from service.tables import Job, new_id
-from tests.conftest import fresh_postgres_database
 from tests.service.conftest import brick_png
 
-from .conftest import PROBLEM, make_settings
+from .conftest import PROBLEM, database_settings, make_settings
 from .test_bad_input import assert_still_serving
-
-
-@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
-def database_url(request, tmp_path_factory) -> Iterator[str | None]:
-    """None (the SQLite default), or a fresh PostgreSQL database dropped afterwards."""
-    if request.param == "sqlite":
-        yield None
-        return
-    with fresh_postgres_database() as url:
-        yield url
 
 
 @pytest.fixture(scope="module")
 def services(database_url, tmp_path_factory) -> Iterator[Services]:
-    overrides = {"database_url": database_url} if database_url else {}
-    services = build_services(make_settings(tmp_path_factory.mktemp("hostile"), **overrides), immediate=True)
+    services = build_services(make_settings(tmp_path_factory.mktemp("hostile"), **database_settings(database_url)),
+                              immediate=True)
     yield services
     services.engine.dispose()
 

@@ -17,13 +17,15 @@ from service.main import create_app
 from service.tables import ApiKey, Job, Texture
 from tests.service.conftest import brick_png
 
-from .conftest import PROBLEM, make_settings
+from .conftest import PROBLEM, database_settings, make_settings
 
 
 @pytest.fixture(scope="module")
-def tenants(tmp_path_factory) -> Iterator[tuple[Services, TestClient, dict, dict]]:
+def tenants(tmp_path_factory, database_url) -> Iterator[tuple[Services, TestClient, dict, dict]]:
+    """Two keys on the embedded SQLite database, then on PostgreSQL (conftest: database_url)."""
     settings = make_settings(tmp_path_factory.mktemp("tenants"), api_keys_enabled=True,
-                             api_key_pepper="test-pepper", rate_limit_per_minute=6000, rate_limit_burst=1000)
+                             api_key_pepper="test-pepper", rate_limit_per_minute=6000, rate_limit_burst=1000,
+                             **database_settings(database_url))
     services = build_services(settings, immediate=True)
     _, key_a = auth.create_key(services, "alice")
     _, key_b = auth.create_key(services, "bob")

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from worker.colour import linear_to_srgb, srgb_to_linear
-from worker import images
+from worker import decode, images
 from worker.errors import InvalidImage, InvalidParameter, LimitExceeded
 from worker.images import (encode_image, encoder_crops, read_image, resize_short_side, sniff_format,
                            thumbnail, write_image)
@@ -177,7 +177,7 @@ def test_long_thin_images_are_refused_from_the_header():
 def test_banded_decode_matches_a_whole_decode(monkeypatch):
     rgba = RNG.integers(0, 256, (61, 37, 4), dtype=np.uint8)
     whole = read_image(pil_bytes(rgba, "RGBA", "PNG"), max_pixels=MAX)
-    monkeypatch.setattr(images, "DECODE_BAND_PIXELS", 37 * 5)      # 13 bands, the last short
+    monkeypatch.setattr(decode, "DECODE_BAND_PIXELS", 37 * 5)      # 13 bands, the last short
     assert np.array_equal(read_image(pil_bytes(rgba, "RGBA", "PNG"), max_pixels=MAX), whole)
 
 

@@ -2,7 +2,7 @@
 
     .venv/bin/python tests/data/bad/make_corpus.py
 
-Every file is small (a few KiB at most). ``tests/reliability/test_bad_input.py`` says
+Every file is small (a few KiB at most; the 16 x 1,000,000 strip, 57 kB). ``tests/reliability/test_bad_input.py`` says
 what the service must answer for each one; the expectations live there, the bytes here.
 """
 from __future__ import annotations
@@ -91,7 +91,18 @@ def images() -> dict[str, bytes]:
         "animated.webp": pil_bytes(frames[0], "WEBP", save_all=True, append_images=frames[1:], duration=100,
                                    lossless=True),
         "bomb_60000x60000.png": png_bomb(),
+        # under the pixel limit, but the upscale of the short side to the working size had
+        # no bound: 45.8 GiB tried (issue 19); 16 x 16,000 cost 10-25 s and +800 MB
+        "thin_16x1000000.png": thin_png(16, 1_000_000),
+        "strip_16x16000.png": thin_png(16, 16_000),
     }
+
+
+def thin_png(width: int, height: int) -> bytes:
+    """A grey width x height PNG with some structure (every 7th row bright), compressed hard."""
+    pixels = np.zeros((height, width), np.uint8)
+    pixels[::7] = 200
+    return pil_bytes(Image.fromarray(pixels, "L"), "PNG", compress_level=9)
 
 
 def _zip_bytes() -> bytes:
@@ -133,6 +144,10 @@ def meshes() -> dict[str, bytes]:
         "faces_over_limit.obj": grid_obj(24),            # 1152 faces; the test lowers the limit to 1000
         "junk.obj": bytes(np.random.default_rng(2).integers(0, 256, 4096, np.uint8)),
         "broken_header.glb": glb_header,
+        # coordinates whose extent overflowed (1e100: a 500) or sent xatlas spinning for 120 s
+        "huge_coordinates.obj": obj([(0, 0, 0), ("1e100", 0, 0), (0, "1e100", 0)], [(1, 2, 3)]),
+        "far_coordinates.obj": obj([("1e30", 0, 0), ("1e60", 0, 0), (0, "1e45", 0), (0, 0, "1e30")],
+                                   [(1, 2, 3), (1, 3, 4), (1, 2, 4), (2, 3, 4)]),
         "cube.obj": obj([(x, y, z) for x in (0, 1) for y in (0, 1) for z in (0, 1)],
                         [(1, 3, 2), (2, 3, 4), (5, 6, 7), (6, 8, 7), (1, 2, 5), (2, 6, 5),
                          (3, 7, 4), (4, 7, 8), (1, 5, 3), (3, 5, 7), (2, 4, 6), (4, 8, 6)]),
