@@ -6,7 +6,8 @@ against a real ``texspace serve`` on a free loopback port.
 Each client loops over a weighted mix: cached tile GETs (a hot set rendered once before
 the clock starts), cold tile GETs (random far-away tiles, rendered on demand), job
 submissions (small volumes) and job polls. Deliberate back-pressure (503 / 429 with
-``Retry-After``) is counted apart; anything else that is not 2xx / 304, and any
+``Retry-After``) is counted apart, its latency under ``<kind>_503`` (so ``tile_cold`` is
+the latency of tiles served); anything else that is not 2xx / 304, and any
 transport error, is an error. After the run, every accepted job must finish (nothing
 lost). Prints p50 / p95 per kind and requests/s, and merges them into
 bench/out/results.json under ``load_<N>_clients`` (other keys are kept).
@@ -19,8 +20,6 @@ import io
 import json
 import os
 import random
-import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -33,7 +32,7 @@ import httpx
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # run as a script (``python bench/load.py``)
 
-from bench.common import wait_ready  # noqa: E402
+from bench.common import free_port, spawn, stop, wait_ready  # noqa: E402
 
 RESULTS = ROOT / "bench" / "out" / "results.json"
 MIX = (("tile_cached", 0.55), ("tile_cold", 0.25), ("job_submit", 0.08), ("job_poll", 0.12))
@@ -52,14 +51,6 @@ def percentile(values: list[float], q: float) -> float:
     return ordered[lo] + (ordered[hi] - ordered[lo]) * (pos - lo)
 
 
-def free_port() -> int:
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 @contextmanager
 def serve(extra_env: dict[str, str]):
     """``texspace serve`` with a throw-away data folder; yields its base URL."""
@@ -68,20 +59,14 @@ def serve(extra_env: dict[str, str]):
         env = {k: v for k, v in os.environ.items() if not k.startswith("TEXSPACE_")}
         env |= {"TEXSPACE_DATA_DIR": data, "TEXSPACE_PORT": str(port), "TEXSPACE_LOG_LEVEL": "WARNING",
                 "TEXSPACE_AUTO_FIT": "false"} | extra_env  # measures serving, not fits behind the uploads
-        log = open(Path(data) / "serve.log", "wb")
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
-                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        log_path = Path(data) / "serve.log"
+        proc = spawn(["serve"], env, log_path)
         base = f"http://127.0.0.1:{port}"
         try:
-            wait_ready(base, [proc], 120, output=lambda: (Path(data) / "serve.log").read_text(errors="replace"))
+            wait_ready(base, [proc], 120, output=lambda: log_path.read_text(errors="replace"), name="texspace serve")
             yield base
         finally:
-            os.killpg(proc.pid, signal.SIGTERM)  # its own session: only the server we started
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+            stop([proc], grace=20)
 
 
 def exemplar_png(seed: int) -> bytes:
@@ -102,14 +87,20 @@ class Recorder:
         self.errors: list[str] = []
         self.back_pressure = 0
         self.accepted_jobs: list[str] = []
+        self.cold_by_zoom: dict[int, list[float]] = defaultdict(list)  # tiles served (2xx), by zoom
 
     def record(self, kind: str, seconds: float, res: httpx.Response | None, error: str | None = None) -> None:
-        self.latency[kind].append(seconds)
+        """Latency under ``kind``; back-pressure answers under ``<kind>_503`` (how fast they come)."""
         if error is not None:
+            self.latency[kind].append(seconds)
             self.errors.append(f"{kind}: {error}")
         elif res.status_code in BACK_PRESSURE and "retry-after" in res.headers:
+            self.latency[f"{kind}_{res.status_code}"].append(seconds)
             self.back_pressure += 1
-        elif not (200 <= res.status_code < 300 or res.status_code == 304):
+        else:
+            self.latency[kind].append(seconds)
+        if error is None and not (200 <= res.status_code < 300 or res.status_code == 304
+                                  or (res.status_code in BACK_PRESSURE and "retry-after" in res.headers)):
             self.errors.append(f"{kind}: HTTP {res.status_code} {res.text[:200]}")
 
 
@@ -140,6 +131,8 @@ async def client_loop(i: int, http: httpx.AsyncClient, setup: dict, stop_at: flo
             rec.record(kind, time.perf_counter() - started, None, f"{type(exc).__name__}: {exc}")
             continue
         rec.record(kind, time.perf_counter() - started, res)
+        if kind == "tile_cold" and res.status_code == 200:
+            rec.cold_by_zoom[z].append(time.perf_counter() - started)
         if kind == "job_submit" and res.status_code == 202:
             rec.accepted_jobs.append(res.json()["id"])
 
@@ -195,6 +188,8 @@ def summarise(rec: Recorder, elapsed: float, clients: int, seconds: float, job_s
         "p50_ms": ms(percentile(all_latency, 50)), "p95_ms": ms(percentile(all_latency, 95)),
         "errors": len(rec.errors), "error_samples": rec.errors[:10], "back_pressure_responses": rec.back_pressure,
         "by_kind": by_kind, "jobs_accepted": len(rec.accepted_jobs), "jobs_final_states": job_states,
+        "tile_cold_by_zoom": {z: {"served": len(v), "p50_ms": ms(percentile(v, 50)), "p95_ms": ms(percentile(v, 95))}
+                              for z, v in sorted(rec.cold_by_zoom.items())},
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "load_average_at_end": [round(x, 2) for x in os.getloadavg()],
     }
@@ -219,6 +214,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--base-url", help="an already running server on loopback (default: start one)")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--env", action="append", default=[], metavar="TEXSPACE_X=VALUE",
+                        help="a setting for the server started here (repeatable); the results key gets "
+                             "the values appended")
     parser.add_argument("--max-queued-jobs", type=int, default=32, help="server back-pressure threshold")
     args = parser.parse_args(argv)
     if not 1 <= args.clients <= 256 or not 0 < args.seconds <= 600:
@@ -232,17 +230,23 @@ def main(argv: list[str] | None = None) -> int:
         job_states = wait_jobs(base, rec.accepted_jobs, timeout=120)
         return summarise(rec, elapsed, args.clients, args.seconds, job_states)
 
+    extra = dict(item.split("=", 1) for item in args.env)
+    if any(not k.startswith("TEXSPACE_") for k in extra):
+        parser.error("--env takes TEXSPACE_* settings")
     if args.base_url:
         summary = measure(args.base_url)
     else:
-        with serve({"TEXSPACE_MAX_QUEUED_JOBS": str(args.max_queued_jobs)}) as base:
+        with serve({"TEXSPACE_MAX_QUEUED_JOBS": str(args.max_queued_jobs)} | extra) as base:
             summary = measure(base)
-    key = f"load_{args.clients}_clients"
+    summary["settings"] = extra
+    key = f"load_{args.clients}_clients" + "".join(f"_{v}" for v in extra.values())
     merge_into(args.out, key, summary)
     print(f"{'kind':<12} {'requests':>9} {'p50 ms':>9} {'p95 ms':>9}")
     for kind, row in summary["by_kind"].items():
         print(f"{kind:<12} {row['requests']:>9} {row['p50_ms']:>9} {row['p95_ms']:>9}")
     print(f"{'all':<12} {summary['requests']:>9} {summary['p50_ms']:>9} {summary['p95_ms']:>9}")
+    print("cold tiles served, by zoom: " + ", ".join(f"z{z} {row['served']} p50 {row['p50_ms']} p95 {row['p95_ms']} ms"
+                                                   for z, row in summary["tile_cold_by_zoom"].items()))
     print(f"{summary['requests_per_second']} requests/s; errors {summary['errors']}; back-pressure "
           f"{summary['back_pressure_responses']}; jobs {summary['jobs_final_states']} of {summary['jobs_accepted']}")
     print(f"written to {args.out} under {key!r}")

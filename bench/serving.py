@@ -5,9 +5,6 @@ import io
 import json
 import os
 import signal
-import socket
-import subprocess
-import sys
 import tempfile
 import time
 import urllib.request
@@ -17,18 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import ROOT, median, percentile, wait_ready
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from bench.common import free_port, median, percentile, spawn, stop, wait_ready
 
 
 @contextmanager
-def embedded_server(model_dir: Path, log=print):
-    """``texspace serve`` (API + worker) on a free loopback port with a throwaway data dir.
+def embedded_server(model_dir: Path, log=print, env: dict[str, str] | None = None):
+    """``texspace serve`` (API + worker) on a free loopback port with a throwaway data dir,
+    ``env`` added to its environment (``TEXSPACE_*`` settings).
 
     Yields the base URL; the server is stopped (SIGINT, then SIGKILL) on exit.
     """
@@ -36,22 +28,15 @@ def embedded_server(model_dir: Path, log=print):
     with tempfile.TemporaryDirectory(prefix="texspace-bench-") as data:
         env = dict(os.environ, TEXSPACE_DATA_DIR=data, TEXSPACE_PORT=str(port), TEXSPACE_HOST="127.0.0.1",
                    TEXSPACE_MODEL_DIRS=str(model_dir), TEXSPACE_LOG_LEVEL="WARNING",
-                   TEXSPACE_AUTO_FIT="false")  # measures serving, not fits behind the uploads
+                   TEXSPACE_AUTO_FIT="false", **(env or {}))  # measures serving, not fits behind the uploads
         log_path = Path(data) / "serve.log"  # a file, not a pipe: nobody reads it while the server runs
-        with open(log_path, "wb") as log_file:
-            proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve"], cwd=ROOT, env=env,
-                                    stdout=subprocess.DEVNULL, stderr=log_file, start_new_session=True)
+        proc = spawn(["serve"], env, log_path)
         base = f"http://127.0.0.1:{port}"
         try:
-            wait_ready(base, [proc], 120, output=lambda: log_path.read_text(errors="replace"))
+            wait_ready(base, [proc], 120, output=lambda: log_path.read_text(errors="replace"), name="texspace serve")
             yield base
         finally:
-            os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+            stop([proc], sig=signal.SIGINT)
 
 
 def upload_image_1024() -> bytes:

@@ -109,9 +109,23 @@ def start_lane(huey, stop: threading.Event) -> threading.Thread:  # noqa: ANN001
     return thread
 
 
+def lower_priority(niceness: int) -> None:
+    """Add ``niceness`` to this process's nice value (0: nothing): jobs are batch work, so a
+    worker beside an API on the same cores leaves tiles the CPU (Linux CFS weights: at nice
+    10 a busy worker thread gets about a tenth of what a busy API thread gets)."""
+    if niceness <= 0:
+        return
+    try:
+        os.nice(niceness)
+    except OSError:  # not permitted here: run at the normal priority
+        log.warning("could not lower the worker's priority by %s", niceness)
+
+
 def run_worker(settings: Settings, *, migrate: bool = True) -> None:
     """Consume the lanes of ``settings.worker_kinds`` until SIGINT / SIGTERM: the first
-    with ``settings.workers`` threads, the fit lane beside it (if both) with one."""
+    with ``settings.workers`` threads, the fit lane beside it (if both) with one, all at
+    ``settings.worker_nice`` lower priority than the API."""
+    lower_priority(settings.worker_nice)
     services = build_services(settings, migrate=migrate)
     try:
         services.registry  # load models now, not inside the first job

@@ -5,26 +5,32 @@ import asyncio
 import contextvars
 import functools
 import hashlib
+import math
 import threading
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 
 import numpy as np
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
+from starlette.requests import Request
 
 from worker.images import write_image
-from worker.errors import LimitExceeded
-from worker.tiles import render_tile, supersample_for
+from worker.errors import Busy, LimitExceeded
+from worker.tiles import NATIVE_ZOOM, exact_parent, parent_from_children, render_tile, supersample_for
 
 from .container import Services
 from .db import session_scope
+from .errors import ClientGone
 from .settings import Settings
 from .tables import Job, Texture
+from .tilecache import TileCache
 
 #: bump when tile rendering changes in a way that changes bytes for the same URL
-TILE_RENDER_VERSION = 1
+#: (2: box filter as a cascade of exact 2 x 2 means, so parents can be built from children)
+TILE_RENDER_VERSION = 2
 TILE_MEDIA_TYPES = {"png": "image/png", "webp": "image/webp", "exr": "image/x-exr"}
 CACHE_CONTROL = "public, max-age=31536000, immutable"
 #: tiles of an upload whose refinement has not ended: caches must revalidate (If-None-Match)
@@ -36,16 +42,19 @@ SMALL_TILE_SAMPLES = 1 << 18
 #: a large tile renders in bands of about this many sampler calls, and before each band
 #: waits while small tiles render, so one costs a small tile at most about one band
 BAND_SAMPLES = 1 << 15
+#: the longest a large tile's band waits for small tiles to finish
+YIELD_SECONDS = 0.25
 
 
-def tile_samples(z: int, size: int) -> int:
-    """Sampler calls of one tile: (size x supersampling factor)^2."""
-    return (size * supersample_for(z)) ** 2
+def tile_samples(z: int, size: int, zoom_out: str = "supersample") -> int:
+    """Sampler calls of one tile: (size x supersampling factor)^2, or size^2 when zoom-out is
+    ``bounded`` (one sub-sample per pixel)."""
+    return size ** 2 if zoom_out == "bounded" else (size * supersample_for(z)) ** 2
 
 
 def check_tile_work(settings: Settings, z: int, size: int) -> None:
     """LimitExceeded (413) when a tile costs more sampler calls than ``max_tile_samples``."""
-    samples = tile_samples(z, size)
+    samples = tile_samples(z, size, settings.tile_zoom_out)
     if samples > settings.max_tile_samples:
         raise LimitExceeded(f"a {size} px tile at zoom {z} costs {samples} samples ({supersample_for(z)}^2 "
                             f"per pixel), limit is {settings.max_tile_samples}: use a smaller size "
@@ -74,18 +83,124 @@ class TileLanes:
                 self._cond.notify_all()
 
     def yield_to_small(self) -> None:
+        """Wait until no small tile renders, at most YIELD_SECONDS: under a steady stream of
+        small tiles a large one still advances a band at a time instead of starving."""
         with self._cond:
-            self._cond.wait_for(lambda: self._small == 0)
+            self._cond.wait_for(lambda: self._small == 0, timeout=YIELD_SECONDS)
 
 
 LANES = TileLanes()
 
+#: seconds between two looks at whether a waiting or rendering tile's client is still there
+DISCONNECT_POLL_SECONDS = 0.1
+
+
+class TileQueue:
+    """Admission of cold tiles, in arrival order: at most ``tile_workers`` small tiles render
+    at once, the rest wait here (on the event loop, holding no thread) while their client is
+    connected. A tile that would wait behind ``tile_queue_depth`` others, or longer than
+    ``tile_queue_max_wait_seconds`` by the measured render rate, gets Busy (503 +
+    Retry-After) at once. Large tiles have their own lane (TileLanes) and bound (``large``)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._running = 0
+        self._waiting: deque[dict] = deque()
+        self._queued_samples = 0
+        self._running_samples = 0
+        self._large_samples = 0
+        self.samples_per_second = 5e5  # rendered samples per second of the whole queue, measured
+
+    def estimated_wait(self) -> float:
+        """Seconds until a tile queued now starts rendering, at the measured rate (as if the
+        tiles rendering now had just begun)."""
+        return (self._queued_samples + self._running_samples) / self.samples_per_second
+
+    def _busy(self, why: str) -> Busy:
+        wait = self.estimated_wait()
+        return Busy(f"{why}; estimated wait {wait:.1f} s", retry_after=max(1, math.ceil(wait)))
+
+    async def acquire(self, settings: Settings, samples: int, request: Request | None) -> None:
+        """Wait for a render slot. Busy when over capacity, ClientGone when the client left."""
+        loop = asyncio.get_running_loop()
+        with self._lock:
+            if self._running < settings.tile_workers and not self._waiting:
+                self._running += 1
+                self._running_samples += samples
+                return
+            if len(self._waiting) >= settings.tile_queue_depth:
+                raise self._busy(f"{len(self._waiting)} tiles are waiting to render (limit "
+                                 f"{settings.tile_queue_depth})")
+            if self.estimated_wait() > settings.tile_queue_max_wait_seconds:
+                raise self._busy(f"the tile queue holds more than {settings.tile_queue_max_wait_seconds:g} s "
+                                 "of rendering")
+            entry = {"future": loop.create_future(), "samples": samples, "granted": False}
+            self._waiting.append(entry)
+            self._queued_samples += samples
+        try:
+            while not entry["future"].done():
+                await asyncio.wait({entry["future"]}, timeout=DISCONNECT_POLL_SECONDS)
+                if not entry["future"].done() and request is not None and await request.is_disconnected():
+                    raise ClientGone("the client left before its tile started rendering")
+        except BaseException:  # gone, or cancelled: leave the queue, or give back the slot just granted
+            with self._lock:
+                granted = entry["granted"]
+                if not granted:
+                    self._waiting.remove(entry)
+                    self._queued_samples -= samples
+            if granted:
+                self.release(settings, samples)
+            raise
+
+    def release(self, settings: Settings, samples: int, seconds: float = 0.0) -> None:
+        """End of a render of ``samples`` (a finished one, in ``seconds``, updates the
+        measured rate): the next waiting tiles start."""
+        with self._lock:
+            if seconds > 0:
+                rate = samples / seconds * min(self._running, settings.tile_workers)
+                self.samples_per_second = 0.7 * self.samples_per_second + 0.3 * rate
+            self._running -= 1
+            self._running_samples -= samples
+            while self._waiting and self._running < settings.tile_workers:
+                entry = self._waiting.popleft()
+                self._queued_samples -= entry["samples"]
+                entry["granted"] = True
+                self._running += 1
+                self._running_samples += entry["samples"]
+                future = entry["future"]
+                future.get_loop().call_soon_threadsafe(lambda f=future: f.done() or f.set_result(None))
+
+    @contextmanager
+    def large(self, settings: Settings, samples: int):  # noqa: ANN201
+        """Admission of a large tile: only while no small tile waits (interactive first), and
+        one at a time unless the large ones admitted render within ``tile_queue_max_wait_seconds``
+        by the measured rate; else Busy."""
+        with self._lock:
+            ahead = self._large_samples / self.samples_per_second
+            if self._waiting or (self._large_samples and ahead > settings.tile_queue_max_wait_seconds):
+                why = (f"{len(self._waiting)} small tiles are waiting" if self._waiting else
+                       f"large tiles admitted before it take {ahead:.1f} s")
+                raise Busy(why, retry_after=max(1, math.ceil(ahead or samples / self.samples_per_second)))
+            self._large_samples += samples
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._large_samples -= samples
+
+
+QUEUE = TileQueue()
+#: linear-light float32 copies of recent tiles at NATIVE_ZOOM and one out (tile_from_cache)
+LINEAR = TileCache(0)
+
 
 def tile_etag(texture: Texture, *, z: int, x: int, y: int, size: int, seed: int, plane: str,
-              offset: float, fmt: str) -> str:
-    """Strong ETag: every input that changes the bytes, including the model version."""
+              offset: float, fmt: str, zoom_out: str = "supersample") -> str:
+    """Strong ETag: every input that changes the bytes, including the model version and,
+    below native zoom, how zoomed-out tiles are rendered."""
+    mode = zoom_out if z < NATIVE_ZOOM and zoom_out != "supersample" else ""
     parts = (TILE_RENDER_VERSION, texture.model_version, texture.id, texture.sampler_key or "",
-             seed, z, x, y, size, plane, repr(float(offset)), fmt)
+             seed, z, x, y, size, plane, repr(float(offset)), fmt) + ((mode,) if mode else ())
     return '"' + hashlib.sha256("|".join(map(str, parts)).encode()).hexdigest()[:32] + '"'
 
 
@@ -107,27 +222,129 @@ def etag_matches(if_none_match: str | None, etag: str) -> bool:
     return "*" in tags or any(t.removeprefix("W/") == etag for t in tags)
 
 
-async def render_tile_async(services: Services, texture: Texture, **key) -> bytes:  # noqa: ANN003
-    """``render_tile_bytes`` off the event loop: small tiles on the threadpool, large
-    ones on their own lane (TileLanes)."""
-    if tile_samples(key["z"], key["size"]) <= SMALL_TILE_SAMPLES:
-        return await run_in_threadpool(render_tile_bytes, services, texture, **key)
-    context = contextvars.copy_context()  # the request id of log lines, as run_in_threadpool does
-    render = functools.partial(render_tile_bytes, services, texture, **key)
-    return await asyncio.get_running_loop().run_in_executor(LANES.large, context.run, render)
+def _linear_key(texture: Texture, key: dict, z: int, x: int, y: int) -> str:
+    return tile_etag(texture, **{**key, "z": z, "x": x, "y": y, "fmt": "linear"})
+
+
+def _keeps_linear(services: Services, z: int) -> bool:
+    return (services.settings.tile_zoom_out == "supersample" and services.settings.tile_linear_cache_bytes > 0
+            and NATIVE_ZOOM - 1 <= z <= NATIVE_ZOOM)
+
+
+def cached_linear(services: Services, texture: Texture, key: dict, z: int, x: int, y: int,
+                  depth: int = 2) -> np.ndarray | None:
+    """Linear pixels of tile (z, x, y) without sampling: its own cached copy, or (when
+    ``exact_parent(z)``) its four children's, downsampled: the same bits as a render.
+    None when some are missing. (size, size, 3) float32."""
+    size = key["size"]
+    if services.settings.tile_zoom_out != "supersample":
+        return None
+    data = LINEAR.get(_linear_key(texture, key, z, x, y))
+    if data is not None:
+        return np.frombuffer(data, np.float32).reshape(size, size, 3)
+    if depth == 0 or not exact_parent(z):
+        return None
+    children = []
+    for j in (0, 1):
+        row = []
+        for i in (0, 1):
+            child = cached_linear(services, texture, key, z + 1, 2 * x + i, 2 * y + j, depth - 1)
+            if child is None:
+                return None
+            row.append(child)
+        children.append(row)
+    return parent_from_children(children)
+
+
+def tile_from_cache(services: Services, texture: Texture, *, z: int, x: int, y: int, size: int, seed: int,
+                    plane: str, offset: float, fmt: str) -> bytes | None:
+    """Encoded tile built from cached linear pixels (its own, or its children's), else None."""
+    services.registry.get(texture.model_version)  # a retired model's textures: 503, even from the cache
+    key = dict(size=size, seed=seed, plane=plane, offset=offset, zoom_out=services.settings.tile_zoom_out)
+    LINEAR.max_bytes = services.settings.tile_linear_cache_bytes
+    rgb = cached_linear(services, texture, key, z, x, y)
+    if rgb is None:
+        return None
+    if _keeps_linear(services, z):
+        LINEAR.put(_linear_key(texture, key, z, x, y), np.ascontiguousarray(rgb).tobytes())
+    return write_image(rgb, fmt)
+
+
+async def render_tile_async(services: Services, texture: Texture, request: Request | None = None,
+                            **key) -> bytes:  # noqa: ANN003
+    """``render_tile_bytes`` off the event loop, first built from cached children where it
+    can be; small tiles through the TileQueue onto the threadpool, large ones on their own
+    lane (TileLanes). While the tile waits or renders, a client that disconnects stops it
+    (ClientGone); over capacity, Busy (503 + Retry-After)."""
+    settings = services.settings
+    if settings.tile_zoom_out == "supersample" and NATIVE_ZOOM - 2 <= key["z"] <= NATIVE_ZOOM:
+        data = await run_in_threadpool(tile_from_cache, services, texture, **key)
+        if data is not None:
+            return data
+    samples = tile_samples(key["z"], key["size"], settings.tile_zoom_out)
+    cancel = threading.Event()
+    render = functools.partial(render_tile_bytes, services, texture, cancel=cancel, **key)
+    if samples > SMALL_TILE_SAMPLES:
+        with QUEUE.large(settings, samples):
+            context = contextvars.copy_context()  # the request id of log lines, as run_in_threadpool does
+            future = asyncio.get_running_loop().run_in_executor(LANES.large, context.run, render)
+            return await _watch(future, cancel, request)
+    await QUEUE.acquire(settings, samples, request)
+    started = time.perf_counter()
+    done = False
+    try:
+        data = await _watch(asyncio.ensure_future(run_in_threadpool(render)), cancel, request)
+        done = True
+        return data
+    finally:
+        QUEUE.release(settings, samples, time.perf_counter() - started if done else 0.0)
+
+
+async def _watch(future: asyncio.Future, cancel: threading.Event, request: Request | None) -> bytes:
+    """The render's result; if the client disconnects first, stop the render at its next
+    band and raise ClientGone once it has stopped (its thread is free again)."""
+    while True:
+        done, _ = await asyncio.wait({future}, timeout=DISCONNECT_POLL_SECONDS)
+        if done:
+            return future.result()
+        if request is not None and await request.is_disconnected():
+            cancel.set()
+            try:
+                await future
+            except ClientGone:
+                pass
+            raise ClientGone("the client left while its tile rendered; rendering stopped")
 
 
 def render_tile_bytes(services: Services, texture: Texture, *, z: int, x: int, y: int, size: int,
-                      seed: int, plane: str, offset: float, fmt: str) -> bytes:
-    """Render and encode one tile (CPU-bound: call from a worker thread)."""
+                      seed: int, plane: str, offset: float, fmt: str,
+                      cancel: threading.Event | None = None) -> bytes:
+    """Render and encode one tile (CPU-bound: call from a worker thread). Renders in bands;
+    ``cancel`` set stops it before the next band (ClientGone). Tiles at and one zoom out from
+    native leave a linear copy for parents built from children (tile_from_cache)."""
     started = time.perf_counter()
+    zoom_out = services.settings.tile_zoom_out
     args = (services.sampler_for(texture), texture.sampling_code(), seed, z, x, y, size)
-    kwargs = dict(pixels_per_unit=services.pixels_per_unit(texture), plane=plane, offset=offset)
-    if tile_samples(z, size) <= SMALL_TILE_SAMPLES:
+    kwargs = dict(pixels_per_unit=services.pixels_per_unit(texture), plane=plane, offset=offset,
+                  zoom_out=zoom_out, band_samples=BAND_SAMPLES)
+
+    def check_cancel() -> None:
+        if cancel is not None and cancel.is_set():
+            raise ClientGone("the client left; rendering stopped")
+
+    if tile_samples(z, size, zoom_out) <= SMALL_TILE_SAMPLES:
         with LANES.small():
-            rgb = render_tile(*args, **kwargs)
+            rgb = render_tile(*args, **kwargs, before_band=check_cancel)
     else:
-        rgb = render_tile(*args, **kwargs, band_samples=BAND_SAMPLES, before_band=LANES.yield_to_small)
+        def before_band() -> None:
+            LANES.yield_to_small()
+            check_cancel()
+
+        rgb = render_tile(*args, **kwargs, before_band=before_band)
+    if _keeps_linear(services, z):
+        LINEAR.max_bytes = services.settings.tile_linear_cache_bytes
+        key = dict(size=size, seed=seed, plane=plane, offset=offset, zoom_out=zoom_out)
+        LINEAR.put(_linear_key(texture, key, z, x, y), rgb.tobytes())
     data = write_image(rgb, fmt)
     services.metrics.tile_render.observe(time.perf_counter() - started)
     return data

@@ -32,6 +32,7 @@ router = APIRouter(prefix="/v1/textures", tags=["tiles"])
 )
 async def get_tile(
     services: ServicesDep,
+    request: Request,
     texture_id: str,
     fmt: TileFormat,
     address: Annotated[TileAddress, Depends(tile_address)],
@@ -44,7 +45,7 @@ async def get_tile(
     texture = await run_in_threadpool(load_texture, services, texture_id)
     key = dict(z=address.z, x=address.x, y=address.y, size=params.size, seed=params.seed,
                plane=params.plane, offset=params.offset, fmt=fmt)
-    etag = tile_etag(texture, **key)
+    etag = tile_etag(texture, **key, zoom_out=services.settings.tile_zoom_out)
     cache_control = CACHE_CONTROL
     refining = texture.refinement_job_id and not texture.sampler_key  # else final: no query
     if refining and not await run_in_threadpool(tiles_final, services, texture):
@@ -59,7 +60,7 @@ async def get_tile(
     data = services.tile_cache.get(etag)
     if data is None:
         services.metrics.tile_cache_misses.inc()
-        data = await render_tile_async(services, texture, **key)
+        data = await render_tile_async(services, texture, request, **key)  # 503 when over capacity
         services.tile_cache.put(etag, data)
     else:
         services.metrics.tile_cache_hits.inc()

@@ -171,3 +171,39 @@ def test_far_tiles_look_like_near_tiles(tile, x, y):
     assert ((ratio > 1 / 3) & (ratio < 3)).all()
     # and not a constant or row-repeated image (lost precision collapses neighbours)
     assert len(np.unique(far.reshape(-1, 3), axis=0)) > far.shape[0] * far.shape[1] // 2
+
+
+# --- parents from children, bounded zoom-out (issue 15) -------------------------------------
+
+@pytest.mark.parametrize("levels", [1, 2])
+def test_parent_from_children_is_bit_identical(runtime, code, tile, levels):
+    from worker.tiles import exact_parent, parent_from_children
+
+    z = N - levels
+    assert exact_parent(z) and not exact_parent(N) and not exact_parent(N - 3)
+    children = [[tile(z + 1, 2 * 3 + i, 2 * -2 + j) for i in (0, 1)] for j in (0, 1)]
+    assert np.array_equal(parent_from_children(children), tile(z, 3, -2))
+
+
+def test_box_downsample_is_the_mean(runtime):
+    rgb = np.random.default_rng(0).random((32, 32, 3), dtype=np.float32)
+    assert np.allclose(box_downsample(rgb, 4), rgb.reshape(8, 4, 8, 4, 3).mean(axis=(1, 3)), atol=1e-6)
+    with pytest.raises(InvalidParameter):
+        box_downsample(rgb, 3)
+
+
+def test_bounded_zoom_out_is_one_subsample_per_pixel(runtime, code):
+    z = N - 2
+    bounded = render_tile(runtime, code, 3, z, 1, -1, SIZE, zoom_out="bounded")
+    banded = render_tile(runtime, code, 3, z, 1, -1, SIZE, zoom_out="bounded", band_samples=7 * SIZE)
+    assert np.array_equal(bounded, banded)                        # independent of bands
+    # each pixel is one of the s x s sub-samples the supersampled pixel averages
+    s = supersample_for(z)
+    pts = tile_points(z, 1, -1, SIZE, pixels_per_unit=runtime.pixels_per_unit, supersample=s)
+    raw = runtime.sample(pts, code, 3).reshape(SIZE, s, SIZE, s, 3).transpose(0, 2, 1, 3, 4).reshape(SIZE, SIZE, s * s, 3)
+    assert (np.abs(raw - bounded[:, :, None, :]).max(axis=-1).min(axis=-1) == 0).all()
+    # and it is an unbiased estimate of the supersampled tile: same mean colour, near it
+    ref = render_tile(runtime, code, 3, z, 1, -1, SIZE)
+    assert np.abs(bounded.mean(axis=(0, 1)) - ref.mean(axis=(0, 1))).max() < 0.01
+    with pytest.raises(InvalidParameter):
+        render_tile(runtime, code, 3, z, 1, -1, SIZE, zoom_out="cheap")

@@ -1,0 +1,63 @@
+"""Tiles whose client has gone (issue 15), against a real ``texspace api``: a map abandons
+tiles on every pan; queued ones must not render and a rendering one must stop."""
+from __future__ import annotations
+
+import socket
+import time
+
+import pytest
+
+from tests.service.conftest import brick_png
+
+from .procs import Cluster, base_env
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory) -> Cluster:
+    root = tmp_path_factory.mktemp("abandoned")
+    cluster = Cluster(root, base_env(root / "data", TEXSPACE_TILE_WORKERS="1",
+                                    TEXSPACE_TILE_QUEUE_MAX_WAIT_SECONDS="60"))
+    cluster.start_api()
+    yield cluster
+    cluster.stop()
+
+
+def metric(text: str, name: str, **labels: str) -> float:
+    total = 0.0
+    for line in text.splitlines():
+        if line.startswith(name) and all(f'{k}="{v}"' in line for k, v in labels.items()):
+            total += float(line.rsplit(" ", 1)[1])
+    return total
+
+
+def test_abandoned_tiles_are_not_rendered(cluster: Cluster) -> None:
+    with cluster.client() as http:
+        http.timeout = 120
+        res = http.post("/v1/textures", files={"image": ("b.png", brick_png(), "image/png")})
+        assert res.status_code == 201, res.text
+        base = f"/v1/textures/{res.json()['id']}/tiles"
+        assert http.get(f"{base}/6/0/0.png").status_code == 200           # warm
+        before = http.get("/metrics").text
+        # five tiles one zoom out (4 x 65,536 samples each, rendered in 8 bands), then gone
+        socks = []
+        for k in range(5):
+            sock = socket.create_connection(("127.0.0.1", cluster.port), timeout=10)
+            sock.sendall(f"GET {base}/5/{100 + k}/7.png HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+            socks.append(sock)
+        time.sleep(0.2)
+        for sock in socks:
+            sock.close()
+        kept = http.get(f"{base}/5/200/7.png")
+        assert kept.status_code == 200
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            after = http.get("/metrics").text
+            gone = metric(after, "texspace_http_requests_total", status="499") - \
+                metric(before, "texspace_http_requests_total", status="499")
+            if gone >= 5:
+                break
+            time.sleep(0.2)
+        renders = metric(after, "texspace_tile_render_seconds_count") - metric(before, "texspace_tile_render_seconds_count")
+        print(f"abandoned 5: {gone:g} answered 499, renders finished {renders:g} (the kept tile's included)")
+        assert gone == 5, "\n".join(l for l in after.splitlines() if "requests_total" in l) + cluster.log_tail()
+        assert renders <= 2  # the kept tile, and perhaps one that ended before its client's close was seen
