@@ -1,5 +1,6 @@
 """Job benchmarks: a 256^3 volume in a child process (peak RSS) and a 2048^2 bake of a
-~100k-face mesh without UVs (xatlas timed apart).
+~100k-face mesh without UVs (xatlas timed apart, against the sampler on as many points,
+then again with the atlas cached).
 
     python -m bench.jobs volume MODEL_DIR RESOLUTION   # child: prints {"seconds", "peak_rss_mb"}
 """
@@ -91,7 +92,17 @@ def bench_mesh(target_faces: int = 100_000) -> tuple[bytes, int]:
 
 
 def bench_bake(model_dir: Path, resolution: int = 2048, log=print) -> dict:
-    """bake_mesh (GLB) of the bench mesh at resolution^2 with xatlas UVs; stage timings."""
+    """bake_mesh (GLB) of the bench mesh at resolution^2 with xatlas UVs, twice with one
+    atlas cache (the second bake loads the atlas); stage timings of the first.
+
+    The reference is the sampler itself on as many points as the bake has texels (surface
+    points of the mesh, scaled as the bake scales them), timed in this run between the two bakes
+    and right after the second bake (the shorter counts, so a quiet moment never flatters the bake).
+    Atlas quality (texel utilisation, stretch) is reported next to the atlas time.
+    """
+    import trimesh
+
+    from worker.atlas import atlas_quality
     from worker.bake import BakeLimits, bake_mesh
     from worker.runtime import ModelRuntime
 
@@ -100,17 +111,61 @@ def bench_bake(model_dir: Path, resolution: int = 2048, log=print) -> dict:
     runtime.sample(np.zeros((4096, 3)), code, 0)
     mesh, faces = bench_mesh()
     with tempfile.TemporaryDirectory(prefix="texspace-bench-bake-") as tmp:
-        t = time.perf_counter()
-        result = bake_mesh(runtime, code, 5, mesh_bytes=mesh, filename="bench.obj", resolution=resolution,
-                           fmt="glb", out_path=Path(tmp) / "bake.glb", limits=BakeLimits(atlas_timeout=600))
-        seconds = time.perf_counter() - t
-    texels = int(result.covered.sum())
+        def bake(name):
+            t, cpu = time.perf_counter(), time.process_time()   # process time: xatlas's child excluded
+            result = bake_mesh(runtime, code, 5, mesh_bytes=mesh, filename="bench.obj", resolution=resolution,
+                               fmt="glb", out_path=Path(tmp) / name, limits=BakeLimits(atlas_timeout=600),
+                               atlas_cache_dir=Path(tmp) / "atlas-cache")
+            cpu_seconds[name] = time.process_time() - cpu
+            return result, time.perf_counter() - t
+
+        cpu_seconds: dict[str, float] = {}
+
+        loaded = trimesh.load(io.BytesIO(mesh), file_type="obj", process=False)
+        surface, _ = trimesh.sample.sample_surface(loaded, 1 << 16, seed=3)
+        result, seconds = bake("bake.glb")
+        texels = int(result.covered.sum())
+        points = np.resize(surface * result.scale, (texels, 3))
+        before, cpu_before = _sampler_seconds(runtime, code, points)
+        again, again_seconds = bake("again.glb")
+        after, cpu_after = _sampler_seconds(runtime, code, points)
+        glb = trimesh.load(result.path, force="mesh", process=False)
+        quality = atlas_quality(np.asarray(glb.vertices, np.float64), np.asarray(glb.faces, np.int64),
+                                np.asarray(glb.visual.uv, np.float64))
+        size = result.path.stat().st_size
+    sampler_s = min(before, after)
+    # CPU seconds (all threads of this process), less disturbed by other work on a shared machine
+    cpu_ratio = cpu_seconds["bake.glb"] / min(cpu_before, cpu_after)
+    excl = seconds - result.timings["atlas"]
     stages = {k: round(v, 3) for k, v in result.timings.items()}
-    log(f"  bake {resolution}^2, {faces} faces, {texels} texels: {seconds:.2f} s "
-        f"(xatlas {result.timings['atlas']:.2f} s; stages {stages})")
+    utilisation = texels / resolution ** 2
+    log(f"  bake {resolution}^2, {faces} faces, {texels} texels: {seconds:.2f} s (atlas {result.timings['atlas']:.2f} s; "
+        f"stages {stages}; GLB {size / 1e6:.2f} MB)")
+    log(f"  sampler alone on {texels} surface points: {before:.2f} s between the bakes, {after:.2f} s after; "
+        f"bake excl. atlas {excl:.2f} s = {excl / sampler_s:.2f} x sampler; everything but the sampler "
+        f"{excl - sampler_s:.2f} s = {(excl - sampler_s) / sampler_s:.2f} x; in CPU seconds "
+        f"{cpu_seconds['bake.glb']:.2f} / {min(cpu_before, cpu_after):.2f} = {cpu_ratio:.2f} x")
+    log(f"  atlas: texel utilisation {utilisation:.3f}, L2 stretch {quality['stretch_l2']:.3f}, texel density "
+        f"p5/p95 {quality['area_ratio_p5_p95'][0]:.2f}/{quality['area_ratio_p5_p95'][1]:.2f}; repeated bake "
+        f"{again_seconds:.2f} s = {(again_seconds - again.timings['atlas']) / sampler_s:.2f} x sampler excl. atlas, "
+        f"atlas {again.timings['atlas']:.3f} s (cached)")
     return {"bake_2048_s": seconds, "bake_2048_xatlas_s": result.timings["atlas"],
-            "bake_2048_excl_xatlas_s": seconds - result.timings["atlas"], "bake_2048_texels": texels,
-            "bake_2048_faces": faces, "bake_2048_stages_s": stages, "bake_2048_uv_source": result.uv_source}
+            "bake_2048_excl_xatlas_s": excl, "bake_2048_texels": texels,
+            "bake_2048_faces": faces, "bake_2048_stages_s": stages, "bake_2048_uv_source": result.uv_source,
+            "bake_2048_sampler_s": sampler_s, "bake_2048_sampler_before_after_s": [before, after],
+            "bake_2048_vs_sampler": excl / sampler_s, "bake_2048_post_sampling_s": excl - sampler_s,
+            "bake_2048_glb_bytes": size, "bake_2048_texel_utilisation": utilisation,
+            "bake_2048_atlas_quality": quality, "bake_2048_repeat_s": again_seconds,
+            "bake_2048_repeat_vs_sampler": (again_seconds - again.timings["atlas"]) / sampler_s,
+            "bake_2048_repeat_atlas_s": again.timings["atlas"], "bake_2048_cpu_s": cpu_seconds["bake.glb"],
+            "bake_2048_sampler_cpu_s": min(cpu_before, cpu_after), "bake_2048_cpu_vs_sampler": cpu_ratio}
+
+
+def _sampler_seconds(runtime, code, points) -> tuple[float, float]:
+    """Wall and CPU seconds of one sampler call."""
+    t, cpu = time.perf_counter(), time.process_time()
+    runtime.sample(points, code, 5)
+    return time.perf_counter() - t, time.process_time() - cpu
 
 
 if __name__ == "__main__":

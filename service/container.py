@@ -18,6 +18,8 @@ from pathlib import Path
 from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from worker.errors import FeatureUnavailable
+
 from . import db
 from .metrics import Metrics
 from .queue import lane_of
@@ -25,6 +27,14 @@ from .settings import Settings
 from .storage import Storage
 from .tables import ModelVersion, Texture
 from .tilecache import TileCache
+
+
+def tileable_key(sampler_key: str) -> str:
+    """Storage key of the tileable sampler stored beside a fitted texture's sampler."""
+    from worker.runtime import TILEABLE_SAMPLER
+
+    folder = sampler_key.rpartition("/")[0]
+    return f"{folder}/{TILEABLE_SAMPLER}" if folder else TILEABLE_SAMPLER
 
 
 @dataclass
@@ -88,6 +98,31 @@ class Services:
                 self.storage.get_file(texture.sampler_key, cached)
             return self.registry.fitted_sampler(cached)
         return self.registry.get(texture.model_version)
+
+    def tileable_available(self, texture: Texture) -> str | None:
+        """None if ``texture`` can render tileable regions, else why not (the fix to make)."""
+        if texture.sampler_key:
+            if self.storage.exists(tileable_key(texture.sampler_key)):
+                return None
+            return (f"texture {texture.id} was fitted before tileable textures existed and has no tileable "
+                    f"sampler: refit it (POST /v1/textures/{texture.id}/fit) to get one")
+        if self.registry.get(texture.model_version).tileable_path is None:
+            return (f"model {texture.model_version} has no tileable sampler: it was exported before "
+                    "tileable textures; re-export it (python -m model.export)")
+        return None
+
+    def tileable_sampler_for(self, texture: Texture):  # -> worker.runtime.SamplerSession
+        """The tileable sampler (``period`` input) of ``texture``: the one stored beside its
+        fitted sampler, or its model's. FeatureUnavailable if it has none."""
+        if not texture.sampler_key:
+            return self.registry.get(texture.model_version).tileable_sampler()
+        key = tileable_key(texture.sampler_key)
+        cached = self.sampler_path(texture.id, key)
+        if not cached.is_file():
+            if not self.storage.exists(key):
+                raise FeatureUnavailable(self.tileable_available(texture) or f"no tileable sampler at {key}")
+            self.storage.get_file(key, cached)
+        return self.registry.fitted_sampler(cached)
 
     def pixels_per_unit(self, texture: Texture) -> float:
         """World scale of the texture's model (fitted samplers share their parent's)."""

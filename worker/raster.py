@@ -12,6 +12,8 @@ candidates at once and keeps the inside ones. No per-texel Python.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import ndimage
 
@@ -68,18 +70,19 @@ def rasterise(tri_uv: np.ndarray, resolution: int):
         batch, w, h = job
         cols = lo[batch, 0, None] + np.arange(w)[None, :]                # (B, w)
         rows = lo[batch, 1, None] + np.arange(h)[None, :]                # (B, h)
-        dx = (cols + 0.5 - p0[batch, 0, None])[:, None, :]               # (B, 1, w)
-        dy = (rows + 0.5 - p0[batch, 1, None])[:, :, None]               # (B, h, 1)
+        # Columns and rows past a triangle's own box (the batch pads to its widest) get NaN
+        # offsets, so every comparison below is False there: no (B, h, w) box masks.
+        dx = np.where(cols <= hi[batch, 0, None], cols + 0.5 - p0[batch, 0, None], np.nan)[:, None, :]  # (B, 1, w)
+        dy = np.where(rows <= hi[batch, 1, None], rows + 0.5 - p0[batch, 1, None], np.nan)[:, :, None]  # (B, h, 1)
         inv = 1.0 / det[batch]
-        b1 = (dx * e2[batch, 1, None, None] - dy * e2[batch, 0, None, None]) * inv[:, None, None]
-        b2 = (dy * e1[batch, 0, None, None] - dx * e1[batch, 1, None, None]) * inv[:, None, None]
-        b0 = 1.0 - b1 - b2
-        inside = (b0 >= -EDGE_EPS) & (b1 >= -EDGE_EPS) & (b2 >= -EDGE_EPS)
-        inside &= (cols < R)[:, None, :] & (rows < R)[:, :, None]
-        inside &= (cols <= hi[batch, 0, None])[:, None, :] & (rows <= hi[batch, 1, None])[:, :, None]
+        b1 = dx * (e2[batch, 1] * inv)[:, None, None] - dy * (e2[batch, 0] * inv)[:, None, None]
+        b2 = dy * (e1[batch, 0] * inv)[:, None, None] - dx * (e1[batch, 1] * inv)[:, None, None]
+        inside = b1 >= -EDGE_EPS
+        inside &= b2 >= -EDGE_EPS
+        inside &= (b1 + b2) <= 1.0 + EDGE_EPS                              # b0 >= -EDGE_EPS
         bi, yi, xi = np.nonzero(inside)
-        return (rows[bi, yi] * R + cols[bi, xi], batch[bi],
-                np.stack([b0[bi, yi, xi], b1[bi, yi, xi], b2[bi, yi, xi]], axis=1))
+        c1, c2 = b1[bi, yi, xi], b2[bi, yi, xi]
+        return rows[bi, yi] * R + cols[bi, xi], batch[bi], np.stack([1.0 - c1 - c2, c1, c2], axis=1)
 
     texels, owners, barys = zip(*map(cover, batches))
     return np.concatenate(texels), np.concatenate(owners), np.concatenate(barys)
@@ -131,18 +134,83 @@ def overlap_fraction(texel: np.ndarray, resolution: int) -> float:
     return float((hits > 1).sum() / max(1, (hits > 0).sum()))
 
 
+def gutter_sources(covered: np.ndarray, padding: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gutter texels and the covered texel each copies.
+
+    covered : (R, R) bool. Returns (dst (G,) int64, src (G,) int64) flat indices: every
+    uncovered texel within ``padding`` texels (Euclidean, centre to centre) of a covered
+    one, and its nearest covered texel, from one exact distance transform (scipy) with
+    indices only; squared distances are compared in integers, so no float distance map.
+    """
+    width = covered.shape[1]
+    if padding <= 0 or covered.all() or not covered.any():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    ri, ci = ndimage.distance_transform_edt(~covered, return_distances=False, return_indices=True)
+    dst = np.flatnonzero(~covered)
+    rows, cols = np.divmod(dst, width)
+    src_r, src_c = ri.ravel()[dst], ci.ravel()[dst]
+    d2 = (src_r - rows) ** 2 + (src_c - cols) ** 2
+    near = d2 <= int(padding) ** 2
+    return dst[near], (src_r[near].astype(np.int64) * width + src_c[near])
+
+
 def fill_gutter(image: np.ndarray, covered: np.ndarray, padding: int) -> np.ndarray:
     """Copy the nearest covered texel into every uncovered texel within ``padding`` texels.
 
-    image : (R, R, C) float32, covered : (R, R) bool. Returns a new (R, R, C) array;
-    texels farther than ``padding`` from any chart keep their value. Uses one exact
-    Euclidean distance transform (scipy), so texture filtering and mipmaps near chart
-    borders read chart colours instead of background.
+    image : (R, R, C) any dtype, covered : (R, R) bool. Returns a new (R, R, C) array;
+    texels farther than ``padding`` from any chart keep their value, so texture filtering
+    and mipmaps near chart borders read chart colours instead of background.
     """
-    if covered.all() or not covered.any():
-        return image.copy()
-    dist, (ri, ci) = ndimage.distance_transform_edt(~covered, return_indices=True)
+    dst, src = gutter_sources(covered, padding)
     out = image.copy()
-    near = (dist <= padding) & ~covered
-    out[near] = image[ri[near], ci[near]]
+    flat = out.reshape(-1, *image.shape[2:])
+    flat[dst] = flat[src]
+    return out
+
+
+# sRGB encode by table. linear_to_srgb8 (worker/colour.py) is a step function of its
+# float32 input with 255 steps; ``_srgb8_table`` finds each step's exact float32
+# threshold by bisection over float32 bit patterns *of linear_to_srgb8 itself*, and
+# splits [0, 1] into 2^SRGB_TABLE_BITS equal buckets (x * 2^bits is exact in float32)
+# holding at most one threshold each. A code is then base[bucket] + (x >= threshold in
+# the bucket): two gathers, bit-identical to linear_to_srgb8 (tests/worker/test_bake.py).
+SRGB_TABLE_BITS = 12
+
+
+@functools.cache
+def _srgb8_table() -> tuple[np.ndarray, np.ndarray]:
+    from worker.colour import linear_to_srgb8
+
+    codes = np.arange(1, 256)
+    lo = np.zeros(255, np.int64)                                         # float32 bits of 0.0: code 0 < k
+    hi = np.full(255, np.float32(1.0).view(np.int32), np.int64)          # bits of 1.0: code 255 >= k
+    while (hi - lo > 1).any():
+        mid = (lo + hi) // 2
+        up = linear_to_srgb8(mid.astype(np.int32).view(np.float32)) >= codes
+        hi, lo = np.where(up, mid, hi), np.where(up, lo, mid)
+    thresholds = hi.astype(np.int32).view(np.float32)                    # smallest x with code >= k
+    n = 1 << SRGB_TABLE_BITS
+    starts = np.arange(n + 1, dtype=np.float32) / np.float32(n)
+    base = np.searchsorted(thresholds, starts, side="right").astype(np.uint8)
+    bucket = (thresholds * np.float32(n)).astype(np.int64)
+    inside = thresholds > starts[bucket]                                 # not on the bucket's start
+    if len(np.unique(bucket[inside])) != inside.sum():
+        raise AssertionError("sRGB table buckets too coarse: raise SRGB_TABLE_BITS")
+    step = np.full(n + 1, 2.0, np.float32)                               # 2.0: no step in this bucket
+    step[bucket[inside]] = thresholds[inside]
+    return base, step
+
+
+def encode_srgb8(linear: np.ndarray) -> np.ndarray:
+    """Linear float32 values (any shape; clipped to 0..1, NaN -> 0) to 8-bit sRGB codes.
+
+    Same bytes as ``worker.colour.linear_to_srgb8`` for every float32 input, several
+    times faster (two table gathers instead of a float64 power).
+    """
+    base, step = _srgb8_table()
+    x = np.fmax(np.asarray(linear, dtype=np.float32), np.float32(0.0))  # fmax: NaN -> 0
+    np.fmin(x, np.float32(1.0), out=x)
+    q = (x * np.float32(1 << SRGB_TABLE_BITS)).astype(np.intp)
+    out = base[q]
+    out += x >= step[q]
     return out

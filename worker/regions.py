@@ -13,6 +13,21 @@ Formats:
   ``min_zoom`` to ``z`` (the tiles covering the rectangle at each level, each rendered exactly like the tile
   endpoint, so the bytes match it) plus ``tilejson.json`` (TileJSON 3.0.0, xyz scheme,
   plus a ``texspace`` object with the box and tile size).
+* ``dds`` / ``ktx2``: mipmapped GPU textures, RGBA8 sRGB with the full mip chain
+  averaged in linear light (``worker/gpu_textures.py``).
+
+Derived maps (``maps``: ``height`` and/or ``normal``, ``worker/derived_maps.py``): the
+result is then a zip of ``colour.<ext>`` (the image in ``fmt``) plus ``height.png`` and/or
+``normal.png``; ``wrap_maps=True`` (a tileable region) makes the normal map's gradient
+wrap around the borders. GPU formats and derived maps need the whole image in memory, so
+they are limited to ``RegionLimits.max_whole_pixels``.
+
+Tileable (``tileable=True``, issue 18): a square image at the native zoom on the xy plane,
+rendered by the texture's tileable sampler with period ``width / pixels_per_unit`` world
+units, so the image repeats exactly: tiled 2 x 2 it has no seam (the column after the last
+is the first). The sampler rounds each octave's frequency so that a whole number of its
+cells spans the period (``TextureField.periodic_lattice``): coarse octaves move most, and
+small images most (at 256 x 256 the coarsest octaves keep few cells per period).
 
 Rendering goes in blocks of ``BLOCK`` x ``BLOCK`` pixels, one stripe of ``BLOCK`` rows at
 a time: memory is O(BLOCK * width). Progress after every stripe (pyramid: every tile
@@ -31,16 +46,19 @@ import numpy as np
 import OpenImageIO as oiio
 
 from worker.colour import linear_to_srgb, linear_to_srgb8
+from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS, derived_map_files
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
 from worker.files import atomic_output
+from worker.gpu_textures import FORMATS as GPU_FORMATS
+from worker.gpu_textures import gpu_texture_bytes
 from worker.images import write_image
-from worker.runtime import Sampler
-from worker.tiles import (MAX_ZOOM, MIN_ZOOM, render_tile, render_window,
+from worker.runtime import Sampler, periodic_sampler
+from worker.tiles import (MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM, render_tile, render_window,
                           resolve_pixels_per_unit, supersample_for)
 from worker.volume_writers import PngStream
 
-FORMATS = ("tiff", "exr", "png", "pyramid")
-_EXT = {"tiff": ".tif", "exr": ".exr", "png": ".png", "pyramid": ".zip"}
+FORMATS = ("tiff", "exr", "png", "pyramid") + GPU_FORMATS
+_EXT = {"tiff": ".tif", "exr": ".exr", "png": ".png", "pyramid": ".zip", "dds": ".dds", "ktx2": ".ktx2"}
 _ZIP_TIME = (2020, 1, 1, 0, 0, 0)
 BLOCK = 256                  # pixels per side of one sampler call / one TIFF or EXR tile
 
@@ -49,6 +67,7 @@ BLOCK = 256                  # pixels per side of one sampler call / one TIFF or
 class RegionLimits:
     max_pixels: int = 16384 * 16384     # single image (tiff, exr, png)
     max_tiles: int = 4096               # pyramid, all levels together
+    max_whole_pixels: int = MAX_WHOLE_PIXELS   # dds, ktx2 or derived maps: one array in memory
 
 
 def _pyramid_levels(z: int, min_zoom: int, tiles: tuple[int, int, int, int]):
@@ -76,21 +95,33 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
                   width: int, height: int, fmt: str = "png", out_path: str | os.PathLike,
                   size: int = 256, min_zoom: int | None = None, plane: str = "xy",
                   offset: float = 0.0, pixels_per_unit: float | None = None,
-                  limits: RegionLimits = RegionLimits(),
+                  maps: tuple[str, ...] = (), normal_strength: float = DEFAULT_NORMAL_STRENGTH,
+                  wrap_maps: bool = False, tileable: bool = False, limits: RegionLimits = RegionLimits(),
                   progress: Callable[[float], None] | None = None,
                   should_cancel: Callable[[], bool] | None = None) -> Path:
     """Render pixels [x0, x0+width) x [y0, y0+height) of zoom z into ``out_path``.
 
-    fmt : png | tiff | exr (one image) or pyramid (zip of ``size`` tiles, see module doc).
+    fmt : png | tiff | exr | dds | ktx2 (one image) or pyramid (zip of ``size`` tiles, see
+    module doc). maps : derived maps to add (the result is then a zip, see module doc).
+    tileable : the image repeats seamlessly (module doc): needs z == NATIVE_ZOOM, plane xy,
+    width == height, a single image, and a tileable sampler (a ``ModelRuntime`` or a
+    ``SamplerSession`` of sampler_tileable.onnx); derived maps then wrap too.
     Returns the final path, written atomically.
     """
     if fmt not in FORMATS:
         raise InvalidParameter(f"region format must be one of {FORMATS}, got {fmt!r}")
+    if maps and fmt == "pyramid":
+        raise InvalidParameter("derived maps come with a single image, not a pyramid")
+    if set(maps) - set(MAP_NAMES):
+        raise InvalidParameter(f"unknown derived maps {sorted(set(maps) - set(MAP_NAMES))}; choose from {MAP_NAMES}")
     if not MIN_ZOOM <= z <= MAX_ZOOM:
         raise InvalidParameter(f"zoom {z} outside [{MIN_ZOOM}, {MAX_ZOOM}]")
     if width < 1 or height < 1:
         raise InvalidParameter("width and height must be positive")
     ppu = resolve_pixels_per_unit(sampler, pixels_per_unit)
+    if tileable:
+        check_tileable(z=z, width=width, height=height, fmt=fmt, plane=plane)
+        sampler, wrap_maps = periodic_sampler(sampler, width / ppu), True
 
     def check_cancel():
         if should_cancel is not None and should_cancel():
@@ -127,8 +158,54 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
                     if progress is not None:
                         progress((i + 1) / len(starts))
 
-            _write_image_stripes(tmp, fmt, width, height, stripes())
+            if maps or fmt in GPU_FORMATS:
+                if width * height > limits.max_whole_pixels:
+                    raise LimitExceeded(f"{fmt} or derived maps of {width}x{height} pixels exceed "
+                                        f"{limits.max_whole_pixels} pixels")
+                image = np.concatenate(list(stripes()), axis=0)
+                _write_whole(tmp, fmt, image, maps, normal_strength, wrap_maps)
+            else:
+                _write_image_stripes(tmp, fmt, width, height, stripes())
     return out_path
+
+
+def check_tileable(*, z: int, width: int, height: int, fmt: str, plane: str) -> None:
+    """InvalidParameter unless a tileable region can be made of these arguments: the
+    sampler has one period for x and y (square image), at the native zoom, on plane xy."""
+    if z != NATIVE_ZOOM:
+        raise InvalidParameter(f"a tileable region is rendered at the native zoom {NATIVE_ZOOM} "
+                               f"(one pixel per exemplar pixel), not {z}")
+    if width != height:
+        raise InvalidParameter(f"a tileable region must be square (one period for x and y), got {width}x{height}")
+    if plane != "xy":
+        raise InvalidParameter(f"a tileable region lies in the xy plane (the one the period wraps), not {plane}")
+    if fmt == "pyramid":
+        raise InvalidParameter("a tileable region is one image, not a pyramid")
+
+
+def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, wrap: bool) -> None:
+    """One image in memory: a GPU texture, or the zip of the colour image and its maps."""
+    files = derived_map_files(image, maps, strength=strength, wrap=wrap)   # checks maps first
+    if not maps:
+        with open(path, "wb") as f:
+            f.write(gpu_texture_bytes(image, fmt))
+        return
+    if fmt in GPU_FORMATS:
+        colour = gpu_texture_bytes(image, fmt)
+    else:
+        colour_path = f"{path}.colour{_EXT[fmt]}"
+        try:
+            _write_image_stripes(colour_path, fmt, image.shape[1], image.shape[0],
+                                 (image[y:y + BLOCK] for y in range(0, image.shape[0], BLOCK)))
+            with open(colour_path, "rb") as f:
+                colour = f.read()
+        finally:
+            if os.path.exists(colour_path):
+                os.unlink(colour_path)
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as z:   # PNG/EXR/TIFF compress
+        for name, data in {f"colour{_EXT[fmt]}": colour, **files}.items():
+            method = zipfile.ZIP_DEFLATED if fmt in GPU_FORMATS and name.startswith("colour") else zipfile.ZIP_STORED
+            z.writestr(zipfile.ZipInfo(name, _ZIP_TIME), data, compress_type=method)
 
 
 def _write_image_stripes(path: str, fmt: str, width: int, height: int, stripes) -> None:

@@ -4,7 +4,10 @@ Load once, then arrays in, arrays out:
 
 * ``SamplerSession(path)``: one ``sampler.onnx`` (a model's, or a fitted texture's own).
   ``.sample(points, code, seed)`` evaluates it in bounded chunks.
-* ``ModelRuntime(model_dir)``: manifest + encoder + sampler of one model version.
+* ``ModelRuntime(model_dir)``: manifest + encoder + sampler of one model version, plus
+  its tileable sampler (``sampler_tileable.onnx``), opened on first use.
+* ``PeriodicSampler(session, period)``: a tileable sampler with its period bound, so it
+  is a ``Sampler`` like the others (tileable regions, issue 18).
 * ``ModelRegistry(folders)``: every model version found under some folders, side by
   side, keyed by manifest ``version``, plus an LRU of extra sampler sessions for
   fitted textures.
@@ -28,7 +31,7 @@ import numpy as np
 import onnxruntime as ort
 
 from worker.colour_match import identity_colour
-from worker.errors import InvalidParameter, ModelInvalid, ModelNotFound
+from worker.errors import FeatureUnavailable, InvalidParameter, ModelInvalid, ModelNotFound
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +45,9 @@ MANIFEST_KEYS = (
 # shared 2-core machine: 1024: 0.33, 2048: 0.32, 4096: 0.28, 8192: 0.27 M points/s;
 # 64k chunks (the old default) ~0.25. bench/run.py sweeps it again on every run.
 DEFAULT_CHUNK = 2048
+# The tileable sampler's file name beside sampler.onnx (a model export, a fit's folder, a
+# fitted texture's storage folder); the manifest names it under "tileable_sampler".
+TILEABLE_SAMPLER = "sampler_tileable.onnx"
 
 
 class Sampler(Protocol):
@@ -79,6 +85,9 @@ def _open_session(path: Path, threads: int | None) -> ort.InferenceSession:
 class SamplerSession:
     """One ``sampler.onnx``: points float64 [P,3], z float32 [P|1,8], seed int64 -> rgb [P,3].
 
+    A ``sampler_tileable.onnx`` has one more input, ``period`` float64 [] (world units):
+    ``.periodic`` is then True and ``.sample`` needs ``period=`` (``PeriodicSampler`` binds it).
+
     Parallel over chunks, not inside them: the session runs one intra-op thread and
     ``threads`` chunks run at once (``session.run`` releases the GIL). The graph is
     mostly small elementwise ops, where ONNX Runtime's intra-op split cost more than it
@@ -105,9 +114,11 @@ class SamplerSession:
         colour = inputs.get("colour")
         self.colour_size = int(colour.shape[1]) if colour is not None else 0
         self._identity_colour = identity_colour(self.colour_size)[None] if self.colour_size else None
+        self.periodic = "period" in inputs
         self._output = self.session.get_outputs()[0].name
 
-    def sample(self, points: np.ndarray, code: np.ndarray, seed: int) -> np.ndarray:
+    def sample(self, points: np.ndarray, code: np.ndarray, seed: int, *,
+               period: float | None = None) -> np.ndarray:
         """Evaluate the texture at ``points``.
 
         points : (P, 3) float64 world positions (converted only if needed).
@@ -115,9 +126,16 @@ class SamplerSession:
             ``code_size`` (z alone: the identity colour table) or ``code_size +
             colour_size`` (z followed by the texture's colour table, worker/colour_match.py).
         seed : int, texture instance.
+        period : float, world units; required by a tileable sampler (``.periodic``), refused
+            by the others. The texture then repeats every ``period`` along x and y.
         Returns (P, 3) float32 linear RGB, computed ``self.chunk`` points at a time so
         temporary memory stays bounded whatever P is.
         """
+        if self.periodic != (period is not None):
+            raise InvalidParameter(f"{self.path.name}: a period is "
+                                   f"{'required' if self.periodic else 'only for a tileable sampler'}")
+        if period is not None and not (np.isfinite(period) and period > 0):
+            raise InvalidParameter(f"period must be a positive number of world units, got {period}")
         points = np.ascontiguousarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise InvalidParameter(f"points must have shape (P, 3), got {points.shape}")
@@ -139,12 +157,13 @@ class SamplerSession:
             if per_point and len(colour) == 1:
                 colour = np.broadcast_to(colour, (len(points), self.colour_size))
         seed_arr = np.full(self._seed_shape, int(seed), dtype=np.int64)
+        extra = {} if period is None else {"period": np.array(period, dtype=np.float64)}
         out = np.empty((len(points), 3), dtype=np.float32)
 
         def run(start: int) -> None:
             stop = min(start + self.chunk, len(points))
             feed = {"points": points[start:stop], "seed": seed_arr,
-                    "z": z[start:stop] if per_point else z}
+                    "z": z[start:stop] if per_point else z, **extra}
             if colour is not None:
                 feed["colour"] = np.ascontiguousarray(colour[start:stop] if per_point else colour)
             out[start:stop] = self.session.run([self._output], feed)[0]
@@ -163,6 +182,32 @@ class SamplerSession:
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="sampler")
             return self._pool
+
+
+class PeriodicSampler:
+    """A tileable sampler with its period bound: a ``Sampler`` whose texture repeats every
+    ``period`` world units along x and y. An image of N x N pixels at the native zoom
+    (``pixels_per_unit`` per unit) with ``period = N / pixels_per_unit`` tiles seamlessly."""
+
+    def __init__(self, session: SamplerSession, period: float):
+        if not getattr(session, "periodic", False):
+            raise InvalidParameter(f"{getattr(session, 'path', session)} is not a tileable sampler "
+                                   f"({TILEABLE_SAMPLER})")
+        if not (np.isfinite(period) and period > 0):
+            raise InvalidParameter(f"period must be a positive number of world units, got {period}")
+        self.session, self.period = session, float(period)
+
+    def sample(self, points: np.ndarray, code: np.ndarray, seed: int) -> np.ndarray:
+        """See ``SamplerSession.sample``, with this period."""
+        return self.session.sample(points, code, seed, period=self.period)
+
+
+def periodic_sampler(sampler: Sampler, period: float) -> PeriodicSampler:
+    """``sampler`` made to repeat every ``period`` world units in x and y: a tileable
+    ``SamplerSession`` itself, or a ``ModelRuntime``'s tileable sampler."""
+    if hasattr(sampler, "tileable_sampler"):
+        sampler = sampler.tileable_sampler()
+    return PeriodicSampler(sampler, period)
 
 
 def read_manifest(model_dir: Path) -> dict:
@@ -213,6 +258,33 @@ class ModelRuntime:
         self.short_side = int(self.manifest["exemplar_short_side"])
         self.encoder = _open_session(self.model_dir / "encoder.onnx", threads)
         self.sampler = SamplerSession(self.model_dir / "sampler.onnx", threads=threads, chunk=chunk)
+        self._threads, self._chunk = threads, chunk
+        self._tileable: SamplerSession | None = None
+        self._tileable_lock = threading.Lock()
+
+    @property
+    def tileable_path(self) -> Path | None:
+        """The export's tileable sampler file, None if it has none (exported before issue 18)."""
+        name = self.manifest.get("tileable_sampler")
+        path = self.model_dir / Path(str(name)).name if name else None
+        return path if path is not None and path.is_file() else None
+
+    def tileable_sampler(self) -> SamplerSession:
+        """The tileable sampler (``period`` input), opened on first use; FeatureUnavailable
+        if this export has none."""
+        if self._tileable is None:
+            path = self.tileable_path
+            if path is None:
+                raise FeatureUnavailable(f"model {self.version} has no tileable sampler ({TILEABLE_SAMPLER}): "
+                                         "it was exported before tileable textures; re-export it "
+                                         "(python -m model.export)")
+            with self._tileable_lock:
+                if self._tileable is None:
+                    session = SamplerSession(path, threads=self._threads, chunk=self._chunk)
+                    if not session.periodic:
+                        raise ModelInvalid(f"{path.name} has no period input")
+                    self._tileable = session
+        return self._tileable
 
     def encode(self, crops: np.ndarray, batch: int = 16) -> np.ndarray:
         """crops : (N, 3, S, S) float32 in [-1, 1] (S = encoder_input_size). Returns (N, code_size) float32."""
@@ -280,7 +352,8 @@ class ModelRegistry:
                                 f"(have {sorted(self.models)})") from None
 
     def fitted_sampler(self, path: str | os.PathLike) -> SamplerSession:
-        """A fitted texture's own sampler.onnx, opened once and kept in a small LRU."""
+        """A fitted texture's own sampler.onnx (or its sampler_tileable.onnx), opened once and
+        kept in a small LRU."""
         key = str(Path(path).resolve())
         with self._lock:
             if key in self._fitted:

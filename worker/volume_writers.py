@@ -10,9 +10,18 @@ Layouts:
 * ``npy``: float32 linear, shape (N, N, N, 3), C order. Header written first, slabs
   appended (the file is a valid .npy when closed; ``np.load(..., mmap_mode='r')`` works).
 * ``exr``: multi-part OpenEXR, one part per z slice named ``slice_0000``...; float32
-  linear RGB, zip compression. Part k holds slice z = k.
+  linear RGB, zip compression. Part k holds slice z = k. Every part's header carries the
+  volume's placement: ``boundsMin``, ``boundsMax``, ``voxelSize`` (v3f, world units; x, y,
+  z), ``sliceIndex`` (int k), ``sliceZ`` (float, world z of the slice's voxel centres) and
+  ``texspace:volume`` (string, JSON of ``volume_metadata``: the same values in double
+  precision, ``resolution``, axis order, colour). OpenEXR has no double attributes.
 * ``tiff``: multi-page TIFF, one page per z slice (page k = slice z = k); float32 linear
-  RGB, zip compression.
+  RGB, zip compression; each page's ImageDescription is the JSON of ``volume_metadata``.
+* ``vdb``: OpenVDB (``worker/vdb.py``): one vec3s grid ``Cd`` (linear RGB), voxel
+  (i, j, k) = x, y, z index, transform ``ScaleTranslateMap`` from the bounds (index
+  (i, j, k) maps to the voxel centre). Slabs are spooled to a temporary raw file beside
+  the output (VDB stores x-major blocks, the volume arrives z-slice by z-slice) and
+  encoded from it on close.
 * ``raw``: a zip holding ``volume.raw`` (float32 little-endian linear RGB, [z][y][x][c],
   no header) and ``volume.json`` (shape, dtype, byte order, axis order, bounds, colour).
 * ``nrrd``: NRRD 4 header written by hand (sizes ``3 N N N``, kinds
@@ -33,6 +42,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import struct
 import zipfile
 import zlib
@@ -41,10 +51,11 @@ import numpy as np
 import OpenImageIO as oiio
 
 from worker.colour import linear_to_srgb8
+from worker.vdb import write_vdb
 
-FORMATS = ("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook")
+FORMATS = ("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb")
 EXTENSIONS = {"npy": ".npy", "exr": ".exr", "tiff": ".tif", "raw": ".zip", "nrrd": ".nrrd",
-              "dds": ".dds", "flipbook": ".png"}
+              "dds": ".dds", "flipbook": ".png", "vdb": ".vdb"}
 _ZIP_TIME = (2020, 1, 1, 0, 0, 0)   # fixed, so identical volumes give identical zips
 
 
@@ -81,16 +92,40 @@ class NpyWriter(VolumeWriter):
         self.file.close()
 
 
+_V3F = oiio.TypeDesc(oiio.BASETYPE.FLOAT, oiio.AGGREGATE.VEC3, oiio.VECSEMANTICS.VECTOR)
+
+
+def volume_metadata(n: int, bounds: np.ndarray, k: int | None = None) -> dict:
+    """What EXR / TIFF pages carry about the volume (slice ``k``'s fields when given)."""
+    step = (bounds[1] - bounds[0]) / n
+    meta = {"resolution": [n, n, n], "bounds_min": bounds[0].tolist(), "bounds_max": bounds[1].tolist(),
+            "voxel_size": step.tolist(), "axes": ["z", "y", "x", "channel"], "colour": "linear"}
+    if k is not None:
+        meta.update(slice=k, slice_z=float(bounds[0, 2] + (k + 0.5) * step[2]))
+    return meta
+
+
 class OiioPagesWriter(VolumeWriter):
     """Multi-part EXR or multi-page TIFF through OpenImageIO, one subimage per slice."""
 
     def __init__(self, path, n, bounds):
         super().__init__(path, n, bounds)
         self.specs = []
+        exr = str(path).endswith(".exr")
+        step = (bounds[1] - bounds[0]) / n
         for k in range(n):
             spec = oiio.ImageSpec(n, n, 3, "float")
             spec.attribute("compression", "zip")
             spec.attribute("name", f"slice_{k:04d}")
+            meta = volume_metadata(n, bounds, k)
+            if exr:   # OpenEXR attributes cannot be doubles: float32 vectors + the exact JSON
+                for name, value in (("boundsMin", bounds[0]), ("boundsMax", bounds[1]), ("voxelSize", step)):
+                    spec.attribute(name, _V3F, tuple(float(v) for v in value))
+                spec.attribute("sliceIndex", k)
+                spec.attribute("sliceZ", float(meta["slice_z"]))
+                spec.attribute("texspace:volume", json.dumps(meta))
+            else:
+                spec.attribute("ImageDescription", json.dumps(meta))
             self.specs.append(spec)
         self.out = oiio.ImageOutput.create(path)
         if self.out is None or not self.out.open(path, self.specs):
@@ -181,6 +216,33 @@ class DdsWriter(VolumeWriter):
         self.file.close()
 
 
+class VdbWriter(VolumeWriter):
+    """OpenVDB: slabs are spooled to ``<path>.spool`` (raw float32, [z][y][x][c]) and
+    encoded by ``worker.vdb.write_vdb`` from a memory map of it on close."""
+
+    def __init__(self, path, n, bounds):
+        super().__init__(path, n, bounds)
+        self.spool_path = f"{path}.spool"
+        self.spool = open(self.spool_path, "wb")
+        self.k = 0
+
+    def write(self, rgb):
+        self.spool.write(np.ascontiguousarray(rgb, dtype="<f4").data)
+        self.k += len(rgb)
+
+    def close(self):
+        try:
+            self.spool.close()
+            if self.k == self.n:   # a canceled or failed volume is not encoded
+                volume = np.memmap(self.spool_path, dtype="<f4", mode="r", shape=(self.n,) * 3 + (3,))
+                with open(self.path, "wb") as f:
+                    write_vdb(f, volume, self.bounds)
+                del volume
+        finally:
+            if os.path.exists(self.spool_path):
+                os.unlink(self.spool_path)
+
+
 def _png_chunk(kind: bytes, data: bytes) -> bytes:
     return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
@@ -241,5 +303,5 @@ class FlipbookWriter(VolumeWriter):
 
 WRITERS: dict[str, type[VolumeWriter]] = {
     "npy": NpyWriter, "exr": OiioPagesWriter, "tiff": OiioPagesWriter, "raw": RawZipWriter,
-    "nrrd": NrrdWriter, "dds": DdsWriter, "flipbook": FlipbookWriter,
+    "nrrd": NrrdWriter, "dds": DdsWriter, "flipbook": FlipbookWriter, "vdb": VdbWriter,
 }

@@ -4,9 +4,10 @@ The volume covers the world box ``bounds = (min_xyz, max_xyz)``; voxel (i, j, k)
 its centre at ``min + (index + 0.5) * (max - min) / N`` per axis, with array order
 [z, y, x, channel]. The grid is evaluated ``slab`` z-slices at a time and each slab is
 handed to a streaming writer (formats and file layouts: ``worker/volume_writers.py``),
-so memory is O(slab * N^2) whatever N is. Progress is reported after every slab and
-``should_cancel()`` is asked before every slab (Canceled is raised, the partial file is
-removed). The file is written under a temporary name in the target folder and renamed
+so memory is O(slab * N^2) whatever N is (a VDB is spooled to disk and encoded once the
+last slab is in, one 128^3 block at a time; the encode counts as the last 10% of
+progress). Progress is reported after every slab and ``should_cancel()`` is asked before
+every slab (Canceled is raised, the partial file is removed). The file is written under a temporary name in the target folder and renamed
 into place, so readers never see half a volume and a re-run simply overwrites.
 """
 from __future__ import annotations
@@ -73,6 +74,7 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
             writer.close()
             raise LimitExceeded(f"flipbook of {n} slices would exceed {MAX_FLIPBOOK_SIDE} px per side")
         step = int(slab or max(1, SLAB_POINTS // (n * n)))
+        share = 0.9 if fmt == "vdb" else 1.0     # a VDB is encoded in close(), after the last slab
         axes = tuple(voxel_centres(box[0, a], box[1, a], n) for a in range(3))
         try:
             for z0 in range(0, n, step):
@@ -82,7 +84,7 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
                 rgb = sampler.sample(slab_points(axes, z0, z1), code, seed)
                 writer.write(rgb.reshape(z1 - z0, n, n, 3))
                 if progress is not None:
-                    progress(z1 / n)
+                    progress(share * z1 / n)
         except BaseException:
             try:  # atomic_output deletes the partial file; keep the original error
                 writer.close()
@@ -90,4 +92,6 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
                 pass
             raise
         writer.close()
+        if progress is not None and share < 1.0:
+            progress(1.0)
     return out_path

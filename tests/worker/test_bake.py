@@ -1,8 +1,13 @@
-"""UV bakes: atlas choice, coverage, gutter, colours through the saved file, bad meshes."""
+"""UV bakes: atlas choice and cache, coverage, gutter, colours through the saved file,
+vertex normals, bad meshes."""
+import io
+import json
 import os
-import zipfile
-
+import shutil
+import struct
+import subprocess
 import time
+import zipfile
 
 import numpy as np
 import pytest
@@ -11,7 +16,8 @@ from PIL import Image
 from scipy import ndimage
 from skimage.draw import polygon
 
-from worker.bake import BakeLimits, bake_mesh, load_mesh
+from worker import atlas
+from worker.bake import BakeLimits, bake_mesh, bake_texture, load_mesh, read_mesh
 from worker.colour import linear_to_srgb8
 from worker.errors import AtlasFailed, Canceled, InvalidMesh, LimitExceeded
 from worker.raster import uv_to_texel
@@ -145,22 +151,37 @@ def test_mesh_limits(meshes):
         load_mesh((meshes / "bunny.obj").read_bytes(), "bunny.obj", BakeLimits(max_faces=900))
 
 
-@pytest.mark.parametrize("hook", ["segfault", "abort"])
-def test_atlas_crash_is_contained(waves, meshes, tmp_path, hook):
+@pytest.fixture
+def atlas_fault(monkeypatch):
+    """Make the xatlas child fail: atlas_fault("segfault" | "abort" | "hang")."""
+    from worker import atlas
+
+    def set_fault(fault):
+        monkeypatch.setattr(atlas, "CHILD_MODULE", "tests.worker.atlas_child_faults")
+        monkeypatch.setenv("TEXSPACE_TEST_ATLAS_FAULT", fault)
+
+    yield set_fault
+
+
+@pytest.mark.parametrize("fault", ["segfault", "abort"])
+def test_atlas_crash_is_contained(waves, meshes, tmp_path, fault, atlas_fault, monkeypatch):
     data = (meshes / "bunny.obj").read_bytes()
+    atlas_fault(fault)
     with pytest.raises(AtlasFailed, match="signal"):
         bake_mesh(waves, None, 0, mesh_bytes=data, filename="bunny.obj", resolution=64,
-                  out_path=tmp_path / "x.glb", atlas_crash_for_test=hook)
+                  out_path=tmp_path / "x.glb")
     assert not (tmp_path / "x.glb").exists()
+    monkeypatch.undo()
     # this process is alive and the next bake works
     assert bake_mesh(waves, None, 0, mesh_bytes=data, filename="bunny.obj", resolution=64,
                      out_path=tmp_path / "y.glb").path.is_file()
 
 
-def test_atlas_timeout(waves, meshes, tmp_path):
+def test_atlas_timeout(waves, meshes, tmp_path, atlas_fault):
+    atlas_fault("hang")
     with pytest.raises(AtlasFailed, match="longer than"):
         bake_mesh(waves, None, 0, mesh_bytes=(meshes / "bunny.obj").read_bytes(), filename="bunny.obj",
-                  resolution=64, out_path=tmp_path / "x.glb", atlas_crash_for_test="hang",
+                  resolution=64, out_path=tmp_path / "x.glb",
                   limits=BakeLimits(atlas_timeout=2))
 
 
@@ -172,11 +193,172 @@ def test_cancel(waves, meshes, tmp_path):
     assert os.listdir(tmp_path) == []
 
 
-def test_cancel_ends_the_atlas_child(waves, meshes, tmp_path):
+def test_cancel_ends_the_atlas_child(waves, meshes, tmp_path, atlas_fault):
     """A cancel while xatlas runs kills its child within a poll, not at the atlas timeout."""
+    atlas_fault("hang")
     started = time.monotonic()
     with pytest.raises(Canceled, match="atlas"):
         bake_mesh(waves, None, 0, mesh_bytes=(meshes / "bunny.obj").read_bytes(), filename="bunny.obj",
-                  resolution=64, out_path=tmp_path / "x.glb", atlas_crash_for_test="hang",
+                  resolution=64, out_path=tmp_path / "x.glb",
                   should_cancel=lambda: time.monotonic() - started > 1.0)
     assert time.monotonic() - started < 10
+
+
+# --- vertex normals (issue 18: meshes that shade well) ---------------------------------
+
+def glb_json_and_arrays(path):
+    """The glTF JSON of a GLB and its accessors as numpy arrays (float32 / uint32 only)."""
+    data = path.read_bytes()
+    json_len, = struct.unpack_from("<I", data, 12)
+    gltf = json.loads(data[20:20 + json_len])
+    binary = data[28 + json_len:]
+    dtypes, widths = {5126: np.float32, 5125: np.uint32}, {"SCALAR": 1, "VEC2": 2, "VEC3": 3}
+    arrays = []
+    for acc in gltf["accessors"]:
+        view = gltf["bufferViews"][acc["bufferView"]]
+        flat = np.frombuffer(binary, dtypes[acc["componentType"]], acc["count"] * widths[acc["type"]],
+                             view["byteOffset"] + acc.get("byteOffset", 0))
+        arrays.append(flat.reshape(acc["count"], -1))
+    return gltf, arrays
+
+
+def test_glb_carries_smooth_unit_normals_shared_across_seams(waves, meshes, tmp_path):
+    result = bake_mesh(waves, None, 0, mesh_bytes=(meshes / "bunny.obj").read_bytes(), filename="bunny.obj",
+                       resolution=64, out_path=tmp_path / "b.glb")
+    gltf, arrays = glb_json_and_arrays(result.path)
+    attributes = gltf["meshes"][0]["primitives"][0]["attributes"]
+    position, normal = arrays[attributes["POSITION"]], arrays[attributes["NORMAL"]]
+    assert normal.shape == position.shape and np.abs(np.linalg.norm(normal, axis=1) - 1).max() < 1e-6
+    # xatlas split vertices at chart seams: every copy of a position has the same normal (no seam shading)
+    _, weld = np.unique(position, axis=0, return_inverse=True)
+    weld = weld.reshape(-1)
+    assert len(np.unique(weld)) < len(position)
+    first = np.zeros(weld.max() + 1, int)
+    first[weld[::-1]] = np.arange(len(weld))[::-1]
+    assert np.abs(normal - normal[first[weld]]).max() < 1e-6
+    # and they are the area-weighted mean of the original bunny's face normals
+    bunny = trimesh.load(str(meshes / "bunny.obj"), process=False, force="mesh")
+    tri = bunny.vertices[bunny.faces]
+    summed = np.zeros_like(bunny.vertices)
+    np.add.at(summed, bunny.faces.ravel(), np.repeat(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), 3, axis=0))
+    summed /= np.linalg.norm(summed, axis=1, keepdims=True)
+    index = {tuple(np.float32(p)): n for p, n in zip(bunny.vertices, summed)}
+    reference = np.array([index[tuple(p)] for p in position])
+    assert np.abs(reference - normal).max() < 1e-5
+    assert ((summed[bunny.faces[:, 0]] * bunny.face_normals).sum(axis=1) > 0).mean() > 0.95   # outward
+
+
+def test_mesh_normals_are_kept_in_glb_and_obj(waves, meshes, tmp_path):
+    """An OBJ with vn (and a GLB with NORMAL) keeps its own normals: here deliberately not
+    smooth ones (each points away from the origin), so a recomputation would show."""
+    source = trimesh.load(str(meshes / "bunny_uv.obj"), process=False, force="mesh")
+    own = source.vertices / np.linalg.norm(source.vertices, axis=1, keepdims=True)
+    text = io.StringIO()
+    np.savetxt(text, source.vertices, fmt="v %.9g %.9g %.9g")
+    np.savetxt(text, source.visual.uv, fmt="vt %.9g %.9g")
+    np.savetxt(text, own, fmt="vn %.9g %.9g %.9g")
+    np.savetxt(text, np.repeat(source.faces + 1, 3, axis=1), fmt="f %d/%d/%d %d/%d/%d %d/%d/%d")
+    obj = text.getvalue().encode()
+    assert read_mesh(obj, "own.obj").normals is not None
+    assert read_mesh((meshes / "bunny_uv.obj").read_bytes(), "bunny_uv.obj").normals is None
+    glb_in = trimesh.Trimesh(source.vertices, source.faces, vertex_normals=own, process=False).export(
+        file_type="glb", include_normals=True)
+    for data, name, fmt in ((obj, "own.obj", "glb"), (obj, "own.obj", "obj"), (glb_in, "own.glb", "glb")):
+        result = bake_mesh(waves, None, 0, mesh_bytes=data, filename=name, resolution=64, fmt=fmt,
+                           out_path=tmp_path / f"{name}.{fmt}")
+        if fmt == "glb":
+            gltf, arrays = glb_json_and_arrays(result.path)
+            attributes = gltf["meshes"][0]["primitives"][0]["attributes"]
+            position, normal = arrays[attributes["POSITION"]], arrays[attributes["NORMAL"]]
+        else:
+            folder = tmp_path / f"{name}-unzipped"
+            zipfile.ZipFile(result.path).extractall(folder)
+            assert "\nvn " in (folder / "model.obj").read_text()
+            mesh = trimesh.load(str(folder / "model.obj"), process=False)
+            position, normal = mesh.vertices, mesh.vertex_normals
+        expected = position / np.linalg.norm(position, axis=1, keepdims=True)
+        assert np.abs(normal - expected).max() < 1e-5, (name, fmt)
+
+
+def test_degenerate_mesh_uvs_get_an_atlas(waves, meshes, tmp_path):
+    source = trimesh.load(str(meshes / "bunny_uv.obj"), process=False, force="mesh")
+    uv = np.array(source.visual.uv)
+    uv[source.faces[:300].ravel()] = 0.5                     # a third of the faces collapse to a point
+    text = io.StringIO()
+    np.savetxt(text, source.vertices, fmt="v %.9g %.9g %.9g")
+    np.savetxt(text, uv, fmt="vt %.9g %.9g")
+    np.savetxt(text, np.repeat(source.faces + 1, 2, axis=1), fmt="f %d/%d %d/%d %d/%d")
+    result = bake_mesh(waves, None, 0, mesh_bytes=text.getvalue().encode(), filename="d.obj", resolution=64,
+                       out_path=tmp_path / "d.glb")
+    assert result.uv_source == "xatlas"
+
+
+VALIDATOR_DIR = os.environ.get("TEXSPACE_GLTF_VALIDATOR_DIR")   # a folder with node_modules/gltf-validator
+
+
+@pytest.mark.skipif(not (VALIDATOR_DIR and shutil.which("node")),
+                    reason="Khronos glTF validator not installed (npm install gltf-validator; "
+                           "set TEXSPACE_GLTF_VALIDATOR_DIR to that folder)")
+def test_glb_passes_the_khronos_validator(waves, meshes, tmp_path):
+    script = ("const v=require('gltf-validator');const fs=require('fs');"
+              "v.validateBytes(new Uint8Array(fs.readFileSync(process.argv[1])))"
+              ".then(r=>console.log(JSON.stringify(r.issues)))")
+    for name in ("bunny.obj", "bunny_uv.obj", "textured_sphere_smooth.obj"):
+        result = bake_mesh(waves, None, 0, mesh_bytes=(meshes / name).read_bytes(), filename=name, resolution=64,
+                           out_path=tmp_path / f"{name}.glb")
+        out = subprocess.run(["node", "-e", script, str(result.path)], cwd=VALIDATOR_DIR, capture_output=True,
+                             text=True, timeout=120, check=True)
+        issues = json.loads(out.stdout)
+        assert (issues["numErrors"], issues["numWarnings"]) == (0, 0), issues["messages"][:5]
+
+
+# --- UV atlas cache --------------------------------------------------------------------
+
+def test_second_bake_of_a_mesh_loads_its_atlas(waves, meshes, tmp_path, monkeypatch):
+    data = (meshes / "bunny.obj").read_bytes()
+    cache = tmp_path / "atlas-cache"
+    first = bake_mesh(waves, None, 0, mesh_bytes=data, filename="bunny.obj", resolution=64,
+                      out_path=tmp_path / "1.glb", atlas_cache_dir=cache)
+    assert len(list(cache.glob("*.npz"))) == 1
+
+    def no_child(*args, **kwargs):
+        raise AssertionError("xatlas ran although its atlas is cached")
+
+    monkeypatch.setattr(atlas, "_run_child", no_child)
+    second = bake_mesh(waves, None, 0, mesh_bytes=data, filename="bunny.obj", resolution=64,
+                       out_path=tmp_path / "2.glb", atlas_cache_dir=cache)
+    assert second.uv_source == "xatlas" and second.timings["atlas"] < 1.0
+    assert first.path.read_bytes() == second.path.read_bytes()
+    # other options (here the packing resolution) are another entry
+    with pytest.raises(AssertionError, match="cached"):
+        bake_mesh(waves, None, 0, mesh_bytes=data, filename="bunny.obj", resolution=128,
+                  out_path=tmp_path / "3.glb", atlas_cache_dir=cache)
+
+
+def test_atlas_cache_damage_and_bound(meshes, tmp_path):
+    vertices, faces, _ = load_mesh((meshes / "bunny.obj").read_bytes(), "bunny.obj")
+    cache = tmp_path / "c"
+    vmap, new_faces, uv = atlas.parametrize(vertices, faces, resolution=64, padding=2, cache_dir=cache)
+    (entry,) = cache.glob("*.npz")
+    entry.write_bytes(b"not an npz")                        # a damaged entry is a miss, then rewritten
+    again = atlas.parametrize(vertices, faces, resolution=64, padding=2, cache_dir=cache)
+    assert np.array_equal(again[1], new_faces) and np.allclose(again[2], uv)
+    assert entry.stat().st_size > 100
+    other = vertices * 2.0                                   # another mesh, a cache of one entry's size
+    atlas.parametrize(other, faces, resolution=64, padding=2, cache_dir=cache,
+                      cache_bytes=entry.stat().st_size + 10)
+    assert len(list(cache.glob("*.npz"))) == 1 and not entry.exists()
+    quality = atlas.atlas_quality(vertices[vmap], new_faces, uv)
+    assert 0.3 < quality["uv_area"] < 1 and 1.0 <= quality["stretch_l2"] < 1.5
+
+
+def test_chunked_sampling_gives_the_same_atlas(waves, meshes):
+    """Points, sampling and encoding are pipelined chunk by chunk: any chunk size, same bytes."""
+    vertices, faces, uv = load_mesh((meshes / "bunny_uv.obj").read_bytes(), "bunny_uv.obj")
+    outputs = [bake_texture(waves, None, 0, uv[faces], vertices[faces], resolution=96, padding=3, scale=20.0,
+                            chunk=chunk, linear=True) for chunk in (1 << 18, 1000, 997)]
+    srgb, covered, linear = outputs[0]
+    assert covered.sum() > 3000 and waves.calls[1:3] == [1000, 1000]
+    for other in outputs[1:]:
+        assert all(np.array_equal(a, b) for a, b in zip(outputs[0], other))
+    assert np.array_equal(srgb[covered], linear_to_srgb8(linear[covered]))

@@ -7,7 +7,10 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+from tests.worker.gpu_readers import read_dds_levels, read_ktx2
 from worker.colour import linear_to_srgb, linear_to_srgb8
+from worker.derived_maps import decode_normals8, height_map, normal_map
+from worker.gpu_textures import mip_chain
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
 from worker.images import write_image
 from worker.regions import RegionLimits, render_region
@@ -54,6 +57,38 @@ def test_single_image_formats(runtime, code, expected, tmp_path, fmt, tolerance)
     assert os.listdir(tmp_path) == [f"r.{fmt}"]
 
 
+@pytest.mark.parametrize("fmt", ["dds", "ktx2"])
+def test_gpu_formats_carry_the_mip_chain(runtime, code, expected, tmp_path, fmt):
+    out = render_region(runtime, code, 9, fmt=fmt, out_path=tmp_path / f"r.{fmt}", **RECT)
+    levels = read_dds_levels(out) if fmt == "dds" else read_ktx2(out.read_bytes())[1]
+    sizes = [(70, 150), (35, 75), (17, 37), (8, 18), (4, 9), (2, 4), (1, 2), (1, 1)]
+    assert [lv.shape[:2] for lv in levels] == sizes
+    for got, want in zip(levels, mip_chain(expected)):
+        assert np.array_equal(got[..., :3], linear_to_srgb8(want))
+    assert os.listdir(tmp_path) == [f"r.{fmt}"]
+
+
+@pytest.mark.parametrize("fmt", ["png", "exr", "ktx2"])
+def test_derived_maps_come_in_a_zip_with_the_colour(runtime, code, expected, tmp_path, fmt):
+    out = render_region(runtime, code, 9, fmt=fmt, out_path=tmp_path / "r.zip", maps=("height", "normal"),
+                        normal_strength=3.0, **RECT)
+    with zipfile.ZipFile(out) as z:
+        assert sorted(z.namelist()) == sorted([f"colour.{fmt}", "height.png", "normal.png"])
+        z.extractall(tmp_path / "x")
+    if fmt == "png":
+        assert np.array_equal(np.round(read(tmp_path / "x/colour.png")[1] * 255).astype(np.uint8),
+                              linear_to_srgb8(expected))
+    elif fmt == "exr":
+        assert np.abs(read(tmp_path / "x/colour.exr")[1] - expected).max() < 1e-3
+    spec, height = read(tmp_path / "x/height.png")
+    assert (spec.width, spec.height, spec.nchannels, str(spec.format)) == (150, 70, 1, "uint16")
+    assert np.abs(height[..., 0] - height_map(expected)).max() <= 1 / 65535
+    normals = decode_normals8(np.round(read(tmp_path / "x/normal.png")[1] * 255))
+    assert normals.shape == (70, 150, 3) and np.abs(np.linalg.norm(normals, axis=-1) - 1).max() < 0.02
+    assert np.abs(normals - normal_map(height_map(expected), 3.0)).max() <= 1 / 127.5 + 1e-6
+    assert sorted(os.listdir(tmp_path)) == ["r.zip", "x"]
+
+
 def test_pyramid(runtime, code, tmp_path):
     out = render_region(runtime, code, 9, z=N, x0=-64, y0=0, width=128, height=64, size=64,
                         min_zoom=N - 1, fmt="pyramid", out_path=tmp_path / "p.zip")
@@ -82,6 +117,16 @@ def test_limits_cancel_and_parameters(runtime, code, tmp_path):
                       should_cancel=lambda: True, **RECT)
     with pytest.raises(InvalidParameter):
         render_region(runtime, code, 0, fmt="jpeg2000", out_path=tmp_path / "a.jp2", **RECT)
+    with pytest.raises(LimitExceeded):
+        render_region(runtime, code, 0, fmt="ktx2", out_path=tmp_path / "a.ktx2",
+                      limits=RegionLimits(max_whole_pixels=100), **RECT)
+    with pytest.raises(LimitExceeded):
+        render_region(runtime, code, 0, fmt="png", maps=("normal",), out_path=tmp_path / "a.zip",
+                      limits=RegionLimits(max_whole_pixels=100), **RECT)
+    with pytest.raises(InvalidParameter):
+        render_region(runtime, code, 0, fmt="pyramid", maps=("height",), out_path=tmp_path / "a.zip", **RECT)
+    with pytest.raises(InvalidParameter):
+        render_region(runtime, code, 0, fmt="png", maps=("gloss",), out_path=tmp_path / "a.zip", **RECT)
     with pytest.raises(InvalidParameter, match="pixels_per_unit"):   # a bare fitted sampler
         render_region(SamplerSession(runtime.sampler.path), code, 0, fmt="png",
                       out_path=tmp_path / "a.png", **RECT)

@@ -1,15 +1,19 @@
 """Volumes: every format read back equals the npy result; memory O(slab); progress/cancel."""
 import json
 import os
+import shutil
 import struct
+import subprocess
 import tracemalloc
 import zipfile
+from pathlib import Path
 
 import nrrd
 import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+from tests.worker.vdb_reader import read_vdb
 from worker.colour import linear_to_srgb8
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
 from worker.volume_writers import flipbook_grid
@@ -35,6 +39,52 @@ def read_pages(path):
     return np.stack(pages)
 
 
+# Debian's python3-openvdb (the OpenVDB 10 library) under the system Python: the project's
+# environment cannot import it (built for numpy 1.x), so it runs as a child process.
+SYSTEM_PYTHON = "/usr/bin/python3"
+READ_VDB = """
+import json, sys, numpy as np, pyopenvdb as vdb
+grids, file_meta = vdb.readAll(sys.argv[1])
+g = grids[0]
+lo, hi = g.evalActiveVoxelBoundingBox()
+a = np.zeros(tuple(h + 1 for h in hi) + (3,), np.float32)
+g.copyToArray(a, ijk=(0, 0, 0))
+np.save(sys.argv[2], a)
+json.dump({"grids": len(grids), "name": g.name, "type": type(g).__name__, "active": g.activeVoxelCount(),
+           "bbox": [lo, hi], "first": g.transform.indexToWorld((0, 0, 0)),
+           "voxel_size": g.transform.voxelSize(), "file_meta": file_meta,
+           "meta": {k: g[k] for k in g.metadata.keys()}}, open(sys.argv[3], "w"))
+"""
+
+
+def read_vdb_with_openvdb(path: Path, tmp: Path):
+    """(array [x][y][z][c], info) as OpenVDB itself reads the file; skips without it."""
+    if not (shutil.which(SYSTEM_PYTHON) and subprocess.run(
+            [SYSTEM_PYTHON, "-c", "import pyopenvdb"], capture_output=True).returncode == 0):
+        pytest.skip("Debian's python3-openvdb is not installed (apt-get install python3-openvdb)")
+    subprocess.run([SYSTEM_PYTHON, "-c", READ_VDB, str(path), str(tmp / "vdb.npy"), str(tmp / "vdb.json")],
+                   check=True, timeout=120)
+    return np.load(tmp / "vdb.npy"), json.loads((tmp / "vdb.json").read_text())
+
+
+def check_vdb(path: Path, reference: np.ndarray, bounds, tmp: Path) -> None:
+    """The file read back by our own minimal reader, then by OpenVDB itself (if installed)."""
+    n = reference.shape[0]
+    lo, hi = np.asarray(bounds, float)
+    size = (hi - lo) / n
+    own, dense = read_vdb(path.read_bytes())
+    assert (own["version"], own["name"], own["type"], own["active"]) == (224, "Cd", "Tree_vec3s_5_4_3", n ** 3)
+    assert np.array_equal(dense, reference.transpose(2, 1, 0, 3))
+    assert np.allclose(own["translation"], lo + size / 2) and np.allclose(own["scale"], size)
+    data, info = read_vdb_with_openvdb(path, tmp)
+    assert (info["grids"], info["name"], info["type"], info["active"]) == (1, "Cd", "Vec3SGrid", n ** 3)
+    assert info["bbox"] == [[0, 0, 0], [n - 1] * 3]
+    assert np.array_equal(data, reference.transpose(2, 1, 0, 3))         # voxel (i, j, k) = [z=k, y=j, x=i]
+    assert np.allclose(info["first"], lo + size / 2) and np.allclose(info["voxel_size"], size)
+    assert np.allclose(info["meta"]["texspace_bounds_min"], lo) and np.allclose(info["meta"]["texspace_bounds_max"], hi)
+    assert info["meta"]["texspace_colour"] == "linear" and info["file_meta"] == {"creator": "texspace"}
+
+
 def test_reference_is_the_sampler_on_voxel_centres(runtime, code, reference):
     assert reference.shape == (N, N, N, 3) and reference.dtype == np.float32
     xs, ys, zs = (voxel_centres(BOUNDS[0][a], BOUNDS[1][a], N) for a in range(3))
@@ -45,13 +95,15 @@ def test_reference_is_the_sampler_on_voxel_centres(runtime, code, reference):
     assert slab_points((xs, ys, zs), 2, 3)[0].tolist() == [xs[0], ys[0], zs[2]]
 
 
-@pytest.mark.parametrize("fmt", ["exr", "tiff", "raw", "nrrd", "dds", "flipbook"])
+@pytest.mark.parametrize("fmt", ["exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb"])
 def test_every_format_reads_back_equal_to_npy(runtime, code, reference, tmp_path, fmt):
     out = render_volume(runtime, code, 4, resolution=N, bounds=BOUNDS, fmt=fmt,
                         out_path=tmp_path / f"v.{fmt}", slab=5)
-    assert out.is_file() and os.listdir(tmp_path) == [f"v.{fmt}"]      # no temp file left
+    assert out.is_file() and os.listdir(tmp_path) == [f"v.{fmt}"]      # no temp (or spool) file left
     if fmt in ("exr", "tiff"):
         assert np.array_equal(read_pages(out), reference)
+    elif fmt == "vdb":
+        check_vdb(out, reference, BOUNDS, tmp_path)
     elif fmt == "raw":
         with zipfile.ZipFile(out) as z:
             meta = json.loads(z.read("volume.json"))
@@ -78,6 +130,39 @@ def test_every_format_reads_back_equal_to_npy(runtime, code, reference, tmp_path
         sheet = inp.read_image(0, 0, 0, 3, "uint8").reshape(rows * N, cols * N, 3)
         slices = sheet.reshape(rows, N, cols, N, 3).transpose(0, 2, 1, 3, 4).reshape(N, N, N, 3)
         assert np.array_equal(slices, linear_to_srgb8(reference))        # slice 0 top-left, row-major
+
+
+def test_exr_and_tiff_pages_carry_bounds_and_voxel_size(runtime, code, tmp_path):
+    bounds = ((-1.25, 0.0, 2.0), (1.0, 0.5, 3.5))
+    for fmt in ("exr", "tiff"):
+        out = render_volume(runtime, code, 4, resolution=6, bounds=bounds, fmt=fmt, out_path=tmp_path / f"v.{fmt}")
+        inp = oiio.ImageInput.open(str(out))
+        k = 0
+        while inp.seek_subimage(k, 0):
+            spec = inp.spec()
+            text = spec.get_string_attribute("texspace:volume" if fmt == "exr" else "ImageDescription")
+            meta = json.loads(text)
+            assert meta["bounds_min"] == [-1.25, 0.0, 2.0] and meta["bounds_max"] == [1.0, 0.5, 3.5]
+            assert np.allclose(meta["voxel_size"], [2.25 / 6, 0.5 / 6, 1.5 / 6]) and meta["resolution"] == [6] * 3
+            assert meta["slice"] == k and np.isclose(meta["slice_z"], 2.0 + (k + 0.5) * 0.25)
+            if fmt == "exr":   # plain OpenEXR attributes, what a compositor or DCC importer reads
+                assert np.allclose(spec.getattribute("boundsMin"), bounds[0])
+                assert np.allclose(spec.getattribute("boundsMax"), bounds[1])
+                assert np.allclose(spec.getattribute("voxelSize"), meta["voxel_size"])
+                assert spec.getattribute("sliceIndex") == k and np.isclose(spec.getattribute("sliceZ"), meta["slice_z"])
+            k += 1
+        inp.close()
+        assert k == 6
+
+
+def test_vdb_partial_leaves_and_several_nodes(waves, tmp_path):
+    """N = 130: two 4-level nodes per axis and partial leaves past the edge (all read back)."""
+    n, bounds = 130, ((0.0, -2.0, 1.0), (13.0, 2.0, 1.5))
+    ref = render_volume(waves, np.zeros(8, np.float32), 3, resolution=n, bounds=bounds, fmt="npy",
+                        out_path=tmp_path / "w.npy", slab=40)
+    out = render_volume(waves, np.zeros(8, np.float32), 3, resolution=n, bounds=bounds, fmt="vdb",
+                        out_path=tmp_path / "w.vdb", slab=40)
+    check_vdb(out, np.load(ref), bounds, tmp_path)
 
 
 def test_flipbook_grid():
@@ -118,11 +203,21 @@ def test_progress_and_cancel(runtime, code, tmp_path):
     render_volume(runtime, code, 1, resolution=8, fmt="npy", out_path=tmp_path / "a.npy",
                   slab=3, progress=seen.append)
     assert seen == sorted(seen) and seen[-1] == 1.0 and len(seen) == 3
+    seen.clear()
+    render_volume(runtime, code, 1, resolution=8, fmt="vdb", out_path=tmp_path / "a.vdb", slab=4,
+                  progress=seen.append)
+    assert seen == [0.45, 0.9, 1.0]                           # the encode after the last slab
+    os.unlink(tmp_path / "a.vdb")
     calls = []
     with pytest.raises(Canceled):
         render_volume(runtime, code, 1, resolution=8, fmt="flipbook", out_path=tmp_path / "b.png", slab=2,
                       should_cancel=lambda: calls.append(1) or len(calls) > 1)
     assert sorted(os.listdir(tmp_path)) == ["a.npy"]          # nothing half-written left behind
+    calls.clear()
+    with pytest.raises(Canceled):
+        render_volume(runtime, code, 1, resolution=8, fmt="vdb", out_path=tmp_path / "c.vdb", slab=2,
+                      should_cancel=lambda: calls.append(1) or len(calls) > 1)
+    assert sorted(os.listdir(tmp_path)) == ["a.npy"]          # neither the VDB nor its spool
 
 
 def test_limits_and_bad_parameters(runtime, code, tmp_path):
@@ -130,7 +225,7 @@ def test_limits_and_bad_parameters(runtime, code, tmp_path):
         render_volume(runtime, code, 0, resolution=300, fmt="npy", out_path=tmp_path / "x",
                       max_voxels=256 ** 3)
     with pytest.raises(InvalidParameter):
-        render_volume(runtime, code, 0, resolution=8, fmt="vdb", out_path=tmp_path / "x")
+        render_volume(runtime, code, 0, resolution=8, fmt="openvdb", out_path=tmp_path / "x")
     with pytest.raises(InvalidParameter):
         render_volume(runtime, code, 0, resolution=8, bounds=((0, 0, 0), (1, 0, 1)), fmt="npy",
                       out_path=tmp_path / "x")

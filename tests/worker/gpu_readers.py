@@ -1,0 +1,65 @@
+"""Readers for the GPU texture files the tests check: DDS through OpenImageIO (every mip
+level), KTX2 by the KTX 2.0 specification (no KTX library installs here; the files were
+also checked once with the KhronosGroup-listed ``ktx-parse`` 1.1.0 reader)."""
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import OpenImageIO as oiio
+
+KTX2_ID = b"\xabKTX 20\xbb\r\n\x1a\n"
+
+
+def read_dds_levels(path) -> list[np.ndarray]:
+    """[(h, w, 4) uint8] of every mip level, as OpenImageIO decodes them."""
+    inp = oiio.ImageInput.open(str(path))
+    assert inp is not None, oiio.geterror()
+    levels = []
+    while inp.seek_subimage(0, len(levels)):
+        levels.append(inp.read_image(0, len(levels), 0, 4, "uint8"))
+    inp.close()
+    return levels
+
+
+def read_ktx2(data: bytes) -> tuple[dict, list[np.ndarray]]:
+    """(header fields, [(h, w, 4) uint8 per level, level 0 first]), checking the layout."""
+    assert data[:12] == KTX2_ID
+    fields = struct.unpack_from("<9I", data, 12)
+    header = dict(zip(("vk_format", "type_size", "width", "height", "depth", "layers", "faces",
+                       "levels", "supercompression"), fields))
+    dfd_off, dfd_len, kvd_off, kvd_len, sgd_off, sgd_len = struct.unpack_from("<4I2Q", data, 48)
+    n = header["levels"]
+    index = [struct.unpack_from("<3Q", data, 80 + 24 * k) for k in range(n)]
+    assert dfd_off == 80 + 24 * n and kvd_off == dfd_off + dfd_len and (sgd_off, sgd_len) == (0, 0)
+    # DFD: total size, then one basic block (24 bytes + 16 per sample)
+    total, = struct.unpack_from("<I", data, dfd_off)
+    assert total == dfd_len
+    vendor_type, version, block_size = struct.unpack_from("<IHH", data, dfd_off + 4)
+    model, primaries, transfer, flags = data[dfd_off + 12:dfd_off + 16]
+    samples = [struct.unpack_from("<HBB4BII", data, dfd_off + 28 + 16 * i) for i in range((block_size - 24) // 16)]
+    header.update(dfd=dict(vendor_type=vendor_type, version=version, model=model, primaries=primaries,
+                           transfer=transfer, flags=flags, bytes_plane0=data[dfd_off + 20],
+                           samples=[(s[0], s[1], s[2], s[7], s[8]) for s in samples]))
+    # key/value data: length-prefixed "key\0value", each padded to 4 bytes, keys sorted
+    kv, at = {}, kvd_off
+    while at < kvd_off + kvd_len:
+        length, = struct.unpack_from("<I", data, at)
+        key, value = data[at + 4:at + 4 + length].split(b"\0", 1)
+        kv[key.decode()] = value
+        at += 4 + length + (-length % 4)
+    assert list(kv) == sorted(kv)
+    header["kv"] = kv
+    # levels: 4-byte aligned, stored smallest first, after the key/value data, to the end of file
+    levels, end = [], kvd_off + kvd_len
+    for k in reversed(range(n)):
+        offset, length, uncompressed = index[k]
+        assert offset % 4 == 0 and offset >= end and length == uncompressed
+        end = offset + length
+    assert end == len(data)
+    for k in range(n):
+        offset, length, _ = index[k]
+        w, h = max(1, header["width"] >> k), max(1, header["height"] >> k)
+        assert length == w * h * 4
+        levels.append(np.frombuffer(data, np.uint8, count=length, offset=offset).reshape(h, w, 4))
+    return header, levels

@@ -1,0 +1,106 @@
+"""Derived maps (height, normal) and mipmapped GPU textures (DDS, KTX2) as functions."""
+import io
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from tests.worker.gpu_readers import read_dds_levels, read_ktx2
+from worker.colour import linear_to_srgb8
+from worker.derived_maps import (decode_normals8, derived_map_files, height_map, normal_map)
+from worker.errors import InvalidParameter
+from worker.gpu_textures import dds_bytes, ktx2_bytes, mip_chain, mip_sizes
+
+
+@pytest.fixture(scope="module")
+def image():
+    rng = np.random.default_rng(7)
+    return rng.random((37, 64, 3)).astype(np.float32)       # odd height: fractional mip weights
+
+
+def test_height_is_the_linear_luminance(image):
+    h = height_map(image)
+    assert h.shape == (37, 64) and h.dtype == np.float32
+    assert np.allclose(h, 0.2126 * image[..., 0] + 0.7152 * image[..., 1] + 0.0722 * image[..., 2], atol=1e-6)
+    assert height_map(np.ones((2, 2, 3)))[0, 0] == pytest.approx(1.0)
+
+
+def test_normals_are_unit_and_follow_the_opengl_convention():
+    rows, cols = np.mgrid[0:16, 0:16].astype(np.float32)
+    # height rising to the right: the surface faces left (-x); rising upwards (towards row 0):
+    # it faces down (-y, OpenGL +Y is up)
+    right = normal_map(cols / 16, strength=1.0)
+    up = normal_map((15 - rows) / 16, strength=1.0)
+    assert np.allclose(np.linalg.norm(right, axis=-1), 1, atol=1e-6) and (right[..., 2] > 0).all()
+    assert (right[..., 0] < 0).all() and np.allclose(right[..., 1], 0)
+    assert (up[..., 1] < 0).all() and np.allclose(up[..., 0], 0)
+    slope = 1 / 16
+    assert np.allclose(right[5, 5], np.array([-slope, 0, 1]) / np.hypot(slope, 1), atol=1e-6)
+    flat = normal_map(np.full((4, 5), 0.3))
+    assert np.allclose(flat, [0, 0, 1])
+
+
+def test_wrapped_normals_tile(image):
+    h = height_map(image)
+    wrapped = normal_map(h, wrap=True)
+    shifted = normal_map(np.roll(h, (5, 9), axis=(0, 1)), wrap=True)
+    assert np.allclose(np.roll(wrapped, (5, 9), axis=(0, 1)), shifted, atol=1e-6)   # no border
+    clamped = normal_map(h)
+    assert np.allclose(clamped[1:-1, 1:-1], wrapped[1:-1, 1:-1], atol=1e-6)
+
+
+def test_map_files_read_back(image):
+    files = derived_map_files(image, ("height", "normal"), strength=2.0)
+    height = Image.open(io.BytesIO(files["height.png"]))
+    normal = Image.open(io.BytesIO(files["normal.png"]))
+    assert height.size == normal.size == (64, 37) and normal.mode == "RGB"
+    h16 = np.asarray(height, dtype=np.float64) / 65535
+    assert np.abs(h16 - height_map(image)).max() <= 0.5 / 65535 + 1e-7
+    n = decode_normals8(np.asarray(normal))
+    assert np.abs(np.linalg.norm(n, axis=-1) - 1).max() < 0.02          # unit length up to 8-bit codes
+    assert np.abs(n - normal_map(height_map(image), 2.0)).max() <= 1 / 127.5 + 1e-6
+    assert set(derived_map_files(image, ("normal",))) == {"normal.png"} and derived_map_files(image, ()) == {}
+    with pytest.raises(InvalidParameter):
+        derived_map_files(image, ("roughness",))
+    with pytest.raises(InvalidParameter):
+        normal_map(np.zeros((4, 4)), strength=0)
+
+
+def test_mip_chain_sizes_and_linear_light_averages(image):
+    assert mip_sizes(64, 37) == [(64, 37), (32, 18), (16, 9), (8, 4), (4, 2), (2, 1), (1, 1)]
+    assert len(mip_sizes(2048, 2048)) == 12 and mip_sizes(1, 1) == [(1, 1)]
+    levels = mip_chain(image)
+    assert [lv.shape[:2][::-1] for lv in levels] == mip_sizes(64, 37)
+    for lv in levels:       # exact area averages keep the mean (in linear light)
+        assert np.allclose(lv.mean(axis=(0, 1)), image.mean(axis=(0, 1)), atol=1e-5)
+    even = image[:36]
+    assert np.allclose(mip_chain(even)[1][3, 4], even[6:8, 8:10].mean(axis=(0, 1)), atol=1e-6)
+    # a black / white checkerboard becomes linear 0.5 (sRGB code 188), not sRGB code 128
+    board = np.indices((8, 8)).sum(axis=0) % 2
+    grey = mip_chain(np.repeat(board[..., None], 3, axis=2).astype(np.float32))[1]
+    assert np.allclose(grey, 0.5) and linear_to_srgb8(grey)[0, 0, 0] == 188
+
+
+def test_dds_reads_back_with_every_level(image, tmp_path):
+    path = tmp_path / "t.dds"
+    path.write_bytes(dds_bytes(image))
+    levels = read_dds_levels(path)
+    expected = mip_chain(image)
+    assert [lv.shape for lv in levels] == [(h, w, 4) for w, h in mip_sizes(64, 37)]
+    for got, want in zip(levels, expected):
+        assert np.array_equal(got[..., :3], linear_to_srgb8(want)) and (got[..., 3] == 255).all()
+    raw = path.read_bytes()
+    assert raw[84:88] == b"DX10" and int.from_bytes(raw[128:132], "little") == 29    # R8G8B8A8_UNORM_SRGB
+    assert int.from_bytes(raw[28:32], "little") == 7                                 # mip count
+
+
+def test_ktx2_layout_and_levels(image):
+    header, levels = read_ktx2(ktx2_bytes(image))
+    assert (header["vk_format"], header["type_size"], header["width"], header["height"]) == (43, 1, 64, 37)
+    assert (header["depth"], header["layers"], header["faces"], header["levels"]) == (0, 0, 1, 7)
+    assert header["supercompression"] == 0 and header["kv"]["KTXorientation"] == b"rd\0"
+    dfd = header["dfd"]
+    assert (dfd["model"], dfd["primaries"], dfd["transfer"], dfd["bytes_plane0"]) == (1, 1, 2, 4)   # RGBSDA sRGB
+    assert dfd["samples"] == [(0, 7, 0, 0, 255), (8, 7, 1, 0, 255), (16, 7, 2, 0, 255), (24, 7, 31, 0, 255)]
+    for got, want in zip(levels, mip_chain(image)):
+        assert np.array_equal(got[..., :3], linear_to_srgb8(want)) and (got[..., 3] == 255).all()

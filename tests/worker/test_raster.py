@@ -1,0 +1,62 @@
+"""worker/raster.py pieces of a bake that must be exact: the sRGB table, the gutter."""
+import io
+
+import numpy as np
+from PIL import Image
+from scipy import ndimage
+
+from worker.bake import png_bytes
+from worker.colour import linear_to_srgb8
+from worker.raster import _srgb8_table, encode_srgb8, fill_gutter, gutter_sources
+
+
+def test_srgb_table_is_bit_identical_to_the_curve():
+    rng = np.random.default_rng(0)
+    thresholds = []
+    _, step = _srgb8_table()
+    edges = step[step < 2.0]
+    for k in range(-3, 4):                                  # every step and its float32 neighbours
+        x = edges.copy()
+        for _ in range(abs(k)):
+            x = np.nextafter(x, np.float32(np.sign(k) * 2.0), dtype=np.float32)
+        thresholds.append(x)
+    values = np.concatenate([
+        rng.random(2_000_000, dtype=np.float32), rng.random(200_000, dtype=np.float32) * 0.01,
+        np.linspace(0, 1, 1_000_001, dtype=np.float32), *thresholds,
+        np.array([0.0, 1.0, -0.0, -1e-30, 1e-45, 1.0000001, 7.5, -3.0, np.inf, -np.inf], np.float32)])
+    with np.errstate(invalid="ignore"):
+        assert np.array_equal(encode_srgb8(values), linear_to_srgb8(values))
+    assert len(edges) == 255 and (encode_srgb8(edges) - encode_srgb8(np.nextafter(edges, np.float32(0))) == 1).all()
+    assert encode_srgb8(np.array([np.nan], np.float32))[0] == 0
+    shaped = rng.random((7, 5, 3), dtype=np.float32)
+    assert encode_srgb8(shaped).shape == (7, 5, 3) and encode_srgb8(shaped).dtype == np.uint8
+
+
+def test_gutter_copies_a_nearest_covered_texel_within_the_padding():
+    rng = np.random.default_rng(1)
+    covered = ndimage.binary_opening(rng.random((96, 80)) > 0.7, iterations=1)
+    covered[:5] = False
+    for padding in (0, 1, 3, 8):
+        dst, src = gutter_sources(covered, padding)
+        dist = ndimage.distance_transform_edt(~covered)
+        want = np.flatnonzero((dist <= padding) & ~covered)
+        assert np.array_equal(np.sort(dst), want)                    # exactly the texels within the padding
+        assert covered.ravel()[src].all()
+        r, c = np.divmod(dst, 80)
+        sr, sc = np.divmod(src, 80)
+        assert np.allclose(np.hypot(r - sr, c - sc), dist.ravel()[dst])   # a nearest one, Euclidean
+    image = rng.random((96, 80, 3)).astype(np.float32)
+    filled = fill_gutter(image, covered, 2)
+    assert np.array_equal(filled[covered], image[covered])
+    assert gutter_sources(np.zeros((8, 8), bool), 4)[0].size == 0
+    assert gutter_sources(np.ones((8, 8), bool), 4)[0].size == 0
+
+
+def test_png_bytes_round_trip():
+    rng = np.random.default_rng(2)
+    for shape in ((1, 1, 3), (1, 9, 3), (37, 16, 3), (64, 64, 3)):
+        image = rng.integers(0, 256, shape, dtype=np.uint8)
+        if shape[0] > 8:
+            image[: shape[0] // 2] = 200                           # runs, as in a baked atlas
+        decoded = Image.open(io.BytesIO(png_bytes(image)))
+        assert decoded.mode == "RGB" and np.array_equal(np.asarray(decoded), image)

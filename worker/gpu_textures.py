@@ -1,0 +1,147 @@
+"""Mipmapped GPU texture files: DDS and KTX2, uncompressed RGBA8 sRGB, full mip chain.
+
+Both are written by hand (no offline encoder library installs from the registries here:
+see docs/API.md, "GPU textures"); every texel is 4 bytes R, G, B, A, alpha 255.
+
+Mip chain (``mip_chain``): level 0 is the image; level k+1 has ``max(1, w // 2) x
+max(1, h // 2)`` pixels, down to 1 x 1 (``floor(log2(max(w, h))) + 1`` levels, the count
+Direct3D, Vulkan and the KTX tools expect). Each level is an exact box (area) average of
+the previous one **in linear light**, and only then sRGB-encoded to 8 bits, so mips keep
+the image's brightness (averaging sRGB codes would darken them). For even sides this is
+the plain 2 x 2 average; odd sides are averaged with fractional pixel weights.
+
+* ``dds``: "DDS " + DDS_HEADER (flags with DDSD_MIPMAPCOUNT, caps TEXTURE | COMPLEX |
+  MIPMAP) + DDS_HEADER_DXT10 (``DXGI_FORMAT_R8G8B8A8_UNORM_SRGB`` = 29,
+  ``D3D10_RESOURCE_DIMENSION_TEXTURE2D``, array size 1), then the levels largest first,
+  rows top to bottom, tightly packed. OpenImageIO reads every level back.
+* ``ktx2``: KTX 2.0 (Khronos): ``VK_FORMAT_R8G8B8A8_SRGB`` (43), no supercompression,
+  a Basic Data Format Descriptor (RGBSDA model, BT.709 primaries, sRGB transfer, four
+  8-bit samples R G B A with alpha linear), key/value data ``KTXorientation = rd`` (rows
+  top to bottom, like the image) and ``KTXwriter``, then the levels smallest first, each
+  at a 4-byte aligned offset given by the level index (largest level first in the index).
+"""
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from worker.colour import linear_to_srgb8
+from worker.errors import InvalidParameter
+
+FORMATS = ("dds", "ktx2")
+EXTENSIONS = {"dds": ".dds", "ktx2": ".ktx2"}
+MEDIA_TYPES = {"dds": "image/vnd-ms.dds", "ktx2": "image/ktx2"}
+KTX2_IDENTIFIER = b"\xabKTX 20\xbb\r\n\x1a\n"
+VK_FORMAT_R8G8B8A8_SRGB = 43
+DXGI_FORMAT_R8G8B8A8_UNORM_SRGB = 29
+
+
+def mip_sizes(width: int, height: int) -> list[tuple[int, int]]:
+    """[(w, h)] of every level, level 0 first, down to 1 x 1."""
+    sizes = [(int(width), int(height))]
+    while sizes[-1] != (1, 1):
+        w, h = sizes[-1]
+        sizes.append((max(1, w // 2), max(1, h // 2)))
+    return sizes
+
+
+def _halve(a: np.ndarray, axis: int) -> np.ndarray:
+    """Area average of ``a`` to ``max(1, n // 2)`` samples along ``axis`` (n = a.shape[axis])."""
+    n = a.shape[axis]
+    m = max(1, n // 2)
+    if n == m:
+        return a
+    if n == 2 * m:
+        a = np.moveaxis(a, axis, 0)
+        return np.moveaxis(0.5 * (a[0::2] + a[1::2]), 0, axis)
+    # odd n: output i covers [i * r, (i + 1) * r) source pixels, r = n / m
+    a = np.moveaxis(a, axis, 0).astype(np.float64)
+    prefix = np.concatenate([np.zeros((1,) + a.shape[1:]), np.cumsum(a, axis=0)])
+    edges = np.arange(m + 1) * (n / m)
+    whole = np.minimum(np.floor(edges).astype(np.int64), n - 1)
+    frac = (edges - whole).reshape((-1,) + (1,) * (a.ndim - 1))
+    area = prefix[whole] + frac * a[whole]          # integral of the signal up to each edge
+    out = (area[1:] - area[:-1]) / (n / m)
+    return np.moveaxis(out.astype(np.float32), 0, axis)
+
+
+def mip_chain(rgb: np.ndarray) -> list[np.ndarray]:
+    """Linear levels of a linear image. rgb : (H, W, C) float, -> [(h_k, w_k, C) float32]."""
+    rgb = np.asarray(rgb, dtype=np.float32)
+    if rgb.ndim != 3 or min(rgb.shape[:2]) < 1:
+        raise InvalidParameter(f"expected an (H, W, C) image, got shape {rgb.shape}")
+    levels = [rgb]
+    for w, h in mip_sizes(rgb.shape[1], rgb.shape[0])[1:]:
+        levels.append(_halve(_halve(levels[-1], 0), 1))
+        assert levels[-1].shape[:2] == (h, w)
+    return levels
+
+
+def _rgba8(level: np.ndarray) -> bytes:
+    out = np.empty(level.shape[:2] + (4,), dtype=np.uint8)
+    out[..., :3] = linear_to_srgb8(level)
+    out[..., 3] = 255
+    return out.tobytes()
+
+
+def dds_bytes(rgb: np.ndarray) -> bytes:
+    """A 2D DDS with the full mip chain of a linear (H, W, 3) image (see module doc)."""
+    levels = mip_chain(rgb)
+    h, w = levels[0].shape[:2]
+    flags = 0x1 | 0x2 | 0x4 | 0x8 | 0x1000 | 0x20000   # CAPS HEIGHT WIDTH PITCH PIXELFORMAT MIPMAPCOUNT
+    pixel_format = struct.pack("<2I4s5I", 32, 0x4, b"DX10", 0, 0, 0, 0, 0)   # DDPF_FOURCC
+    caps = 0x1000 | 0x8 | 0x400000                     # TEXTURE COMPLEX MIPMAP
+    header = struct.pack("<7I11I", 124, flags, h, w, w * 4, 0, len(levels), *([0] * 11))
+    header += pixel_format + struct.pack("<5I", caps, 0, 0, 0, 0)
+    dxt10 = struct.pack("<5I", DXGI_FORMAT_R8G8B8A8_UNORM_SRGB, 3, 0, 1, 0)   # TEXTURE2D, 1 element
+    return b"DDS " + header + dxt10 + b"".join(_rgba8(level) for level in levels)
+
+
+def _kv(key: str, value: bytes) -> bytes:
+    entry = key.encode() + b"\0" + value
+    return struct.pack("<I", len(entry)) + entry + b"\0" * (-len(entry) % 4)
+
+
+def _dfd_rgba8_srgb() -> bytes:
+    """Basic Data Format Descriptor block for R8G8B8A8_SRGB (KTX 2.0 section 3.10)."""
+    samples = b"".join(
+        struct.pack("<HBB4BII", 8 * i, 7, channel, 0, 0, 0, 0, 0, 255)
+        for i, channel in enumerate((0, 1, 2, 15 | 0x10)))   # R G B, alpha flagged linear
+    block = struct.pack("<IHH4B4B8B", 0, 2, 24 + len(samples),
+                        1, 1, 2, 0,             # RGBSDA, BT709, sRGB transfer, straight alpha
+                        0, 0, 0, 0,             # texel block 1 x 1 x 1 x 1
+                        4, 0, 0, 0, 0, 0, 0, 0) + samples
+    return struct.pack("<I", 4 + len(block)) + block
+
+
+def ktx2_bytes(rgb: np.ndarray) -> bytes:
+    """A KTX 2.0 texture with the full mip chain of a linear (H, W, 3) image."""
+    levels = [_rgba8(level) for level in mip_chain(rgb)]
+    h, w = np.asarray(rgb).shape[:2]
+    n = len(levels)
+    index_end = 12 + 13 * 4 + 2 * 8 + n * 24          # identifier, header + index, level index
+    dfd = _dfd_rgba8_srgb()
+    kvd = _kv("KTXorientation", b"rd\0") + _kv("KTXwriter", b"texspace\0")
+    dfd_offset, kvd_offset = index_end, index_end + len(dfd)
+    data_start = kvd_offset + len(kvd)
+    offsets, position = [0] * n, data_start
+    for k in reversed(range(n)):                        # smallest level first in the file
+        position += -position % 4                       # mip padding: lcm(4-byte texel, 4)
+        offsets[k] = position
+        position += len(levels[k])
+    header = struct.pack("<9I", VK_FORMAT_R8G8B8A8_SRGB, 1, w, h, 0, 0, 1, n, 0)
+    index = struct.pack("<4I2Q", dfd_offset, len(dfd), kvd_offset, len(kvd), 0, 0)
+    level_index = b"".join(struct.pack("<3Q", offsets[k], len(levels[k]), len(levels[k])) for k in range(n))
+    out = bytearray(KTX2_IDENTIFIER + header + index + level_index + dfd + kvd)
+    for k in reversed(range(n)):
+        out += b"\0" * (offsets[k] - len(out))
+        out += levels[k]
+    return bytes(out)
+
+
+def gpu_texture_bytes(rgb: np.ndarray, fmt: str) -> bytes:
+    """``dds_bytes`` or ``ktx2_bytes`` by name."""
+    if fmt not in FORMATS:
+        raise InvalidParameter(f"GPU texture format must be one of {FORMATS}, got {fmt!r}")
+    return dds_bytes(rgb) if fmt == "dds" else ktx2_bytes(rgb)
