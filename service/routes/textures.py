@@ -1,16 +1,18 @@
-"""Textures: upload (encode), list, read, rename, delete, exemplar, interpolate."""
+"""Textures: upload (encode), list, read, rename, delete, exemplar, interpolate, shader."""
 from __future__ import annotations
 
+import hashlib
 import logging
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFile, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy import select, update
 
 from worker.colour_match import identity_colour
 from worker.images import encode_texture, read_image, sniff_format
+from worker.shader import MEDIA_TYPES, emit_shader, shader_name
 
 from .. import auth, jobs
 from ..db import session_scope
@@ -20,6 +22,7 @@ from ..job_kinds import auto_fit_params
 from ..purge import purge_texture
 from ..schemas import InterpolateIn, TextureOut, TexturePage, TexturePatch
 from ..tables import Job, Texture, new_id, utcnow
+from ..tiles import etag_matches
 from ..uploads import IMAGE_MEDIA_TYPES, read_limited
 
 router = APIRouter(prefix="/v1/textures", tags=["textures"])
@@ -209,3 +212,29 @@ def get_exemplar(services: ServicesDep, texture_id: TextureId) -> StreamingRespo
     return StreamingResponse(services.storage.iter_chunks(texture.exemplar_key),
                              media_type=texture.exemplar_media_type,
                              headers={"Content-Length": str(size), "Cache-Control": "public, max-age=86400", **NOSNIFF})
+
+
+SHADER_VERSION = "1"  # bump when worker/shader.py emits different text for the same texture
+
+
+@router.get("/{texture_id}/shader.{language}", response_class=Response,
+            responses={200: {"description": "GLSL ES 3.00 or WGSL source (docs/SHADER.md)",
+                             "content": {"text/x-glsl": {}, "text/wgsl": {}}},
+                       304: {"description": "unchanged (If-None-Match)"}, **problem_responses(404, 422)})
+def get_shader(services: ServicesDep, request: Request, texture_id: TextureId,
+               language: Literal["glsl", "wgsl"]) -> Response:
+    """The texture as a real-time shader: ``vec3 texspace_<id>(vec3 p, uint seed)`` (GLSL ES
+    3.00) or its WGSL twin, the same function as the texture's sampler (linear RGB at world
+    point p), with the weights and the texture's constants embedded."""
+    texture = load_texture(services, texture_id)
+    vector = texture.sampling_code()
+    key = "|".join((SHADER_VERSION, language, texture.model_version, texture.sampler_key or ""))
+    digest = hashlib.sha256(key.encode() + vector.tobytes()).hexdigest()[:32]
+    headers = {"ETag": f'"{digest}"', "Cache-Control": "public, no-cache", **NOSNIFF}
+    if etag_matches(request.headers.get("if-none-match"), headers["ETag"]):
+        return Response(status_code=304, headers=headers)
+    sampler = services.sampler_for(texture)
+    path = getattr(sampler, "sampler", sampler).path  # a model's runtime, or a fitted SamplerSession
+    header = f"texspace texture {texture.id}, model {texture.model_version}"
+    text = emit_shader(path, vector, shader_name(texture.id), language, header=header)
+    return Response(text, media_type=MEDIA_TYPES[language], headers=headers)

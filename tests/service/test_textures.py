@@ -174,3 +174,17 @@ def test_request_body_limit_while_streaming(client, services, photo) -> None:
 
         res = small.post("/v1/textures/interpolate", content=chunks(), headers={"Content-Type": "application/json"})
         assert res.status_code == 413 and res.headers["content-type"] == PROBLEM
+
+
+def test_shader_routes(client, texture):
+    """GET /v1/textures/{id}/shader.glsl|.wgsl: the function, an ETag, 304 on revalidation."""
+    name = f"texspace_{texture['id']}"
+    glsl = client.get(f"/v1/textures/{texture['id']}/shader.glsl")
+    assert glsl.status_code == 200 and glsl.headers["content-type"].startswith("text/x-glsl")
+    assert f"vec3 {name}(vec3 p, uint seed)" in glsl.text
+    wgsl = client.get(f"/v1/textures/{texture['id']}/shader.wgsl")
+    assert wgsl.status_code == 200 and f"fn {name}(p: vec3<f32>, seed: u32) -> vec3<f32>" in wgsl.text
+    again = client.get(f"/v1/textures/{texture['id']}/shader.glsl", headers={"If-None-Match": glsl.headers["etag"]})
+    assert again.status_code == 304
+    assert client.get(f"/v1/textures/{texture['id']}/shader.hlsl").status_code == 422
+    assert client.get("/v1/textures/nope/shader.glsl").status_code == 404

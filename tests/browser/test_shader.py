@@ -1,0 +1,88 @@
+"""The texture shaders (GET /v1/textures/{id}/shader.glsl|.wgsl) against the ONNX sampler.
+
+A 128^2 patch of an uploaded texture is rendered in headless Chromium on its software
+renderer (SwiftShader): the GLSL through WebGL2 into a float render target, the WGSL
+through WebGPU as a compute shader (which also runs the browser's WGSL compiler, Tint, as
+the validator). Both must match the sampler at the same float32-exact points within 1/255
+mean absolute difference; the means and maxima are written to tests/artifacts/browser/.
+Each shader takes ~1 minute to compile on SwiftShader.
+"""
+from __future__ import annotations
+
+import json
+import urllib.request
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.browser.conftest import CHROMIUM, CHROMIUM_FLAGS
+from tests.browser.helpers import texture_photo_png
+from worker.colour_match import texture_vector
+from worker.runtime import SamplerSession
+
+pytestmark = pytest.mark.slow
+HERE = Path(__file__).resolve().parent
+SAMPLER = HERE.parents[1] / "model" / "weights" / "sampler.onnx"
+SIZE, SCALE, ORIGIN, SEED = 128, 1.0 / 256.0, (3.0, -2.0, 0.3), 7
+LIMIT = 1.0 / 255.0
+
+
+@pytest.fixture(scope="module")
+def gpu_page(base_url, tmp_path_factory):
+    """A page of the running service (a secure context, so WebGPU is exposed) in a Chromium
+    of its own with WebGPU enabled (the shared fixture's flags leave it off)."""
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is in the test extra")
+    with sync_api.sync_playwright() as playwright:
+        context = playwright.chromium.launch_persistent_context(
+            str(tmp_path_factory.mktemp("chromium-gpu")), executable_path=str(CHROMIUM), headless=True,
+            args=[*CHROMIUM_FLAGS, "--enable-unsafe-webgpu"])
+        page = context.new_page()
+        page.set_default_timeout(600_000)
+        page.goto(base_url)
+        yield page
+        context.close()
+
+
+@pytest.fixture(scope="module")
+def uploaded(base_url) -> dict:
+    boundary = uuid.uuid4().hex
+    body = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"image\"; filename=\"brick.png\"\r\n"
+            f"Content-Type: image/png\r\n\r\n").encode() + texture_photo_png() + f"\r\n--{boundary}--\r\n".encode()
+    request = urllib.request.Request(base_url + "v1/textures", data=body, method="POST",
+                                     headers={"Content-Type": f"multipart/form-data; boundary={boundary}"})
+    with urllib.request.urlopen(request, timeout=120) as response:
+        return json.load(response)
+
+
+def points() -> np.ndarray:
+    """The shader's points, exactly: origin + (pixel centre) * scale in float32, row-major, y up."""
+    j, i = np.mgrid[0:SIZE, 0:SIZE].astype(np.float32)
+    o = np.asarray(ORIGIN, np.float32)
+    xyz = [o[0] + (i + np.float32(0.5)) * np.float32(SCALE), o[1] + (j + np.float32(0.5)) * np.float32(SCALE),
+           np.full(i.shape, o[2], np.float32)]
+    return np.stack(xyz, -1).reshape(-1, 3).astype(np.float64)
+
+
+@pytest.mark.parametrize("language", ["glsl", "wgsl"])
+def test_shader_matches_the_sampler(gpu_page, base_url, uploaded, artifacts, language):
+    with urllib.request.urlopen(f"{base_url}v1/textures/{uploaded['id']}/shader.{language}", timeout=120) as r:
+        source = r.read().decode()
+    name = f"texspace_{uploaded['id']}"
+    harness = (HERE / f"shader_harness{'_wgsl' if language == 'wgsl' else ''}.js").read_text()
+    result = gpu_page.evaluate(harness, dict(source=source, name=name, size=SIZE, origin=list(ORIGIN),
+                                             scale=SCALE, seed=SEED))
+    assert not result.get("error"), (result.get("error"), result.get("messages"))
+    got = np.asarray(result["pixels"], np.float32).reshape(SIZE * SIZE, 4)[:, :3]
+    vector = texture_vector(uploaded["code"], uploaded["colour"])
+    want = SamplerSession(SAMPLER, threads=1).sample(points(), vector, SEED)
+    diff = np.abs(got - want)
+    report = {"language": language, "size": SIZE, "mean_abs": float(diff.mean()), "max_abs": float(diff.max()),
+              "mean_abs_255": float(diff.mean() * 255), "max_abs_255": float(diff.max() * 255),
+              "compile_ms": result.get("compileMs"), "draw_ms": result.get("drawMs"),
+              "compiler_messages": result.get("messages", [])}
+    (artifacts / f"shader_{language}.json").write_text(json.dumps(report, indent=2) + "\n")
+    assert want.std() > 0.01  # a textured patch, not a flat one
+    assert diff.mean() <= LIMIT, report
+    assert diff.max() <= 8 * LIMIT, report

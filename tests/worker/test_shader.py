@@ -1,0 +1,48 @@
+"""worker/shader.py without a GPU: the emitter reads the right numbers out of the sampler
+(hash constants, lattice maps, code biases). The shader itself is run against the ONNX
+sampler in headless Chromium by tests/browser/test_shader.py."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from worker import shader
+from worker.colour_match import identity_colour
+from worker.errors import InvalidParameter
+
+SAMPLER = Path(__file__).resolve().parents[2] / "model" / "weights" / "sampler.onnx"
+
+
+def test_hash_constants_are_the_graphs():
+    assert all(shader.hash_constants_in_graph(SAMPLER).values()), shader.hash_constants_in_graph(SAMPLER)
+
+
+def test_lattice_maps_are_affine_and_isotropic():
+    z = np.random.default_rng(1).normal(size=8).astype(np.float32)
+    c = shader.texture_constants(SAMPLER, np.concatenate([z, identity_colour(216)]))
+    assert c.matrices.shape == (8, 3, 3) and c.offsets.shape == (8, 3) and c.biases.shape == (4 * 128 + 3,)
+    # isotropic transforms times rotations times 2^k: M M^T = (s_k 2^k)^2 I
+    for k, m in enumerate(c.matrices):
+        gram = m @ m.T
+        assert np.allclose(gram, gram[0, 0] * np.eye(3), rtol=1e-9, atol=1e-9 * gram[0, 0])
+        assert 0.1 < np.sqrt(gram[0, 0]) / 2.0**k < 10.0
+    assert np.all((c.offsets >= 0) & (c.offsets < 1))  # model/networks.py: octave_offset ~ U[0, 1)
+
+
+@pytest.mark.parametrize("language", shader.LANGUAGES)
+def test_emitted_text_defines_the_function(language):
+    vector = np.concatenate([np.zeros(8, np.float32), identity_colour(216)])
+    text = shader.emit_shader(SAMPLER, vector, "texspace_abc", language)
+    signature = "vec3 texspace_abc(vec3 p, uint seed)" if language == "glsl" else "fn texspace_abc(p: vec3<f32>, seed: u32)"
+    assert signature in text and "0x7feb352du" in text and "__" not in text
+    assert text.count("{") == text.count("}")
+
+
+def test_names_and_languages_are_checked():
+    assert shader.shader_name("0f3a-b__c") == "texspace_0f3a_b_c"
+    with pytest.raises(InvalidParameter):
+        shader.emit_shader(SAMPLER, np.zeros(8, np.float32), "texspace_x", "hlsl")
+    with pytest.raises(InvalidParameter):
+        shader.emit_shader(SAMPLER, np.zeros(8, np.float32), "bad__name", "glsl")
