@@ -1,11 +1,21 @@
 """The ``texspace`` command: processes (api, worker, serve, migrate) and offline tools
-(encode, tile, volume, bake) that work without a server."""
+(encode, tile, volume, bake, tileable, shader) that work without a server.
+
+As careful as the API: the offline tools take the API's ranges and the same
+``TEXSPACE_MAX_*`` limits; an output's format follows its ``-o`` extension (a
+``--format`` that disagrees is refused); every refusal is one line on stderr and exit
+status 2 (bad input) or 1 (the work failed), never a traceback, with nothing written.
+"""
 from __future__ import annotations
 
 import argparse
 import json
+import logging
+import math
 import os
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +26,67 @@ from .logs import setup_logging
 from .settings import Settings
 from .tables import Texture
 
+log = logging.getLogger(__name__)
+
+#: the API's ranges (service/deps.py, service/schemas.py, routes/jobs.py); TEXSPACE_MAX_*
+#: settings lower the upper ends further, as they do for the API
+SEED_MAX = 2**31 - 1
+OFFSET_LIMIT = 1e9
+VOLUME_RESOLUTION = (2, 1024)
+BAKE_RESOLUTION = (16, 8192)
+SCALE_MAX = 1e6
+#: output formats by extension (tile: the tile route's; bake: obj is a zip of obj + mtl + png)
+TILE_EXTENSIONS = {"png": (".png",), "webp": (".webp",), "exr": (".exr",)}
+BAKE_EXTENSIONS = {"glb": (".glb",), "obj": (".zip",)}
+TILEABLE_EXTENSIONS = {"png": (".png",), "exr": (".exr",), "tiff": (".tif", ".tiff"), "dds": (".dds",),
+                       "ktx2": (".ktx2",)}
+SHADER_EXTENSIONS = {"glsl": (".glsl",), "wgsl": (".wgsl",)}
+#: refusals of the input (exit 2); every other domain error is a failure of the work (exit 1)
+INPUT_ERRORS = ("InvalidImage", "InvalidMesh", "InvalidParameter", "LimitExceeded")
+
+
+class CliError(Exception):
+    """A refusal: one line on stderr and exit ``code`` (2: bad input, 1: the work failed)."""
+
+    def __init__(self, message: str, code: int = 2) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage block)."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows each option's default, unless there is none or the help already says it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if any(action.default is v for v in (None, False, argparse.SUPPRESS)) or "default" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
+def ranged(kind: type, lo: float | None = None, hi: float | None = None, *, above: bool = False):  # noqa: ANN201
+    """argparse ``type=``: an int or finite float in [lo, hi] ((lo, hi] with ``above``)."""
+
+    def parse(text: str) -> int | float:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{'an integer' if kind is int else 'a number'} is needed, "
+                                             f"got {text!r}") from None
+        low_ok = lo is None or (value > lo if above else value >= lo)
+        if not math.isfinite(value) or not low_ok or (hi is not None and value > hi):
+            show = (lambda v: f"{v:g}") if kind is float else str
+            interval = f"{'(' if above else '['}{show(lo)}, {show(hi)}]"
+            raise argparse.ArgumentTypeError(f"must be in {interval}, got {text}")
+        return value
+
+    return parse
+
 
 def _settings(args: argparse.Namespace) -> Settings:
     """Settings from the environment; flags override (and reach child processes)."""
@@ -24,7 +95,13 @@ def _settings(args: argparse.Namespace) -> Settings:
         value = getattr(args, flag, None)
         if value is not None:
             os.environ[env] = str(value)
-    return Settings()
+    from pydantic import ValidationError
+
+    try:
+        return Settings()
+    except ValidationError as exc:
+        problems = "; ".join(f"TEXSPACE_{'_'.join(map(str, e['loc'])).upper()}: {e['msg']}" for e in exc.errors())
+        raise CliError(f"bad setting: {problems}") from None
 
 
 def _registry(settings: Settings):  # noqa: ANN202
@@ -33,31 +110,96 @@ def _registry(settings: Settings):  # noqa: ANN202
     return ModelRegistry(settings.model_dirs, default=settings.default_model_version)
 
 
+def _sqlite_file(url: str) -> Path | None:
+    """The database file of a SQLite URL (None for other databases and :memory:)."""
+    if url.startswith("sqlite:///") and url != "sqlite:///:memory:":
+        return Path(url[len("sqlite:///"):])
+    return None
+
+
 class TextureSource:
-    """A texture named on the command line: an image file (encoded now) or a stored id."""
+    """A texture named on the command line: an image file (encoded now) or a stored id.
+    Looking an id up never creates a database: a mistyped path is refused instead."""
 
     def __init__(self, settings: Settings, ref: str) -> None:
-        registry = _registry(settings)
-        if Path(ref).is_file():
-            from worker.colour_match import texture_vector
-            from worker.images import encode_texture, read_image
-
-            runtime = registry.get(settings.default_model_version)
-            image = read_image(Path(ref).read_bytes(), max_pixels=settings.max_image_pixels)
-            self.z, colour = encode_texture(runtime, image)
-            self.code, self.sampler, self.ppu = texture_vector(self.z, colour), runtime, runtime.pixels_per_unit
-            self.model_version = runtime.version
+        path = Path(ref)
+        if path.is_file():
+            self._encode(settings, path)
             return
+        url = settings.resolved_database_url
+        database = _sqlite_file(url)
+        if database is not None and not database.is_file():  # a mistyped path: no database made for it
+            raise CliError(f"{ref!r} is neither an image file nor a texture id (no database at {database})")
+        if path.exists():
+            raise CliError(f"{ref!r} is a folder, not an image file")
         services = build_services(settings, immediate=True)
-        services._registry = registry
+        services._registry = _registry(settings)
         with db.session_scope(services.sessions) as session:
             texture = session.get(Texture, ref)
         if texture is None:
-            raise SystemExit(f"texspace: {ref!r} is neither an image file nor a texture id in "
-                             f"{settings.resolved_database_url}")
+            raise CliError(f"{ref!r} is neither an image file nor a texture id in {url}")
         self.z, self.code = np.asarray(texture.code, np.float32), texture.sampling_code()
         self.sampler, self.ppu = services.sampler_for(texture), services.pixels_per_unit(texture)
         self.model_version = texture.model_version
+        self.tileable_sampler = lambda: services.tileable_sampler_for(texture)
+
+    def _encode(self, settings: Settings, path: Path) -> None:
+        from worker.colour_match import texture_vector
+        from worker.images import encode_texture, read_image
+
+        if path.stat().st_size > settings.max_upload_bytes:
+            raise CliError(f"{path}: {path.stat().st_size} bytes exceeds the limit of {settings.max_upload_bytes} "
+                           "(TEXSPACE_MAX_UPLOAD_BYTES)")
+        with _quiet_native_stderr():  # libpng prints its own line before the error we report
+            image = read_image(path.read_bytes(), max_pixels=settings.max_image_pixels)
+        runtime = _registry(settings).get(settings.default_model_version)
+        self.z, colour = encode_texture(runtime, image)
+        self.code, self.sampler, self.ppu = texture_vector(self.z, colour), runtime, runtime.pixels_per_unit
+        self.model_version = runtime.version
+        self.tileable_sampler = runtime.tileable_sampler
+
+
+@contextmanager
+def _quiet_native_stderr() -> Iterator[None]:
+    """Silence what C libraries write to file descriptor 2 (Python's own errors still raise)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def output(args: argparse.Namespace, extensions: dict[str, tuple[str, ...]], stem: str) -> tuple[Path, str]:
+    """(path, format) of a command's output. The format follows ``-o``'s extension;
+    ``--format`` must agree with it; without ``-o``, ``stem`` + the format's extension.
+    The folder must exist (nothing is created before the work succeeds)."""
+    default = next(iter(extensions))
+    if args.output is None:
+        fmt = args.format or default
+        return Path(f"{stem}{extensions[fmt][0]}"), fmt
+    out = Path(args.output)
+    if out.is_dir():
+        raise CliError(f"-o {out} is a folder; name a file in it")
+    by_suffix = {ext: fmt for fmt, exts in extensions.items() for ext in exts}
+    guessed = by_suffix.get(out.suffix.lower())
+    known = ", ".join(f"{exts[0]} ({fmt})" for fmt, exts in extensions.items())
+    if args.format is not None and guessed != args.format:
+        raise CliError(f"-o {out}: a {args.format} file ends in {' or '.join(extensions[args.format])}, "
+                       f"not {out.suffix or 'no extension'!r}")
+    if guessed is None:
+        raise CliError(f"-o {out}: cannot tell the format from {out.suffix or 'no extension'!r}; use {known}")
+    if not out.parent.is_dir():
+        raise CliError(f"-o {out}: the folder {out.parent} does not exist")
+    return out, guessed
+
+
+def _at_most(value: int, limit: int, what: str, env: str) -> None:
+    if value > limit:
+        raise CliError(f"{what} {value} exceeds the limit of {limit} ({env})")
 
 
 def _progress_bar(description: str):  # noqa: ANN202
@@ -72,73 +214,121 @@ def _progress_bar(description: str):  # noqa: ANN202
     return bar, report
 
 
-def cmd_api(args: argparse.Namespace) -> None:
-    processes.run_api(_settings(args))
+def cmd_api(args: argparse.Namespace, settings: Settings) -> None:
+    processes.run_api(settings)
 
 
-def cmd_worker(args: argparse.Namespace) -> None:
-    processes.run_worker(_settings(args), migrate=not args.no_migrate)
+def cmd_worker(args: argparse.Namespace, settings: Settings) -> None:
+    processes.run_worker(settings, migrate=not args.no_migrate)
 
 
-def cmd_serve(args: argparse.Namespace) -> None:
-    processes.run_serve(_settings(args))
+def cmd_serve(args: argparse.Namespace, settings: Settings) -> None:
+    processes.run_serve(settings)
 
 
-def cmd_migrate(args: argparse.Namespace) -> None:
-    settings = _settings(args)
+def cmd_migrate(args: argparse.Namespace, settings: Settings) -> None:
     settings.ensure_dirs()
     db.migrate(settings.resolved_database_url)
     print(f"database at head: {settings.resolved_database_url}")
 
 
-def cmd_encode(args: argparse.Namespace) -> None:
-    source = TextureSource(_settings(args), args.image)
+def cmd_encode(args: argparse.Namespace, settings: Settings) -> None:
+    source = TextureSource(settings, args.image)
     print(json.dumps({"code": [round(float(c), 7) for c in source.z], "model_version": source.model_version}))
 
 
-def cmd_tile(args: argparse.Namespace) -> None:
+def cmd_tile(args: argparse.Namespace, settings: Settings) -> None:
     from worker.images import write_image
     from worker.tiles import render_tile
 
-    source = TextureSource(_settings(args), args.texture)
+    from .tiles import check_tile_work
+
+    out, fmt = output(args, TILE_EXTENSIONS, f"tile-{args.z}-{args.x}-{args.y}")
+    _at_most(args.size, settings.max_tile_size, "tile size", "TEXSPACE_MAX_TILE_SIZE")
+    check_tile_work(settings, args.z, args.size)
+    source = TextureSource(settings, args.texture)
     rgb = render_tile(source.sampler, source.code, args.seed, args.z, args.x, args.y, args.size,
                       pixels_per_unit=source.ppu, plane=args.plane, offset=args.offset)
-    out = Path(args.output or f"tile-{args.z}-{args.x}-{args.y}.{args.format}")
-    out.write_bytes(write_image(rgb, args.format))
+    out.write_bytes(write_image(rgb, fmt))
     print(out)
 
 
-def cmd_volume(args: argparse.Namespace) -> None:
+def cmd_volume(args: argparse.Namespace, settings: Settings) -> None:
     from worker.volume_writers import EXTENSIONS
     from worker.volumes import render_volume
 
-    source = TextureSource(_settings(args), args.texture)
-    out = Path(args.output or f"volume-{args.resolution}{EXTENSIONS[args.format]}")
+    extensions = {fmt: (ext, ".tiff") if fmt == "tiff" else (ext,) for fmt, ext in EXTENSIONS.items()}
+    out, fmt = output(args, extensions, f"volume-{args.resolution}")
+    _at_most(args.resolution, settings.max_volume_resolution, "resolution", "TEXSPACE_MAX_VOLUME_RESOLUTION")
     bounds = np.asarray(args.bounds, np.float64).reshape(2, 3)
+    if (np.abs(bounds) >= OFFSET_LIMIT).any() or not (bounds[1] > bounds[0]).all():
+        raise CliError("--bounds: coordinates below 1e9 in magnitude, and X1 > X0, Y1 > Y0, Z1 > Z0")
+    source = TextureSource(settings, args.texture)
     bar, report = _progress_bar("volume")
     with bar:
         path = render_volume(source.sampler, source.code, args.seed, resolution=args.resolution,
-                             bounds=bounds, fmt=args.format, out_path=out, progress=report)
+                             bounds=bounds, fmt=fmt, out_path=out, progress=report)
     print(path)
 
 
-def cmd_bake(args: argparse.Namespace) -> None:
-    from worker.bake import BakeLimits, bake_mesh
+def cmd_bake(args: argparse.Namespace, settings: Settings) -> None:
+    from worker.bake import bake_mesh
 
-    source = TextureSource(_settings(args), args.texture)
+    from .limits import bake_limits, check_mesh
+
     mesh = Path(args.mesh)
-    out = Path(args.output or f"{mesh.stem}-baked.{'glb' if args.format == 'glb' else 'zip'}")
+    if not mesh.is_file():
+        raise CliError(f"{args.mesh}: no such mesh file")
+    out, fmt = output(args, BAKE_EXTENSIONS, f"{mesh.stem}-baked")
+    _at_most(args.resolution, settings.max_bake_resolution, "resolution", "TEXSPACE_MAX_BAKE_RESOLUTION")
+    _at_most(mesh.stat().st_size, settings.max_mesh_bytes, f"{mesh}: size in bytes", "TEXSPACE_MAX_MESH_BYTES")
+    data = mesh.read_bytes()
+    check_mesh(settings, data, mesh.name)  # as the API does at submission, before any work
+    source = TextureSource(settings, args.texture)
     bar, report = _progress_bar("bake")
     with bar:
-        result = bake_mesh(source.sampler, source.code, args.seed, mesh_bytes=mesh.read_bytes(),
-                           filename=mesh.name, resolution=args.resolution, scale=args.scale, fmt=args.format,
-                           out_path=out, pixels_per_unit=source.ppu, limits=BakeLimits(), progress=report)
+        result = bake_mesh(source.sampler, source.code, args.seed, mesh_bytes=data, filename=mesh.name,
+                           resolution=args.resolution, scale=args.scale, fmt=fmt, out_path=out,
+                           pixels_per_unit=source.ppu, limits=bake_limits(settings), progress=report)
     print(result.path)
 
 
-def cmd_keys(args: argparse.Namespace) -> None:
+def cmd_tileable(args: argparse.Namespace, settings: Settings) -> None:
+    """A seamlessly tiling square image (the API's region with ``tileable: true``)."""
+    from worker.regions import RegionLimits, render_region
+    from worker.tiles import NATIVE_ZOOM
+
+    out, fmt = output(args, TILEABLE_EXTENSIONS, f"tileable-{args.size}")
+    _at_most(args.size * args.size, settings.max_region_pixels, "pixels", "TEXSPACE_MAX_REGION_PIXELS")
+    source = TextureSource(settings, args.texture)
+    bar, report = _progress_bar("tileable")
+    with bar:
+        path = render_region(source.tileable_sampler(), source.code, args.seed, z=NATIVE_ZOOM, x0=0, y0=0,
+                             width=args.size, height=args.size, fmt=fmt, out_path=out, pixels_per_unit=source.ppu,
+                             tileable=True, limits=RegionLimits(max_pixels=settings.max_region_pixels),
+                             progress=report)
+    print(path)
+
+
+def cmd_shader(args: argparse.Namespace, settings: Settings) -> None:
+    """The texture as GLSL ES 3.00 or WGSL source (the API's ``shader.glsl`` / ``.wgsl``)."""
+    from worker.shader import emit_shader, shader_name
+
+    out, fmt = output(args, SHADER_EXTENSIONS, "shader")
+    source = TextureSource(settings, args.texture)
+    sampler = getattr(source.sampler, "sampler", source.sampler)  # a model's runtime, or a fitted sampler
+    ref = Path(args.texture)
+    name = shader_name(ref.stem if ref.is_file() else args.texture)
+    text = emit_shader(sampler.path, source.code, name, fmt,
+                       header=f"texspace texture {ref.name if ref.is_file() else args.texture}, "
+                              f"model {source.model_version}")
+    out.write_text(text)
+    print(out)
+
+
+def cmd_keys(args: argparse.Namespace, settings: Settings) -> None:
     """``texspace keys create NAME [--note] | list | revoke KEY_ID`` (see :mod:`service.auth`)."""
-    services = build_services(_settings(args), immediate=True)
+    services = build_services(settings, immediate=True)
     if args.action == "create":
         row, key = auth.create_key(services, args.name, args.note)
         print(f"id:  {row.id}\nkey: {key}\n(store the key now: only its hash is kept)")
@@ -147,79 +337,151 @@ def cmd_keys(args: argparse.Namespace) -> None:
             state = f"revoked {row.revoked_at:%Y-%m-%d %H:%M}" if row.revoked_at else "active"
             print(f"{row.id}  {state:<24} {row.created_at:%Y-%m-%d %H:%M}  {row.name}")
     elif not auth.revoke_key(services, args.key_id):
-        raise SystemExit(f"texspace: no active key with id {args.key_id!r}")
+        raise CliError(f"no active key with id {args.key_id!r}", code=1)
     else:
         print(f"revoked {args.key_id}")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="texspace", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
+    from worker.tiles import MAX_TILE_SIZE, MAX_ZOOM, MIN_TILE_SIZE, MIN_ZOOM, NATIVE_ZOOM
+    from worker.volume_writers import EXTENSIONS as VOLUME_EXTENSIONS
+
+    from .deps import COORD_LIMIT
+
+    fields = Settings.model_fields
+    parser = Parser(prog="texspace", formatter_class=HelpFormatter,
+                    description="processes (api, worker, serve, migrate) and offline tools (encode, tile, "
+                                "volume, bake, tileable, shader) that work without a server",
+                    epilog="An error is one line on stderr; exit status 2: bad input, 1: the work failed.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def proc(name: str, func, help_: str) -> argparse.ArgumentParser:  # noqa: ANN001
-        p = sub.add_parser(name, help=help_)
-        p.add_argument("--data-dir", dest="data_dir", help="overrides TEXSPACE_DATA_DIR")
+        p = sub.add_parser(name, help=help_, description=help_, formatter_class=HelpFormatter)
+        p.add_argument("--data-dir", dest="data_dir", metavar="DIR",
+                       help=f"overrides TEXSPACE_DATA_DIR (default: {fields['data_dir'].default})")
         p.set_defaults(func=func)
         return p
 
     for name, func, help_ in (("api", cmd_api, "run the HTTP API (uvicorn)"),
                               ("serve", cmd_serve, "run the API and one worker process (embedded default)")):
         p = proc(name, func, help_)
-        p.add_argument("--host")
-        p.add_argument("--port", type=int)
+        p.add_argument("--host", help=f"overrides TEXSPACE_HOST (default: {fields['host'].default})")
+        p.add_argument("--port", type=ranged(int, 1, 65535),
+                       help=f"overrides TEXSPACE_PORT (default: {fields['port'].default})")
     p = proc("worker", cmd_worker, "consume the job queue")
-    p.add_argument("--workers", type=int, help="threads (overrides TEXSPACE_WORKERS)")
-    p.add_argument("--no-migrate", action="store_true", help="assume the database is migrated")
+    p.add_argument("--workers", type=ranged(int, 1, 1024),
+                   help=f"threads, overrides TEXSPACE_WORKERS (default: {fields['workers'].default})")
+    p.add_argument("--no-migrate", action="store_true", help="assume the database is migrated (default: migrate)")
     proc("migrate", cmd_migrate, "apply database migrations")
 
-    p = proc("encode", cmd_encode, "print the texture code of an image")
-    p.add_argument("image")
+    p = proc("encode", cmd_encode, "print the texture code of an image file or stored texture id")
+    p.add_argument("image", help="IMAGE file or TEXTURE_ID (required)")
 
-    def texture_args(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--seed", type=int, default=0)
-        p.add_argument("-o", "--output")
+    def texture_args(p: argparse.ArgumentParser, what: str, formats: dict[str, tuple[str, ...]], name: str) -> None:
+        p.add_argument("--seed", type=ranged(int, 0, SEED_MAX), default=0,
+                       help=f"texture instance, 0..{SEED_MAX}")
+        exts = ", ".join(f"{exts[0]} = {fmt}" for fmt, exts in formats.items())
+        first = next(iter(formats))
+        p.add_argument("-o", "--output", metavar="FILE",
+                       help=f"where to write the {what}; its extension picks the format ({exts}); the folder "
+                            f"must exist (default: {name}{formats[first][0]} here)")
+        p.add_argument("--format", choices=list(formats),
+                       help=f"must agree with -o's extension (default: from -o's extension, else {first})")
 
     p = proc("tile", cmd_tile, "render one tile of an image file or stored texture id")
-    p.add_argument("texture", help="IMAGE file or TEXTURE_ID")
-    for axis in ("z", "x", "y"):
-        p.add_argument(axis, type=int)
-    texture_args(p)
-    p.add_argument("--size", type=int, default=256)
-    p.add_argument("--plane", choices=("xy", "xz", "yz"), default="xy")
-    p.add_argument("--offset", type=float, default=0.0)
-    p.add_argument("--format", choices=("png", "webp", "exr"), default="png")
+    p.add_argument("texture", help="IMAGE file or TEXTURE_ID (required)")
+    p.add_argument("z", type=ranged(int, MIN_ZOOM, MAX_ZOOM),
+                   help=f"zoom {MIN_ZOOM}..{MAX_ZOOM}; at {NATIVE_ZOOM} a tile pixel is an exemplar pixel (required)")
+    p.add_argument("x", type=ranged(int, -COORD_LIMIT, COORD_LIMIT), help="tile column, grows right (required)")
+    p.add_argument("y", type=ranged(int, -COORD_LIMIT, COORD_LIMIT), help="tile row, grows down (required)")
+    texture_args(p, "tile", TILE_EXTENSIONS, "tile-Z-X-Y")
+    p.add_argument("--size", type=ranged(int, MIN_TILE_SIZE, MAX_TILE_SIZE), default=256,
+                   help=f"tile side in pixels, {MIN_TILE_SIZE}..TEXSPACE_MAX_TILE_SIZE "
+                        f"({fields['max_tile_size'].default} unless set)")
+    p.add_argument("--plane", choices=("xy", "xz", "yz"), default="xy", help="which world plane the tile lies in")
+    p.add_argument("--offset", type=ranged(float, -OFFSET_LIMIT, OFFSET_LIMIT), default=0.0,
+                   help="plane position on the third axis, world units")
 
-    p = proc("volume", cmd_volume, "render a solid N^3 block")
-    p.add_argument("texture", help="IMAGE file or TEXTURE_ID")
-    texture_args(p)
-    p.add_argument("--resolution", type=int, default=64)
-    p.add_argument("--bounds", type=float, nargs=6, default=[0, 0, 0, 1, 1, 1], metavar="X0 Y0 Z0 X1 Y1 Z1")
-    p.add_argument("--format", choices=("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook"), default="npy")
+    p = proc("volume", cmd_volume, "render a solid N^3 block of an image file or stored texture id")
+    p.add_argument("texture", help="IMAGE file or TEXTURE_ID (required)")
+    volume_formats = {fmt: (ext, ".tiff") if fmt == "tiff" else (ext,) for fmt, ext in VOLUME_EXTENSIONS.items()}
+    texture_args(p, "volume", volume_formats, "volume-N")
+    p.add_argument("--resolution", type=ranged(int, *VOLUME_RESOLUTION), default=64,
+                   help=f"voxels per side N, {VOLUME_RESOLUTION[0]}..TEXSPACE_MAX_VOLUME_RESOLUTION "
+                        f"({fields['max_volume_resolution'].default} unless set)")
+    p.add_argument("--bounds", type=ranged(float, -OFFSET_LIMIT, OFFSET_LIMIT), nargs=6,
+                   default=[0.0, 0.0, 0.0, 1.0, 1.0, 1.0], metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+                   help="the world box, corner (X0 Y0 Z0) to corner (X1 Y1 Z1) (default: 0 0 0 1 1 1)")
 
     p = proc("bake", cmd_bake, "UV-unwrap a mesh and bake a texture into it")
-    p.add_argument("mesh")
-    p.add_argument("--texture", required=True, help="IMAGE file or TEXTURE_ID")
-    texture_args(p)
-    p.add_argument("--resolution", type=int, default=1024)
-    p.add_argument("--scale", type=float, default=None, help="world units per mesh unit (default: auto)")
-    p.add_argument("--format", choices=("glb", "obj"), default="glb")
+    p.add_argument("mesh", help="OBJ, PLY, STL or GLB mesh file (by extension; required)")
+    p.add_argument("--texture", required=True, help="IMAGE file or TEXTURE_ID (required)")
+    texture_args(p, "bake", BAKE_EXTENSIONS, "MESH-baked")
+    p.add_argument("--resolution", type=ranged(int, *BAKE_RESOLUTION), default=1024,
+                   help=f"texture atlas side in pixels, {BAKE_RESOLUTION[0]}..TEXSPACE_MAX_BAKE_RESOLUTION "
+                        f"({fields['max_bake_resolution'].default} unless set)")
+    p.add_argument("--scale", type=ranged(float, 0, SCALE_MAX, above=True),
+                   help="world units per mesh unit (default: the mesh spans 512 exemplar pixels)")
+
+    p = proc("tileable", cmd_tileable, "render a seamlessly tiling square image of an image file or stored "
+                                       "texture id (one pixel per exemplar pixel)")
+    p.add_argument("texture", help="IMAGE file or TEXTURE_ID (required)")
+    texture_args(p, "image", TILEABLE_EXTENSIONS, "tileable-SIZE")
+    p.add_argument("--size", type=ranged(int, 64, 16384), default=1024,
+                   help="side in pixels, up to TEXSPACE_MAX_REGION_PIXELS in all (dds, ktx2: 4096); the noise "
+                        "octaves' frequencies are rounded to whole cells per side, so small sizes (256) change "
+                        "the coarse features most")
+
+    p = proc("shader", cmd_shader, "write an image file's or stored texture id's shader: GLSL ES 3.00 or WGSL "
+                                   "function texspace_<id>(p, seed) -> linear RGB (docs/SHADER.md)")
+    p.add_argument("texture", help="IMAGE file or TEXTURE_ID (required)")
+    p.add_argument("-o", "--output", metavar="FILE",
+                   help="where to write it; .glsl or .wgsl picks the language (default: shader.glsl here)")
+    p.add_argument("--format", choices=list(SHADER_EXTENSIONS),
+                   help="must agree with -o's extension (default: from -o's extension, else glsl)")
 
     p = proc("keys", cmd_keys, "API keys: create, list, revoke")
-    actions = p.add_subparsers(dest="action", required=True)
-    create = actions.add_parser("create", help="make a key and print it once")
-    create.add_argument("name")
-    create.add_argument("--note")
-    actions.add_parser("list", help="ids, states and names (never the keys)")
-    revoke = actions.add_parser("revoke", help="revoke a key by id")
-    revoke.add_argument("key_id")
+    actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    create = actions.add_parser("create", help="make a key and print it once", formatter_class=HelpFormatter)
+    create.add_argument("name", help="who or what the key is for (required)")
+    create.add_argument("--note", help="free text kept with the key (default: none)")
+    actions.add_parser("list", help="ids, states and names (never the keys)", formatter_class=HelpFormatter)
+    revoke = actions.add_parser("revoke", help="revoke a key by id", formatter_class=HelpFormatter)
+    revoke.add_argument("key_id", help="the id `keys list` shows (required)")
     return parser
+
+
+def _one_line(text: object) -> str:
+    return " ".join(str(text).split())
 
 
 def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
-    settings = _settings(args)
-    setup_logging(settings.log_level, settings.log_json and args.command in ("api", "worker", "serve"))
-    args.func(args)
+    prog = f"texspace {args.command}"
+    try:
+        settings = _settings(args)
+        setup_logging(settings.log_level, settings.log_json and args.command in ("api", "worker", "serve"))
+        if args.command not in ("api", "worker", "serve", "migrate"):
+            logging.getLogger("alembic").setLevel(logging.WARNING)  # a lookup migrates quietly
+        args.func(args, settings)
+    except CliError as exc:
+        sys.exit(_fail(prog, str(exc), exc.code))
+    except KeyboardInterrupt:
+        sys.exit(_fail(prog, "interrupted", 130))
+    except Exception as exc:  # domain errors, OS errors, the unexpected: one line, never a traceback
+        from worker.errors import TexspaceError
+
+        log.debug("%s failed", prog, exc_info=True)
+        if isinstance(exc, TexspaceError):
+            sys.exit(_fail(prog, exc.detail, 2 if type(exc).__name__ in INPUT_ERRORS else 1))
+        if isinstance(exc, OSError) and exc.strerror:
+            sys.exit(_fail(prog, f"{exc.strerror}: {exc.filename}" if exc.filename else exc.strerror, 1))
+        sys.exit(_fail(prog, f"{type(exc).__name__}: {exc} (TEXSPACE_LOG_LEVEL=DEBUG shows where)", 1))
+
+
+def _fail(prog: str, message: str, code: int) -> int:
+    print(f"{prog}: error: {_one_line(message)}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

@@ -7,7 +7,10 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse, Response
 
 from worker import images
 
@@ -22,24 +25,40 @@ from .site import SiteFiles
 
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).resolve().parent / "static"
+#: Swagger UI for /docs, bundled like the page's libraries (web/copy-vendor.mjs): no CDN
+SWAGGER_UI = "/vendor/swagger-ui-dist"
+#: the hand-written contract (a source checkout); a wheel install serves the app's own schema
+CONTRACT = Path(__file__).resolve().parent.parent / "openapi.yaml"
+#: what a page on another origin may send and read (TEXSPACE_CORS_ORIGINS)
+CORS_REQUEST_HEADERS = ["Content-Type", "X-API-Key", "Idempotency-Key", "If-None-Match", "Last-Event-ID",
+                        "X-Request-ID"]
+CORS_RESPONSE_HEADERS = ["ETag", "Location", "Retry-After", "X-Request-ID", "Content-Disposition",
+                         "Idempotent-Replayed", "WWW-Authenticate"]
 
 
 def create_app(settings: Settings | None = None, *, services: Services | None = None) -> FastAPI:
     """Build the app. ``services`` may be given (tests pass in-memory queues)."""
     settings = settings or (services.settings if services else Settings())
     services = services or build_services(settings)
-    app = FastAPI(title="texspace", version=__version__, lifespan=_warm_up,
+    app = FastAPI(title="texspace", version=__version__, lifespan=_warm_up, docs_url=None, redoc_url=None,
                   description="Neural 3D texture space: encode a photo, then synthesise infinite tiles, "
                               "volumes and UV-baked meshes from its 8-number code.")
     app.state.services = services
     services.metrics.watch(services)
-    images.set_decode_budget(settings.decode_budget_pixels)  # uploads: bounded decoded pixels (docs/OPERATIONS.md)
+    # uploads: bounded decoded pixels, a bounded wait for room (docs/OPERATIONS.md)
+    images.set_decode_budget(settings.decode_budget_pixels, settings.decode_wait_seconds,
+                             settings.decode_max_waiting)
     install_error_handlers(app)
     for module in (system, textures, tiles, jobs):
         app.include_router(module.router, **({} if module is system else auth.router_options()))
     app.add_middleware(RequestContextMiddleware, metrics=services.metrics,
                        max_body_bytes=max(settings.max_upload_bytes, settings.max_mesh_bytes) + (1 << 20))
+    if settings.cors_origins:  # outermost: preflights are answered before auth, errors carry the headers
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+                           allow_methods=["GET", "HEAD", "POST", "PATCH", "DELETE"],
+                           allow_headers=CORS_REQUEST_HEADERS, expose_headers=CORS_RESPONSE_HEADERS, max_age=600)
     app.openapi = lambda: _openapi(app)
+    _add_docs(app)
     if (STATIC_DIR / "index.html").is_file():  # the web page (its own engineer's part)
         app.mount("/", SiteFiles(directory=STATIC_DIR, html=True, routes=list(app.router.routes)), name="static")
     return app
@@ -58,6 +77,28 @@ async def _warm_up(app: FastAPI) -> AsyncIterator[None]:
 
     threading.Thread(target=load, name="warm-up", daemon=True).start()
     yield
+
+
+def _add_docs(app: FastAPI) -> None:
+    """/docs (Swagger UI from the bundled files, so it renders offline) and /openapi.yaml."""
+
+    @app.get("/docs", include_in_schema=False, response_class=HTMLResponse)
+    def docs(request: Request) -> HTMLResponse:
+        root = request.scope.get("root_path", "").rstrip("/")
+        return get_swagger_ui_html(openapi_url=f"{root}{app.openapi_url}", title=f"{app.title} - API docs",
+                                   swagger_js_url=f"{root}{SWAGGER_UI}/swagger-ui-bundle.js",
+                                   swagger_css_url=f"{root}{SWAGGER_UI}/swagger-ui.css",
+                                   swagger_favicon_url=f"{root}{SWAGGER_UI}/favicon-32x32.png")
+
+    @app.get("/openapi.yaml", include_in_schema=False)
+    def openapi_yaml() -> Response:
+        if CONTRACT.is_file():
+            text = CONTRACT.read_text(encoding="utf-8")
+        else:
+            import yaml
+
+            text = yaml.safe_dump(app.openapi(), sort_keys=False, allow_unicode=True)
+        return Response(text, media_type="application/yaml")
 
 
 def _openapi(app: FastAPI) -> dict:

@@ -1,4 +1,4 @@
-// Copy the few files the page needs from node_modules into service/static/vendor,
+// Copy the few files the page (and the API's /docs) needs from node_modules into service/static/vendor,
 // with each library's LICENSE, so the served page works offline and without npm.
 // Run after `npm ci`:  node copy-vendor.mjs   (or `npm run vendor`)
 import { cpSync, mkdirSync, rmSync, writeFileSync, readFileSync } from 'node:fs';
@@ -20,6 +20,15 @@ const wanted = [
     'dist/images/marker-icon.png',
     'dist/images/marker-icon-2x.png',
     'dist/images/marker-shadow.png',
+  ]],
+  // /docs (Swagger UI, served by the API from here: no CDN); the bundle holds the standalone preset
+  ['swagger-ui-dist', [
+    'LICENSE',
+    'NOTICE',
+    'swagger-ui-bundle.js',
+    'swagger-ui-bundle.js.LICENSE.txt',
+    'swagger-ui.css',
+    'favicon-32x32.png',
   ]],
   ['three', [
     'LICENSE',

@@ -99,6 +99,13 @@ def wait_for_new_tiles(page, tiles: TileLog, texture_id: str, seen: set, timeout
     return tiles.keys(texture_id) - seen
 
 
+def page_errors(page) -> list[str]:
+    """The page's uncaught exceptions and console errors, less the 503s a busy server answers
+    cold tiles with (back-pressure, TEXSPACE_TILE_QUEUE_*): the page asks for those again
+    (retry=n), so a tile still missing fails the test where it waits for tiles instead."""
+    return [e for e in page.js_errors if "status of 503" not in e]
+
+
 def shoot(page, artifacts: Path, name: str) -> None:
     page.screenshot(path=str(artifacts / f"{name}.png"), full_page=True)
 

@@ -18,6 +18,7 @@ from .helpers import (
     MAP_BACKGROUND,
     canvas_pixels,
     map_pixels,
+    page_errors,
     shoot,
     spatial_std,
     texture_photo_png,
@@ -108,4 +109,4 @@ def test_page_with_api_keys(page, keyed_server: tuple[str, str], artifacts: Path
         "once entered, the key goes with every request for textures, tiles and jobs"
     assert not [u for u, _ in requests if key in u], "the key never goes into a URL"
     # Only the 401s of steps 1-2 may show as console errors.
-    assert [e for e in page.js_errors if "401" not in e] == []
+    assert [e for e in page_errors(page) if "401" not in e] == []

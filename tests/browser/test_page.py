@@ -18,6 +18,7 @@ from .helpers import (
     a_drawn_tile,
     canvas_pixels,
     map_pixels,
+    page_errors,
     shoot,
     spatial_std,
     texture_photo_png,
@@ -139,7 +140,7 @@ def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> No
     page.wait_for_timeout(300)
     assert spatial_std(canvas_pixels(page, "#viewer canvas")) > 10
     assert page.evaluate("window.texspace.textureMap.tilesFailed") == 0
-    assert page.js_errors == []
+    assert page_errors(page) == []
 
 
 def test_interpolation_slider_and_strip(page, base_url: str, artifacts: Path) -> None:
@@ -182,7 +183,7 @@ def test_interpolation_slider_and_strip(page, base_url: str, artifacts: Path) ->
     assert page.evaluate("window.texspace.textureMap.view()") == view_before
     assert page.input_value("#seed") == "1"
     assert all("seed=1" in src for src in page.eval_on_selector_all("#map img.leaflet-tile", "i => i.map((t) => t.src)"))
-    assert page.js_errors == []
+    assert page_errors(page) == []
 
 
 def test_default_bake_mesh_is_a_closed_sphere(page, base_url: str, tmp_path: Path) -> None:
@@ -228,4 +229,4 @@ def test_controls_are_labelled(page, base_url: str) -> None:
                         && !el.textContent.trim() && !el.title)
         .map((el) => el.outerHTML.slice(0, 80))""")
     assert unlabelled == []
-    assert page.js_errors == []
+    assert page_errors(page) == []

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from .helpers import ALL_TILES_LOADED, TileLog, a_drawn_tile, shoot, texture_photo_png, tile_image_pixels, upload
+from .helpers import (ALL_TILES_LOADED, TileLog, a_drawn_tile, page_errors, shoot, texture_photo_png, tile_image_pixels,
+                      upload)
 
 pytestmark = [pytest.mark.browser, pytest.mark.e2e, pytest.mark.slow]
 FIT_TIMEOUT_MS = 180_000
@@ -45,4 +46,4 @@ def test_upload_shows_refinement_progress_then_fitted_tiles(page, refining_serve
     assert np.abs(fitted_pixels.astype(int) - encoder_pixels.astype(int)).mean() > 1.0
     texture = page.evaluate("window.texspace.state.current")
     assert texture["sampler"] == "fitted" and texture["refinement"]["state"] == "succeeded"
-    assert page.js_errors == []
+    assert page_errors(page) == []

@@ -126,7 +126,9 @@ export async function fetchBlob(url, options = {}) {
  * API URL.
  */
 export async function setImageSource(img, url) {
+  img._texspaceRetryOff?.();
   if (!apiKey) {
+    retryRefusedTile(img, url);
     img.src = url;
     return;
   }
@@ -143,6 +145,35 @@ export async function setImageSource(img, url) {
   img.addEventListener('load', release, { once: true });
   img.addEventListener('error', release, { once: true });
   img.src = objectUrl;
+}
+
+// A busy server refuses cold tiles with 503 + Retry-After (back-pressure); an <img> cannot
+// read the status, so a tile image that failed is asked for again a few times, later each
+// time, under a URL of its own (`retry=n`, ignored by the server). map.js does the same.
+const TILE_IMAGE_RETRIES = 6;
+const TILE_IMAGE_RETRY_MS = 1500;
+
+function retryRefusedTile(img, url) {
+  if (!url.includes('/tiles/')) return;
+  let tries = 0;
+  let timer = null;
+  const onError = () => {
+    if (tries >= TILE_IMAGE_RETRIES) { off(); return; }
+    tries += 1;
+    timer = setTimeout(() => {
+      const next = new URL(url);
+      next.searchParams.set('retry', String(tries));
+      img.src = next.toString();
+    }, Math.min(TILE_IMAGE_RETRY_MS * tries, 8000));
+  };
+  const off = () => {
+    clearTimeout(timer);
+    img.removeEventListener('error', onError);
+    img.removeEventListener('load', off);
+  };
+  img.addEventListener('error', onError);
+  img.addEventListener('load', off);
+  img._texspaceRetryOff = off;
 }
 
 /** The file name in a Content-Disposition header, if any. */
@@ -281,6 +312,29 @@ export function startVolume(textureId, params) {
     headers: { 'content-type': 'application/json' },
     body: JSON.stringify(params),
   });
+}
+
+/** A region of the plane (RegionIn in service/schemas.py); `tileable: true` makes a square
+ * image at zoom 6 that repeats without a seam. */
+export function startRegion(textureId, params) {
+  return submitJob(`textures/${textureId}/regions`, {
+    headers: { 'content-type': 'application/json' },
+    body: JSON.stringify(params),
+  });
+}
+
+/** A fit (the train extra on the workers): a new texture with its own fitted sampler
+ * (`output_texture_id` of the succeeded job). `seconds`: the optimisation budget. */
+export function startFit(textureId, { seconds, grain = null }) {
+  return submitJob(`textures/${textureId}/fit`, {
+    headers: { 'content-type': 'application/json' },
+    body: JSON.stringify({ seconds, grain }),
+  });
+}
+
+/** Delete a texture with its jobs and their files (204). */
+export async function deleteTexture(id) {
+  await request(`textures/${id}`, { method: 'DELETE' });
 }
 
 export async function cancelJob(id) {

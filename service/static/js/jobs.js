@@ -17,13 +17,23 @@ export function fraction(progress) {
   return Math.max(0, Math.min(1, p > 1 ? p / 100 : p));
 }
 
-/** A short label for a job, e.g. "bake sphere.obj (glb)" or "volume 64^3 (npy)". */
-export function describe(job) {
+/** What a job makes, e.g. "bake sphere.obj (glb)", "volume 64^3 (npy)", "fit 60 s". */
+function what(job) {
   const p = job.params || {};
   if (job.kind === 'bake') return `bake ${p.filename || 'mesh'} (${p.format || 'glb'})`;
   if (job.kind === 'volume') return `volume ${p.resolution}^3 (${p.format})`;
-  if (job.kind === 'fit' && p.in_place) return `refine ${(job.texture_id || job.id).slice(0, 8)}`;
+  if (job.kind === 'fit') return p.in_place ? 'refine' : `fit ${p.seconds ?? ''} s`;
+  if (job.kind === 'region') return `${p.tileable ? 'tileable' : 'region'} ${p.width}x${p.height} (${p.format})`;
   return `${job.kind || 'job'} ${job.id.slice(0, 8)}`;
+}
+
+/**
+ * A short label for a job naming its texture, e.g. "bake sphere.obj (glb) · brick".
+ * `nameOf(textureId)`: the texture's name, if known (else the id's first 8 characters).
+ */
+export function describe(job, nameOf = () => null) {
+  if (!job.texture_id) return what(job);
+  return `${what(job)} · ${nameOf(job.texture_id) || job.texture_id.slice(0, 8)}`;
 }
 
 /**
@@ -87,10 +97,24 @@ export function follow(job, onState, { onError = () => {} } = {}) {
 }
 
 export class JobList {
-  /** @param {HTMLElement} list  the <ul> to fill */
-  constructor(list) {
+  /**
+   * @param {HTMLElement} list  the <ul> to fill
+   * @param {{nameOf?: (textureId: string) => string | null}} options  labels name the texture
+   */
+  constructor(list, { nameOf = () => null } = {}) {
     this.list = list;
+    this.nameOf = nameOf;
     this.stops = new Set(); // stop functions of the jobs being followed
+  }
+
+  /** Drop the jobs of a deleted texture (the server deleted them with it). */
+  forgetTexture(textureId) {
+    for (const item of [...this.list.children]) {
+      if (item.dataset.textureId !== textureId) continue;
+      item._stop?.();
+      this.stops.delete(item._stop);
+      item.remove();
+    }
   }
 
   /** Stop following every job and empty the list (e.g. when the API key changes). */
@@ -104,12 +128,14 @@ export class JobList {
    * List a job and follow it until it ends.
    * @param {object} job  a JobOut (the 202 body of a submission, or from GET /v1/jobs)
    * @param {{label?: string, onSuccess?: (job: object, resultUrl: string) => void,
-   *          onView?: (resultUrl: string) => void}} options
+   *          onState?: (state: object) => void, onView?: (resultUrl: string) => void}} options
+   *   onState: every update (a JobOut, or a progress event's {state, progress, attempt}).
    *   onView: offered as a "View in 3D" button on finished GLB bakes.
    */
-  track(job, { label = describe(job), onSuccess = () => {}, onView = null } = {}) {
+  track(job, { label = describe(job, this.nameOf), onSuccess = () => {}, onState = () => {}, onView = null } = {}) {
     const item = document.createElement('li');
     item.dataset.jobId = job.id;
+    if (job.texture_id) item.dataset.textureId = job.texture_id;
     item.innerHTML = `<div><strong></strong> <span class="state">queued</span></div>
       <progress max="1" value="0"></progress>
       <div class="links"><button type="button" class="cancel">Cancel</button></div>`;
@@ -125,6 +151,7 @@ export class JobList {
       item.dataset.state = status;
       item.querySelector('.state').textContent = status;
       item.querySelector('progress').value = status === 'succeeded' ? 1 : fraction(state.progress);
+      onState(state);
       if (!TERMINAL.has(status)) return;
       this.stops.delete(stop);
       cancel.remove();
@@ -159,6 +186,7 @@ export class JobList {
     stop = follow(job, show, {
       onError: () => { item.querySelector('.state').textContent = 'needs an API key'; },
     });
+    item._stop = stop;
     if (TERMINAL.has(item.dataset.state)) return; // it had ended already
     this.stops.add(stop);
     cancel.addEventListener('click', async () => {

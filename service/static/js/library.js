@@ -26,11 +26,26 @@ const lazyThumbnails = 'IntersectionObserver' in window ? new IntersectionObserv
   }
 }, { rootMargin: '200px' }) : null;
 
-/** <li> with a toggle button (thumbnail, name, code) that selects the texture. */
-export function textureItem(texture, { pressed, onSelect }) {
+/** The name a texture is shown (and searched) by. */
+export function textureName(texture) {
+  return texture.name || texture.id;
+}
+
+/** Does `texture` match the library's search text (name or id, any case)? */
+export function matches(texture, query) {
+  const q = query.trim().toLowerCase();
+  return !q || textureName(texture).toLowerCase().includes(q) || texture.id.startsWith(q);
+}
+
+/**
+ * <li> with a toggle button (thumbnail, name, code) that selects the texture, and a
+ * delete button (onDelete(texture)) when `onDelete` is given.
+ */
+export function textureItem(texture, { pressed, onSelect, onDelete = null }) {
   const item = document.createElement('li');
   const button = document.createElement('button');
   button.type = 'button';
+  button.className = 'pick';
   button.dataset.id = texture.id;
   button.setAttribute('aria-pressed', String(pressed));
   const img = document.createElement('img');
@@ -45,13 +60,23 @@ export function textureItem(texture, { pressed, onSelect }) {
   const meta = document.createElement('span');
   meta.className = 'meta';
   const name = document.createElement('span');
-  name.textContent = texture.name || texture.id;
+  name.textContent = textureName(texture);
   const code = document.createElement('small');
   code.textContent = Array.isArray(texture.code) ? texture.code.map((c) => c.toFixed(2)).join(' ') : '';
   meta.append(name, code);
   button.append(img, meta);
   button.addEventListener('click', () => onSelect(texture));
   item.append(button);
+  if (onDelete) {
+    const remove = document.createElement('button');
+    remove.type = 'button';
+    remove.className = 'delete';
+    remove.textContent = '\u00d7';
+    remove.title = `Delete ${textureName(texture)}`;
+    remove.setAttribute('aria-label', `Delete ${textureName(texture)}`);
+    remove.addEventListener('click', () => onDelete(texture));
+    item.append(remove);
+  }
   return item;
 }
 

@@ -1,21 +1,25 @@
 // Page wiring: texture library + upload, the map and its controls, interpolation, 3D jobs.
 import * as api from './api.js';
 import { TextureMap } from './map.js';
-import { textureItem, wireDropZone } from './library.js';
+import { matches, textureItem, textureName, wireDropZone } from './library.js';
 import { InterpolationPanel } from './interp.js';
 import { JobList, follow, fraction } from './jobs.js';
 import { sphereObjFile } from './sphere.js';
 import { readView, writeView } from './permalink.js';
+import { GpuView } from './gpuview.js';
 
 const $ = (id) => document.getElementById(id);
 // VolumeIn.format in service/schemas.py
-const VOLUME_FORMATS = ['npy', 'exr', 'tiff', 'raw', 'nrrd', 'dds', 'flipbook'];
+const VOLUME_FORMATS = ['npy', 'exr', 'tiff', 'raw', 'nrrd', 'dds', 'flipbook', 'vdb'];
+// RegionIn.format in service/schemas.py, less pyramid (a square image here)
+const REGION_FORMATS = ['png', 'exr', 'tiff', 'dds', 'ktx2'];
 
 const state = {
   models: null,     // Promise of GET /v1/models, fetched once
   textures: [],     // listed textures, newest first
   current: null,    // texture on the map
   nextCursor: null,
+  names: new Map(), // texture id -> name, for job labels (listed textures and jobs' textures)
 };
 
 function say(message, isError = false) {
@@ -150,14 +154,16 @@ async function showTexture(texture, view = null) {
     api.setImageSource($('exemplar'), api.exemplarUrl(texture.id));
     sizeExemplar(texture);
   }
-  for (const button of document.querySelectorAll('#texture-list button')) {
+  for (const button of document.querySelectorAll('#texture-list button.pick')) {
     button.setAttribute('aria-pressed', String(button.dataset.id === texture.id));
   }
   followRefinement(texture);
+  $('fit-start').disabled = fitRunning || texture.source === 'interpolate'; // a blend has no photo to fit
   try {
     await textureMap.show(texture.id, { ...tileParams(), v: api.tileVersion(texture) }, view);
     document.body.dataset.texture = texture.id;
     rememberView();
+    refreshGpuView();
   } catch (error) {
     sayError(error);
   }
@@ -188,10 +194,44 @@ function visibleTextures() {
 
 function renderLibrary() {
   const textures = visibleTextures();
-  $('texture-list').replaceChildren(...textures.map((t) => textureItem(t, { pressed: state.current?.id === t.id, onSelect: showTexture })));
+  for (const t of state.textures) state.names.set(t.id, textureName(t));
+  const query = $('texture-search').value;
+  const shown = textures.filter((t) => matches(t, query));
+  $('texture-list').replaceChildren(...shown.map((t) => textureItem(t, {
+    pressed: state.current?.id === t.id, onSelect: showTexture, onDelete: removeTexture,
+  })));
+  $('no-match').hidden = shown.length > 0 || !textures.length;
   $('load-more').hidden = !state.nextCursor;
   interpolation.setTextures(textures);
   interpolation.refresh();
+}
+
+/** Delete a texture (and, on the server, its jobs and files) after asking. */
+async function removeTexture(texture) {
+  const name = textureName(texture);
+  if (!window.confirm(`Delete ${name}, its jobs and their files?`)) return;
+  try {
+    await api.deleteTexture(texture.id);
+  } catch (error) {
+    if (!(error instanceof api.ApiError && error.status === 404)) { sayError(error); return; }
+  }
+  state.textures = state.textures.filter((t) => t.id !== texture.id);
+  jobs.forgetTexture(texture.id);
+  say(`Deleted ${name}.`);
+  if (state.current?.id === texture.id) {
+    state.current = null;
+    stopRefinement();
+    showRefinement();
+    textureMap.clear();
+    delete document.body.dataset.texture;
+    $('current-name').textContent = '(pick a texture)';
+    $('exemplar').removeAttribute('src');
+    const next = visibleTextures()[0];
+    renderLibrary();
+    if (next) await showTexture(next);
+    return;
+  }
+  renderLibrary();
 }
 
 async function loadTextures(more = false) {
@@ -206,6 +246,7 @@ async function loadTextures(more = false) {
 }
 $('load-more').addEventListener('click', () => loadTextures(true));
 $('show-blends').addEventListener('change', renderLibrary);
+$('texture-search').addEventListener('input', renderLibrary);
 
 async function upload(file) {
   if (!file) return;
@@ -245,7 +286,7 @@ const interpolation = new InterpolationPanel({
 
 // ---- 3D: bakes and volumes -------------------------------------------------------------
 
-const jobs = new JobList($('jobs'));
+const jobs = new JobList($('jobs'), { nameOf: (id) => state.names.get(id) });
 let viewer = null;
 
 async function getViewer() {
@@ -266,10 +307,13 @@ async function viewResult(url) {
   }
 }
 
-/** Recent jobs (any texture), oldest first so the newest ends on top. */
+/** Recent jobs (any texture), oldest first so the newest ends on top, labelled by texture. */
 async function loadRecentJobs() {
   try {
     const page = await api.listJobs(8);
+    const unknown = new Set(page.items.map((j) => j.texture_id).filter((id) => id && !state.names.has(id)));
+    await Promise.all([...unknown].map((id) => api.getTexture(id)
+      .then((t) => state.names.set(id, textureName(t))).catch(() => {})));
     for (const job of page.items.reverse()) jobs.track(job, { onView: viewResult });
   } catch (error) {
     sayError(error);
@@ -317,6 +361,79 @@ $('volume-form').addEventListener('submit', async (event) => {
   }
 });
 
+// A square image at native zoom (one pixel per exemplar pixel); tileable: it repeats seamlessly.
+$('region-format').replaceChildren(...REGION_FORMATS.map((f) => new Option(f, f)));
+$('region-form').addEventListener('submit', async (event) => {
+  event.preventDefault();
+  if (!requireTexture()) return;
+  const size = Number($('region-size').value);
+  const tileable = $('region-tileable').checked;
+  const params = {
+    z: 6, x0: 0, y0: 0, width: size, height: size, seed: tileParams().seed, format: $('region-format').value, tileable,
+  };
+  try {
+    const job = await api.startRegion(state.current.id, params);
+    say(`${tileable ? 'Tileable image' : 'Image'} job ${job.id} started.`);
+    jobs.track(job, { onSuccess: () => say('Image ready to download.') });
+  } catch (error) {
+    sayError(error);
+  }
+});
+
+// ---- fit: refine a texture (a fit job makes a new texture with its own sampler) -----------
+
+let fitRunning = false;
+
+function showFit(text, progress = null) {
+  $('fit-state').textContent = text;
+  $('fit-progress').hidden = progress === null;
+  if (progress !== null) $('fit-progress').value = progress;
+}
+
+$('fit-start').addEventListener('click', async () => {
+  if (!requireTexture()) return;
+  const source = state.current;
+  const name = textureName(source);
+  const seconds = Math.max(1, Number($('fit-seconds').value) || 60);
+  fitRunning = true;
+  $('fit-start').disabled = true;
+  showFit(`fit of ${name}: queued`, 0);
+  const ended = () => { fitRunning = false; $('fit-start').disabled = state.current?.source === 'interpolate'; };
+  try {
+    const job = await api.startFit(source.id, { seconds });
+    say(`Fit job ${job.id} started for ${name}.`);
+    jobs.track(job, {
+      onState: (update) => {
+        const status = update.state || 'running';
+        if (status === 'succeeded') return; // onSuccess
+        if (ENDED.has(status)) {
+          ended();
+          const error = update.error?.detail;
+          showFit(`fit of ${name} ${status}${error ? `: ${error}` : ''}`);
+        } else {
+          showFit(`fit of ${name}: ${status} ${Math.round(fraction(update.progress) * 100)}%`, fraction(update.progress));
+        }
+      },
+      onSuccess: async (done) => {
+        ended();
+        try {
+          const fitted = await api.getTexture(done.output_texture_id);
+          state.textures = [fitted, ...state.textures.filter((t) => t.id !== fitted.id)];
+          renderLibrary();
+          showFit(`fitted: ${textureName(fitted)}`, 1);
+          await showTexture(fitted);
+        } catch (error) {
+          sayError(error);
+        }
+      },
+    });
+  } catch (error) {
+    ended();
+    showFit('');
+    sayError(error);
+  }
+});
+
 // ---- start -----------------------------------------------------------------------------
 
 // A server that evaluates per-point codes can draw the a -> b strip as one image.
@@ -345,8 +462,8 @@ async function openLinkedView() {
 
 /** Recent jobs, the texture list, then the linked view or the newest texture. */
 async function start() {
+  await loadTextures(); // first: job labels name their textures
   loadRecentJobs();
-  await loadTextures();
   if (!(await openLinkedView()) && visibleTextures().length) await showTexture(visibleTextures()[0]);
 }
 
@@ -357,7 +474,7 @@ async function restartWithKey(key) {
   stopRefinement();
   showRefinement();
   textureMap.clear();
-  Object.assign(state, { textures: [], current: null, nextCursor: null });
+  Object.assign(state, { textures: [], current: null, nextCursor: null, names: new Map() });
   $('current-name').textContent = '(pick a texture)';
   $('exemplar').removeAttribute('src');
   delete $('exemplar').dataset.src; // drops a fetch still under way for the old key
@@ -377,5 +494,14 @@ $('api-key-form').addEventListener('submit', (event) => {
 $('api-key-forget').addEventListener('click', () => { $('api-key').value = ''; restartWithKey(''); });
 
 // For the browser tests and the console.
-window.texspace = { state, textureMap, get viewer() { return viewer; } };
+// ---- live GPU view (gpuview.js): drawn only while its panel is open ------------------
+const gpuView = new GpuView($('gpu-view'), $('gpu-status'));
+function refreshGpuView() {
+  if (!$('gpu-panel').open || !state.current) return;
+  gpuView.show(state.current.id, tileParams()).catch(sayError);
+}
+$('gpu-panel').addEventListener('toggle', refreshGpuView);
+for (const id of ['seed', 'plane', 'offset']) $(id).addEventListener('change', refreshGpuView);
+
+window.texspace = { state, textureMap, gpuView, get viewer() { return viewer; } };
 await start();

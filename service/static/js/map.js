@@ -49,6 +49,31 @@ export const KeyedTileLayer = L.TileLayer.extend({
   },
 });
 
+// A busy server answers cold tiles with 503 + Retry-After (back-pressure): an <img> cannot
+// read the status, so a failed tile is asked for again a few times, a little later each
+// time, under a URL of its own (`retry=n`, ignored by the server) so the browser fetches it.
+const TILE_RETRIES = 6;
+const TILE_RETRY_MS = 1500;
+const TILE_RETRY_MAX_MS = 8000;
+
+/** L.TileLayer whose failed tiles are retried (TILE_RETRIES, about 30 s in all) before Leaflet gives up. */
+export const RetryingTileLayer = L.TileLayer.extend({
+  _tileOnError(done, tile, error) {
+    const tries = tile._texspaceTries || 0;
+    if (tries >= TILE_RETRIES || !this._map) {
+      L.TileLayer.prototype._tileOnError.call(this, done, tile, error);
+      return;
+    }
+    tile._texspaceTries = tries + 1;
+    const url = new URL(tile.src);
+    setTimeout(() => {
+      if (!tile.isConnected || !this._map) return; // unloaded meanwhile (panned away, new texture)
+      url.searchParams.set('retry', String(tries + 1));
+      tile.src = url.toString();
+    }, Math.min(TILE_RETRY_MS * (tries + 1), TILE_RETRY_MAX_MS) * (0.75 + 0.5 * Math.random()));
+  },
+});
+
 // worker/tiles.py NATIVE_ZOOM: used while the TileJSON does not say it (as `center[2]`).
 const DEFAULT_NATIVE_ZOOM = 6;
 
@@ -108,7 +133,7 @@ export class TextureMap {
     // Allow two extra zoom levels past the finest tiles: Leaflet upscales them.
     this.map.setMaxZoom(maxZoom + 2);
     if (this.layer) this.layer.remove();
-    const TileLayer = hasApiKey() ? KeyedTileLayer : L.TileLayer;
+    const TileLayer = hasApiKey() ? KeyedTileLayer : RetryingTileLayer;
     this.layer = new TileLayer(this._template(), {
       tileSize: TILE_SIZE,
       noWrap: true,

@@ -1,0 +1,239 @@
+"""A small Python client for the texspace HTTP API (needs only httpx and the stdlib).
+
+It imports nothing else from the service, so a script or notebook that talks to a
+running server pays for no numpy, ONNX or FastAPI import::
+
+    from service.client import Client
+
+    with Client("http://127.0.0.1:8000") as ts:        # api_key="..." when keys are on
+        texture = ts.upload("brick.jpg", name="brick")
+        png = ts.tile(texture["id"], 6, 0, 0)           # bytes of one 256 px tile
+        job = ts.volume(texture["id"], resolution=64, format="exr")
+        job = ts.wait(job, progress=lambda j: print(f"{j['progress']:.0%}"))
+        path = ts.download(job, "out/")                 # out/volume-....exr
+
+Every error answer (RFC 9457 problem+json) raises :class:`ApiError`; a job that ends
+failed or canceled raises :class:`JobFailed` from :meth:`Client.wait`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+TERMINAL = ("succeeded", "failed", "canceled")
+Job = dict[str, Any]
+
+
+class ApiError(Exception):
+    """An error answer: ``status`` and the problem document (``title``, ``detail``, ``type``)."""
+
+    def __init__(self, status: int, problem: dict[str, Any]) -> None:
+        self.status, self.problem = status, problem
+        super().__init__(f"{status} {problem.get('title', '')}: {problem.get('detail', '')}".strip(": "))
+
+
+class JobFailed(Exception):
+    """A job ended ``failed`` or ``canceled``; ``job`` is its last state (``job['error']``)."""
+
+    def __init__(self, job: Job) -> None:
+        self.job = job
+        error = job.get("error") or {}
+        super().__init__(f"job {job['id']} {job['state']}: {error.get('detail', '')}".rstrip(": "))
+
+
+def _job_id(job: Job | str) -> str:
+    return job if isinstance(job, str) else job["id"]
+
+
+class Client:
+    """One connection pool to one texspace server. ``transport`` lets tests pass an
+    ``httpx.ASGITransport`` or a mock; ``timeout`` is per request (seconds)."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", *, api_key: str | None = None,
+                 timeout: float = 60.0, transport: httpx.BaseTransport | None = None) -> None:
+        headers = {"X-API-Key": api_key} if api_key else {}
+        self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout,
+                                 transport=transport)
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _call(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
+        res = self.http.request(method, url, **kwargs)
+        if res.status_code >= 400:
+            self._raise(res)
+        return res
+
+    @staticmethod
+    def _key(idempotency_key: str | None) -> dict[str, str]:
+        return {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+
+    # --- textures -------------------------------------------------------------------
+    def upload(self, image: str | os.PathLike | bytes, *, name: str | None = None,
+               filename: str | None = None) -> dict[str, Any]:
+        """Upload a photo (a path, or bytes with ``filename``); returns the texture."""
+        if isinstance(image, bytes):
+            data, filename = image, filename or "image.png"
+        else:
+            data, filename = Path(image).read_bytes(), filename or Path(image).name
+        form = {"name": name} if name is not None else {}
+        return self._call("POST", "/v1/textures", files={"image": (filename, data)}, data=form).json()
+
+    def texture(self, texture_id: str) -> dict[str, Any]:
+        return self._call("GET", f"/v1/textures/{texture_id}").json()
+
+    def textures(self, *, page_size: int = 50) -> Iterator[dict[str, Any]]:
+        """Every texture, newest first (follows the cursor pages)."""
+        cursor = None
+        while True:
+            params = {"limit": page_size, **({"cursor": cursor} if cursor else {})}
+            page = self._call("GET", "/v1/textures", params=params).json()
+            yield from page["items"]
+            if not (cursor := page.get("next_cursor")):
+                return
+
+    def rename(self, texture_id: str, name: str) -> dict[str, Any]:
+        return self._call("PATCH", f"/v1/textures/{texture_id}", json={"name": name}).json()
+
+    def delete(self, texture_id: str) -> None:
+        """Delete a texture with its jobs and their files."""
+        self._call("DELETE", f"/v1/textures/{texture_id}")
+
+    def tile(self, texture_id: str, z: int, x: int, y: int, *, fmt: str = "png", seed: int = 0,
+             size: int = 256, plane: str = "xy", offset: float = 0.0) -> bytes:
+        """The bytes of tile (z, x, y) in ``fmt`` (png, webp, exr)."""
+        params = {"seed": seed, "size": size, "plane": plane, "offset": offset}
+        return self._call("GET", f"/v1/textures/{texture_id}/tiles/{z}/{x}/{y}.{fmt}", params=params).content
+
+    # --- jobs -----------------------------------------------------------------------
+    def volume(self, texture_id: str, *, idempotency_key: str | None = None, **params: Any) -> Job:
+        """Submit a volume job (``resolution``, ``bounds``, ``seed``, ``format``: see /docs)."""
+        return self._call("POST", f"/v1/textures/{texture_id}/volumes", json=params,
+                          headers=self._key(idempotency_key)).json()
+
+    def region(self, texture_id: str, *, idempotency_key: str | None = None, **params: Any) -> Job:
+        """Submit a region export (``z``, ``x0``, ``y0``, ``width``, ``height``, ``format``, ...)."""
+        return self._call("POST", f"/v1/textures/{texture_id}/regions", json=params,
+                          headers=self._key(idempotency_key)).json()
+
+    def bake(self, texture_id: str, mesh: str | os.PathLike | bytes, *, filename: str | None = None,
+             idempotency_key: str | None = None, **params: Any) -> Job:
+        """Submit a bake of a mesh file (OBJ, PLY, STL, GLB; bytes need ``filename``):
+        ``resolution``, ``seed``, ``scale``, ``format`` (glb or obj)."""
+        if isinstance(mesh, bytes):
+            data, filename = mesh, filename or "mesh.obj"
+        else:
+            data, filename = Path(mesh).read_bytes(), filename or Path(mesh).name
+        form = {k: str(v) for k, v in params.items() if v is not None}
+        return self._call("POST", f"/v1/textures/{texture_id}/bakes", files={"mesh": (filename, data)},
+                          data=form, headers=self._key(idempotency_key)).json()
+
+    def fit(self, texture_id: str, *, seconds: float = 60.0, grain: str | None = None,
+            idempotency_key: str | None = None) -> Job:
+        """Submit a fit (needs the train extra on the workers): refines the texture's sampler."""
+        return self._call("POST", f"/v1/textures/{texture_id}/fit", json={"seconds": seconds, "grain": grain},
+                          headers=self._key(idempotency_key)).json()
+
+    def job(self, job: Job | str) -> Job:
+        return self._call("GET", f"/v1/jobs/{_job_id(job)}").json()
+
+    def jobs(self, *, texture_id: str | None = None, state: str | None = None,
+             page_size: int = 50) -> Iterator[Job]:
+        """Every job (optionally of one texture or in one state), newest first."""
+        cursor = None
+        while True:
+            params = {"limit": page_size, **{k: v for k, v in (("texture_id", texture_id), ("state", state),
+                                                                ("cursor", cursor)) if v}}
+            page = self._call("GET", "/v1/jobs", params=params).json()
+            yield from page["items"]
+            if not (cursor := page.get("next_cursor")):
+                return
+
+    def cancel(self, job: Job | str) -> Job:
+        return self._call("POST", f"/v1/jobs/{_job_id(job)}/cancel").json()
+
+    def wait(self, job: Job | str, *, timeout: float | None = None,
+             progress: Callable[[Job], None] | None = None) -> Job:
+        """Follow a job's server-sent events until it ends; ``progress`` gets each update
+        (a dict with ``state``, ``progress`` 0..1, ``attempt``). Returns the succeeded job,
+        raises :class:`JobFailed` otherwise, ``TimeoutError`` after ``timeout`` seconds."""
+        job_id = _job_id(job)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:  # a dropped stream (proxy timeout, restart) is picked up again
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                raise TimeoutError(f"job {job_id} did not end within {timeout} s")
+            try:
+                end = self._follow(job_id, progress, remaining)
+            except (httpx.TransportError, httpx.StreamError):
+                end = None
+            if end is None:
+                now = self.job(job_id)
+                end = now if now["state"] in TERMINAL else None
+            if end is not None:
+                if end["state"] != "succeeded":
+                    raise JobFailed(end)
+                return end
+
+    def _follow(self, job_id: str, progress: Callable[[Job], None] | None, timeout: float | None) -> Job | None:
+        """The final job from the event stream, or None when it closed before the end."""
+        limit = httpx.Timeout(self.http.timeout.connect, read=timeout or 60.0)
+        with self.http.stream("GET", f"/v1/jobs/{job_id}/events", timeout=limit) as res:
+            if res.status_code >= 400:
+                res.read()
+                self._raise(res)
+            event = "message"
+            for line in res.iter_lines():
+                if line.startswith("event:"):
+                    event = line[6:].strip()
+                elif line.startswith("data:"):
+                    data = json.loads(line[5:].strip())
+                    if event in TERMINAL:
+                        return data
+                    if progress is not None:
+                        progress(data)
+        return None
+
+    @staticmethod
+    def _raise(res: httpx.Response) -> None:
+        try:
+            problem = res.json()
+        except ValueError:
+            problem = None
+        if not isinstance(problem, dict):
+            problem = {"title": res.reason_phrase, "detail": res.text[:200]}
+        raise ApiError(res.status_code, problem)
+
+    def download(self, job: Job | str, to: str | os.PathLike | None = None) -> Path:
+        """Stream a succeeded job's result to a file: ``to`` is a file path, or a folder (an
+        existing one, or a path ending in ``/``, made if missing) where it keeps the server's
+        file name; default: the current folder."""
+        with self.http.stream("GET", f"/v1/jobs/{_job_id(job)}/result") as res:
+            if res.status_code >= 400:
+                res.read()
+                self._raise(res)
+            found = re.search(r'filename="([^"]+)"', res.headers.get("content-disposition", ""))
+            name = Path(found[1]).name if found else f"{_job_id(job)}.bin"
+            target = Path(to) if to is not None else Path(".")
+            if to is None or target.is_dir() or str(to).endswith(("/", os.sep)):
+                target.mkdir(parents=True, exist_ok=True)
+                target = target / name
+            partial = target.with_name(target.name + ".part")
+            with open(partial, "wb") as out:
+                for chunk in res.iter_bytes():
+                    out.write(chunk)
+            partial.replace(target)
+        return target

@@ -1,0 +1,95 @@
+"""service/client.py without a server (httpx.MockTransport): waiting on a job's events,
+the fallback when the stream drops, failures as exceptions, downloads by file name."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+import pytest
+
+from service.client import ApiError, Client, JobFailed
+
+JOB = {"id": "j1", "kind": "volume", "state": "queued", "progress": 0.0}
+
+
+def events(*items: tuple[str, dict]) -> bytes:
+    return "".join(f"id: {i}\nevent: {name}\ndata: {json.dumps(data)}\n\n"
+                   for i, (name, data) in enumerate(items, 1)).encode()
+
+
+def client_for(handler) -> Client:  # noqa: ANN001
+    return Client("http://texspace.test", transport=httpx.MockTransport(handler))
+
+
+def test_wait_reports_progress_and_returns_the_job() -> None:
+    done = {**JOB, "state": "succeeded", "progress": 1.0}
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        assert request.url.path == "/v1/jobs/j1/events"
+        return httpx.Response(200, content=events(("progress", {"state": "running", "progress": 0.5, "attempt": 1}),
+                                                  ("succeeded", done)),
+                              headers={"content-type": "text/event-stream"})
+
+    seen: list[dict] = []
+    with client_for(handler) as ts:
+        assert ts.wait(JOB, progress=seen.append) == done
+    assert seen == [{"state": "running", "progress": 0.5, "attempt": 1}]
+
+
+def test_a_failed_job_raises_with_its_problem() -> None:
+    failed = {**JOB, "state": "failed", "error": {"detail": "mesh has no faces"}}
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(200, content=events(("failed", failed)), headers={"content-type": "text/event-stream"})
+
+    with client_for(handler) as ts, pytest.raises(JobFailed, match="mesh has no faces") as info:
+        ts.wait("j1")
+    assert info.value.job == failed
+
+
+def test_a_dropped_stream_falls_back_to_the_job() -> None:
+    calls: list[str] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        calls.append(request.url.path)
+        if request.url.path.endswith("/events"):
+            return httpx.Response(200, content=b": keep-alive\n\n", headers={"content-type": "text/event-stream"})
+        return httpx.Response(200, json={**JOB, "state": "succeeded", "progress": 1.0})
+
+    with client_for(handler) as ts:
+        assert ts.wait("j1")["state"] == "succeeded"
+    assert calls == ["/v1/jobs/j1/events", "/v1/jobs/j1"]
+
+
+def test_errors_carry_the_problem_document() -> None:
+    problem = {"type": "urn:texspace:problem:not-found", "title": "Not found", "status": 404, "detail": "no texture x"}
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(404, json=problem, headers={"content-type": "application/problem+json"})
+
+    with client_for(handler) as ts, pytest.raises(ApiError, match="no texture x") as info:
+        ts.texture("x")
+    assert info.value.status == 404 and info.value.problem == problem
+
+
+def test_download_keeps_the_servers_file_name(tmp_path: Path) -> None:
+    def handler(request: httpx.Request) -> httpx.Response:
+        assert request.url.path == "/v1/jobs/j1/result"
+        return httpx.Response(200, content=b"EXR bytes",
+                              headers={"content-disposition": 'attachment; filename="volume-64.exr"'})
+
+    with client_for(handler) as ts:
+        assert ts.download("j1", tmp_path) == tmp_path / "volume-64.exr"
+        assert ts.download("j1", tmp_path / "v.exr") == tmp_path / "v.exr"
+    assert (tmp_path / "v.exr").read_bytes() == b"EXR bytes"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.exr", "volume-64.exr"]
+
+
+def test_the_client_imports_no_numpy_onnx_or_fastapi() -> None:
+    code = ("import sys, service.client; heavy = {'numpy', 'onnxruntime', 'fastapi', 'sqlalchemy', 'torch'}; "
+            "print(sorted(heavy & set(sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == "[]"
