@@ -1,7 +1,6 @@
 """Shared pieces of the benchmarks: timing, the results file, the model under test."""
 from __future__ import annotations
 
-import http.client
 import json
 import os
 import platform
@@ -9,9 +8,9 @@ import statistics
 import subprocess
 import sys
 import time
-import urllib.request
-from collections.abc import Callable, Iterable
 from pathlib import Path
+
+from service.spawn import free_port, spawn, stop, wait_ready  # noqa: F401 - the benchmarks' process helpers
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "bench" / "out"
@@ -27,28 +26,6 @@ def best_of(fn, repeats: int) -> float:
         fn()
         best = min(best, time.perf_counter() - t)
     return best
-
-
-def wait_ready(base_url: str, procs: Iterable[subprocess.Popen], timeout: float, *,
-               output: Callable[[], str] = lambda: "", name: str = "texspace serve") -> None:
-    """Poll ``base_url/readyz`` until it answers 200. RuntimeError, with the tail of
-    ``output()`` (the server's log), as soon as one of ``procs`` has exited or after
-    ``timeout`` seconds. urllib only: the benchmarks need no test extra for this."""
-    procs = list(procs)
-    deadline = time.monotonic() + timeout
-    while True:
-        for proc in procs:
-            if proc.poll() is not None:
-                raise RuntimeError(f"{name} exited with {proc.returncode}:\n{output()[-2000:]}")
-        try:
-            with urllib.request.urlopen(f"{base_url}/readyz", timeout=2) as r:
-                if r.status == 200:
-                    return
-        except (OSError, http.client.HTTPException):
-            pass
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"{name} not ready after {timeout:g} s:\n{output()[-2000:]}")
-        time.sleep(0.25)
 
 
 def percentile(values: list[float], q: float) -> float:

@@ -21,7 +21,7 @@ import torch
 
 from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
 from model.networks import load_checkpoint
-from model.train import parse_args, train
+from model.train import TrainConfig, train
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
 DEFAULT_MINUTES = 4.0  # inside the 5-minute budget on 2 cores, with export
@@ -51,22 +51,19 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     if not init.exists():
         raise FileNotFoundError(f"no space checkpoint at {init}; train one (make train) or pass --init")
     space, _ = load_checkpoint(init)
-    cfg = space.cfg
+    space_cfg = space.cfg
     with tempfile.TemporaryDirectory() as run_dir:
-        argv = ["--mode", "single", "--exemplar", str(image_path), "--out", run_dir, "--init", str(init),
-                "--variant", cfg.variant, "--dims", str(cfg.dims), "--short-side", str(cfg.exemplar_short_side),
-                "--minutes", str(minutes), "--patch", str(patch), "--batch", "2", "--lr", str(FIT_LR),
-                "--transform-lr", str(FIT_TRANSFORM_LR), "--warmup", "20", "--seed", str(seed), "--loss", loss,
-                "--ckpt-every", "1000000", "--probe-every", str(PROBE_EVERY), "--device", device]
-        argv += ["--no-nearest"] if not cfg.nearest_input else []
-        argv += ["--smooth"] if cfg.smooth else []
-        # a space trained for colour tables fits the same way: structure under the photo's colours
-        argv += ["--colour-normalise"] if cfg.colour_blind_encoder else []
-        argv += ["--isotropic-transforms"] if cfg.isotropic_transforms else []
-        argv += ["--quiet"] if quiet else []
-        argv += ["--grain", grain] if grain else []
-        argv += ["--threads", str(threads)] if threads else []
-        ckpt_path = train(parse_args(argv), progress=progress)
+        cfg = TrainConfig(
+            mode="single", exemplar=str(image_path), out=run_dir, init=str(init),
+            # the space's architecture, which --init requires
+            variant=space_cfg.variant, dims=space_cfg.dims, short_side=space_cfg.exemplar_short_side,
+            no_nearest=not space_cfg.nearest_input, smooth=space_cfg.smooth,
+            # a space trained for colour tables fits the same way: structure under the photo's colours
+            colour_normalise=space_cfg.colour_blind_encoder, isotropic_transforms=space_cfg.isotropic_transforms,
+            minutes=float(minutes), patch=patch, batch=2, lr=FIT_LR, transform_lr=FIT_TRANSFORM_LR, warmup=20,
+            seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
+            grain=grain or None, threads=threads or 0)
+        ckpt_path = train(cfg, progress=progress)
         model, ckpt = load_checkpoint(ckpt_path)
     # Weights, config and code without the optimiser: what model.evaluate needs to compare
     # the fit with the space's encoder code on the same exemplar.
@@ -82,7 +79,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "kind": "fitted",
         "tileable_sampler": TILEABLE_SAMPLER,
         "base_model": init.name,
-        "pixels_per_unit": cfg.pixels_per_unit,
+        "pixels_per_unit": space_cfg.pixels_per_unit,
         "code": code,
         "steps": ckpt["step"],
         "wall_seconds": round(ckpt["wall_seconds"], 1),

@@ -14,6 +14,12 @@ resolution. Checkpoints carry weights + config + step + RNG state, so
 ``--out`` an existing run resumes it, and export rebuilds the model from the file alone.
 Checkpoints always hold CPU tensors, whatever ``--device`` ran the steps, so a run
 started on a GPU resumes on the CPU and the other way round.
+
+Space and single mode differ in five places, each marked ``cfg.mode``: the exemplars
+(load_exemplars: a folder or one image), the codes (learned_codes: a table, one row per
+exemplar, or one code), the optimiser (make_optimizer: the encoder trains in space mode
+only), the step (train_step: space mode regresses the encoder onto the table), and the
+probe (Probe: single mode only).
 """
 
 from __future__ import annotations
@@ -24,7 +30,9 @@ import math
 import signal
 import threading
 import time
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal, TextIO, get_args
 
 import numpy as np
 import torch
@@ -40,36 +48,95 @@ from model.vgg import GATYS_LAYERS, shared_vgg
 
 POSITION_EXTENT = 4.0  # world units around the origin where position-input variants train
 
+Mode = Literal["space", "single"]
+Loss = Literal["gram", "swd"]
+Grain = Literal["x", "y"]
+Device = Literal["auto", "cpu", "cuda"]
 
-def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m model.train", description=__doc__,
+
+@dataclass(kw_only=True)
+class TrainConfig:
+    """Every option of a run, one field per ``python -m model.train`` flag (``--short-side``
+    is ``short_side``); what each means is in ``--help`` (parse_args). Checkpoints store it
+    as a dict under ``"args"``, and resuming compares the model's part of it."""
+
+    mode: Mode = "space"  # space: one decoder for many exemplars; single: fit one exemplar
+    variant: str = "ours"
+    dims: int = 3
+    data: str = "data/textures/train"
+    exemplar: str | None = None
+    exclude: str = "miniworld_metal_grill_2"
+    out: str
+    init: str | None = None
+    steps: int = 100_000
+    minutes: float | None = None
+    batch: int = 4
+    patch: int = 96
+    crop: int = 128
+    short_side: int = 256
+    lr: float = 5e-4
+    code_lr: float = 5e-3
+    transform_lr: float | None = None
+    warmup: int = 200
+    clip: float = 1.0
+    loss: Loss = "gram"
+    layers: str = ",".join(GATYS_LAYERS)
+    colour_weight: float = 50.0
+    colour_normalise: bool = False
+    isotropic_transforms: bool = False
+    decay_start: int | None = None
+    decay_end: int | None = None
+    oblique: float = 0.5
+    no_nearest: bool = False
+    smooth: bool = False
+    no_rotations: bool = False
+    grain: Grain | None = None
+    seed: int = 0
+    probe_every: int = 0
+    ckpt_every: int = 200
+    threads: int = 0
+    device: Device = "cpu"
+    quiet: bool = False
+
+    def __post_init__(self):
+        # The CLI's choices, for configs built in code (model/fit.py) too.
+        for name, allowed in (("mode", get_args(Mode)), ("variant", tuple(sorted(VARIANTS))), ("dims", (2, 3)),
+                              ("loss", get_args(Loss)), ("grain", (None, *get_args(Grain))),
+                              ("device", get_args(Device))):
+            if getattr(self, name) not in allowed:
+                raise SystemExit(f"{name}={getattr(self, name)!r}: choose from {', '.join(map(str, allowed))}")
+
+
+def parse_args(argv=None) -> TrainConfig:
+    # Defaults live in TrainConfig only: a flag not given stays out of the namespace.
+    p = argparse.ArgumentParser(prog="python -m model.train", description=__doc__, argument_default=argparse.SUPPRESS,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--mode", choices=["space", "single"], default="space")
-    p.add_argument("--variant", choices=sorted(VARIANTS), default="ours")
-    p.add_argument("--dims", type=int, choices=[2, 3], default=3)
-    p.add_argument("--data", default="data/textures/train", help="folder of exemplar PNGs (space mode)")
+    p.add_argument("--mode", choices=get_args(Mode))
+    p.add_argument("--variant", choices=sorted(VARIANTS))
+    p.add_argument("--dims", type=int, choices=[2, 3])
+    p.add_argument("--data", help="folder of exemplar PNGs (space mode)")
     p.add_argument("--exemplar", help="image file (single mode)")
-    p.add_argument("--exclude", default="miniworld_metal_grill_2",
+    p.add_argument("--exclude",
                    help="comma-separated exemplar names left out of space training (the default's "
                         "regular dot grid has ~30x the Gram loss of any other photo and steers a shared decoder)")
     p.add_argument("--out", required=True, help="run folder: checkpoint, log; resumed if it exists")
     p.add_argument("--init", help="checkpoint to start from (weights only; e.g. the space for a fit)")
-    p.add_argument("--steps", type=int, default=100_000, help="stop after this many steps in total")
-    p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time (this run)")
-    p.add_argument("--batch", type=int, default=4)
-    p.add_argument("--patch", type=int, default=96, help="synthesised patch size (pixels)")
-    p.add_argument("--crop", type=int, default=128, help="exemplar crop size fed to the encoder")
-    p.add_argument("--short-side", type=int, default=256, help="exemplar working resolution")
-    p.add_argument("--lr", type=float, default=5e-4)
-    p.add_argument("--code-lr", type=float, default=5e-3, help="learning rate of the codes (table or single)")
-    p.add_argument("--transform-lr", type=float, default=None,
+    p.add_argument("--steps", type=int, help="stop after this many steps in total")
+    p.add_argument("--minutes", type=float, help="stop after this much wall time (this run)")
+    p.add_argument("--batch", type=int)
+    p.add_argument("--patch", type=int, help="synthesised patch size (pixels)")
+    p.add_argument("--crop", type=int, help="exemplar crop size fed to the encoder")
+    p.add_argument("--short-side", type=int, help="exemplar working resolution")
+    p.add_argument("--lr", type=float)
+    p.add_argument("--code-lr", type=float, help="learning rate of the codes (table or single)")
+    p.add_argument("--transform-lr", type=float,
                    help="learning rate of the per-octave transform head (default: --lr); a fit raises it "
                         "so the octaves can stretch into grain within minutes")
-    p.add_argument("--warmup", type=int, default=200)
-    p.add_argument("--clip", type=float, default=1.0, help="global gradient-norm clip")
-    p.add_argument("--loss", choices=["gram", "swd"], default="gram")
-    p.add_argument("--layers", default=",".join(GATYS_LAYERS))
-    p.add_argument("--colour-weight", type=float, default=50.0,
+    p.add_argument("--warmup", type=int)
+    p.add_argument("--clip", type=float, help="global gradient-norm clip")
+    p.add_argument("--loss", choices=get_args(Loss))
+    p.add_argument("--layers")
+    p.add_argument("--colour-weight", type=float,
                    help="weight of the sRGB colour mean + covariance match (0: VGG statistics only)")
     p.add_argument("--colour-normalise", action="store_true",
                    help="judge structure only: give every synthesised patch its exemplar's colour moments "
@@ -78,27 +145,27 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--isotropic-transforms", action="store_true",
                    help="per-octave transforms keep only their isotropic scale (|det T|^(1/D) I): no learned "
                         "stretch direction, so 2D tiles do not lean")
-    p.add_argument("--decay-start", type=int, default=None,
+    p.add_argument("--decay-start", type=int,
                    help="step at which the learning rates start to fall linearly, to 10%% at --decay-end")
-    p.add_argument("--decay-end", type=int, default=None, help="step at which the decay ends (default: --steps)")
-    p.add_argument("--oblique", type=float, default=0.5, help="fraction of oblique slice planes")
+    p.add_argument("--decay-end", type=int, help="step at which the decay ends (default: --steps)")
+    p.add_argument("--oblique", type=float, help="fraction of oblique slice planes")
     p.add_argument("--no-nearest", action="store_true", help="decoder gets interpolated noise only")
     p.add_argument("--smooth", action="store_true", help="smoothstep noise interpolation")
     p.add_argument("--no-rotations", action="store_true", help="exemplar crops keep their orientation")
-    p.add_argument("--grain", choices=["x", "y"],
+    p.add_argument("--grain", choices=get_args(Grain),
                    help="anisotropic exemplar whose grain runs along the image's x (left-right) or y (up-down): "
                         "crops keep their orientation and every slice plane contains that world axis in the same "
                         "role, so tiles on the xy plane show the grain as the exemplar does")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--probe-every", type=int, default=0,
+    p.add_argument("--seed", type=int)
+    p.add_argument("--probe-every", type=int,
                    help="single mode: every N steps (and at the start and end) score the exemplar on fixed "
                         "planes and seeds; the run ends on the best-scoring weights and code (0: off)")
-    p.add_argument("--ckpt-every", type=int, default=200)
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
-    p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu",
+    p.add_argument("--ckpt-every", type=int)
+    p.add_argument("--threads", type=int, help="torch threads (0: torch default)")
+    p.add_argument("--device", choices=get_args(Device),
                    help="where steps run (auto: cuda when available); checkpoints always hold CPU tensors")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    return p.parse_args(argv)
+    return TrainConfig(**vars(p.parse_args(argv)))
 
 
 def colour_moments(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -155,24 +222,51 @@ class Objective:
         return torch.stack(losses).mean()
 
 
-def build(args) -> tuple[TextureSpace, torch.nn.Parameter | None, dict]:
-    cfg = ModelConfig(variant=args.variant, dims=args.dims, nearest_input=not args.no_nearest,
-                      smooth=args.smooth, exemplar_short_side=args.short_side, grain=args.grain,
-                      colour_blind_encoder=args.colour_normalise, isotropic_transforms=args.isotropic_transforms)
-    model = TextureSpace(cfg)
-    state = {}
-    if args.init:
-        init, ckpt = load_checkpoint(args.init)
-        # A grain fit starts from an isotropic space: the stretch is a fixed input transform;
-        # a colour-normalised run may start from a space whose encoder still read colour.
-        if init.cfg.to_dict() | {"grain": cfg.grain, "colour_blind_encoder": cfg.colour_blind_encoder,
-                                 "isotropic_transforms": cfg.isotropic_transforms} != cfg.to_dict():
-            raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {cfg.to_dict()}")
-        model.load_state_dict(init.state_dict())
-        state["init"] = str(args.init)
-        state["init_codes"] = ckpt.get("codes")  # a space's learned code table, if it has one
-    code = torch.nn.Parameter(torch.zeros(1, cfg.code_size)) if args.mode == "single" else None
-    return model, code, state
+def resolve_device(name: str) -> torch.device:
+    """``auto`` | ``cpu`` | ``cuda`` -> a torch device; ``cuda`` without CUDA is an error."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda":
+        if not torch.cuda.is_available():
+            raise SystemExit("--device cuda: this torch build or machine has no CUDA device (use cpu or auto)")
+        # TF32 convolutions and matmuls: the VGG loss dominates a step, and its Gram targets
+        # need no more than TF32's 10-bit mantissa. The noise stays exact 32-bit integer
+        # arithmetic (int32 in torch), which TF32 does not touch.
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    return torch.device(name)
+
+
+def load_exemplars(cfg: TrainConfig) -> tuple[list[str], list[np.ndarray]]:
+    """Names and (H, W, 3) float32 images at ``short_side``: the one --exemplar (single mode),
+    or every image in --data but the --exclude'd ones (space mode)."""
+    if cfg.mode == "single":
+        if not cfg.exemplar:
+            raise SystemExit("--mode single needs --exemplar IMAGE")
+        return [Path(cfg.exemplar).stem], [load_exemplar(cfg.exemplar, cfg.short_side)]
+    dataset = TextureDataset(cfg.data, short_side=cfg.short_side)
+    excluded = set(filter(None, cfg.exclude.split(",")))
+    kept = [k for k, name in enumerate(dataset.names) if name not in excluded]
+    return [dataset.names[k] for k in kept], [dataset.images[k] for k in kept]
+
+
+def build(cfg: TrainConfig) -> tuple[TextureSpace, torch.Tensor | None]:
+    """The model, with --init's weights when given, and --init's learned code table (None
+    when it has none). Draws from torch's RNG (weight init), so it comes right after seeding."""
+    model_cfg = ModelConfig(variant=cfg.variant, dims=cfg.dims, nearest_input=not cfg.no_nearest,
+                            smooth=cfg.smooth, exemplar_short_side=cfg.short_side, grain=cfg.grain,
+                            colour_blind_encoder=cfg.colour_normalise, isotropic_transforms=cfg.isotropic_transforms)
+    model = TextureSpace(model_cfg)
+    if not cfg.init:
+        return model, None
+    init, ckpt = load_checkpoint(cfg.init)
+    # A grain fit starts from an isotropic space: the stretch is a fixed input transform;
+    # a colour-normalised run may start from a space whose encoder still read colour.
+    if init.cfg.to_dict() | {"grain": model_cfg.grain, "colour_blind_encoder": model_cfg.colour_blind_encoder,
+                             "isotropic_transforms": model_cfg.isotropic_transforms} != model_cfg.to_dict():
+        raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {model_cfg.to_dict()}")
+    model.load_state_dict(init.state_dict())
+    return model, ckpt.get("codes")  # a space's learned code table, if it has one
 
 
 def initial_code(model: TextureSpace, image: np.ndarray, crop: int, rng) -> torch.Tensor:
@@ -183,18 +277,253 @@ def initial_code(model: TextureSpace, image: np.ndarray, crop: int, rng) -> torc
         return model.encode(torch.from_numpy(crops).to(device) * 2 - 1).mean(0, keepdim=True)
 
 
-def resolve_device(name: str) -> torch.device:
-    """``auto`` | ``cpu`` | ``cuda`` -> a torch device; ``cuda`` without CUDA is an error."""
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda":
-        if not torch.cuda.is_available():
-            raise SystemExit("--device cuda: this torch build or machine has no CUDA device (use cpu or auto)")
-        # TF32 convolutions and matmuls: the VGG loss dominates a step, and its Gram targets
-        # need no more than TF32's 10-bit mantissa. The noise stays exact int64 arithmetic.
-        torch.backends.cuda.matmul.allow_tf32 = True
-        torch.backends.cudnn.allow_tf32 = True
-    return torch.device(name)
+def learned_codes(cfg: TrainConfig, model: TextureSpace, images: list[np.ndarray], crop: int, rng,
+                  init_codes: torch.Tensor | None) -> torch.nn.Parameter:
+    """The codes the synthesis reads, learned directly (on the model's device).
+
+    single: one code [1, code_size]; zeros, or with --init the encoder's code for the
+    exemplar (this draws crops from ``rng``).
+    space: one code per exemplar [N, code_size], an auto-decoder table: N(0, 0.5^2) from
+    --seed (a generator of its own), or --init's table where it has the same shape (warm
+    start: the decoder knows these codes). The encoder is trained to predict them from crops.
+    Gradients reach each code directly; through the encoder alone they were too weak, and
+    a CPU-hours space ignored the code and collapsed to one texture.
+    """
+    device = next(model.parameters()).device
+    if cfg.mode == "single":
+        code = torch.nn.Parameter(torch.zeros(1, model.cfg.code_size).to(device))
+        if cfg.init:
+            code.data.copy_(initial_code(model, images[0], crop, rng))
+        return code
+    table = torch.nn.Parameter((torch.randn(len(images), model.cfg.code_size,
+                                            generator=torch.Generator().manual_seed(cfg.seed)) * 0.5).to(device))
+    if init_codes is not None and tuple(init_codes.shape) == tuple(table.shape):
+        table.data.copy_(init_codes)
+    return table
+
+
+def make_optimizer(cfg: TrainConfig, model: TextureSpace, codes: torch.nn.Parameter) -> torch.optim.Adam:
+    """Adam over the field, the codes, (with --transform-lr) the transform head and (space
+    mode) the encoder; each group carries its ``base_lr`` for the schedule."""
+    # Group order is part of the checkpoint format (resuming needs the same groups), so
+    # the transform head gets its own group only when it has its own learning rate.
+    head = list(model.field.translator.to_transform.parameters()) if cfg.transform_lr else []
+    head_ids = {id(t) for t in head}
+    groups = [{"params": [t for t in model.field.parameters() if id(t) not in head_ids], "base_lr": cfg.lr},
+              {"params": [codes], "base_lr": cfg.code_lr}]
+    if head:
+        groups.append({"params": head, "base_lr": cfg.transform_lr})
+    if cfg.mode == "space":
+        groups.append({"params": list(model.encoder.parameters()), "base_lr": cfg.lr})
+    return torch.optim.Adam(groups, lr=cfg.lr)
+
+
+@dataclass
+class Run:
+    """A run in progress: what setup() builds, resume() restores, train_step() advances
+    and save() writes. ``codes`` is the single code (single mode) or the table (space)."""
+
+    cfg: TrainConfig
+    device: torch.device
+    out: Path
+    names: list[str]  # exemplar names, in the order of ``images`` (and of the table's rows)
+    images: list[np.ndarray]
+    crop: int  # --crop, or less where an exemplar is smaller
+    model: TextureSpace
+    codes: torch.nn.Parameter
+    optimizer: torch.optim.Adam
+    rng: np.random.Generator  # every random draw of the steps
+    extent: float  # world units around the origin where slice planes are drawn
+    objective: Objective | None = None  # built after a resume (train)
+    log: TextIO | None = None  # log.jsonl, open while train() runs
+    step: int = 0
+    wall: float = 0.0  # seconds spent in steps, over all runs of this checkpoint
+    history: list[float] = field(default_factory=list)  # this run's step losses
+    probe: dict | None = None  # the probe's choice {'score', 'step'}, once it made one
+
+    @property
+    def ckpt_path(self) -> Path:
+        return self.out / "checkpoint.pt"
+
+
+def setup(cfg: TrainConfig) -> Run:
+    """Device, exemplars, model, codes and optimiser of a fresh run, seeded by --seed."""
+    device = resolve_device(cfg.device)  # first: a missing GPU fails before any loading
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    names, images = load_exemplars(cfg)
+    crop = min(cfg.crop, *(min(im.shape[:2]) for im in images))
+
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    model, init_codes = build(cfg)
+    model.to(device)
+    codes = learned_codes(cfg, model, images, crop, rng, init_codes)
+    # Position-input baselines (mlp, oursP) only work near the origin they saw in training;
+    # noise-only models are trained everywhere, which is what makes them infinite.
+    extent = POSITION_EXTENT if model.cfg.flags.position else 1000.0
+    return Run(cfg=cfg, device=device, out=out, names=names, images=images, crop=crop, model=model, codes=codes,
+               optimizer=make_optimizer(cfg, model, codes), rng=rng, extent=extent)
+
+
+def resume(run: Run, path: Path) -> None:
+    """Continue the training checkpoint at ``path``: weights, Adam moments, codes, step, wall
+    time and both RNG states. Refuses weights-only files and other model settings."""
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if "optimizer" not in ckpt:
+        raise SystemExit(f"{path} holds weights only (an exported space.pt?), not a training "
+                         "checkpoint: start a new --out with --init FILE instead")
+    saved = ModelConfig(**ckpt["config"]).to_dict()  # (fills fields added since it was written)
+    if saved != run.model.cfg.to_dict():
+        changed = sorted(k for k in saved if saved[k] != run.model.cfg.to_dict().get(k))
+        raise SystemExit(f"{path} was trained with other settings ({', '.join(changed)}); resume it "
+                         "with the same flags, or start a new --out with --init")
+    run.model.load_state_dict(ckpt["model"])
+    base_lrs = [group["base_lr"] for group in run.optimizer.param_groups]
+    run.optimizer.load_state_dict(ckpt["optimizer"])  # casts the (CPU) moments to each parameter's device
+    for group, base_lr in zip(run.optimizer.param_groups, base_lrs):  # this run's rates, not the saved ones
+        group["base_lr"] = base_lr  # (and older checkpoints' groups have none)
+    run.codes.data.copy_(ckpt["code"] if run.cfg.mode == "single" else ckpt["codes"])
+    run.step, run.wall = ckpt["step"], ckpt.get("wall_seconds", 0.0)
+    run.rng.bit_generator.state = ckpt["numpy_rng"]
+    torch.set_rng_state(ckpt["torch_rng"])
+    print(f"resumed {path} at step {run.step}")
+
+
+def learning_rate(step: int, base: float, warmup: int, decay: tuple[int, int] | None = None) -> float:
+    """Linear warm-up over ``warmup`` steps; then, with ``decay = (start, end)``, a linear
+    fall to 10% between those steps (the GPU space's loss went flat at a constant rate)."""
+    rate = base * min(1.0, (step + 1) / max(1, warmup))
+    if decay is not None and step > decay[0]:
+        rate *= 1.0 - 0.9 * min(1.0, (step - decay[0]) / max(1, decay[1] - decay[0]))
+    return rate
+
+
+def train_step(run: Run) -> dict[str, float]:
+    """One optimiser step on a fresh random batch. Returns its synthesis loss, the output
+    spread ``std`` (a collapse to flat colour shows as ~0), the encoder's loss and the
+    gradient norm before clipping.
+
+    Draws from ``run.rng`` in this order (a seed's losses depend on it): crops and their
+    exemplars (single mode too, which uses only the indices), tone curves (space mode with
+    --colour-normalise), slice planes, noise seeds.
+    """
+    cfg, model, device = run.cfg, run.model, run.device
+    t0 = time.monotonic()
+    crops, indices = sample_batch(run.images, cfg.batch, run.crop, run.rng, return_indices=True,
+                                  rotations=not (cfg.no_rotations or cfg.grain))
+    if cfg.mode == "space":  # each crop's code from the table; the encoder learns to predict it
+        z = run.codes[torch.from_numpy(indices).to(device)]
+        if cfg.colour_normalise:  # a colour-blind encoder also ignores tone curves
+            crops = crops ** run.rng.uniform(0.7, 1.4, (len(crops), 1, 1, 1)).astype(np.float32)
+        predicted = model.encode(torch.from_numpy(crops).to(device) * 2 - 1)
+        encoder_loss = (predicted - z.detach()).square().mean()
+    else:  # single: the one code for the whole batch; the encoder is not trained
+        z = run.codes.expand(cfg.batch, -1)
+        encoder_loss = torch.zeros((), device=device)
+    origins, axes = random_planes(cfg.batch, run.rng, oblique_fraction=cfg.oblique, dims=cfg.dims,
+                                  extent=run.extent, grain=cfg.grain)
+    seeds = torch.from_numpy(run.rng.integers(0, 2**31, size=cfg.batch)).to(device)
+    synth = render_slices(model.field, z, seeds, origins.to(device), axes.to(device), cfg.patch)
+    loss = run.objective(synth, indices)
+
+    decay = (cfg.decay_start, cfg.decay_end or cfg.steps) if cfg.decay_start is not None else None
+    for group in run.optimizer.param_groups:
+        group["lr"] = learning_rate(run.step, group["base_lr"], cfg.warmup, decay)
+    run.optimizer.zero_grad(set_to_none=True)
+    (loss + encoder_loss).backward()
+    # Clip the synthesis gradients only: the encoder's regression loss is separate.
+    grad_norm = torch.nn.utils.clip_grad_norm_(list(model.field.parameters()) + [run.codes], cfg.clip)
+    run.optimizer.step()
+
+    run.step += 1
+    run.wall += time.monotonic() - t0
+    run.history.append(loss.item())
+    spread = float(synth.detach().std(dim=(2, 3)).mean())
+    return {"loss": loss.item(), "std": spread, "encoder": encoder_loss.item(), "grad": float(grad_norm)}
+
+
+def log_line(run: Run, stats: dict[str, float]) -> str:
+    """A step's log.jsonl line."""
+    return json.dumps({"step": run.step, "loss": round(stats["loss"], 5), "std": round(stats["std"], 4),
+                       "encoder": round(stats["encoder"], 5), "grad": round(stats["grad"], 4),
+                       "wall": round(run.wall, 1)}) + "\n"
+
+
+class Probe:
+    """A fit keeps its best state (single mode, --probe-every), scored by its own objective
+    on fixed planes and seeds, not the random ones of training, whose loss is too noisy to
+    compare. A short fit at a fit's learning rate can first move away from a code that
+    already matched well. Every score goes to log.jsonl as ``{"step", "probe"}``."""
+
+    def __init__(self, run: Run):
+        cfg, self.run = run.cfg, run
+        origins, axes = random_planes(4, np.random.default_rng(12345), oblique_fraction=cfg.oblique,
+                                      dims=cfg.dims, extent=run.extent, grain=cfg.grain)
+        self.origins, self.axes = origins.to(run.device), axes.to(run.device)
+        self.seeds = torch.arange(4, dtype=torch.int64, device=run.device) + 7
+        self.best_score, self.best = self.score(), self.snapshot()
+        self.log(self.best_score)
+
+    def score(self) -> float:
+        """The objective on the fixed planes, at twice the training patch size."""
+        with torch.no_grad():
+            patches = render_slices(self.run.model.field, self.run.codes.expand(4, -1), self.seeds, self.origins,
+                                    self.axes, self.run.cfg.patch * 2)
+            return float(self.run.objective(patches, np.zeros(4, dtype=np.int64)))
+
+    def snapshot(self) -> dict:
+        run = self.run
+        return {"model": {k: v.detach().clone() for k, v in run.model.state_dict().items()},
+                "code": run.codes.detach().clone(), "step": run.step}
+
+    def log(self, score: float) -> None:
+        self.run.log.write(json.dumps({"step": self.run.step, "probe": round(score, 5)}) + "\n")
+
+    def update(self) -> None:
+        """Score the current state; keep it if it beats the best so far."""
+        score = self.score()
+        self.log(score)
+        if score < self.best_score:
+            self.best_score, self.best = score, self.snapshot()
+
+    def restore_best(self) -> dict:
+        """Put the best weights and code back; returns {'score', 'step'} for the checkpoint."""
+        self.run.model.load_state_dict(self.best["model"])
+        self.run.codes.data.copy_(self.best["code"])
+        return {"score": self.best_score, "step": self.best["step"]}
+
+
+class Budget:
+    """When a run stops (--steps in total, --minutes of this run's wall time) and its progress bar.
+
+    A run bounded by time (a fit) shows seconds of its budget, not steps out of --steps,
+    whose default (100,000) would promise an ETA of hours.
+    """
+
+    def __init__(self, cfg: TrainConfig, step: int):
+        self.started, self.total, self.timed = time.monotonic(), cfg.steps, bool(cfg.minutes)
+        self.deadline = self.started + cfg.minutes * 60 if self.timed else math.inf
+        self.bar = (tqdm(total=round(cfg.minutes * 60), disable=cfg.quiet, dynamic_ncols=True, unit="s",
+                         bar_format="{l_bar}{bar}| {n:.0f}/{total} s [{elapsed}<{remaining}{postfix}]") if self.timed
+                    else tqdm(total=self.total, initial=step, disable=cfg.quiet, dynamic_ncols=True, unit="step"))
+
+    def left(self, step: int) -> bool:
+        return step < self.total and time.monotonic() < self.deadline
+
+    def advance(self, run: Run, stats: dict[str, float]) -> float:
+        """Show a step on the bar; returns the fraction of the run done (by steps or by time)."""
+        elapsed = time.monotonic() - self.started
+        self.bar.set_postfix(step=run.step, loss=f"{np.mean(run.history[-20:]):.3f}", std=f"{stats['std']:.3f}",
+                             refresh=False)
+        self.bar.update(min(self.bar.total, elapsed) - self.bar.n if self.timed else 1)
+        by_time = elapsed / (self.deadline - self.started) if self.timed else 0.0
+        return min(1.0, max(run.step / self.total, by_time))
+
+    def close(self) -> None:
+        self.bar.close()
 
 
 def to_cpu(value):
@@ -208,226 +537,65 @@ def to_cpu(value):
     return value
 
 
-def learning_rate(step: int, base: float, warmup: int, decay: tuple[int, int] | None = None) -> float:
-    """Linear warm-up over ``warmup`` steps; then, with ``decay = (start, end)``, a linear
-    fall to 10% between those steps (the GPU space's loss went flat at a constant rate)."""
-    rate = base * min(1.0, (step + 1) / max(1, warmup))
-    if decay is not None and step > decay[0]:
-        rate *= 1.0 - 0.9 * min(1.0, (step - decay[0]) / max(1, decay[1] - decay[0]))
-    return rate
+def save(run: Run) -> None:
+    """Write the training checkpoint (CPU tensors) atomically: a crash never leaves half a file."""
+    cfg = run.cfg
+    ckpt = {
+        "config": run.model.cfg.to_dict(), "model": to_cpu(run.model.state_dict()),
+        "optimizer": to_cpu(run.optimizer.state_dict()),
+        "step": run.step, "wall_seconds": run.wall, "numpy_rng": run.rng.bit_generator.state,
+        "torch_rng": torch.get_rng_state(), "mode": cfg.mode, "data": run.names,
+        "loss": cfg.loss, "layers": cfg.layers, "args": asdict(cfg),
+        "final_loss": float(np.mean(run.history[-50:])) if run.history else None,
+    }
+    if run.probe is not None:
+        ckpt["probe"] = run.probe
+    ckpt["code" if cfg.mode == "single" else "codes"] = to_cpu(run.codes)
+    tmp = run.ckpt_path.with_suffix(".tmp")
+    torch.save(ckpt, tmp)
+    tmp.replace(run.ckpt_path)
 
 
-def train(args, progress=None) -> Path:
+def train(cfg: TrainConfig, progress=None) -> Path:
     """Run (or resume) training; ``progress(fraction)`` is called after every step."""
-    device = resolve_device(args.device)  # first: a missing GPU fails before any loading
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    ckpt_path = out / "checkpoint.pt"
-
-    if args.mode == "single":
-        if not args.exemplar:
-            raise SystemExit("--mode single needs --exemplar IMAGE")
-        names, images = [Path(args.exemplar).stem], [load_exemplar(args.exemplar, args.short_side)]
-    else:
-        dataset = TextureDataset(args.data, short_side=args.short_side)
-        excluded = set(filter(None, args.exclude.split(",")))
-        kept = [k for k, name in enumerate(dataset.names) if name not in excluded]
-        names, images = [dataset.names[k] for k in kept], [dataset.images[k] for k in kept]
-    crop = min(args.crop, *(min(im.shape[:2]) for im in images))
-
-    torch.manual_seed(args.seed)
-    rng = np.random.default_rng(args.seed)
-    model, code, meta = build(args)
-    model.to(device)
-    if code is not None:
-        code = torch.nn.Parameter(code.data.to(device))
-    if code is not None and args.init:
-        code.data.copy_(initial_code(model, images[0], crop, rng))
-    # Space mode learns one code per exemplar (an auto-decoder table) that the synthesis
-    # uses, and trains the encoder to predict those codes from crops. Gradients reach
-    # each code directly; through the encoder alone they were too weak, and a CPU-hours
-    # space ignored the code and collapsed to one texture.
-    if code is None:
-        code_table = torch.nn.Parameter((torch.randn(len(images), model.cfg.code_size, generator=torch.Generator()
-                                                     .manual_seed(args.seed)) * 0.5).to(device))
-        init_codes = meta.get("init_codes")
-        if init_codes is not None and tuple(init_codes.shape) == tuple(code_table.shape):
-            code_table.data.copy_(init_codes)  # warm start: the decoder knows these codes
-        codes = code_table
-    else:
-        code_table, codes = None, code
-    synthesis_params = list(model.field.parameters()) + [codes]
-    # Group order is part of the checkpoint format (resuming needs the same groups), so
-    # the transform head gets its own group only when it has its own learning rate.
-    head = list(model.field.translator.to_transform.parameters()) if args.transform_lr else []
-    head_ids = {id(t) for t in head}
-    params = [{"params": [t for t in model.field.parameters() if id(t) not in head_ids], "base_lr": args.lr},
-              {"params": [codes], "base_lr": args.code_lr}]
-    if head:
-        params.append({"params": head, "base_lr": args.transform_lr})
-    if code_table is not None:
-        params.append({"params": list(model.encoder.parameters()), "base_lr": args.lr})
-    optimizer = torch.optim.Adam(params, lr=args.lr)
-
-    step, wall, history = 0, 0.0, []
-    if ckpt_path.exists():  # resume
-        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        if "optimizer" not in ckpt:
-            raise SystemExit(f"{ckpt_path} holds weights only (an exported space.pt?), not a training "
-                             "checkpoint: start a new --out with --init FILE instead")
-        saved = ModelConfig(**ckpt["config"]).to_dict()  # (fills fields added since it was written)
-        if saved != model.cfg.to_dict():
-            changed = sorted(k for k in saved if saved[k] != model.cfg.to_dict().get(k))
-            raise SystemExit(f"{ckpt_path} was trained with other settings ({', '.join(changed)}); resume it "
-                             "with the same flags, or start a new --out with --init")
-        model.load_state_dict(ckpt["model"])
-        base_lrs = [group["base_lr"] for group in optimizer.param_groups]
-        optimizer.load_state_dict(ckpt["optimizer"])  # casts the (CPU) moments to each parameter's device
-        for group, base_lr in zip(optimizer.param_groups, base_lrs):  # this run's rates, not the saved ones
-            group["base_lr"] = base_lr
-        codes.data.copy_(ckpt["code"] if code is not None else ckpt["codes"])
-        step, wall = ckpt["step"], ckpt.get("wall_seconds", 0.0)
-        rng.bit_generator.state = ckpt["numpy_rng"]
-        torch.set_rng_state(ckpt["torch_rng"])
-        print(f"resumed {ckpt_path} at step {step}")
-
-    # Position-input baselines (mlp, oursP) only work near the origin they saw in training;
-    # noise-only models are trained everywhere, which is what makes them infinite.
-    extent = POSITION_EXTENT if model.cfg.flags.position else 1000.0
-    objective = Objective(images, tuple(args.layers.split(",")), args.loss, args.colour_weight,
-                          args.colour_normalise, device)
-    log = (out / "log.jsonl").open("a")
-
-    extra = {}  # more checkpoint fields (the probe's choice)
-
-    def save():
-        ckpt = {
-            "config": model.cfg.to_dict(), "model": to_cpu(model.state_dict()),
-            "optimizer": to_cpu(optimizer.state_dict()),
-            "step": step, "wall_seconds": wall, "numpy_rng": rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(), "mode": args.mode, "data": names,
-            "loss": args.loss, "layers": args.layers, "args": vars(args),
-            "final_loss": float(np.mean(history[-50:])) if history else None,
-        }
-        ckpt.update(extra)
-        if code is not None:
-            ckpt["code"] = to_cpu(code)
-        else:
-            ckpt["codes"] = to_cpu(code_table)
-        tmp = ckpt_path.with_suffix(".tmp")
-        torch.save(ckpt, tmp)
-        tmp.replace(ckpt_path)
-
-    # A fit keeps its best state, scored by its own objective on fixed planes and seeds (not
-    # the random ones of training, whose loss is too noisy to compare). A short fit at a
-    # fit's learning rate can first move away from a code that already matched well.
-    probe = None
-    if args.probe_every and code is not None:
-        probe_origins, probe_axes = random_planes(4, np.random.default_rng(12345), oblique_fraction=args.oblique,
-                                                  dims=args.dims, extent=extent, grain=args.grain)
-        probe_origins, probe_axes = probe_origins.to(device), probe_axes.to(device)
-        probe_seeds = torch.arange(4, dtype=torch.int64, device=device) + 7
-
-        def probe_score() -> float:
-            with torch.no_grad():
-                patches = render_slices(model.field, code.expand(4, -1), probe_seeds, probe_origins, probe_axes,
-                                        args.patch * 2)
-                return float(objective(patches, np.zeros(4, dtype=np.int64)))
-
-        def snapshot() -> dict:
-            return {"model": {k: v.detach().clone() for k, v in model.state_dict().items()},
-                    "code": code.detach().clone(), "step": step}
-
-        probe = {"score": probe_score(), "state": snapshot()}
-        log.write(json.dumps({"step": step, "probe": round(probe["score"], 5)}) + "\n")
-
-        def probe_update() -> None:
-            score = probe_score()
-            log.write(json.dumps({"step": step, "probe": round(score, 5)}) + "\n")
-            if score < probe["score"]:
-                probe.update(score=score, state=snapshot())
-
-    stop = {"now": False}
+    run = setup(cfg)
+    if run.ckpt_path.exists():
+        resume(run, run.ckpt_path)
+    # After the resume: the VGG's first construction in a process draws from torch's RNG.
+    run.objective = Objective(run.images, tuple(cfg.layers.split(",")), cfg.loss, cfg.colour_weight,
+                              cfg.colour_normalise, run.device)
+    run.log = (run.out / "log.jsonl").open("a")
+    probe = Probe(run) if cfg.probe_every and cfg.mode == "single" else None  # a fit keeps its best state
+    stop = threading.Event()
     if threading.current_thread() is threading.main_thread():  # a job thread cannot own signals
-        signal.signal(signal.SIGTERM, lambda *_: stop.update(now=True))
-    started = time.monotonic()
-    timed = bool(args.minutes)
-    deadline = started + args.minutes * 60 if timed else math.inf
-    total = args.steps
-    # A run bounded by time (a fit) shows seconds of its budget, not steps out of --steps,
-    # whose default (100,000) would promise an ETA of hours.
-    bar = (tqdm(total=round(args.minutes * 60), disable=args.quiet, dynamic_ncols=True, unit="s",
-                bar_format="{l_bar}{bar}| {n:.0f}/{total} s [{elapsed}<{remaining}{postfix}]") if timed
-           else tqdm(total=total, initial=step, disable=args.quiet, dynamic_ncols=True, unit="step"))
-    model.train()
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    budget = Budget(cfg, run.step)
+    run.model.train()
     try:
-        while step < total and time.monotonic() < deadline and not stop["now"]:
-            t0 = time.monotonic()
-            crops, indices = sample_batch(images, args.batch, crop, rng, return_indices=True,
-                                          rotations=not (args.no_rotations or args.grain))
-            if code_table is not None:
-                z = code_table[torch.from_numpy(indices).to(device)]
-                if args.colour_normalise:  # a colour-blind encoder also ignores tone curves
-                    crops = crops ** rng.uniform(0.7, 1.4, (len(crops), 1, 1, 1)).astype(np.float32)
-                predicted = model.encode(torch.from_numpy(crops).to(device) * 2 - 1)
-                encoder_loss = (predicted - z.detach()).square().mean()
-            else:
-                z = code.expand(args.batch, -1)
-                encoder_loss = torch.zeros((), device=device)
-            origins, axes = random_planes(args.batch, rng, oblique_fraction=args.oblique, dims=args.dims,
-                                          extent=extent, grain=args.grain)
-            origins, axes = origins.to(device), axes.to(device)
-            seeds = torch.from_numpy(rng.integers(0, 2**31, size=args.batch)).to(device)
-            synth = render_slices(model.field, z, seeds, origins, axes, args.patch)
-            loss = objective(synth, indices)
-
-            decay = (args.decay_start, args.decay_end or total) if args.decay_start is not None else None
-            for group in optimizer.param_groups:
-                group["lr"] = learning_rate(step, group["base_lr"], args.warmup, decay)
-            optimizer.zero_grad(set_to_none=True)
-            (loss + encoder_loss).backward()
-            # Clip the synthesis gradients only: the encoder's regression loss is separate.
-            grad_norm = torch.nn.utils.clip_grad_norm_(synthesis_params, args.clip)
-            optimizer.step()
-
-            step += 1
-            wall += time.monotonic() - t0
-            history.append(loss.item())
-            # Output spread across the batch: a collapse to flat colour shows as ~0 here.
-            spread = float(synth.detach().std(dim=(2, 3)).mean())
-            elapsed = time.monotonic() - started
-            bar.set_postfix(step=step, loss=f"{np.mean(history[-20:]):.3f}", std=f"{spread:.3f}", refresh=False)
-            bar.update(min(bar.total, elapsed) - bar.n if timed else 1)
-            log.write(json.dumps({"step": step, "loss": round(loss.item(), 5), "std": round(spread, 4),
-                                  "encoder": round(encoder_loss.item(), 5),
-                                  "grad": round(float(grad_norm), 4), "wall": round(wall, 1)}) + "\n")
+        while budget.left(run.step) and not stop.is_set():
+            stats = train_step(run)
+            fraction = budget.advance(run, stats)
+            run.log.write(log_line(run, stats))
             if progress is not None:
-                by_time = elapsed / (deadline - started) if timed else 0.0
-                progress(min(1.0, max(step / total, by_time)))
-            if probe is not None and step % args.probe_every == 0:
-                probe_update()
-            if step % args.ckpt_every == 0:
-                save()
-                log.flush()
+                progress(fraction)
+            if probe is not None and run.step % cfg.probe_every == 0:
+                probe.update()
+            if run.step % cfg.ckpt_every == 0:
+                save(run)
+                run.log.flush()
     finally:
-        bar.close()
+        budget.close()
         if probe is not None:
-            if step % args.probe_every:
-                probe_update()
-            best = probe["state"]
-            model.load_state_dict(best["model"])
-            code.data.copy_(best["code"])
-            extra["probe"] = {"score": probe["score"], "step": best["step"]}
-        save()
-        log.close()
-    return ckpt_path
+            if run.step % cfg.probe_every:  # the state after the last score
+                probe.update()
+            run.probe = probe.restore_best()
+        save(run)
+        run.log.close()
+    return run.ckpt_path
 
 
 def main(argv=None):
-    args = parse_args(argv)
-    path = train(args)
+    path = train(parse_args(argv))
     print(f"checkpoint: {path}")
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
-import inspect
 import json
 import shutil
 from collections.abc import Callable
@@ -19,10 +18,11 @@ import numpy as np
 
 from worker.colour_match import calibrate_texture
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
-from worker.images import read_image, resize_short_side, write_image
+from worker.images import read_image, resize_short_side
 
-from .container import Services
+from .container import Services, tileable_key
 from .db import session_scope
+from .schemas import BakeParams, FitParams, RegionIn, VolumeIn
 from .tables import Job, Texture, utcnow
 
 Progress = Callable[[float], None]
@@ -32,7 +32,7 @@ MEDIA_TYPES = {
     "npy": "application/x-npy", "exr": "image/x-exr", "tiff": "image/tiff", "raw": "application/zip",
     "glb": "model/gltf-binary", "obj": "application/zip", "png": "image/png", "webp": "image/webp",
     "onnx": "application/octet-stream", "zip": "application/zip", "nrrd": "application/octet-stream",
-    "dds": "image/vnd-ms.dds", "flipbook": "image/png",
+    "dds": "image/vnd-ms.dds", "flipbook": "image/png", "vdb": "application/x-vdb", "ktx2": "image/ktx2",
 }
 
 
@@ -56,27 +56,18 @@ def _store_result(services: Services, job: Job, path: Path, fmt: str) -> dict[st
             "result_media_type": MEDIA_TYPES.get(fmt, "application/octet-stream")}
 
 
-def _returned_path(returned: Any, fallback: Path) -> Path:
-    """Worker functions may return the path they wrote (or a dict/obj with one)."""
-    path = getattr(returned, "path", returned)
-    if isinstance(path, (str, Path)) and Path(path).is_file():
-        return Path(path)
-    return fallback
-
-
 def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
                should_cancel: ShouldCancel) -> dict[str, Any]:
     from worker.volume_writers import EXTENSIONS
     from worker.volumes import render_volume
 
     texture = _texture(services, job)
-    params = job.params
-    out_path = workdir / f"volume-{texture.id[:8]}-{params['resolution']}{EXTENSIONS[params['format']]}"
-    returned = render_volume(services.sampler_for(texture), texture.sampling_code(),
-                             int(params["seed"]), resolution=int(params["resolution"]),
-                             bounds=params["bounds"], fmt=params["format"], out_path=out_path,
-                             progress=progress, should_cancel=should_cancel)
-    return _store_result(services, job, _returned_path(returned, out_path), params["format"])
+    p = VolumeIn.model_validate(job.params)
+    out_path = workdir / f"volume-{texture.id[:8]}-{p.resolution}{EXTENSIONS[p.format]}"
+    path = render_volume(services.sampler_for(texture), texture.sampling_code(), p.seed, resolution=p.resolution,
+                         bounds=p.bounds, fmt=p.format, out_path=out_path,
+                         progress=progress, should_cancel=should_cancel)
+    return _store_result(services, job, path, p.format)
 
 
 def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -84,22 +75,22 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
     from worker.bake import BakeLimits, bake_mesh
 
     texture = _texture(services, job)
-    params = job.params
+    p = BakeParams.model_validate(job.params)
     mesh_bytes = services.storage.get_bytes(job.input_key)
-    stem = Path(params.get("filename") or "mesh").stem or "mesh"
-    ext = "glb" if params["format"] == "glb" else "zip"
-    out_path = workdir / f"{stem}-baked.{ext}"
+    stem = Path(p.filename).stem or "mesh"
+    out_path = workdir / f"{stem}-baked.{'glb' if p.format == 'glb' else 'zip'}"
     limits = BakeLimits(max_faces=services.settings.max_mesh_faces,
                         max_vertices=services.settings.max_mesh_vertices,
                         max_resolution=services.settings.max_bake_resolution)
-    scale = params.get("scale")
-    returned = bake_mesh(services.sampler_for(texture), texture.sampling_code(),
-                         int(params["seed"]), mesh_bytes=mesh_bytes, filename=params.get("filename") or "mesh.obj",
-                         resolution=int(params["resolution"]), scale=None if scale is None else float(scale),
-                         fmt=params["format"], out_path=out_path, limits=limits,
-                         pixels_per_unit=services.pixels_per_unit(texture),
-                         progress=progress, should_cancel=should_cancel)
-    return _store_result(services, job, _returned_path(returned, out_path), ext)
+    result = bake_mesh(services.sampler_for(texture), texture.sampling_code(), p.seed, mesh_bytes=mesh_bytes,
+                       filename=p.filename, resolution=p.resolution, scale=p.scale, fmt=p.format,
+                       out_path=out_path, limits=limits, pixels_per_unit=services.pixels_per_unit(texture),
+                       atlas_cache_dir=services.settings.resolved_atlas_cache_dir,
+                       atlas_cache_bytes=services.settings.atlas_cache_bytes,
+                       maps=tuple(p.maps), gpu_format=p.gpu_format, normal_strength=p.normal_strength,
+                       progress=progress, should_cancel=should_cancel)
+    # a GLB with a height map or a GPU texture comes back as a zip
+    return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip")
 
 
 def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -107,18 +98,21 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
     from worker.regions import RegionLimits, render_region
 
     texture = _texture(services, job)
-    p = job.params
-    ext = {"tiff": "tif", "pyramid": "zip"}.get(p["format"], p["format"])
-    out_path = workdir / f"region-{texture.id[:8]}-z{p['z']}.{ext}"
+    p = RegionIn.model_validate(job.params)
+    maps = tuple(p.maps)
+    ext = "zip" if maps else {"tiff": "tif", "pyramid": "zip"}.get(p.format, p.format)
+    out_path = workdir / f"region-{texture.id[:8]}-z{p.z}.{ext}"
     limits = RegionLimits(max_pixels=services.settings.max_region_pixels,
                           max_tiles=services.settings.max_region_tiles)
-    returned = render_region(services.sampler_for(texture), texture.sampling_code(), int(p["seed"]),
-                             z=int(p["z"]), x0=int(p["x0"]), y0=int(p["y0"]), width=int(p["width"]),
-                             height=int(p["height"]), fmt=p["format"], out_path=out_path, size=int(p["size"]),
-                             min_zoom=p.get("min_zoom"), plane=p["plane"], offset=float(p["offset"]),
-                             pixels_per_unit=services.pixels_per_unit(texture), limits=limits,
-                             progress=progress, should_cancel=should_cancel)
-    return _store_result(services, job, _returned_path(returned, out_path), "zip" if ext == "zip" else p["format"])
+    # tileable: the texture's sampler_tileable.onnx, its period the image's side
+    sampler = services.tileable_sampler_for(texture) if p.tileable else services.sampler_for(texture)
+    path = render_region(sampler, texture.sampling_code(), p.seed, z=p.z, x0=p.x0, y0=p.y0, width=p.width,
+                         height=p.height, fmt=p.format, out_path=out_path, size=p.size, min_zoom=p.min_zoom,
+                         plane=p.plane, offset=p.offset, maps=maps, normal_strength=p.normal_strength,
+                         wrap_maps=p.tileable, tileable=p.tileable,
+                         pixels_per_unit=services.pixels_per_unit(texture), limits=limits,
+                         progress=progress, should_cancel=should_cancel)
+    return _store_result(services, job, path, "zip" if ext == "zip" else p.format)
 
 
 def fitted_texture_id(job_id: str) -> str:
@@ -151,24 +145,22 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     texture = _texture(services, job)
     if not texture.exemplar_key:
         raise InvalidParameter(f"texture {texture.id} has no exemplar image to fit")
-    # keep the extension: image readers pick the decoder by it
+    p = FitParams.model_validate(job.params)
+    # keep the extension: the reader picks the decoder by it (model.fit reads with the same
+    # reader, worker.decode, as this process)
     original = services.storage.get_file(texture.exemplar_key, workdir / Path(texture.exemplar_key).name)
     image = read_image(original.read_bytes(), max_pixels=services.settings.max_image_pixels)
-    # model.fit reads with Pillow, which knows fewer formats (EXR, float TIFF): it gets the
-    # photo as this one reader decoded it at upload, an 8-bit sRGB PNG
-    decoded = workdir / "exemplar-decoded.png"
-    decoded.write_bytes(write_image(image, "png", colour="srgb"))
     out_dir = workdir / "fit"
-    _fit_exemplar(services, job, texture, decoded, out_dir, progress, should_cancel)
-    code = json.loads((out_dir / "code.json").read_text())
-    code = [float(c) for c in (code["code"] if isinstance(code, dict) else code)]
+    _fit_exemplar(services, texture, p, original, out_dir, progress, should_cancel)
+    code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
     values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
-    if job.params.get("in_place"):
+    if p.in_place:
         _refine_in_place(services, job, texture, out_dir / "sampler.onnx", code, image)
         return {**values, "output_texture_id": texture.id}
     new_id = fitted_texture_id(job.id)
     sampler_key = f"textures/{new_id}/sampler.onnx"
     services.storage.put_file(sampler_key, out_dir / "sampler.onnx")
+    _store_tileable(services, sampler_key, out_dir)
     colour = _fitted_colour(services, texture, out_dir / "sampler.onnx", code, image)
     exemplar_key = f"textures/{new_id}/{Path(texture.exemplar_key).name}"  # own copy: outlives the parent
     services.storage.put_file(exemplar_key, original)
@@ -184,9 +176,9 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     return {**values, "output_texture_id": new_id}
 
 
-def _fit_exemplar(services: Services, job: Job, texture: Texture, image_path: Path, out_dir: Path,
+def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path: Path, out_dir: Path,
                   progress: Progress, should_cancel: ShouldCancel) -> None:
-    """Call model.fit.fit_exemplar (torch) with the options this worker's version takes."""
+    """Run model.fit.fit_exemplar (torch) from the texture's model's space.pt."""
     from model.fit import fit_exemplar  # torch lives in model/, imported only here
 
     def report(fraction: float, *_: Any, **__: Any) -> None:  # no cancel hook: stop at a report
@@ -194,25 +186,12 @@ def _fit_exemplar(services: Services, job: Job, texture: Texture, image_path: Pa
         if should_cancel():
             raise Canceled("fit canceled")
 
-    model_dir = services.registry.get(texture.model_version).model_dir
-    seconds = float(job.params["seconds"])
-    accepted = inspect.signature(fit_exemplar).parameters
-    options: dict[str, Any] = {}
-    grain = job.params.get("grain")  # jobs submitted before the field existed have none
-    if grain is not None:
-        if "grain" not in accepted:
-            raise FeatureUnavailable("this worker's model.fit has no grain option; update the worker")
-        options["grain"] = grain
-    if "threads" in accepted:  # TEXSPACE_FIT_THREADS: a fit must not take the cores tiles need
-        options["threads"] = services.settings.fit_threads
-    if "init_checkpoint" in accepted:  # model/fit.py starts from the space's training checkpoint
-        checkpoint = model_dir / "space.pt"
-        if not checkpoint.is_file():
-            raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
-        fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=seconds / 60.0, progress=report,
-                     **options)
-    else:
-        fit_exemplar(image_path, out_dir, init_model_dir=model_dir, seconds=seconds, progress=report, **options)
+    checkpoint = services.registry.get(texture.model_version).model_dir / "space.pt"
+    if not checkpoint.is_file():
+        raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
+    # TEXSPACE_FIT_THREADS: a fit must not take the cores tiles need
+    fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0, progress=report,
+                 grain=p.grain, threads=services.settings.fit_threads)
 
 
 def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],
@@ -223,6 +202,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
     folder = f"textures/{texture.id}/refined/{job.id}-{job.attempt}"
     sampler_key = f"{folder}/sampler.onnx"
     services.storage.put_file(sampler_key, sampler_path)
+    _store_tileable(services, sampler_key, sampler_path.parent)
     local = services.sampler_path(texture.id, sampler_key)  # where sampler_for looks: no second download
     local.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(sampler_path, local)
@@ -237,6 +217,16 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
         if row.encoder_code is None:  # the first refinement: keep what the encoder gave, for blends
             row.encoder_code, row.encoder_colour = list(row.code), row.colour
         row.code, row.colour, row.sampler_key, row.updated_at = code, colour, sampler_key, utcnow()
+
+
+def _store_tileable(services: Services, sampler_key: str, fit_dir: Path) -> None:
+    """Store the fit's tileable sampler beside its sampler (``tileable_key``), where
+    tileable regions look for it; a model.fit from before tileable textures writes none."""
+    from worker.runtime import TILEABLE_SAMPLER
+
+    path = fit_dir / TILEABLE_SAMPLER
+    if path.is_file():
+        services.storage.put_file(tileable_key(sampler_key), path)
 
 
 def _fitted_colour(services: Services, texture: Texture, sampler_path: Path, code: list[float],

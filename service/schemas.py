@@ -6,6 +6,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
+from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAX_WHOLE_PIXELS
 from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM
 
 from .deps import SafeText
@@ -98,10 +99,12 @@ class VolumeIn(BaseModel):
     resolution: int = Field(64, ge=2, le=1024, description="voxels per side (N); capped by the server limit")
     bounds: Bounds = Field(default_factory=lambda: [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     seed: Seed = 0
-    format: Literal["npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook"] = Field(
+    format: Literal["npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb"] = Field(
         "npy", description="npy: float32 linear RGB [N,N,N,3] in (z, y, x) order; exr / tiff: one z slice per "
-                           "part / page; raw: zip of raw float32 + JSON header; nrrd; dds volume; flipbook: "
-                           "one PNG with the slices in a grid (Unity 3D texture import)")
+                           "part / page, with bounds and voxel size in each header; raw: zip of raw float32 + "
+                           "JSON header; nrrd; dds volume; flipbook: one PNG with the slices in a grid (Unity 3D "
+                           "texture import); vdb: OpenVDB, one float RGB (vec3s) grid 'Cd' placed by the bounds "
+                           "(Blender, Houdini)")
 
     @field_validator("bounds")
     @classmethod
@@ -124,6 +127,25 @@ class FitIn(BaseModel):
                           "axis so tiles keep the grain in the photo's orientation. null: isotropic")
 
 
+class FitParams(FitIn):
+    """A fit job's stored parameters: the request, plus ``in_place`` for an upload's
+    automatic refinement (the texture itself then serves the result)."""
+    in_place: bool = False
+
+
+class BakeParams(BaseModel):
+    """A bake job's stored parameters (the multipart form's fields, validated by the route)."""
+    model_config = {"extra": "forbid"}
+    resolution: int
+    seed: int
+    scale: float | None = None
+    format: Literal["glb", "obj"] = "glb"
+    filename: str = "mesh.obj"
+    maps: list[Literal["height", "normal"]] = []
+    gpu_format: Literal["dds", "ktx2"] | None = None
+    normal_strength: float = DEFAULT_NORMAL_STRENGTH
+
+
 RASTER_LIMIT = COORD_LIMIT * MAX_TILE_SIZE  # the raster window worker/tiles.py renders exactly
 
 
@@ -139,12 +161,25 @@ class RegionIn(BaseModel):
     seed: Seed = 0
     plane: Literal["xy", "xz", "yz"] = "xy"
     offset: float = Field(0.0, ge=-1e9, le=1e9)
-    format: Literal["png", "exr", "tiff", "pyramid"] = Field(
+    format: Literal["png", "exr", "tiff", "pyramid", "dds", "ktx2"] = Field(
         "png", description="png: 8-bit sRGB; tiff: tiled 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
-                           "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json")
+                           "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json; dds / ktx2: RGBA8 sRGB "
+                           "GPU texture with the full mip chain (averaged in linear light)")
     size: int = Field(256, ge=64, le=1024, description="pyramid tile size")
     min_zoom: int | None = Field(None, ge=MIN_ZOOM, le=MAX_ZOOM,
                                  description="pyramid: lowest zoom, at most z (default: the minimum zoom)")
+    maps: list[Literal["height", "normal"]] = Field(
+        default_factory=list, max_length=2,
+        description="derived maps to add (not with pyramid): height = linear luminance, normal = tangent-space "
+                    "from its gradient, OpenGL convention (+Y up). The result is then a zip of colour.<ext>, "
+                    "height.png (16-bit) and/or normal.png")
+    normal_strength: float = Field(DEFAULT_NORMAL_STRENGTH, gt=0, le=100,
+                                   description="normal map: height units per pixel step (steeper with more)")
+    tileable: bool = Field(
+        False, description="a seamlessly tiling image: square (width = height), z = 6 (the native zoom), "
+                           "plane xy, one image (not pyramid); the texture is made periodic with the image's "
+                           "side as its period (each octave's frequency rounded to whole cells per period: "
+                           "coarse octaves change most, and small images most). A normal map then wraps too")
 
     @model_validator(mode="after")
     def _within_raster(self) -> RegionIn:
@@ -152,6 +187,10 @@ class RegionIn(BaseModel):
             raise ValueError(f"the region must stay within +-{RASTER_LIMIT} raster pixels")
         if self.min_zoom is not None and self.min_zoom > self.z:
             raise ValueError(f"min_zoom {self.min_zoom} is above z {self.z}")
+        if self.maps and self.format == "pyramid":
+            raise ValueError("derived maps come with a single image, not a pyramid")
+        if (self.maps or self.format in ("dds", "ktx2")) and self.width * self.height > MAX_WHOLE_PIXELS:
+            raise ValueError(f"dds, ktx2 and derived maps are limited to {MAX_WHOLE_PIXELS} pixels")
         return self
 
 

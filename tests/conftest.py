@@ -4,21 +4,15 @@ from __future__ import annotations
 import contextlib
 
 import os
-import socket
 import uuid
 from collections.abc import Iterator
 
 import pytest
 
+from service.spawn import free_port  # noqa: F401 - the tests' one free-port helper
+
 PG_ADMIN_URL = os.environ.get("TEXSPACE_TEST_PG_URL", "postgresql://postgres@127.0.0.1:5432/test")
 REDIS_URL = os.environ.get("TEXSPACE_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
-
-
-def free_port() -> int:
-    """A TCP port free on the loopback interface right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 @pytest.fixture(scope="session")

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import asyncio
-import importlib.util
 import json
 from typing import Annotated, Literal
 
@@ -11,6 +10,7 @@ from fastapi.responses import FileResponse, StreamingResponse
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
+from worker.derived_maps import DEFAULT_NORMAL_STRENGTH
 from worker.errors import FeatureUnavailable, LimitExceeded
 from worker.tiles import MIN_ZOOM
 
@@ -20,7 +20,7 @@ from ..deps import JobId, PageParams, SafeText, ServicesDep, TextureId, apply_cu
 from ..errors import Problem, not_found, problem_responses
 from ..job_kinds import torch_available
 from ..limits import check_mesh, check_queue_room
-from ..schemas import FitIn, JobOut, JobPage, RegionIn, Seed, VolumeIn
+from ..schemas import BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
 from ..tables import TERMINAL_STATES, Job, new_id
 from ..uploads import read_limited, safe_filename, sha256
 from .textures import NOSNIFF, load_texture
@@ -66,6 +66,15 @@ def submit_bake(
     scale: Annotated[float | None, Form(gt=0, le=1e6, description="world units per mesh unit; default: "
                                                                    "the mesh spans 512 exemplar pixels")] = None,
     format: Annotated[Literal["glb", "obj"], Form(description="glb, or a zip of obj + mtl + png")] = "glb",
+    maps: Annotated[list[Literal["height", "normal"]], Form(
+        description="derived maps of the atlas (repeat the field for both): normal = tangent-space, OpenGL "
+                    "convention (+Y up), embedded in a GLB as its normalTexture (with TANGENTs) or added to "
+                    "the OBJ zip; height = linear luminance, height.png (a GLB result becomes a zip)")] = [],
+    gpu_format: Annotated[Literal["dds", "ktx2"] | None, Form(
+        description="add a mipmapped RGBA8 sRGB texture.dds / texture.ktx2 of the atlas (a GLB result "
+                    "becomes a zip of model.glb and the textures)")] = None,
+    normal_strength: Annotated[float, Form(gt=0, le=100, description="normal map: height units per "
+                                                                     "pixel step")] = DEFAULT_NORMAL_STRENGTH,
 ) -> JobOut:
     """UV-unwrap a mesh and bake the solid texture into its atlas (a job)."""
     load_texture(services, texture_id)
@@ -73,7 +82,8 @@ def submit_bake(
         raise LimitExceeded(f"resolution {resolution} exceeds the limit of {services.settings.max_bake_resolution}")
     data = read_limited(mesh, services.settings.max_mesh_bytes, "the mesh")
     filename = safe_filename(mesh.filename, "mesh.obj")
-    params = {"resolution": resolution, "seed": seed, "scale": scale, "format": format, "filename": filename}
+    params = BakeParams(resolution=resolution, seed=seed, scale=scale, format=format, filename=filename,
+                        maps=sorted(set(maps)), gpu_format=gpu_format, normal_strength=normal_strength).model_dump()
     fingerprint = jobs.request_hash("bake", texture_id, params, sha256(data).encode())
     if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:
         return accepted(response, jobs.same_request(existing, fingerprint), False)
@@ -108,13 +118,13 @@ def submit_fit(services: ServicesDep, response: Response, texture_id: TextureId,
     return _submit(services, response, "fit", texture_id, body.model_dump(), key)
 
 
-@router.post("/v1/textures/{texture_id}/regions", **ACCEPTED, responses=problem_responses(404, 413, 422, 501, 503))
+@router.post("/v1/textures/{texture_id}/regions", **ACCEPTED,
+             responses=problem_responses(404, 409, 413, 422, 501, 503))
 def submit_region(services: ServicesDep, response: Response, texture_id: TextureId, body: RegionIn,
                   key: IdempotencyKey) -> JobOut:
-    """Render a large rectangle of the infinite plane to one image (a job)."""
-    load_texture(services, texture_id)
-    if importlib.util.find_spec("worker.regions") is None:
-        raise FeatureUnavailable("region export is not available in this build (worker/regions.py missing)")
+    """Render a large rectangle of the infinite plane to one image (a job); ``tileable``: a
+    square image that repeats seamlessly."""
+    texture = load_texture(services, texture_id)
     if body.width * body.height > services.settings.max_region_pixels:
         raise LimitExceeded(f"{body.width}x{body.height} exceeds the limit of "
                             f"{services.settings.max_region_pixels} pixels")
@@ -126,6 +136,12 @@ def submit_region(services: ServicesDep, response: Response, texture_id: Texture
         if tiles > services.settings.max_region_tiles:
             raise LimitExceeded(f"pyramid of {tiles} tiles exceeds the limit of "
                                 f"{services.settings.max_region_tiles}")
+    if body.tileable:  # 422 for a shape the tileable sampler cannot make, 409 for a texture without one
+        from worker.regions import check_tileable
+
+        check_tileable(z=body.z, width=body.width, height=body.height, fmt=body.format, plane=body.plane)
+        if (reason := services.tileable_available(texture)) is not None:
+            raise Problem(409, reason, slug="not-tileable", title="This texture has no tileable sampler")
     return _submit(services, response, "region", texture_id, body.model_dump(), key)
 
 

@@ -8,9 +8,7 @@
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
-import sys
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -19,6 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from service import spawn
 from tests.conftest import PG_ADMIN_URL, REDIS_URL, free_port
 from tests.helpers import wait_ready
 
@@ -40,9 +39,7 @@ class Deployment:
 
 
 def _start(args: list[str], env: dict[str, str], log_path: Path) -> subprocess.Popen:
-    log = open(log_path, "wb")
-    return subprocess.Popen([sys.executable, "-m", "service.cli", *args], env=env, stdout=log,
-                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+    return spawn.spawn(args, env, log_path)
 
 
 def _wait_ready(dep: Deployment) -> None:
@@ -50,15 +47,7 @@ def _wait_ready(dep: Deployment) -> None:
 
 
 def _stop(dep: Deployment) -> None:
-    for proc in dep.procs:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-    for proc in dep.procs:
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)  # its own session: only our process tree
-            proc.wait(5)
+    spawn.stop(dep.procs)
 
 
 def _base_env(data_dir: Path) -> dict[str, str]:

@@ -5,15 +5,14 @@ Every process runs in its own session, so a test only ever signals processes it 
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
 
+from service import spawn
 from tests.conftest import free_port
 from tests.helpers import wait_ready
 
@@ -43,9 +42,7 @@ class Cluster:
     def _spawn(self, args: list[str], name: str) -> subprocess.Popen:
         log_path = self.root / f"{name}-{len(self.logs)}.log"
         self.logs.append(log_path)
-        env = self.env | {"TEXSPACE_PORT": str(self.port)}
-        return subprocess.Popen([sys.executable, "-m", "service.cli", *args], env=env, stdin=subprocess.DEVNULL,
-                                stdout=open(log_path, "wb"), stderr=subprocess.STDOUT, start_new_session=True)
+        return spawn.spawn(args, self.env | {"TEXSPACE_PORT": str(self.port)}, log_path)
 
     def start_api(self, timeout: float = 60.0) -> None:
         self.api = self._spawn(["api"], "api")
@@ -64,17 +61,7 @@ class Cluster:
         return "\n".join(f"--- {p.name}\n{p.read_text(errors='replace')[-chars:]}" for p in self.logs if p.exists())
 
     def stop(self) -> None:
-        for proc in [self.api, *self.workers]:
-            if proc is not None and proc.poll() is None:
-                proc.send_signal(signal.SIGTERM)
-        for proc in [self.api, *self.workers]:
-            if proc is None:
-                continue
-            try:
-                proc.wait(15)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)  # its own session: only our process tree
-                proc.wait(5)
+        spawn.stop([self.api, *self.workers])
 
 
 def base_env(data_dir: Path, **extra: str) -> dict[str, str]:

@@ -121,12 +121,12 @@ def test_bad_grain_is_a_422_problem_naming_the_allowed_values(fit_client, fit_te
     assert fit_client.get("/v1/jobs").json()["items"] == []    # nothing queued
 
 
-def test_fit_of_an_exr_exemplar_reads_it_with_the_service_reader(fit_client, fit_calls) -> None:
-    # The fit gets the upload as the service decoded it (an 8-bit sRGB PNG), not the EXR
-    # that model.fit's Pillow loader cannot read (it failed and was retried before).
-    from PIL import Image
-
-    from worker.images import write_image
+def test_fit_of_an_exr_exemplar_reads_it_with_the_service_reader(fit_client, fit_calls, tmp_path) -> None:
+    # The fit gets the uploaded file itself, and model.fit decodes it with the service's
+    # one reader (worker.decode): an EXR fits (Pillow, model/'s old loader, failed on it).
+    pytest.importorskip("torch")
+    from model.data import load_exemplar
+    from worker.images import read_image, write_image
 
     linear = np.random.default_rng(0).random((64, 64, 3)).astype(np.float32) * 0.5
     exr = write_image(linear, "exr")
@@ -136,9 +136,12 @@ def test_fit_of_an_exr_exemplar_reads_it_with_the_service_reader(fit_client, fit
     done = fit_client.get(f"/v1/jobs/{job['id']}").json()
     assert done["state"] == "succeeded"
     (call,) = fit_calls
-    assert call["image_path"].suffix == ".png"
-    with Image.open(io.BytesIO(call["image_bytes"])) as image:
-        assert image.format == "PNG" and image.mode == "RGB" and image.size == (64, 64)
+    assert call["image_path"].suffix == ".exr" and call["image_bytes"] == exr
+    copy = tmp_path / "t.exr"
+    copy.write_bytes(exr)
+    fitted = load_exemplar(copy, 64)
+    served = read_image(exr, max_pixels=1 << 20)
+    assert fitted.shape == served.shape and np.abs(fitted - served).max() <= 1 / 255 + 1e-6
     # the fitted texture keeps the uploaded file itself as its exemplar, not the decoded PNG
     texture_id = done.get("output_texture_id") or done["result"]["output_texture_id"]
     exemplar = fit_client.get(f"/v1/textures/{texture_id}/exemplar")

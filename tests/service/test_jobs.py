@@ -51,7 +51,7 @@ def test_volume_limits_and_validation(client, texture) -> None:
     assert too_big.status_code == 413 and too_big.headers["content-type"] == "application/problem+json"
     bad_bounds = client.post(texture["links"]["volumes"], json={"bounds": [[0, 0, 0], [1, -1, 1]]})
     assert bad_bounds.status_code == 422
-    bad_format = client.post(texture["links"]["volumes"], json={"format": "vdb"})
+    bad_format = client.post(texture["links"]["volumes"], json={"format": "openvdb"})
     assert bad_format.status_code == 422
     assert client.post("/v1/textures/missing/volumes", json={}).status_code == 404
 
@@ -82,6 +82,45 @@ def test_bake_glb_loads_with_texture(client, texture) -> None:
     image = geometry.visual.material.baseColorTexture
     assert image is not None and image.size == (64, 64)
     assert len(geometry.faces) == 12
+
+
+def test_volume_vdb_and_exr_jobs(client, texture) -> None:
+    bounds = [[0, 0, 0], [2, 1, 0.5]]
+    vdb = client.get(submit_volume(client, texture, format="vdb", bounds=bounds)["links"]["self"]).json()
+    assert vdb["state"] == "succeeded", vdb
+    assert vdb["result"]["media_type"] == "application/x-vdb" and vdb["result"]["filename"].endswith(".vdb")
+    raw = client.get(vdb["links"]["result"]).content
+    assert raw[:8] == b" BDV\0\0\0\0" and b"Tree_vec3s_5_4_3" in raw[:200]
+    exr = client.get(submit_volume(client, texture, format="exr", bounds=bounds)["links"]["self"]).json()
+    assert exr["state"] == "succeeded", exr
+    assert b"boundsMin" in client.get(exr["links"]["result"]).content[:4096]
+
+
+def test_bake_with_maps_and_gpu_texture(client, texture) -> None:
+    import zipfile
+
+    from PIL import Image
+
+    mesh = (MESHES / "cube.obj").read_bytes()
+    res = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                      data={"resolution": "64", "format": "glb", "maps": ["normal", "height"], "gpu_format": "dds"})
+    assert res.status_code == 202, res.text
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded", job
+    assert job["params"]["maps"] == ["height", "normal"] and job["params"]["gpu_format"] == "dds"
+    assert job["result"]["media_type"] == "application/zip" and job["result"]["filename"].endswith(".zip")
+    with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
+        assert sorted(z.namelist()) == ["height.png", "model.glb", "texture.dds"]
+        assert Image.open(io.BytesIO(z.read("height.png"))).size == (64, 64)
+        scene = trimesh.load(io.BytesIO(z.read("model.glb")), file_type="glb")
+    material = next(iter(scene.geometry.values())).visual.material
+    assert material.normalTexture is not None and material.normalTexture.size == (64, 64)
+    only_normal = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                              data={"resolution": "64", "maps": "normal"})
+    done = client.get(only_normal.json()["links"]["self"]).json()
+    assert done["state"] == "succeeded" and done["result"]["media_type"] == "model/gltf-binary"
+    bad = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)}, data={"maps": "gloss"})
+    assert bad.status_code == 422
 
 
 def test_bake_bad_mesh_is_refused_at_submission(client, texture) -> None:
@@ -251,6 +290,33 @@ def test_region_png_job(client, texture) -> None:
     too_big = client.post(texture["links"]["regions"], json={"z": 6, "x0": 0, "y0": 0, "width": 16384,
                                                               "height": 16384})
     assert too_big.status_code == 413
+
+
+def test_region_gpu_textures_and_maps(client, texture) -> None:
+    import zipfile
+
+    from PIL import Image
+
+    from tests.worker.gpu_readers import read_ktx2
+
+    rect = {"z": 6, "x0": -40, "y0": 10, "width": 100, "height": 70}
+    submitted = client.post(texture["links"]["regions"], json={**rect, "format": "ktx2"})
+    ktx = client.get(submitted.json()["links"]["self"]).json()
+    assert ktx["state"] == "succeeded", ktx
+    assert ktx["result"]["media_type"] == "image/ktx2" and ktx["result"]["filename"].endswith(".ktx2")
+    header, levels = read_ktx2(client.get(ktx["links"]["result"]).content)
+    assert (header["width"], header["height"], header["levels"]) == (100, 70, 7) and levels[-1].shape == (1, 1, 4)
+    res = client.post(texture["links"]["regions"], json={**rect, "format": "dds", "maps": ["height", "normal"]})
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded", job
+    assert job["result"]["media_type"] == "application/zip"
+    with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
+        assert sorted(z.namelist()) == ["colour.dds", "height.png", "normal.png"]
+        normal = np.asarray(Image.open(io.BytesIO(z.read("normal.png"))), dtype=np.float32) / 127.5 - 1
+    assert normal.shape == (70, 100, 3) and np.abs(np.linalg.norm(normal, axis=-1) - 1).max() < 0.02
+    for body in ({**rect, "format": "pyramid", "maps": ["height"]}, {**rect, "maps": ["gloss"]},
+                 {**rect, "format": "ktx2", "width": 8192, "height": 4096}):
+        assert client.post(texture["links"]["regions"], json=body).status_code == 422, body
 
 
 def test_worker_shutdown_hands_running_jobs_back(held, photo) -> None:
