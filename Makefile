@@ -47,9 +47,10 @@ bench: install-test
 	$(PY) bench/run.py
 	$(PY) bench/load.py   # 32 clients, 60 s, on a real `texspace serve` (loopback)
 
-# the README picture: exemplars beside tiles synthesised from their codes
+# the README picture: exemplars beside tiles synthesised from their codes; the shipped one
+# adds each photo's 60-s fit: make fits FIT_ARGS='--minutes 1 --threads 1' and FIGURE_ARGS='--fits runs/fits'
 readme-figure: data
-	$(PY) docs/make_readme_figure.py
+	$(PY) docs/make_readme_figure.py docs/images/exemplar-and-tile.png $(FIGURE_ARGS)
 
 # the model card's wood picture: a default-length grain fit on the three axis planes
 grain-figure: data

@@ -5,6 +5,7 @@
 Measures, in one run: the machine's float32 GEMM roofline for the decoder, the ONNX
 sampler through worker/runtime (best chunk size and threads), the same weights in
 PyTorch eager, cold and cached 256^2 tiles over HTTP on an embedded ``texspace serve``,
+a map viewport of 16 cold tiles (idle, beside 4 volume jobs, zoomed out; bench/viewport.py),
 the encode of a 1024^2 upload, a 256^3 volume (child process, peak RSS), a 2048^2
 bake of a ~100k-face mesh without UVs, and the shipped encoder on one 128^2 crop on one
 thread (``--only encode`` runs just that). Every target is a ratio against a reference
@@ -21,9 +22,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench import common, jobs, kernels, serving
+from bench import common, jobs, kernels, serving, viewport
 
-SECTIONS = ("kernels", "http", "volume", "bake", "encode")
+SECTIONS = ("kernels", "http", "viewport", "volume", "bake", "encode")
 
 
 def log(msg: str) -> None:
@@ -91,6 +92,9 @@ def measure(only: set[str], quick: bool) -> dict:
         results.update(serving.bench_http(model_dir, uploads=3 if quick else 7, cold_tiles=8 if quick else 24,
                                           log=log))
 
+    def run_viewport():
+        results["viewport"] = viewport.bench_viewport(model_dir, log=log)
+
     def run_volume():
         res = 128 if quick else 256
         v = jobs.bench_volume(model_dir, res, log=log)
@@ -126,6 +130,7 @@ def measure(only: set[str], quick: bool) -> dict:
 
     section("kernels", run_kernels)
     section("http", run_http)
+    section("viewport", run_viewport)
     section("volume", run_volume)
     section("bake", run_bake)
     section("encode", run_encode)
@@ -171,6 +176,28 @@ def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
         ratio("encode_128_ms", ms, "< 100 ms", ms < 100, "encode one 128^2 crop (1 thread, median)", f"{ms:.1f} ms",
               f"{ms / ref:.2f} x GEMM-bound {ref:.1f} ms ({r['encoder_flops']['total'] / 1e6:.0f} MFLOP at "
               f"{r['encode_gemm_gflops_1_thread']:.1f} GFLOP/s)")
+    vp = r.get("viewport") or {}
+    if "native_idle" in vp:
+        last = vp["native_idle"]["last_s"]
+        ratio("viewport_idle_last_s", last, "<= 1.0 s", last <= 1.0, "viewport 16 cold 256^2 tiles, idle: last",
+              f"{last:.3f} s", f"p50 {vp['native_idle']['p50_s']:.3f} s, p95 {vp['native_idle']['p95_s']:.3f} s; "
+              f"{last / vp['sampler_16_tiles_before_s']:.2f} x 16 tiles in process "
+              f"{vp['sampler_16_tiles_before_s']:.3f} s")
+    if "native_4_volumes" in vp:
+        last = vp["native_4_volumes"]["last_s"]
+        ratio("viewport_4_volumes_last_s", last, "<= 1.5 s", last <= 1.5,
+              "viewport, 4 volume jobs 128^3 running: last", f"{last:.3f} s",
+              f"{last / vp['native_idle']['last_s']:.2f} x idle; p50 {vp['native_4_volumes']['p50_s']:.3f} s")
+    for key, name in (("out2_supersample_cold", "supersampled"), ("bounded_out2_cold", "bounded")):
+        native = vp.get("native_idle" if name == "supersampled" else "bounded_native_idle")
+        if key in vp and native:
+            x = vp[key]["last_s"] / native["last_s"]
+            ratio(f"viewport_out2_{name}_vs_native", x, "<= 1.5", x <= 1.5,
+                  f"viewport two zoom levels out, cold, {name}: last", f"{vp[key]['last_s']:.3f} s",
+                  f"{x:.2f} x native {native['last_s']:.3f} s")
+    if "out1_from_children" in vp:
+        rows.append(("viewport one level out over viewed tiles (from children): last",
+                     f"{vp['out1_from_children']['last_s']:.3f} s", "no sampling", "-"))
     for res in (256, 128):
         key = f"volume_{res}_s"
         if sampler and key in r:
@@ -181,14 +208,25 @@ def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
             rss = r[f"volume_{res}_peak_rss_mb"]
             ratio(f"volume_{res}_peak_rss_mb", rss, "< 1024 MB", rss < 1024, f"volume {res}^3 peak RSS",
                   f"{rss:.0f} MB", "absolute")
-    if sampler and "bake_2048_excl_xatlas_s" in r:
-        ref = r["bake_2048_texels"] / sampler
+    if "bake_2048_excl_xatlas_s" in r:
+        # reference: the sampler on as many points as the bake has texels, timed in the bake section
+        ref = r.get("bake_2048_sampler_s") or r["bake_2048_texels"] / sampler
         x = r["bake_2048_excl_xatlas_s"] / ref
         ratio("bake_vs_sampler", x, "<= 1.3", x <= 1.3, "bake excl. xatlas",
               f"{r['bake_2048_excl_xatlas_s']:.2f} s",
               f"{x:.2f} x sampler {r['bake_2048_texels']:,} texels {ref:.2f} s")
         rows.append(("bake total / xatlas", f"{r['bake_2048_s']:.2f} s", f"xatlas {r['bake_2048_xatlas_s']:.2f} s",
                      "-"))
+        if "bake_2048_cpu_vs_sampler" in r:
+            rows.append(("bake excl. xatlas, CPU seconds", f"{r['bake_2048_cpu_s']:.2f} s",
+                         f"{r['bake_2048_cpu_vs_sampler']:.2f} x sampler {r['bake_2048_sampler_cpu_s']:.2f} s", "-"))
+        if "bake_2048_repeat_atlas_s" in r:
+            q = r["bake_2048_atlas_quality"]
+            rows.append(("atlas utilisation / L2 stretch", f"{r['bake_2048_texel_utilisation']:.3f}",
+                         f"stretch {q['stretch_l2']:.3f}", "-"))
+            t = r["bake_2048_repeat_atlas_s"]
+            ratio("bake_repeat_atlas_s", t, "< 1 s", t < 1.0, "repeated bake: atlas (cached)",
+                  f"{t:.3f} s", f"bake {r['bake_2048_repeat_s']:.2f} s")
     return ratios, rows
 
 

@@ -6,6 +6,7 @@ environment. Paths default to a ``./data`` folder so ``make run`` needs no set-u
 from __future__ import annotations
 
 import os
+import re
 from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Literal
@@ -64,15 +65,25 @@ class Settings(BaseSettings):
                                   "(size x supersampling factor)^2, the factor 2^(6 - z) capped at 4")
     decode_budget_pixels: int = Field(64 * 2**20, ge=64 * 64, description="pixels the API's decoded "
                                       "uploads may hold together; a decode waits for room")
+    decode_wait_seconds: float = Field(30.0, gt=0, description="an upload waits at most this long for "
+                                       "room in the decode budget, then gets 503 + Retry-After")
+    decode_max_waiting: int = Field(4, ge=0, description="uploads that may wait for decode room at once "
+                                    "(each holds a thread and its bytes); one more gets 503 + Retry-After")
     max_region_pixels: int = Field(8192 * 8192, ge=64 * 64)
     max_region_tiles: int = Field(4096, ge=1)
     max_volume_resolution: int = Field(256, ge=2)
     max_bake_resolution: int = Field(4096, ge=16)
+    atlas_cache_dir: Path | None = Field(None, description="UV atlases of baked meshes, per mesh content, so a "
+                                         "second bake of a mesh skips xatlas; default data_dir/cache/atlas")
+    atlas_cache_bytes: int = Field(512 * 2**20, ge=0, description="size bound of atlas_cache_dir (least "
+                                   "recently used entries go first); 0 disables the cache")
     fit_seconds: float = Field(60.0, gt=0, description="time budget of an upload's automatic refinement")
     max_fit_seconds: float = Field(900.0, gt=0)
 
     # --- jobs --------------------------------------------------------------------------
     workers: int = Field(2, ge=1, description="huey worker threads per worker process")
+    worker_nice: int = Field(10, ge=0, le=19, description="niceness a worker process adds to itself at start: "
+                             "jobs are batch work and yield the CPU to the API's tiles")
     lease_seconds: float = Field(30.0, gt=0)
     heartbeat_seconds: float = Field(1.0, gt=0)
     reaper_interval_seconds: float = Field(5.0, gt=0)
@@ -92,6 +103,19 @@ class Settings(BaseSettings):
 
     # --- HTTP ----------------------------------------------------------------------------
     tile_cache_bytes: int = Field(64 * 2**20, ge=0)
+    tile_linear_cache_bytes: int = Field(64 * 2**20, ge=0, description="linear-light copies of recent tiles "
+                                         "at and one zoom out from native, from which zoomed-out parents are "
+                                         "built without sampling (0: off)")
+    tile_workers: int = Field(2, ge=1, description="cold tiles one API process renders at once (each over "
+                              "the sampler's threads); the others wait in order")
+    tile_queue_depth: int = Field(64, ge=0, description="cold tiles that may wait for a render; beyond, "
+                                  "503 + Retry-After")
+    tile_queue_max_wait_seconds: float = Field(2.0, gt=0, description="a cold tile whose estimated wait "
+                                               "for a render is longer gets 503 + Retry-After at once")
+    tile_zoom_out: Literal["supersample", "bounded"] = Field(
+        "supersample", description="zoomed-out tiles: 'supersample' averages every sub-sample (children "
+        "downsampled equal the parent; cost x4 per level, capped at x16), 'bounded' evaluates one hashed "
+        "sub-sample per pixel (a native tile's cost at every zoom; equal to the parent in expectation)")
     http_read_timeout_seconds: float = Field(60.0, gt=0, description="a request's headers and body must "
                                              "arrive within this long of the connection opening or "
                                              "its previous response ending")
@@ -100,6 +124,9 @@ class Settings(BaseSettings):
                                         "process; beyond, 503")
     public_base_url: str | None = Field(None, description="scheme://host[:port][/prefix] clients reach the API "
                                         "at; tilejson's tile URLs use it (default: the request's own URL)")
+    cors_origins: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="origins (scheme://host[:port]) whose pages may call the API "
+        "(tiles, jobs) from a browser, comma-separated; * for any; empty: CORS off")
     api_keys_enabled: bool = False
     api_key_pepper: str = Field("texspace-dev-pepper", description="server-side secret mixed into "
                                 "API key hashes; set your own in production")
@@ -114,6 +141,21 @@ class Settings(BaseSettings):
     def _split_dirs(cls, value: object) -> object:
         if isinstance(value, str):
             return [Path(p) for p in value.split(os.pathsep) if p.strip()]
+        return value
+
+    @field_validator("cors_origins", mode="before")
+    @classmethod
+    def _split_origins(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [o.strip().rstrip("/") for o in value.split(",") if o.strip()]
+        return value
+
+    @field_validator("cors_origins")
+    @classmethod
+    def _origins(cls, value: list[str]) -> list[str]:
+        for origin in value:
+            if origin != "*" and not re.fullmatch(r"https?://[^/\s?#]+", origin):
+                raise ValueError(f"{origin!r} is not an origin: scheme://host[:port] (no path), or *")
         return value
 
     @field_validator("worker_kinds", mode="before")
@@ -139,6 +181,13 @@ class Settings(BaseSettings):
         if self.database_url:
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'texspace.db').resolve()}"
+
+    @cached_property
+    def resolved_atlas_cache_dir(self) -> Path | None:
+        """Where bakes cache UV atlases (None: no cache)."""
+        if self.atlas_cache_bytes == 0:
+            return None
+        return (self.atlas_cache_dir or self.data_dir / "cache" / "atlas").resolve()
 
     @cached_property
     def resolved_storage_dir(self) -> Path:
