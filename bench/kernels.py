@@ -95,9 +95,12 @@ def encoder_flops(path: Path, size: int = 128) -> dict:
             counts["Conv"] += 2 * int(np.prod(shape(node.output[0], node))) * int(np.prod(weight[1:]))
         elif node.op_type == "Gemm":
             trans = {a.name: a.i for a in node.attribute if a.name in ("transA", "transB")}
-            a, b = shape(node.input[0], node), shape(node.input[1], node)
-            m, k = a[::-1] if trans.get("transA") else a
-            n = b[0] if trans.get("transB") else b[1]
+            b = shape(node.input[1], node)
+            n, k = b if trans.get("transB") else b[::-1]
+            # the input's shape is not always inferred (the colour-blind encoder's Concat of
+            # features and zeroed statistics); its rows are then the batch of one crop
+            a = shapes.get(node.input[0], (k, 1) if trans.get("transA") else (1, k))
+            m = a[1] if trans.get("transA") else a[0]
             counts["Gemm"] += 2 * m * n * k
         elif node.op_type == "MatMul":
             k = shape(node.input[0], node)[-1]
