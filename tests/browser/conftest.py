@@ -121,19 +121,25 @@ def refining_server(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -
 
 
 @pytest.fixture(scope="session")
-def browser(tmp_path_factory: pytest.TempPathFactory):
+def playwright():
+    """The session's one playwright driver (its sync API allows one per thread)."""
     sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is in the test extra")
+    with sync_api.sync_playwright() as driver:
+        yield driver
+
+
+@pytest.fixture(scope="session")
+def browser(tmp_path_factory: pytest.TempPathFactory, playwright):
     profile = tmp_path_factory.mktemp("chromium-profile")
-    with sync_api.sync_playwright() as playwright:
-        # A persistent context is how playwright takes a fresh --user-data-dir.
-        context = playwright.chromium.launch_persistent_context(
-            str(profile), executable_path=str(CHROMIUM), headless=True,
-            args=CHROMIUM_FLAGS, viewport={"width": 1400, "height": 1300},
-        )
-        try:
-            yield context
-        finally:
-            context.close()
+    # A persistent context is how playwright takes a fresh --user-data-dir.
+    context = playwright.chromium.launch_persistent_context(
+        str(profile), executable_path=str(CHROMIUM), headless=True,
+        args=CHROMIUM_FLAGS, viewport={"width": 1400, "height": 1300},
+    )
+    try:
+        yield context
+    finally:
+        context.close()
 
 
 @pytest.fixture

@@ -30,18 +30,18 @@ LIMIT = 1.0 / 255.0
 
 
 @pytest.fixture(scope="module")
-def gpu_page(base_url, tmp_path_factory):
+def gpu_page(base_url, tmp_path_factory, playwright):
     """A page of the running service (a secure context, so WebGPU is exposed) in a Chromium
     of its own with WebGPU enabled (the shared fixture's flags leave it off)."""
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is in the test extra")
-    with sync_api.sync_playwright() as playwright:
-        context = playwright.chromium.launch_persistent_context(
-            str(tmp_path_factory.mktemp("chromium-gpu")), executable_path=str(CHROMIUM), headless=True,
-            args=[*CHROMIUM_FLAGS, "--enable-unsafe-webgpu"])
+    context = playwright.chromium.launch_persistent_context(
+        str(tmp_path_factory.mktemp("chromium-gpu")), executable_path=str(CHROMIUM), headless=True,
+        args=[*CHROMIUM_FLAGS, "--enable-unsafe-webgpu"])
+    try:
         page = context.new_page()
         page.set_default_timeout(600_000)
         page.goto(base_url)
         yield page
+    finally:
         context.close()
 
 

@@ -16,6 +16,24 @@ from worker.errors import Busy
 from worker.images import write_image
 from worker.tiles import NATIVE_ZOOM, render_tile
 
+
+def run_async(coroutine) -> None:  # noqa: ANN001
+    """asyncio.run on a thread of its own: the browser tests' playwright driver keeps an
+    event loop running in the main thread for the rest of the session."""
+    errors: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            asyncio.run(coroutine)
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the test's thread
+            errors.append(exc)
+
+    thread = threading.Thread(target=target)
+    thread.start()
+    thread.join()
+    if errors:
+        raise errors[0]
+
 N = NATIVE_ZOOM
 
 
@@ -73,7 +91,7 @@ def test_queue_bounded_by_estimated_wait(services, queue) -> None:
         await second
         queue.release(settings, 40000)
 
-    asyncio.run(scenario())
+    run_async(scenario())
     assert queue._running == 0 and not queue._waiting and queue._queued_samples == queue._running_samples == 0
 
 
@@ -88,7 +106,7 @@ def test_waiting_tile_whose_client_left_leaves_the_queue(services, queue) -> Non
         assert not queue._waiting and queue._queued_samples == 0
         queue.release(settings, 1000)
 
-    asyncio.run(scenario())
+    run_async(scenario())
     assert queue._running == 0
 
 
@@ -123,7 +141,7 @@ def test_rendering_tile_whose_client_left_stops(services, texture, client) -> No
         with pytest.raises(ClientGone):
             await watching
 
-    asyncio.run(scenario())
+    run_async(scenario())
 
 
 @pytest.mark.parametrize("levels", [1, 2])
@@ -193,5 +211,5 @@ def test_large_tiles_only_while_no_small_tile_waits(services, queue) -> None:
         await waiting
         queue.release(settings, 1000)
 
-    asyncio.run(scenario())
+    run_async(scenario())
     assert queue._large_samples == 0
