@@ -20,6 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
+from worker.bake import FORMATS as BAKE_FORMATS
+from worker.files import extensions
+from worker.regions import FORMATS as REGION_FORMATS
+from worker.shader import LANGUAGES
+from worker.tiles import COORD_LIMIT, PLANES, TILE_FORMATS
+from worker.volume_writers import FORMATS as VOLUME_FORMATS
+
 from . import auth, db, processes
 from .context import build_services
 from .logs import setup_logging
@@ -36,11 +43,11 @@ VOLUME_RESOLUTION = (2, 1024)
 BAKE_RESOLUTION = (16, 8192)
 SCALE_MAX = 1e6
 #: output formats by extension (tile: the tile route's; bake: obj is a zip of obj + mtl + png)
-TILE_EXTENSIONS = {"png": (".png",), "webp": (".webp",), "exr": (".exr",)}
-BAKE_EXTENSIONS = {"glb": (".glb",), "obj": (".zip",)}
-TILEABLE_EXTENSIONS = {"png": (".png",), "exr": (".exr",), "tiff": (".tif", ".tiff"), "dds": (".dds",),
-                       "ktx2": (".ktx2",)}
-SHADER_EXTENSIONS = {"glsl": (".glsl",), "wgsl": (".wgsl",)}
+TILE_EXTENSIONS = extensions(TILE_FORMATS)
+BAKE_EXTENSIONS = extensions(BAKE_FORMATS)
+TILEABLE_EXTENSIONS = extensions(f for f in REGION_FORMATS if f != "pyramid")
+SHADER_EXTENSIONS = extensions(LANGUAGES)
+VOLUME_EXTENSIONS = extensions(VOLUME_FORMATS)
 #: refusals of the input (exit 2); every other domain error is a failure of the work (exit 1)
 INPUT_ERRORS = ("InvalidImage", "InvalidMesh", "InvalidParameter", "LimitExceeded")
 
@@ -254,11 +261,9 @@ def cmd_tile(args: argparse.Namespace, settings: Settings) -> None:
 
 
 def cmd_volume(args: argparse.Namespace, settings: Settings) -> None:
-    from worker.volume_writers import EXTENSIONS
     from worker.volumes import render_volume
 
-    extensions = {fmt: (ext, ".tiff") if fmt == "tiff" else (ext,) for fmt, ext in EXTENSIONS.items()}
-    out, fmt = output(args, extensions, f"volume-{args.resolution}")
+    out, fmt = output(args, VOLUME_EXTENSIONS, f"volume-{args.resolution}")
     _at_most(args.resolution, settings.max_volume_resolution, "resolution", "TEXSPACE_MAX_VOLUME_RESOLUTION")
     bounds = np.asarray(args.bounds, np.float64).reshape(2, 3)
     if (np.abs(bounds) >= OFFSET_LIMIT).any() or not (bounds[1] > bounds[0]).all():
@@ -344,9 +349,6 @@ def cmd_keys(args: argparse.Namespace, settings: Settings) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from worker.tiles import MAX_TILE_SIZE, MAX_ZOOM, MIN_TILE_SIZE, MIN_ZOOM, NATIVE_ZOOM
-    from worker.volume_writers import EXTENSIONS as VOLUME_EXTENSIONS
-
-    from .deps import COORD_LIMIT
 
     fields = Settings.model_fields
     parser = Parser(prog="texspace", formatter_class=HelpFormatter,
@@ -398,14 +400,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=ranged(int, MIN_TILE_SIZE, MAX_TILE_SIZE), default=256,
                    help=f"tile side in pixels, {MIN_TILE_SIZE}..TEXSPACE_MAX_TILE_SIZE "
                         f"({fields['max_tile_size'].default} unless set)")
-    p.add_argument("--plane", choices=("xy", "xz", "yz"), default="xy", help="which world plane the tile lies in")
+    p.add_argument("--plane", choices=PLANES, default="xy", help="which world plane the tile lies in")
     p.add_argument("--offset", type=ranged(float, -OFFSET_LIMIT, OFFSET_LIMIT), default=0.0,
                    help="plane position on the third axis, world units")
 
     p = proc("volume", cmd_volume, "render a solid N^3 block of an image file or stored texture id")
     p.add_argument("texture", help="IMAGE file or TEXTURE_ID (required)")
-    volume_formats = {fmt: (ext, ".tiff") if fmt == "tiff" else (ext,) for fmt, ext in VOLUME_EXTENSIONS.items()}
-    texture_args(p, "volume", volume_formats, "volume-N")
+    texture_args(p, "volume", VOLUME_EXTENSIONS, "volume-N")
     p.add_argument("--resolution", type=ranged(int, *VOLUME_RESOLUTION), default=64,
                    help=f"voxels per side N, {VOLUME_RESOLUTION[0]}..TEXSPACE_MAX_VOLUME_RESOLUTION "
                         f"({fields['max_volume_resolution'].default} unless set)")

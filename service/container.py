@@ -21,20 +21,13 @@ from sqlalchemy.orm import Session, sessionmaker
 from worker.errors import FeatureUnavailable
 
 from . import db
+from .keys import tileable_key
 from .metrics import Metrics
 from .queue import lane_of
 from .settings import Settings
 from .storage import Storage
 from .tables import ModelVersion, Texture
 from .tilecache import TileCache
-
-
-def tileable_key(sampler_key: str) -> str:
-    """Storage key of the tileable sampler stored beside a fitted texture's sampler."""
-    from worker.runtime import TILEABLE_SAMPLER
-
-    folder = sampler_key.rpartition("/")[0]
-    return f"{folder}/{TILEABLE_SAMPLER}" if folder else TILEABLE_SAMPLER
 
 
 @dataclass
@@ -89,6 +82,10 @@ class Services:
         stores a new key, so a copy of an earlier sampler is never served for it."""
         digest = hashlib.sha256(sampler_key.encode()).hexdigest()[:16]
         return self.cache_dir / "samplers" / f"{texture_id}-{digest}.onnx"
+
+    def cached_samplers(self, texture_id: str) -> list[Path]:
+        """Every local sampler copy of ``texture_id`` (``sampler_path``), to remove with it."""
+        return list((self.cache_dir / "samplers").glob(f"{texture_id}*.onnx"))
 
     def sampler_for(self, texture: Texture):  # -> worker.runtime.Sampler
         """The sampler that renders ``texture``: its own fitted one, or its model's."""

@@ -12,14 +12,13 @@ from fastapi import Depends, Header, Path, Query, Request
 from pydantic import AfterValidator
 from sqlalchemy import Select, and_, or_
 
-from worker.tiles import MAX_TILE_SIZE, MAX_ZOOM, MIN_TILE_SIZE, MIN_ZOOM
+from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_TILE_SIZE, MIN_ZOOM, PLANES, TILE_FORMATS
 
 from .container import Services
 from .errors import Problem
 
-Plane = Literal["xy", "xz", "yz"]
-TileFormat = Literal["png", "webp", "exr"]
-COORD_LIMIT = 2**36  # |x|, |y| of tiles: beyond, float64 raster positions lose exactness
+Plane = Literal[PLANES]
+TileFormat = Literal[TILE_FORMATS]
 
 
 def printable(value: str) -> str:

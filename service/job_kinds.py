@@ -18,27 +18,18 @@ import numpy as np
 
 from worker.colour_match import calibrate_texture
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
+from worker.files import extension, media_type
 from worker.images import read_image, resize_short_side
 
-from .container import Services, tileable_key
+from . import keys
+from .container import Services
 from .db import session_scope
+from .limits import bake_limits
 from .schemas import BakeParams, FitParams, RegionIn, VolumeIn
 from .tables import Job, Texture, utcnow
 
 Progress = Callable[[float], None]
 ShouldCancel = Callable[[], bool]
-
-MEDIA_TYPES = {
-    "npy": "application/x-npy", "exr": "image/x-exr", "tiff": "image/tiff", "raw": "application/zip",
-    "glb": "model/gltf-binary", "obj": "application/zip", "png": "image/png", "webp": "image/webp",
-    "onnx": "application/octet-stream", "zip": "application/zip", "nrrd": "application/octet-stream",
-    "dds": "image/vnd-ms.dds", "flipbook": "image/png", "vdb": "application/x-vdb", "ktx2": "image/ktx2",
-}
-
-
-def result_key(job_id: str, filename: str) -> str:
-    return f"jobs/{job_id}/result/{filename}"
-
 
 def _texture(services: Services, job: Job) -> Texture:
     with session_scope(services.sessions) as session:
@@ -50,20 +41,19 @@ def _texture(services: Services, job: Job) -> Texture:
 
 def _store_result(services: Services, job: Job, path: Path, fmt: str) -> dict[str, Any]:
     filename = path.name
-    key = result_key(job.id, filename)
+    key = keys.result_key(job.id, filename)
     size = services.storage.put_file(key, path)
     return {"result_key": key, "result_filename": filename, "result_size": size,
-            "result_media_type": MEDIA_TYPES.get(fmt, "application/octet-stream")}
+            "result_media_type": media_type(fmt)}
 
 
 def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
                should_cancel: ShouldCancel) -> dict[str, Any]:
-    from worker.volume_writers import EXTENSIONS
     from worker.volumes import render_volume
 
     texture = _texture(services, job)
     p = VolumeIn.model_validate(job.params)
-    out_path = workdir / f"volume-{texture.id[:8]}-{p.resolution}{EXTENSIONS[p.format]}"
+    out_path = workdir / f"volume-{texture.id[:8]}-{p.resolution}{extension(p.format)}"
     path = render_volume(services.sampler_for(texture), texture.sampling_code(), p.seed, resolution=p.resolution,
                          bounds=p.bounds, fmt=p.format, out_path=out_path,
                          progress=progress, should_cancel=should_cancel)
@@ -72,16 +62,14 @@ def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
 
 def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
              should_cancel: ShouldCancel) -> dict[str, Any]:
-    from worker.bake import BakeLimits, bake_mesh
+    from worker.bake import bake_mesh
 
     texture = _texture(services, job)
     p = BakeParams.model_validate(job.params)
     mesh_bytes = services.storage.get_bytes(job.input_key)
     stem = Path(p.filename).stem or "mesh"
-    out_path = workdir / f"{stem}-baked.{'glb' if p.format == 'glb' else 'zip'}"
-    limits = BakeLimits(max_faces=services.settings.max_mesh_faces,
-                        max_vertices=services.settings.max_mesh_vertices,
-                        max_resolution=services.settings.max_bake_resolution)
+    out_path = workdir / f"{stem}-baked{extension(p.format)}"
+    limits = bake_limits(services.settings)
     result = bake_mesh(services.sampler_for(texture), texture.sampling_code(), p.seed, mesh_bytes=mesh_bytes,
                        filename=p.filename, resolution=p.resolution, scale=p.scale, fmt=p.format,
                        out_path=out_path, limits=limits, pixels_per_unit=services.pixels_per_unit(texture),
@@ -100,8 +88,8 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
     texture = _texture(services, job)
     p = RegionIn.model_validate(job.params)
     maps = tuple(p.maps)
-    ext = "zip" if maps else {"tiff": "tif", "pyramid": "zip"}.get(p.format, p.format)
-    out_path = workdir / f"region-{texture.id[:8]}-z{p.z}.{ext}"
+    fmt = "zip" if maps else p.format  # with derived maps, a zip of colour + maps
+    out_path = workdir / f"region-{texture.id[:8]}-z{p.z}{extension(fmt)}"
     limits = RegionLimits(max_pixels=services.settings.max_region_pixels,
                           max_tiles=services.settings.max_region_tiles)
     # tileable: the texture's sampler_tileable.onnx, its period the image's side
@@ -112,7 +100,7 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
                          wrap_maps=p.tileable, tileable=p.tileable,
                          pixels_per_unit=services.pixels_per_unit(texture), limits=limits,
                          progress=progress, should_cancel=should_cancel)
-    return _store_result(services, job, path, "zip" if ext == "zip" else p.format)
+    return _store_result(services, job, path, fmt)
 
 
 def fitted_texture_id(job_id: str) -> str:
@@ -158,11 +146,11 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
         _refine_in_place(services, job, texture, out_dir / "sampler.onnx", code, image)
         return {**values, "output_texture_id": texture.id}
     new_id = fitted_texture_id(job.id)
-    sampler_key = f"textures/{new_id}/sampler.onnx"
+    sampler_key = keys.sampler_key(new_id)
     services.storage.put_file(sampler_key, out_dir / "sampler.onnx")
     _store_tileable(services, sampler_key, out_dir)
     colour = _fitted_colour(services, texture, out_dir / "sampler.onnx", code, image)
-    exemplar_key = f"textures/{new_id}/{Path(texture.exemplar_key).name}"  # own copy: outlives the parent
+    exemplar_key = keys.exemplar_key(new_id, Path(texture.exemplar_key).name)  # own copy: outlives the parent
     services.storage.put_file(exemplar_key, original)
     with session_scope(services.sessions) as session:
         if session.get(Texture, new_id) is None:
@@ -199,8 +187,8 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
     """Make ``texture`` serve the fitted sampler: store it under a key of this attempt's own
     (so a tile ETag, which includes the key, never names two samplers' bytes), then update
     the row if this attempt still holds the job. The encoder's code is kept for blends."""
-    folder = f"textures/{texture.id}/refined/{job.id}-{job.attempt}"
-    sampler_key = f"{folder}/sampler.onnx"
+    folder = keys.refinement_prefix(texture.id, job.id, job.attempt)
+    sampler_key = f"{folder}/{keys.SAMPLER}"
     services.storage.put_file(sampler_key, sampler_path)
     _store_tileable(services, sampler_key, sampler_path.parent)
     local = services.sampler_path(texture.id, sampler_key)  # where sampler_for looks: no second download
@@ -226,7 +214,7 @@ def _store_tileable(services: Services, sampler_key: str, fit_dir: Path) -> None
 
     path = fit_dir / TILEABLE_SAMPLER
     if path.is_file():
-        services.storage.put_file(tileable_key(sampler_key), path)
+        services.storage.put_file(keys.tileable_key(sampler_key), path)
 
 
 def _fitted_colour(services: Services, texture: Texture, sampler_path: Path, code: list[float],

@@ -14,10 +14,12 @@ from typing import Any
 from sqlalchemy import and_, func, select, update
 from sqlalchemy.exc import IntegrityError
 
+from worker.errors import Canceled
+
 from .auth import current_owner
 from .container import Services
 from .db import session_scope
-from .errors import Problem
+from .errors import Problem, problem_for
 from .limits import check_queue_room
 from .tables import TERMINAL_STATES, Job, new_id, utcnow
 
@@ -167,8 +169,7 @@ def cancel(services: Services, job_id: str) -> Job:
             raise Problem(409, f"job {job_id} is already {job.state}", slug="job-finished")
         session.execute(update(Job).where(Job.id == job_id, Job.state == "queued").values(
             state="canceled", cancel_requested=True, finished_at=utcnow(),
-            error={"type": "urn:texspace:problem:canceled", "title": "The job was canceled",
-                   "status": 409, "detail": "canceled while queued"}))
+            error=problem_for(Canceled("canceled while queued")).to_dict()))
         session.execute(update(Job).where(Job.id == job_id, Job.state == "running").values(
             cancel_requested=True))
     return get(services, job_id)
@@ -185,9 +186,8 @@ def reap(services: Services) -> dict[str, int]:
     for job in expired:
         if job.cancel_requested or job.attempt >= job.max_attempts:
             state = "canceled" if job.cancel_requested else "failed"
-            error = {"type": "urn:texspace:problem:lease-expired", "title": "The worker stopped",
-                     "status": 500, "detail": f"worker lost the job {job.attempt} time(s) "
-                                              f"(lease expired); giving up after {job.max_attempts}"}
+            error = Problem(500, f"worker lost the job {job.attempt} time(s) (lease expired); giving up after "
+                            f"{job.max_attempts}", slug="lease-expired", title="The worker stopped").to_dict()
             values = {"state": state, "finished_at": now, "error": error, "lease_expires_at": None}
         else:
             values = {"state": "queued", "lease_expires_at": None, "worker_id": None}

@@ -12,6 +12,7 @@ import logging
 
 from sqlalchemy import delete, select
 
+from . import keys
 from .container import Services
 from .db import session_scope
 from .tables import Job, Texture
@@ -28,8 +29,8 @@ def purge_texture(services: Services, texture_id: str) -> list[str]:
         session.execute(delete(Texture).where(Texture.id == texture_id))
     for job_id in job_ids:
         forget_job_files(services, job_id)
-    services.storage.delete_prefix(f"textures/{texture_id}")
-    for cached in (services.cache_dir / "samplers").glob(f"{texture_id}*.onnx"):  # context.sampler_path
+    services.storage.delete_prefix(keys.texture_prefix(texture_id))
+    for cached in services.cached_samplers(texture_id):
         cached.unlink(missing_ok=True)
     if job_ids:
         log.info("texture deleted with its jobs", extra={"texture_id": texture_id, "jobs": job_ids})
@@ -38,4 +39,4 @@ def purge_texture(services: Services, texture_id: str) -> list[str]:
 
 def forget_job_files(services: Services, job_id: str) -> None:
     """Remove every stored file of a job (input and result)."""
-    services.storage.delete_prefix(f"jobs/{job_id}")
+    services.storage.delete_prefix(keys.job_prefix(job_id))

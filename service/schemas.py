@@ -6,8 +6,12 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
-from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAX_WHOLE_PIXELS
-from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM
+from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS
+from worker.bake import FORMATS as BAKE_FORMATS
+from worker.gpu_textures import FORMATS as GPU_FORMATS
+from worker.regions import FORMATS as REGION_FORMATS
+from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
+from worker.volume_writers import FORMATS as VOLUME_FORMATS
 
 from .deps import SafeText
 from .tables import Job, Texture
@@ -99,7 +103,7 @@ class VolumeIn(BaseModel):
     resolution: int = Field(64, ge=2, le=1024, description="voxels per side (N); capped by the server limit")
     bounds: Bounds = Field(default_factory=lambda: [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     seed: Seed = 0
-    format: Literal["npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb"] = Field(
+    format: Literal[VOLUME_FORMATS] = Field(
         "npy", description="npy: float32 linear RGB [N,N,N,3] in (z, y, x) order; exr / tiff: one z slice per "
                            "part / page, with bounds and voxel size in each header; raw: zip of raw float32 + "
                            "JSON header; nrrd; dds volume; flipbook: one PNG with the slices in a grid (Unity 3D "
@@ -139,10 +143,10 @@ class BakeParams(BaseModel):
     resolution: int
     seed: int
     scale: float | None = None
-    format: Literal["glb", "obj"] = "glb"
+    format: Literal[BAKE_FORMATS] = "glb"
     filename: str = "mesh.obj"
-    maps: list[Literal["height", "normal"]] = []
-    gpu_format: Literal["dds", "ktx2"] | None = None
+    maps: list[Literal[MAP_NAMES]] = []
+    gpu_format: Literal[GPU_FORMATS] | None = None
     normal_strength: float = DEFAULT_NORMAL_STRENGTH
 
 
@@ -159,16 +163,16 @@ class RegionIn(BaseModel):
     width: int = Field(ge=1, le=16384)
     height: int = Field(ge=1, le=16384)
     seed: Seed = 0
-    plane: Literal["xy", "xz", "yz"] = "xy"
+    plane: Literal[PLANES] = "xy"
     offset: float = Field(0.0, ge=-1e9, le=1e9)
-    format: Literal["png", "exr", "tiff", "pyramid", "dds", "ktx2"] = Field(
+    format: Literal[REGION_FORMATS] = Field(
         "png", description="png: 8-bit sRGB; tiff: tiled 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
                            "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json; dds / ktx2: RGBA8 sRGB "
                            "GPU texture with the full mip chain (averaged in linear light)")
     size: int = Field(256, ge=64, le=1024, description="pyramid tile size")
     min_zoom: int | None = Field(None, ge=MIN_ZOOM, le=MAX_ZOOM,
                                  description="pyramid: lowest zoom, at most z (default: the minimum zoom)")
-    maps: list[Literal["height", "normal"]] = Field(
+    maps: list[Literal[MAP_NAMES]] = Field(
         default_factory=list, max_length=2,
         description="derived maps to add (not with pyramid): height = linear luminance, normal = tangent-space "
                     "from its gradient, OpenGL convention (+Y up). The result is then a zip of colour.<ext>, "

@@ -31,7 +31,6 @@ from .tilecache import TileCache
 #: bump when tile rendering changes in a way that changes bytes for the same URL
 #: (2: box filter as a cascade of exact 2 x 2 means, so parents can be built from children)
 TILE_RENDER_VERSION = 2
-TILE_MEDIA_TYPES = {"png": "image/png", "webp": "image/webp", "exr": "image/x-exr"}
 CACHE_CONTROL = "public, max-age=31536000, immutable"
 #: tiles of an upload whose refinement has not ended: caches must revalidate (If-None-Match)
 REFINING_CACHE_CONTROL = "public, no-cache"

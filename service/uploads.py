@@ -9,8 +9,6 @@ from fastapi import UploadFile
 from worker.errors import LimitExceeded
 
 CHUNK = 1 << 20
-IMAGE_MEDIA_TYPES = {"png": "image/png", "jpg": "image/jpeg", "tif": "image/tiff", "exr": "image/x-exr",
-                     "webp": "image/webp", "gif": "image/gif", "bmp": "image/bmp"}
 
 
 def read_limited(upload: UploadFile, limit: int, what: str) -> bytes:

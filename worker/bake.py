@@ -52,10 +52,11 @@ from worker import atlas, raster
 from worker.bake_outputs import add_bake_outputs, check_options
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH
 from worker.errors import Canceled, InvalidMesh, InvalidParameter, LimitExceeded
-from worker.files import atomic_output
+from worker.files import ZIP_TIME, atomic_output, media_type
 from worker.images import write_image
 from worker.runtime import Sampler
 
+FORMATS = ("glb", "obj")  # extensions and media types: worker.files (an obj bake is a zip)
 MESH_TYPES = {"obj": "obj", "ply": "ply", "stl": "stl", "glb": "glb"}
 MAX_UV_OVERLAP = 0.01
 MAX_UV_DEGENERATE = 0.001  # share of 3D area allowed on faces whose UVs have no area
@@ -64,7 +65,6 @@ DEFAULT_SPAN_PIXELS = 512.0
 AREA_EPS = 1e-20           # squared-length scale below which a face counts as degenerate
 # |coordinate| limit: beyond it xatlas (float32) spins for minutes and extent ** 4 overflows
 MAX_COORDINATE = 1e9
-_ZIP_TIME = (2020, 1, 1, 0, 0, 0)
 
 
 @dataclass(frozen=True)
@@ -299,7 +299,7 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     ``atlas_cache_dir``: where xatlas results are kept per mesh content (``worker/atlas.py``);
     None runs xatlas every time.
     """
-    if fmt not in ("glb", "obj"):
+    if fmt not in FORMATS:
         raise InvalidParameter(f"bake format must be 'glb' or 'obj', got {fmt!r}")
     if not 16 <= resolution <= limits.max_resolution:
         raise LimitExceeded(f"texture resolution must be in [16, {limits.max_resolution}]")
@@ -421,7 +421,7 @@ def glb_bytes(vertices, faces, uv, normals, png: bytes) -> bytes:
             "metallicFactor": 0.0, "roughnessFactor": 1.0}}],
         "textures": [{"sampler": 0, "source": 0}],
         "samplers": [{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}],
-        "images": [{"bufferView": 4, "mimeType": "image/png"}],
+        "images": [{"bufferView": 4, "mimeType": media_type("png")}],
         "accessors": accessors, "bufferViews": views, "buffers": [{"byteLength": offset}],
     }
     text = json.dumps(gltf, separators=(",", ":")).encode()
@@ -450,7 +450,7 @@ def _obj_zip_bytes(vertices, faces, uv, normals, png: bytes, exr: bytes | None) 
         members = [("model.obj", text.encode(), zipfile.ZIP_DEFLATED), ("model.mtl", mtl.encode(), zipfile.ZIP_DEFLATED),
                    ("texture.png", png, zipfile.ZIP_STORED)] + ([("texture.exr", exr, zipfile.ZIP_STORED)] if exr else [])
         for name, data, method in members:
-            z.writestr(zipfile.ZipInfo(name, _ZIP_TIME), data, compress_type=method)
+            z.writestr(zipfile.ZipInfo(name, ZIP_TIME), data, compress_type=method)
     return buf.getvalue()
 
 

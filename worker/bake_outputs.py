@@ -27,19 +27,18 @@ import numpy as np
 
 from worker.derived_maps import MAP_NAMES, derived_map_files
 from worker.errors import InvalidParameter
-from worker.files import atomic_output
-from worker.gpu_textures import EXTENSIONS as GPU_EXTENSIONS
+from worker.files import ZIP_TIME, atomic_output, extension, media_type
+from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.gpu_textures import gpu_texture_bytes
 
-_ZIP_TIME = (2020, 1, 1, 0, 0, 0)
 GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
 
 
 def check_options(maps, gpu_format) -> None:
     if set(maps) - set(MAP_NAMES):
         raise InvalidParameter(f"unknown derived maps {sorted(set(maps) - set(MAP_NAMES))}; choose from {MAP_NAMES}")
-    if gpu_format is not None and gpu_format not in GPU_EXTENSIONS:
-        raise InvalidParameter(f"GPU texture format must be one of {tuple(GPU_EXTENSIONS)}, got {gpu_format!r}")
+    if gpu_format is not None and gpu_format not in GPU_FORMATS:
+        raise InvalidParameter(f"GPU texture format must be one of {GPU_FORMATS}, got {gpu_format!r}")
 
 
 def add_bake_outputs(path: Path, fmt: str, image: np.ndarray, *, maps=(), gpu_format: str | None = None,
@@ -49,7 +48,7 @@ def add_bake_outputs(path: Path, fmt: str, image: np.ndarray, *, maps=(), gpu_fo
     check_options(maps, gpu_format)
     files = derived_map_files(image, maps, strength=strength)
     if gpu_format is not None:
-        files[f"texture{GPU_EXTENSIONS[gpu_format]}"] = gpu_texture_bytes(image, gpu_format)
+        files[f"texture{extension(gpu_format)}"] = gpu_texture_bytes(image, gpu_format)
     if not files:
         return path
     if fmt == "obj":
@@ -78,7 +77,7 @@ def _rewrite_zip(source: Path | None, target: Path, files: dict, first: dict, mt
     members.update(files)
     with atomic_output(target) as tmp, zipfile.ZipFile(tmp, "w") as z:
         for name, data in members.items():
-            z.writestr(zipfile.ZipInfo(name, _ZIP_TIME), data, compress_type=zipfile.ZIP_DEFLATED)
+            z.writestr(zipfile.ZipInfo(name, ZIP_TIME), data, compress_type=zipfile.ZIP_DEFLATED)
 
 
 def vertex_tangents(vertices: np.ndarray, normals: np.ndarray, uv: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -169,7 +168,7 @@ def glb_with_normal_texture(glb: bytes, png: bytes) -> bytes:
     binary += b"\0" * (-len(binary) % 4)
     buffers = gltf.setdefault("buffers", [{}])
     buffers[0]["byteLength"] = len(binary)
-    gltf.setdefault("images", []).append({"bufferView": len(gltf["bufferViews"]) - 1, "mimeType": "image/png",
+    gltf.setdefault("images", []).append({"bufferView": len(gltf["bufferViews"]) - 1, "mimeType": media_type("png"),
                                           "name": "normal"})
     texture = {"source": len(gltf["images"]) - 1}
     samplers = [t["sampler"] for t in gltf.get("textures", []) if "sampler" in t]

@@ -1,13 +1,84 @@
-"""Result files written atomically: under a temporary name in the target folder, renamed
-into place only when complete, so readers never see half a file and a re-run simply
-overwrites."""
+"""Result files: the one table of the formats texspace writes (file extension and media
+type by format name), the fixed time stamped on zip members, and atomic writing (under a
+temporary name in the target folder, renamed into place only when complete, so readers
+never see half a file and a re-run simply overwrites).
+
+Which formats each output offers stays with its writer (``worker.tiles.TILE_FORMATS``,
+``worker.volume_writers.FORMATS``, ``worker.regions.FORMATS``, ``worker.bake.FORMATS``,
+``worker.gpu_textures.FORMATS``, ``worker.shader.LANGUAGES``); their extensions and media
+types are read here, and the API's and the CLI's lists are derived from those tuples.
+"""
 from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
+
+#: the time of every zip member: fixed, so identical content gives identical zips
+ZIP_TIME = (2020, 1, 1, 0, 0, 0)
+#: the media type of bytes whose format is not in the table
+OCTET_STREAM = "application/octet-stream"
+
+
+@dataclass(frozen=True)
+class FileFormat:
+    extension: str                  # with the dot: what files of the format are named
+    media_type: str                 # what the API serves them as
+    aliases: tuple[str, ...] = ()   # other extensions that name the format (the CLI's -o)
+
+
+#: format name -> file format. Zips: a raw volume (volume.raw + volume.json), an obj bake
+#: (obj + mtl + png), a tile pyramid, and any output with extra files (maps, GPU textures)
+FORMATS: dict[str, FileFormat] = {
+    "png": FileFormat(".png", "image/png"),
+    "webp": FileFormat(".webp", "image/webp"),
+    "exr": FileFormat(".exr", "image/x-exr"),
+    "tiff": FileFormat(".tif", "image/tiff", (".tiff",)),
+    "jpeg": FileFormat(".jpg", "image/jpeg"),
+    "gif": FileFormat(".gif", "image/gif"),
+    "bmp": FileFormat(".bmp", "image/bmp"),
+    "npy": FileFormat(".npy", "application/x-npy"),
+    "nrrd": FileFormat(".nrrd", OCTET_STREAM),
+    "vdb": FileFormat(".vdb", "application/x-vdb"),
+    "flipbook": FileFormat(".png", "image/png"),
+    "dds": FileFormat(".dds", "image/vnd-ms.dds"),
+    "ktx2": FileFormat(".ktx2", "image/ktx2"),
+    "glb": FileFormat(".glb", "model/gltf-binary"),
+    "zip": FileFormat(".zip", "application/zip"),
+    "raw": FileFormat(".zip", "application/zip"),
+    "obj": FileFormat(".zip", "application/zip"),
+    "pyramid": FileFormat(".zip", "application/zip"),
+    "onnx": FileFormat(".onnx", OCTET_STREAM),
+    "glsl": FileFormat(".glsl", "text/x-glsl; charset=utf-8"),
+    "wgsl": FileFormat(".wgsl", "text/wgsl; charset=utf-8"),
+}
+
+
+def extension(fmt: str) -> str:
+    """The file extension (with the dot) of format ``fmt``."""
+    return FORMATS[fmt].extension
+
+
+def media_type(fmt: str) -> str:
+    """The media type of format ``fmt``; application/octet-stream for one not in the table."""
+    known = FORMATS.get(fmt)
+    return known.media_type if known else OCTET_STREAM
+
+
+def media_type_of_extension(ext: str) -> str:
+    """The media type of a file ending in ``ext`` (``"png"`` or ``".png"``): the first
+    format named so; application/octet-stream for an unknown extension."""
+    ext = "." + ext.lower().lstrip(".")
+    return next((f.media_type for f in FORMATS.values() if ext == f.extension or ext in f.aliases), OCTET_STREAM)
+
+
+def extensions(formats: Iterable[str]) -> dict[str, tuple[str, ...]]:
+    """Format -> every extension that names it (the first is what files are written as),
+    for ``formats`` in their order."""
+    return {fmt: (FORMATS[fmt].extension, *FORMATS[fmt].aliases) for fmt in formats}
 
 
 @contextmanager

@@ -29,9 +29,7 @@ import numpy as np
 from worker.colour import linear_to_srgb8
 from worker.errors import InvalidParameter
 
-FORMATS = ("dds", "ktx2")
-EXTENSIONS = {"dds": ".dds", "ktx2": ".ktx2"}
-MEDIA_TYPES = {"dds": "image/vnd-ms.dds", "ktx2": "image/ktx2"}
+FORMATS = ("dds", "ktx2")  # extensions and media types: worker.files.FORMATS
 KTX2_IDENTIFIER = b"\xabKTX 20\xbb\r\n\x1a\n"
 VK_FORMAT_R8G8B8A8_SRGB = 43
 DXGI_FORMAT_R8G8B8A8_UNORM_SRGB = 29

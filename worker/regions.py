@@ -48,7 +48,7 @@ import OpenImageIO as oiio
 from worker.colour import linear_to_srgb, linear_to_srgb8
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS, derived_map_files
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
-from worker.files import atomic_output
+from worker.files import ZIP_TIME, atomic_output, extension
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.gpu_textures import gpu_texture_bytes
 from worker.images import write_image
@@ -57,9 +57,7 @@ from worker.tiles import (MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM, render_tile, render_w
                           resolve_pixels_per_unit, supersample_for)
 from worker.volume_writers import PngStream
 
-FORMATS = ("tiff", "exr", "png", "pyramid") + GPU_FORMATS
-_EXT = {"tiff": ".tif", "exr": ".exr", "png": ".png", "pyramid": ".zip", "dds": ".dds", "ktx2": ".ktx2"}
-_ZIP_TIME = (2020, 1, 1, 0, 0, 0)
+FORMATS = ("png", "exr", "tiff", "pyramid") + GPU_FORMATS  # extensions: worker.files
 BLOCK = 256                  # pixels per side of one sampler call / one TIFF or EXR tile
 
 
@@ -128,7 +126,7 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
             raise Canceled("region job canceled")
 
     out_path = Path(out_path)
-    with atomic_output(out_path, suffix=_EXT[fmt]) as tmp:
+    with atomic_output(out_path, suffix=extension(fmt)) as tmp:
         if fmt == "pyramid":
             low = MIN_ZOOM if min_zoom is None else int(min_zoom)
             if not MIN_ZOOM <= low <= z:
@@ -193,7 +191,7 @@ def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, 
     if fmt in GPU_FORMATS:
         colour = gpu_texture_bytes(image, fmt)
     else:
-        colour_path = f"{path}.colour{_EXT[fmt]}"
+        colour_path = f"{path}.colour{extension(fmt)}"
         try:
             _write_image_stripes(colour_path, fmt, image.shape[1], image.shape[0],
                                  (image[y:y + BLOCK] for y in range(0, image.shape[0], BLOCK)))
@@ -203,9 +201,9 @@ def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, 
             if os.path.exists(colour_path):
                 os.unlink(colour_path)
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as z:   # PNG/EXR/TIFF compress
-        for name, data in {f"colour{_EXT[fmt]}": colour, **files}.items():
+        for name, data in {f"colour{extension(fmt)}": colour, **files}.items():
             method = zipfile.ZIP_DEFLATED if fmt in GPU_FORMATS and name.startswith("colour") else zipfile.ZIP_STORED
-            z.writestr(zipfile.ZipInfo(name, _ZIP_TIME), data, compress_type=method)
+            z.writestr(zipfile.ZipInfo(name, ZIP_TIME), data, compress_type=method)
 
 
 def _write_image_stripes(path: str, fmt: str, width: int, height: int, stripes) -> None:
@@ -244,7 +242,7 @@ def _write_pyramid(path, levels, tile, size, zoom, progress, check_cancel, limit
             for y in range(ya, yb):
                 check_cancel()
                 for x in range(xa, xb):
-                    info = zipfile.ZipInfo(f"{level}/{x}/{y}.png", _ZIP_TIME)
+                    info = zipfile.ZipInfo(f"{level}/{x}/{y}.png", ZIP_TIME)
                     z.writestr(info, write_image(tile(level, x, y), "png"))
                 done += xb - xa
                 if progress is not None:
@@ -253,4 +251,4 @@ def _write_pyramid(path, levels, tile, size, zoom, progress, check_cancel, limit
                 "minzoom": levels[0][0], "maxzoom": zoom,
                 "texspace": {"zoom": zoom, "tile_size": size,
                              "levels": [list(lv) for lv in levels]}}
-        z.writestr(zipfile.ZipInfo("tilejson.json", _ZIP_TIME), json.dumps(meta, indent=1))
+        z.writestr(zipfile.ZipInfo("tilejson.json", ZIP_TIME), json.dumps(meta, indent=1))

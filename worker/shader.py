@@ -26,7 +26,6 @@ from __future__ import annotations
 import functools
 import os
 import re
-import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,8 +33,7 @@ import numpy as np
 
 from .errors import InvalidParameter, ModelInvalid
 
-LANGUAGES = ("glsl", "wgsl")
-MEDIA_TYPES = {"glsl": "text/x-glsl; charset=utf-8", "wgsl": "text/wgsl; charset=utf-8"}
+LANGUAGES = ("glsl", "wgsl")  # extensions and media types: worker.files.FORMATS
 
 # model/noise.py's hash, exactly (uint32 arithmetic): lowbias32 mixer, per-axis cell
 # constants (low 32 bits, bits above), seed and octave multipliers, 10-bit channel fields.

@@ -50,6 +50,7 @@ MAX_TILE_SIZE = 1024
 SUPERSAMPLE_CAP = 4  # at most 4 x 4 sampler calls per output pixel
 COORD_LIMIT = 2 ** 36  # |x|, |y|: keeps 2*s*x*size + ... below 2^53 (exact in float64)
 PLANES = ("xy", "xz", "yz")
+TILE_FORMATS = ("png", "webp", "exr")  # what a tile can be served as (worker.images.write_image)
 ZOOM_OUT_MODES = ("supersample", "bounded")
 # Which world axis receives u, v and the plane offset, per plane.
 _PLANE_AXES = {"xy": (0, 1, 2), "xz": (0, 2, 1), "yz": (1, 2, 0)}

@@ -51,12 +51,10 @@ import numpy as np
 import OpenImageIO as oiio
 
 from worker.colour import linear_to_srgb8
+from worker.files import ZIP_TIME
 from worker.vdb import write_vdb
 
-FORMATS = ("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb")
-EXTENSIONS = {"npy": ".npy", "exr": ".exr", "tiff": ".tif", "raw": ".zip", "nrrd": ".nrrd",
-              "dds": ".dds", "flipbook": ".png", "vdb": ".vdb"}
-_ZIP_TIME = (2020, 1, 1, 0, 0, 0)   # fixed, so identical volumes give identical zips
+FORMATS = ("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb")  # extensions: worker.files
 
 
 def flipbook_grid(n: int) -> tuple[int, int]:
@@ -154,9 +152,9 @@ class RawZipWriter(VolumeWriter):
     def __init__(self, path, n, bounds):
         super().__init__(path, n, bounds)
         self.zip = zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED, allowZip64=True)
-        info = zipfile.ZipInfo("volume.json", _ZIP_TIME)
+        info = zipfile.ZipInfo("volume.json", ZIP_TIME)
         self.zip.writestr(info, json.dumps(_volume_json(n, bounds), indent=1))
-        self.raw = self.zip.open(zipfile.ZipInfo("volume.raw", _ZIP_TIME), "w", force_zip64=True)
+        self.raw = self.zip.open(zipfile.ZipInfo("volume.raw", ZIP_TIME), "w", force_zip64=True)
 
     def write(self, rgb):
         self.raw.write(np.ascontiguousarray(rgb, dtype="<f4").data)

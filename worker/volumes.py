@@ -19,9 +19,9 @@ from typing import Callable
 import numpy as np
 
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
-from worker.files import atomic_output
+from worker.files import atomic_output, extension
 from worker.runtime import Sampler
-from worker.volume_writers import EXTENSIONS, FORMATS, WRITERS
+from worker.volume_writers import FORMATS, WRITERS
 
 SLAB_POINTS = 2 ** 18          # default points per slab (~6 MB of positions)
 MAX_RESOLUTION = 1024
@@ -68,7 +68,7 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
     if box.shape != (2, 3) or not np.isfinite(box).all() or not (box[1] > box[0]).all():
         raise InvalidParameter("bounds must be ((x0, y0, z0), (x1, y1, z1)) with max > min")
     out_path = Path(out_path)
-    with atomic_output(out_path, suffix=EXTENSIONS[fmt]) as tmp:
+    with atomic_output(out_path, suffix=extension(fmt)) as tmp:
         writer = WRITERS[fmt](tmp, n, box)
         if fmt == "flipbook" and max(writer.cols, writer.rows) * n > MAX_FLIPBOOK_SIDE:
             writer.close()

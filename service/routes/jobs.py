@@ -10,14 +10,16 @@ from fastapi.responses import FileResponse, StreamingResponse
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
-from worker.derived_maps import DEFAULT_NORMAL_STRENGTH
-from worker.errors import FeatureUnavailable, LimitExceeded
+from worker.bake import FORMATS as BAKE_FORMATS
+from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES
+from worker.errors import Canceled, FeatureUnavailable, LimitExceeded
+from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.tiles import MIN_ZOOM
 
-from .. import auth, jobs
+from .. import auth, jobs, keys
 from ..db import session_scope
 from ..deps import JobId, PageParams, SafeText, ServicesDep, TextureId, apply_cursor, idempotency_key, page_of
-from ..errors import Problem, not_found, problem_responses
+from ..errors import Problem, not_found, problem_for, problem_responses
 from ..job_kinds import torch_available
 from ..limits import check_mesh, check_queue_room
 from ..schemas import BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
@@ -65,12 +67,12 @@ def submit_bake(
     seed: Annotated[int, Form(ge=0, le=2**31 - 1)] = 0,
     scale: Annotated[float | None, Form(gt=0, le=1e6, description="world units per mesh unit; default: "
                                                                    "the mesh spans 512 exemplar pixels")] = None,
-    format: Annotated[Literal["glb", "obj"], Form(description="glb, or a zip of obj + mtl + png")] = "glb",
-    maps: Annotated[list[Literal["height", "normal"]], Form(
+    format: Annotated[Literal[BAKE_FORMATS], Form(description="glb, or a zip of obj + mtl + png")] = "glb",
+    maps: Annotated[list[Literal[MAP_NAMES]], Form(
         description="derived maps of the atlas (repeat the field for both): normal = tangent-space, OpenGL "
                     "convention (+Y up), embedded in a GLB as its normalTexture (with TANGENTs) or added to "
                     "the OBJ zip; height = linear luminance, height.png (a GLB result becomes a zip)")] = [],
-    gpu_format: Annotated[Literal["dds", "ktx2"] | None, Form(
+    gpu_format: Annotated[Literal[GPU_FORMATS] | None, Form(
         description="add a mipmapped RGBA8 sRGB texture.dds / texture.ktx2 of the atlas (a GLB result "
                     "becomes a zip of model.glb and the textures)")] = None,
     normal_strength: Annotated[float, Form(gt=0, le=100, description="normal map: height units per "
@@ -90,16 +92,16 @@ def submit_bake(
     check_mesh(services.settings, data, filename)  # a bad mesh is refused now, nothing stored
     check_queue_room(services)
     job_id = new_id()
-    input_key = f"jobs/{job_id}/input/{filename}"
+    input_key = keys.job_input_key(job_id, filename)
     services.storage.put_bytes(input_key, data)
     try:
         job, created = jobs.submit(services, kind="bake", texture_id=texture_id, params=params,
                                    input_key=input_key, idempotency_key=key, fingerprint=fingerprint, job_id=job_id)
     except BaseException:  # no row, no file: nothing orphaned
-        services.storage.delete_prefix(f"jobs/{job_id}")
+        services.storage.delete_prefix(keys.job_prefix(job_id))
         raise
     if not created:
-        services.storage.delete_prefix(f"jobs/{job_id}")
+        services.storage.delete_prefix(keys.job_prefix(job_id))
     return accepted(response, job, created)
 
 
@@ -203,8 +205,7 @@ def get_result(services: ServicesDep, job_id: JobId) -> Response:
 
 SSE_POLL_SECONDS = 0.25
 SSE_KEEPALIVE_SECONDS = 15.0
-DELETED = {"type": "urn:texspace:problem:canceled", "title": "The job was canceled", "status": 409,
-           "detail": "the job was deleted with its texture"}
+DELETED = problem_for(Canceled("the job was deleted with its texture")).to_dict()
 
 
 @router.get("/v1/jobs/{job_id}/events",

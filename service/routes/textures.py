@@ -11,10 +11,11 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select, update
 
 from worker.colour_match import identity_colour
+from worker.files import media_type, media_type_of_extension
 from worker.images import encode_texture, read_image, sniff_format
-from worker.shader import MEDIA_TYPES, emit_shader, shader_name
+from worker.shader import LANGUAGES, emit_shader, shader_name
 
-from .. import auth, jobs
+from .. import auth, jobs, keys
 from ..db import session_scope
 from ..deps import PageParams, SafeText, ServicesDep, TextureId, apply_cursor, page_of, printable
 from ..errors import Problem, not_found, problem_responses
@@ -23,7 +24,7 @@ from ..purge import purge_texture
 from ..schemas import InterpolateIn, TextureOut, TexturePage, TexturePatch
 from ..tables import Job, Texture, new_id, utcnow
 from ..tiles import etag_matches
-from ..uploads import IMAGE_MEDIA_TYPES, read_limited
+from ..uploads import read_limited
 
 router = APIRouter(prefix="/v1/textures", tags=["textures"])
 log = logging.getLogger(__name__)
@@ -70,19 +71,19 @@ def create_texture(
     code, colour = encode_texture(runtime, pixels)
     texture_id = new_id()
     refine = auto_fit_params(services, runtime.version)
-    key = f"textures/{texture_id}/exemplar.{ext}"
+    key = keys.exemplar_key(texture_id, f"exemplar.{ext}")
     services.storage.put_bytes(key, data)
     colour = [float(c) for c in colour] or None
     texture = Texture(id=texture_id, name=(name or image.filename or "")[:NAME_LENGTH], code=[float(c) for c in code],
                       colour=colour, model_version=runtime.version, source="upload", exemplar_key=key,
-                      exemplar_media_type=IMAGE_MEDIA_TYPES.get(ext, "application/octet-stream"),
+                      exemplar_media_type=media_type_of_extension(ext),
                       width=int(pixels.shape[1]), height=int(pixels.shape[0]), owner_id=auth.current_owner(),
                       refinement_job_id=new_id() if refine else None)
     try:
         with session_scope(services.sessions) as session:
             session.add(texture)
     except BaseException:  # no row, no file: nothing orphaned
-        services.storage.delete_prefix(f"textures/{texture_id}")
+        services.storage.delete_prefix(keys.texture_prefix(texture_id))
         raise
     if refine:
         queue_refinement(services, texture, refine)
@@ -219,10 +220,10 @@ SHADER_VERSION = "1"  # bump when worker/shader.py emits different text for the 
 
 @router.get("/{texture_id}/shader.{language}", response_class=Response,
             responses={200: {"description": "GLSL ES 3.00 or WGSL source (docs/SHADER.md)",
-                             "content": {"text/x-glsl": {}, "text/wgsl": {}}},
+                             "content": {media_type(lang).split(";")[0]: {} for lang in LANGUAGES}},
                        304: {"description": "unchanged (If-None-Match)"}, **problem_responses(404, 422)})
 def get_shader(services: ServicesDep, request: Request, texture_id: TextureId,
-               language: Literal["glsl", "wgsl"]) -> Response:
+               language: Literal[LANGUAGES]) -> Response:
     """The texture as a real-time shader: ``vec3 texspace_<id>(vec3 p, uint seed)`` (GLSL ES
     3.00) or its WGSL twin, the same function as the texture's sampler (linear RGB at world
     point p), with the weights and the texture's constants embedded."""
@@ -237,4 +238,4 @@ def get_shader(services: ServicesDep, request: Request, texture_id: TextureId,
     path = getattr(sampler, "sampler", sampler).path  # a model's runtime, or a fitted SamplerSession
     header = f"texspace texture {texture.id}, model {texture.model_version}"
     text = emit_shader(path, vector, shader_name(texture.id), language, header=header)
-    return Response(text, media_type=MEDIA_TYPES[language], headers=headers)
+    return Response(text, media_type=media_type(language), headers=headers)

@@ -7,13 +7,14 @@ from fastapi import APIRouter, Depends, Header, Request, Response
 from starlette.concurrency import run_in_threadpool
 
 from worker.errors import LimitExceeded
-from worker.tiles import MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM
+from worker.files import media_type
+from worker.tiles import MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM, TILE_FORMATS
 
 from .. import auth
 from ..deps import ServicesDep, TileAddress, TileFormat, TileParams, public_base_url, tile_address
 from ..errors import problem_responses
 from ..schemas import TileJSON
-from ..tiles import (CACHE_CONTROL, REFINING_CACHE_CONTROL, TILE_MEDIA_TYPES, check_tile_work, etag_matches,
+from ..tiles import (CACHE_CONTROL, REFINING_CACHE_CONTROL, check_tile_work, etag_matches,
                      render_tile_async, tile_etag, tiles_final)
 from .textures import load_texture
 
@@ -27,7 +28,7 @@ router = APIRouter(prefix="/v1/textures", tags=["tiles"])
                  f"{NATIVE_ZOOM} one tile pixel is one exemplar pixel; each zoom step doubles the pixels "
                  f"per world unit (zoom {MIN_ZOOM}..{MAX_ZOOM}). Same URL, same bytes: strong ETag, "
                  "immutable caching, 304 on If-None-Match."),
-    responses={200: {"description": "the tile image", "content": {m: {} for m in TILE_MEDIA_TYPES.values()}},
+    responses={200: {"description": "the tile image", "content": {media_type(f): {} for f in TILE_FORMATS}},
                304: {"description": "unchanged (If-None-Match)"}, **problem_responses(404, 413, 422, 503)},
 )
 async def get_tile(
@@ -64,7 +65,7 @@ async def get_tile(
         services.tile_cache.put(etag, data)
     else:
         services.metrics.tile_cache_hits.inc()
-    return Response(content=data, media_type=TILE_MEDIA_TYPES[fmt], headers=headers)
+    return Response(content=data, media_type=media_type(fmt), headers=headers)
 
 
 @router.get("/{texture_id}/tilejson.json", response_model=TileJSON, responses=problem_responses(404, 422))

@@ -59,3 +59,23 @@ def test_temp_removed_by_the_block_is_not_an_error(tmp_path):
             os.unlink(tmp)
             raise OSError("writer cleaned up after itself")
     assert os.listdir(tmp_path) == []
+
+
+def test_every_format_offered_has_an_extension_and_a_media_type():
+    """Each writer's list of formats is read against the one table (worker.files.FORMATS):
+    a format added to a writer but not to the table would fail only when a job names it."""
+    from worker import decode
+    from worker.bake import FORMATS as BAKE
+    from worker.files import FORMATS, OCTET_STREAM, media_type_of_extension
+    from worker.gpu_textures import FORMATS as GPU
+    from worker.regions import FORMATS as REGION
+    from worker.shader import LANGUAGES
+    from worker.tiles import TILE_FORMATS
+    from worker.volume_writers import FORMATS as VOLUME
+
+    offered = {*TILE_FORMATS, *VOLUME, *REGION, *BAKE, *GPU, *LANGUAGES, "zip", "onnx"}
+    assert offered <= set(FORMATS), f"not in worker.files.FORMATS: {sorted(offered - set(FORMATS))}"
+    for fmt in offered:
+        assert FORMATS[fmt].extension.startswith(".") and "/" in FORMATS[fmt].media_type, fmt
+    # every image an upload may be (what decode sniffs) is stored with its own media type
+    assert all(media_type_of_extension(ext) != OCTET_STREAM for _, _, ext in decode._MAGIC)

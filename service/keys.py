@@ -1,0 +1,53 @@
+"""Storage keys: where every stored file lives, spelled once.
+
+A texture owns everything under ``textures/<id>/`` and a job everything under
+``jobs/<id>/``, so deleting one is deleting its prefix (``service/purge.py``). Keys are
+``/``-separated relative paths (``service/storage.py``).
+"""
+from __future__ import annotations
+
+SAMPLER = "sampler.onnx"  # a fitted texture's sampler (model.fit writes it under this name)
+
+
+def texture_prefix(texture_id: str) -> str:
+    """Every file of a texture: exemplar, fitted samplers, refinements."""
+    return f"textures/{texture_id}"
+
+
+def exemplar_key(texture_id: str, filename: str) -> str:
+    """The texture's own copy of its exemplar photo (``exemplar.<ext>`` for an upload)."""
+    return f"{texture_prefix(texture_id)}/{filename}"
+
+
+def sampler_key(texture_id: str) -> str:
+    """The sampler of a fit's new texture."""
+    return f"{texture_prefix(texture_id)}/{SAMPLER}"
+
+
+def refinement_prefix(texture_id: str, job_id: str, attempt: int) -> str:
+    """The folder of one attempt of an in-place refinement: its own key per attempt, so a
+    tile ETag (which includes the sampler key) never names two samplers' bytes."""
+    return f"{texture_prefix(texture_id)}/refined/{job_id}-{attempt}"
+
+
+def tileable_key(sampler_key: str) -> str:
+    """Storage key of the tileable sampler stored beside a fitted texture's sampler."""
+    from worker.runtime import TILEABLE_SAMPLER
+
+    folder = sampler_key.rpartition("/")[0]
+    return f"{folder}/{TILEABLE_SAMPLER}" if folder else TILEABLE_SAMPLER
+
+
+def job_prefix(job_id: str) -> str:
+    """Every file of a job: its input and its result."""
+    return f"jobs/{job_id}"
+
+
+def job_input_key(job_id: str, filename: str) -> str:
+    """An uploaded job input (a bake's mesh)."""
+    return f"{job_prefix(job_id)}/input/{filename}"
+
+
+def result_key(job_id: str, filename: str) -> str:
+    """A job's result: the same key on every run, so a re-run overwrites it (idempotent)."""
+    return f"{job_prefix(job_id)}/result/{filename}"
