@@ -1,6 +1,7 @@
 """One behaviour test mixin run against every storage backend (local folder, S3 via moto)."""
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -55,6 +56,12 @@ class TestLocalStorage(StorageContract):
     @pytest.fixture
     def storage(self, tmp_path: Path) -> LocalStorage:
         return LocalStorage(tmp_path / "store")
+
+    def test_ping_fails_when_its_folder_is_gone(self, storage) -> None:
+        storage.ping()
+        shutil.rmtree(storage.root)
+        with pytest.raises(OSError, match="not writable"):
+            storage.ping()
 
     def test_local_path_points_at_file(self, storage) -> None:
         storage.put_bytes("a/b.txt", b"hi")
