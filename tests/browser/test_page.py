@@ -36,12 +36,12 @@ def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> No
     page.wait_for_selector("#map.leaflet-container")
 
     # 1. Upload through the file input (the drop zone's label) -> listed and shown.
-    texture_id = upload(page, "brick", texture_photo_png())
+    texture_id = upload(page, "brick", texture_photo_png(tint=(0.95, 0.7, 0.5)))
     page.wait_for_function(ALL_TILES_LOADED, timeout=60_000)
     page.wait_for_function("() => document.getElementById('exemplar').naturalWidth > 0")
     shoot(page, artifacts, "1-uploaded")
     native = page.evaluate("window.texspace.textureMap.nativeZoom")
-    first = tiles.keys(texture_id)
+    first = wait_for_new_tiles(page, tiles, texture_id, set())  # response events may trail the loads
     assert {z for z, *_ in first} == {native}, "the map opens at the native zoom"
     # Centred on the world origin: tiles on both sides of it, negative indices included.
     assert any(x < 0 for _, x, _, _ in first) and any(x >= 0 for _, x, _, _ in first)
