@@ -352,7 +352,7 @@ def _tables(w: SamplerWeights, c: TextureConstants, s: _Syntax, n: str) -> str:
         arr(s.vec3, list(c.offsets - 0.5), f"{n}_O"),
     ]
     if len(c.colour):
-        knots = (len(c.colour) - 24) // 3
+        knots = _knots(c)
         t = c.colour
         parts += [
             f"// colour table (model/colour.py): A, start, step, {knots} knots x 3 channels, B\n",
@@ -366,10 +366,13 @@ def _tables(w: SamplerWeights, c: TextureConstants, s: _Syntax, n: str) -> str:
 def _decoder(n: str, w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
     """The MLP, unrolled: each 4x4 weight block is an immediate mat4 (no arrays, so no
     per-invocation copy of 200 KiB of constants, and no array size limit), each layer's
-    code bias an immediate vec4. Inputs x0.. (vec4), output ``o``."""
+    code bias an immediate vec4. Input: the feature array ``x``, read as vec4s x0..;
+    output ``o``."""
     let = "vec4" if s.f32 == "float" else "let"
     zero = f"{s.vec4}(0.0)"
-    lines, inputs = [], [f"x{j}" for j in range(w.noise.shape[1] // 4)]
+    inputs = [f"x{j}" for j in range(w.noise.shape[1] // 4)]
+    lines = [f"  {let} x{j} = {s.vec4}(x[{4 * j}], x[{4 * j + 1}], x[{4 * j + 2}], x[{4 * j + 3}]);\n"
+             for j in range(len(inputs))]
     layers = [w.noise, *w.hidden, w.out]
     offset = 0
     for depth, weight in enumerate(layers):
@@ -388,12 +391,19 @@ def _decoder(n: str, w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
     return "".join(lines)
 
 
+def _channel_scales(s: _Syntax) -> str:
+    """The powers of two that turn the three masked hash fields into level / 1024."""
+    return s.ctor(s.vec3, [2.0 ** -(b + CHANNEL_BITS) for b in CHANNEL_LOW_BIT])
+
+
+def _knots(c: TextureConstants) -> int:
+    """Knots per channel curve of the texture's colour table (0 without one)."""
+    return (len(c.colour) - 24) // 3 if len(c.colour) else 0
+
+
 def _glsl_body(n: str, w: SamplerWeights, c: TextureConstants) -> str:
     k, nb = len(c.matrices), w.noise.shape[1] // 4
-    scales = GLSL.ctor(GLSL.vec3, [2.0 ** -(b + CHANNEL_BITS) for b in CHANNEL_LOW_BIT])
-    decoder = "".join(f"  vec4 x{j} = vec4(x[{4 * j}], x[{4 * j + 1}], x[{4 * j + 2}], x[{4 * j + 3}]);\n"
-                      for j in range(nb)) + _decoder(n, w, c, GLSL)
-    knots = (len(c.colour) - 24) // 3 if len(c.colour) else 0
+    scales, decoder, knots = _channel_scales(GLSL), _decoder(n, w, c, GLSL), _knots(c)
     colour = f"""
   // colour table: fourth-root compression, A, per-channel curves, B, back to linear
   vec3 u = {n}_AB[0] * sqrt(sqrt(clamp(raw, 0.0, 1.0) + {_num(FLOOR)}));
@@ -455,10 +465,7 @@ vec3 {n}(vec3 p, uint seed) {{
 
 def _wgsl_body(n: str, w: SamplerWeights, c: TextureConstants) -> str:
     k, nb = len(c.matrices), w.noise.shape[1] // 4
-    scales = WGSL.ctor(WGSL.vec3, [2.0 ** -(b + CHANNEL_BITS) for b in CHANNEL_LOW_BIT])
-    decoder = "".join(f"  let x{j} = vec4<f32>(x[{4 * j}], x[{4 * j + 1}], x[{4 * j + 2}], x[{4 * j + 3}]);\n"
-                      for j in range(nb)) + _decoder(n, w, c, WGSL)
-    knots = (len(c.colour) - 24) // 3 if len(c.colour) else 0
+    scales, decoder, knots = _channel_scales(WGSL), _decoder(n, w, c, WGSL), _knots(c)
     colour = f"""
   // colour table: fourth-root compression, A, per-channel curves, B, back to linear
   let u = {n}_AB[0] * sqrt(sqrt(clamp(raw, vec3<f32>(0.0), vec3<f32>(1.0)) + {_num(FLOOR)}));
