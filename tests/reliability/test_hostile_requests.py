@@ -8,35 +8,25 @@ import base64
 import dataclasses
 import json
 import logging
-from collections.abc import Iterator
 
 import pytest
 from fastapi.testclient import TestClient
 
-from service.context import Services, build_services
+from service.context import Services
 from service.deps import public_base_url
 from service.logs import request_id_var
-from service.main import create_app
 from service.purge import purge_texture
 from service.tables import Job, new_id
 from tests.service.conftest import brick_png
 
-from .conftest import PROBLEM, database_settings, make_settings
+from .conftest import PROBLEM
 from .test_bad_input import assert_still_serving
 
 
 @pytest.fixture(scope="module")
-def services(database_url, tmp_path_factory) -> Iterator[Services]:
-    services = build_services(make_settings(tmp_path_factory.mktemp("hostile"), **database_settings(database_url)),
-                              immediate=True)
-    yield services
-    services.engine.dispose()
-
-
-@pytest.fixture(scope="module")
-def client(services) -> Iterator[TestClient]:
-    with TestClient(create_app(services=services)) as client:
-        yield client
+def services(module_services: Services) -> Services:
+    """The app's services under the shorter name these tests use (``client`` serves them)."""
+    return module_services
 
 
 def upload(client: TestClient, name: str | None = None) -> dict:
