@@ -54,8 +54,13 @@ def client(services: Services) -> Iterator[TestClient]:
         yield client
 
 
-@pytest.fixture
-def texture(client: TestClient, photo: bytes) -> dict:
-    res = client.post("/v1/textures", files={"image": ("brick.png", photo, "image/png")}, data={"name": "brick"})
+def upload_photo(client: TestClient, photo: bytes, **form: str) -> dict:
+    """POST a PNG to /v1/textures (``form``: e.g. name=...); the 201 answer's texture."""
+    res = client.post("/v1/textures", files={"image": ("brick.png", photo, "image/png")}, data=form)
     assert res.status_code == 201, res.text
     return res.json()
+
+
+@pytest.fixture
+def texture(client: TestClient, photo: bytes) -> dict:
+    return upload_photo(client, photo, name="brick")

@@ -22,6 +22,7 @@ from service.queue import worker_lanes
 from service.settings import Settings
 from service.tables import Texture
 from service.tiles import CACHE_CONTROL, REFINING_CACHE_CONTROL
+from tests.service.conftest import upload_photo
 
 from .test_fit_grain import MODEL_DIR, fake_fit_module
 
@@ -56,12 +57,6 @@ def refining(settings, tmp_path, fit_calls):
     services.engine.dispose()
 
 
-def upload(client, photo) -> dict:
-    res = client.post("/v1/textures", files={"image": ("brick.png", photo, "image/png")})
-    assert res.status_code == 201, res.text
-    return res.json()
-
-
 def run_fit_lane(services) -> None:
     task = services.fit_huey.dequeue()
     assert task is not None, "no message on the fit lane"
@@ -70,7 +65,7 @@ def run_fit_lane(services) -> None:
 
 def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     client, services = refining
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     # served from the encoder's code at once; the refinement is queued on the fit lane
     assert texture["sampler"] == "encoder" and not texture["has_own_sampler"]
     refinement = texture["refinement"]
@@ -114,7 +109,7 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
 
 def test_refined_upload_blends_by_its_encoder_code(refining, photo) -> None:
     client, services = refining
-    a, b = upload(client, photo), upload(client, photo)
+    a, b = upload_photo(client, photo), upload_photo(client, photo)
     run_fit_lane(services)                                      # a is refined, b not yet
     res = client.post("/v1/textures/interpolate", json={"a": a["id"], "b": b["id"], "t": 0.0})
     assert res.status_code == 201, res.text
@@ -124,7 +119,7 @@ def test_refined_upload_blends_by_its_encoder_code(refining, photo) -> None:
 
 def test_canceled_refinement_leaves_the_encoder_tiles_final(refining, photo) -> None:
     client, services = refining
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     job_id = texture["refinement"]["job_id"]
     assert client.post(f"/v1/jobs/{job_id}/cancel").status_code == 202
     refreshed = client.get(f"/v1/textures/{texture['id']}").json()
@@ -134,7 +129,7 @@ def test_canceled_refinement_leaves_the_encoder_tiles_final(refining, photo) -> 
 
 def test_texture_deleted_during_its_refinement_leaves_no_files(refining, photo, monkeypatch) -> None:
     client, services = refining
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     module = sys.modules["model.fit"]
 
     @functools.wraps(module.fit_exemplar)
@@ -158,7 +153,7 @@ def test_texture_deleted_during_its_refinement_leaves_no_files(refining, photo, 
 def test_auto_fit_off_queues_nothing(refining, photo, fit_calls) -> None:
     client, services = refining
     services.settings.auto_fit = False
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     assert texture["refinement"] is None and texture["sampler"] == "encoder"
     assert client.get("/v1/jobs").json()["items"] == []
     assert services.pending_count() == 0 and fit_calls == []
@@ -168,7 +163,7 @@ def test_auto_fit_off_queues_nothing(refining, photo, fit_calls) -> None:
 def test_without_torch_auto_fit_is_skipped_silently(refining, photo, monkeypatch) -> None:
     client, services = refining
     monkeypatch.setattr("service.job_kinds.torch_available", lambda: False)
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     assert texture["refinement"] is None
     assert client.get("/v1/jobs").json()["items"] == []
 
@@ -176,13 +171,13 @@ def test_without_torch_auto_fit_is_skipped_silently(refining, photo, monkeypatch
 def test_model_without_checkpoint_is_not_refined(refining, photo) -> None:
     client, services = refining
     (services.settings.model_dirs[0] / "space.pt").unlink()
-    assert upload(client, photo)["refinement"] is None
+    assert upload_photo(client, photo)["refinement"] is None
 
 
 def test_full_queue_does_not_fail_the_upload(refining, photo) -> None:
     client, services = refining
     services.settings.max_queued_jobs = 1
-    first, second = upload(client, photo), upload(client, photo)
+    first, second = upload_photo(client, photo), upload_photo(client, photo)
     assert first["refinement"]["state"] == "queued"
     assert second["refinement"] is None                         # the queue was full: not refined
     assert len(client.get("/v1/jobs").json()["items"]) == 1
@@ -200,7 +195,7 @@ def test_refinement_recomputes_the_colour_with_the_fitted_sampler(refining, phot
         return real(sampler, code, image)
 
     monkeypatch.setattr(job_kinds, "calibrate_texture", calibrate)
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     calls.clear()
     run_fit_lane(services)
     with services.sessions() as session:
@@ -216,7 +211,7 @@ def test_refinement_recomputes_the_colour_with_the_fitted_sampler(refining, phot
 
 def test_the_fit_lane_thread_runs_fit_jobs(refining, photo) -> None:
     client, services = refining
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     stop = threading.Event()
     thread = start_lane(services.fit_huey, stop)
     try:

@@ -23,6 +23,7 @@ from service.context import build_services
 from service.db import session_scope
 from service.main import create_app
 from service.tables import Texture
+from tests.service.conftest import upload_photo
 from worker.errors import FeatureUnavailable
 
 MODEL_DIR = Path(__file__).resolve().parents[2] / "model" / "weights"
@@ -68,10 +69,14 @@ def api(settings, tmp_path, monkeypatch):
     services.engine.dispose()
 
 
-def upload(client, photo) -> dict:
-    res = client.post("/v1/textures", files={"image": ("brick.png", photo, "image/png")})
-    assert res.status_code == 201, res.text
-    return res.json()
+def fitted_texture(client, photo, monkeypatch, *, tileable: bool) -> dict:
+    """Upload ``photo`` and fit it with the stand-in model.fit, which writes a tileable
+    sampler or, like fits from before tileable textures, none; the fitted texture."""
+    monkeypatch.setitem(sys.modules, "model.fit", fake_fit_module(tileable=tileable))
+    texture = upload_photo(client, photo)
+    fit = client.get(client.post(texture["links"]["fit"], json={"seconds": 1}).json()["links"]["self"]).json()
+    assert fit["state"] == "succeeded", fit
+    return client.get(fit["links"]["output_texture"]).json()
 
 
 def region(client, texture, **body) -> dict:
@@ -95,7 +100,7 @@ def seam_ratio(png: bytes) -> float:
 
 def test_tileable_region_repeats_and_plain_does_not(api, photo) -> None:
     client, _ = api
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     job = region(client, texture, **SQUARE)
     assert job["params"]["tileable"] is True
     png = result(client, job)
@@ -111,7 +116,7 @@ def test_tileable_with_derived_maps(api, photo) -> None:
     import zipfile
 
     client, _ = api
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     job = region(client, texture, **SQUARE, format="exr", maps=["normal"])
     with zipfile.ZipFile(io.BytesIO(result(client, job))) as z:
         assert sorted(z.namelist()) == ["colour.exr", "normal.png"]
@@ -120,7 +125,7 @@ def test_tileable_with_derived_maps(api, photo) -> None:
 @pytest.mark.parametrize("change", [{"height": 64}, {"z": 5}, {"z": 7}, {"plane": "xz"}, {"format": "pyramid"}])
 def test_tileable_shapes_it_cannot_make_are_422(api, photo, change) -> None:
     client, _ = api
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     res = client.post(texture["links"]["regions"], json={**SQUARE, **change})
     assert res.status_code == 422, res.text
     assert res.headers["content-type"] == "application/problem+json"
@@ -130,7 +135,7 @@ def test_tileable_shapes_it_cannot_make_are_422(api, photo, change) -> None:
 
 def test_tileable_over_the_region_limit_is_413(api, photo) -> None:
     client, services = api
-    texture = upload(client, photo)
+    texture = upload_photo(client, photo)
     side = int(services.settings.max_region_pixels ** 0.5) + 1
     res = client.post(texture["links"]["regions"], json={**SQUARE, "width": side, "height": side})
     assert res.status_code == 413, res.text
@@ -138,11 +143,7 @@ def test_tileable_over_the_region_limit_is_413(api, photo) -> None:
 
 def test_fitted_texture_renders_its_own_tileable_sampler(api, photo, monkeypatch) -> None:
     client, services = api
-    monkeypatch.setitem(sys.modules, "model.fit", fake_fit_module(tileable=True))
-    texture = upload(client, photo)
-    fit = client.get(client.post(texture["links"]["fit"], json={"seconds": 1}).json()["links"]["self"]).json()
-    assert fit["state"] == "succeeded", fit
-    fitted = client.get(fit["links"]["output_texture"]).json()
+    fitted = fitted_texture(client, photo, monkeypatch, tileable=True)
     assert services.storage.exists(f"textures/{fitted['id']}/sampler_tileable.onnx")
     png = result(client, region(client, fitted, **SQUARE))
     assert result(client, region(client, fitted, **{**SQUARE, "x0": -128})) == png
@@ -156,7 +157,7 @@ def test_refined_upload_renders_its_refinement_tileable(settings, tmp_path, phot
     settings.auto_fit = True
     client, services = make_client(settings, tmp_path)
     with client:
-        texture = client.get(f"/v1/textures/{upload(client, photo)['id']}").json()
+        texture = client.get(f"/v1/textures/{upload_photo(client, photo)['id']}").json()
         assert texture["sampler"] == "fitted", texture              # refined (immediate mode)
         with services.sessions() as session:
             sampler_key = session.get(Texture, texture["id"]).sampler_key
@@ -168,11 +169,7 @@ def test_refined_upload_renders_its_refinement_tileable(settings, tmp_path, phot
 
 def test_texture_fitted_before_tileable_textures_is_409(api, photo, monkeypatch) -> None:
     client, services = api
-    monkeypatch.setitem(sys.modules, "model.fit", fake_fit_module(tileable=False))
-    texture = upload(client, photo)
-    fit = client.get(client.post(texture["links"]["fit"], json={"seconds": 1}).json()["links"]["self"]).json()
-    assert fit["state"] == "succeeded", fit
-    fitted = client.get(fit["links"]["output_texture"]).json()
+    fitted = fitted_texture(client, photo, monkeypatch, tileable=False)
     res = client.post(fitted["links"]["regions"], json=SQUARE)
     assert res.status_code == 409 and res.headers["content-type"] == "application/problem+json"
     problem = res.json()
@@ -188,7 +185,7 @@ def test_texture_fitted_before_tileable_textures_is_409(api, photo, monkeypatch)
 def test_model_exported_before_tileable_textures_is_409(settings, tmp_path, photo) -> None:
     client, services = make_client(settings, tmp_path, model_tileable=False)
     with client:
-        texture = upload(client, photo)
+        texture = upload_photo(client, photo)
         res = client.post(texture["links"]["regions"], json=SQUARE)
         assert res.status_code == 409, res.text
         assert "re-export" in res.json()["detail"]
