@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -64,3 +65,17 @@ def upload_photo(client: TestClient, photo: bytes, **form: str) -> dict:
 @pytest.fixture
 def texture(client: TestClient, photo: bytes) -> dict:
     return upload_photo(client, photo, name="brick")
+
+
+@pytest.fixture
+def cli_env(tmp_path: Path, monkeypatch) -> Path:
+    """For the offline CLI: a working folder with brick.png, its own data dir, no other
+    TEXSPACE_* variable, and no refinement fits behind uploads."""
+    for key in list(os.environ):
+        if key.startswith("TEXSPACE_"):
+            monkeypatch.delenv(key)
+    monkeypatch.setenv("TEXSPACE_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setenv("TEXSPACE_AUTO_FIT", "false")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "brick.png").write_bytes(brick_png())
+    return tmp_path

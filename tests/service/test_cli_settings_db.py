@@ -2,7 +2,6 @@
 that match the ORM tables."""
 from __future__ import annotations
 
-import io
 import json
 import os
 from pathlib import Path
@@ -20,18 +19,6 @@ from service.tables import Base
 from tests.service.conftest import brick_png
 
 MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"
-
-
-@pytest.fixture
-def cli_env(tmp_path: Path, monkeypatch) -> Path:
-    for key in list(os.environ):
-        if key.startswith("TEXSPACE_"):
-            monkeypatch.delenv(key)
-    monkeypatch.setenv("TEXSPACE_DATA_DIR", str(tmp_path / "data"))
-    monkeypatch.setenv("TEXSPACE_AUTO_FIT", "false")  # uploads here are not refined by a real fit
-    monkeypatch.chdir(tmp_path)
-    (tmp_path / "brick.png").write_bytes(brick_png())
-    return tmp_path
 
 
 def test_cli_encode_tile_volume_bake(cli_env: Path, capsys) -> None:

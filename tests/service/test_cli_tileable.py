@@ -2,7 +2,6 @@
 same limits, one-line refusals that create nothing."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -13,18 +12,6 @@ from service.cli import main
 from service.settings import Settings
 from tests.service.conftest import brick_png
 from tests.service.test_cli_errors import refused, tree
-
-
-@pytest.fixture
-def cli_env(tmp_path: Path, monkeypatch) -> Path:
-    for key in list(os.environ):
-        if key.startswith("TEXSPACE_"):
-            monkeypatch.delenv(key)
-    monkeypatch.setenv("TEXSPACE_DATA_DIR", str(tmp_path / "data"))
-    monkeypatch.setenv("TEXSPACE_AUTO_FIT", "false")
-    monkeypatch.chdir(tmp_path)
-    (tmp_path / "brick.png").write_bytes(brick_png())
-    return tmp_path
 
 
 def test_cli_tileable_of_stored_texture_matches_api(cli_env: Path, capsys) -> None:
