@@ -9,14 +9,13 @@ import os
 import re
 import subprocess
 import sys
-import time
-import urllib.request
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 
+from service import spawn
 from tests.conftest import free_port
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -45,39 +44,19 @@ def artifacts() -> Path:
     return ARTIFACTS
 
 
-def _wait_until_up(url: str, process: subprocess.Popen | None, log: Path) -> None:
-    deadline = time.monotonic() + SERVER_START_TIMEOUT_S
-    while time.monotonic() < deadline:
-        if process is not None and process.poll() is not None:
-            raise RuntimeError(f"texspace serve exited with {process.returncode}:\n{log.read_text()[-3000:]}")
-        try:
-            with urllib.request.urlopen(url, timeout=2) as response:
-                if response.status == 200:
-                    return
-        except OSError:
-            time.sleep(0.3)
-    raise RuntimeError(f"texspace serve did not answer {url} within {SERVER_START_TIMEOUT_S} s:\n"
-                       f"{log.read_text()[-3000:]}")
-
-
 @contextmanager
 def _serve(data_dir: Path, log: Path, env: dict[str, str]) -> Iterator[str]:
-    """``texspace serve`` on a free loopback port; yields its URL, stops it afterwards."""
+    """``texspace serve`` on a free loopback port; yields its URL (the page's), stops it afterwards."""
     port = free_port()
-    command = [sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1", "--port", str(port)]
-    with log.open("wb") as log_file:
-        process = subprocess.Popen(command, cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT)
+    log.write_bytes(b"")  # this run's log only
+    process = spawn.spawn(["serve", "--host", "127.0.0.1", "--port", str(port)], env, log)
     url = f"http://127.0.0.1:{port}/"
     try:
-        _wait_until_up(url, process, log)
+        spawn.wait_ready(url.rstrip("/"), [process], SERVER_START_TIMEOUT_S, path="/", name="texspace serve",
+                         output=lambda: log.read_text(errors="replace"))
         yield url
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        spawn.stop([process])
 
 
 @pytest.fixture(scope="session")
