@@ -10,8 +10,6 @@ import sys
 import time
 from pathlib import Path
 
-from service.spawn import free_port, spawn, stop, wait_ready  # noqa: F401 - the benchmarks' process helpers
-
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "bench" / "out"
 RESULTS = OUT / "results.json"

@@ -32,7 +32,7 @@ import httpx
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # run as a script (``python bench/load.py``)
 
-from bench.common import free_port, spawn, stop, wait_ready  # noqa: E402
+from service.spawn import free_port, spawn, stop, wait_ready  # noqa: E402
 
 RESULTS = ROOT / "bench" / "out" / "results.json"
 MIX = (("tile_cached", 0.55), ("tile_cold", 0.25), ("job_submit", 0.08), ("job_poll", 0.12))

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import free_port, median, percentile, spawn, stop, wait_ready
+from bench.common import median, percentile
+from service.spawn import free_port, spawn, stop, wait_ready
 
 
 @contextmanager
