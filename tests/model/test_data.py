@@ -200,6 +200,24 @@ def test_fetch_wheel_checks_sha256_and_reuses_cache(tmp_path, monkeypatch):
         fetch_wheel("texspace-fake", "2.0", sha)
 
 
+
+def test_fetch_wheel_replaces_a_half_written_wheel_in_the_cache(tmp_path, monkeypatch):
+    # What another process mid-download (or a killed one) leaves behind: pip, told to
+    # download into that folder, took the file for already downloaded and the fetch failed
+    # its sha256 check. Downloads go to a private folder and are renamed in once checked.
+    index = tmp_path / "index"
+    index.mkdir()
+    wheel = make_wheel(index)
+    sha = hashlib.sha256(wheel.read_bytes()).hexdigest()
+    for key, value in {"TEXSPACE_CACHE_DIR": str(tmp_path / "cache"), "PIP_CONFIG_FILE": "/dev/null",
+                       "PIP_NO_INDEX": "1", "PIP_FIND_LINKS": str(index)}.items():
+        monkeypatch.setenv(key, value)
+    cached = tmp_path / "cache" / "wheels" / wheel.name
+    cached.parent.mkdir(parents=True)
+    cached.write_bytes(wheel.read_bytes()[:100])
+    assert fetch_wheel("texspace-fake", "1.0", sha) == cached and cached.read_bytes() == wheel.read_bytes()
+    assert [p.name for p in cached.parent.iterdir()] == [wheel.name]  # no download folders left
+
 @pytest.mark.slow
 def test_fetch_textures_is_deterministic_and_writes_rgb_pngs(tmp_path):
     first = data.fetch_textures(tmp_path / "one")
