@@ -141,9 +141,10 @@ class Client:
         return self._call("POST", f"/v1/textures/{texture_id}/bakes", files={"mesh": (filename, data)},
                           data=form, headers=self._key(idempotency_key)).json()
 
-    def fit(self, texture_id: str, *, seconds: float = 60.0, grain: str | None = None,
+    def fit(self, texture_id: str, *, seconds: float = 60.0, grain: str | None = "auto",
             idempotency_key: str | None = None) -> Job:
-        """Submit a fit (needs the train extra on the workers): refines the texture's sampler."""
+        """Submit a fit (needs the train extra on the workers): refines the texture's sampler.
+        ``grain``: "x", "y", "auto" (detected from the photo) or None (isotropic)."""
         return self._call("POST", f"/v1/textures/{texture_id}/fit", json={"seconds": seconds, "grain": grain},
                           headers=self._key(idempotency_key)).json()
 

@@ -121,7 +121,7 @@ def auto_fit_params(services: Services, model_version: str) -> dict[str, Any] | 
         return None
     if not (services.registry.get(model_version).model_dir / "space.pt").is_file():
         return None
-    return {"seconds": min(settings.fit_seconds, settings.max_fit_seconds), "grain": None, "in_place": True}
+    return {"seconds": min(settings.fit_seconds, settings.max_fit_seconds), "grain": "auto", "in_place": True}
 
 
 def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,

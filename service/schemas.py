@@ -125,10 +125,12 @@ class VolumeIn(BaseModel):
 class FitIn(BaseModel):
     model_config = {"extra": "forbid"}
     seconds: float = Field(60.0, gt=0, le=3600, description="optimisation time budget; capped by the server")
-    grain: Literal["x", "y"] | None = Field(
-        None, description="anisotropic exemplar (wood, brushed metal): the direction its grain runs in the photo, "
-                          "x = left-right, y = up-down; the fitted solid's noise cells are stretched 8x along that "
-                          "axis so tiles keep the grain in the photo's orientation. null: isotropic")
+    grain: Literal["x", "y", "auto"] | None = Field(
+        "auto", description="anisotropic exemplar (wood, brushed metal): the direction its grain runs in the photo, "
+                            "x = left-right, y = up-down; the fitted solid's noise cells are stretched 8x along "
+                            "that axis so tiles keep the grain in the photo's orientation. auto (default): "
+                            "detected from the photo (luminance gradients >= 3x stronger across one axis than "
+                            "along it at 1, 2 and 4 px); null: isotropic")
 
 
 class FitParams(FitIn):

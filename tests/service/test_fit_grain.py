@@ -101,11 +101,11 @@ def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_call
     assert fitted["source"] == "fit" and fitted["parents"]["job"] == job["id"]
 
 
-def test_fit_without_grain_is_isotropic(fit_client, fit_texture, fit_calls) -> None:
+def test_fit_without_grain_detects_it_and_null_is_isotropic(fit_client, fit_texture, fit_calls) -> None:
     res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30})
     assert res.status_code == 202, res.text
-    assert res.json()["params"]["grain"] is None
-    assert fit_calls[0]["grain"] is None
+    assert res.json()["params"]["grain"] == "auto"       # model.fit detects it from the photo
+    assert fit_calls[0]["grain"] == "auto"
     res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30, "grain": None})
     assert res.status_code == 202, res.text
     assert fit_calls[1]["grain"] is None
@@ -118,7 +118,7 @@ def test_bad_grain_is_a_422_problem_naming_the_allowed_values(fit_client, fit_te
     assert res.headers["content-type"] == "application/problem+json"
     problem = res.json()
     assert problem["type"] == "urn:texspace:problem:validation-error"
-    assert "grain" in problem["detail"] and "'x' or 'y'" in problem["detail"]
+    assert "grain" in problem["detail"] and "'x', 'y' or 'auto'" in problem["detail"]
     assert fit_calls == []
     assert fit_client.get("/v1/jobs").json()["items"] == []    # nothing queued
 

@@ -325,7 +325,7 @@ export function startRegion(textureId, params) {
 
 /** A fit (the train extra on the workers): a new texture with its own fitted sampler
  * (`output_texture_id` of the succeeded job). `seconds`: the optimisation budget. */
-export function startFit(textureId, { seconds, grain = null }) {
+export function startFit(textureId, { seconds, grain = "auto" }) {
   return submitJob(`textures/${textureId}/fit`, {
     headers: { 'content-type': 'application/json' },
     body: JSON.stringify({ seconds, grain }),
