@@ -188,13 +188,18 @@ def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
         ratio("viewport_4_volumes_last_s", last, "<= 1.5 s", last <= 1.5,
               "viewport, 4 volume jobs 128^3 running: last", f"{last:.3f} s",
               f"{last / vp['native_idle']['last_s']:.2f} x idle; p50 {vp['native_4_volumes']['p50_s']:.3f} s")
-    for key, name in (("out2_supersample_cold", "supersampled"), ("bounded_out2_cold", "bounded")):
-        native = vp.get("native_idle" if name == "supersampled" else "bounded_native_idle")
+    for key, name, native_key in (("out2_progressive_cold", "progressive previews", "native_idle"),
+                                  ("out2_supersample_cold", "supersample", "supersample_native_idle")):
+        native = vp.get(native_key)
         if key in vp and native:
             x = vp[key]["last_s"] / native["last_s"]
-            ratio(f"viewport_out2_{name}_vs_native", x, "<= 1.5", x <= 1.5,
+            ratio(f"viewport_out2_{name.split()[0]}_vs_native", x, "<= 1.5", x <= 1.5,
                   f"viewport two zoom levels out, cold, {name}: last", f"{vp[key]['last_s']:.3f} s",
                   f"{x:.2f} x native {native['last_s']:.3f} s")
+    if "out2_progressive_cold" in vp:
+        r = vp["out2_progressive_cold"]
+        rows.append(("viewport two zoom levels out, progressive: last exact tile", f"{r['exact_last_s']:.3f} s",
+                     f"{r['exact_last_s'] / vp['native_idle']['last_s']:.2f} x native", "-"))
     if "out1_from_children" in vp:
         rows.append(("viewport one level out over viewed tiles (from children): last",
                      f"{vp['out1_from_children']['last_s']:.3f} s", "no sampling", "-"))

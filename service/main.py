@@ -33,7 +33,7 @@ CONTRACT = Path(__file__).resolve().parent.parent / "openapi.yaml"
 CORS_REQUEST_HEADERS = ["Content-Type", "X-API-Key", "Idempotency-Key", "If-None-Match", "Last-Event-ID",
                         "X-Request-ID"]
 CORS_RESPONSE_HEADERS = ["ETag", "Location", "Retry-After", "X-Request-ID", "Content-Disposition",
-                         "Idempotent-Replayed", "WWW-Authenticate"]
+                         "Idempotent-Replayed", "WWW-Authenticate", "X-Texspace-Tile"]
 
 
 def create_app(settings: Settings | None = None, *, services: Services | None = None) -> FastAPI:

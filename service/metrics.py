@@ -30,6 +30,8 @@ class Metrics:
                                          registry=self.registry)
         self.tile_not_modified = Counter("texspace_tile_not_modified_total", "304 answers to If-None-Match",
                                          registry=self.registry)
+        self.tile_previews = Counter("texspace_tile_previews_total", "zoomed-out previews rendered "
+                                     "(progressive zoom-out; the exact tile follows)", registry=self.registry)
         self.tile_render = Histogram("texspace_tile_render_seconds", "time to render and encode a tile",
                                      buckets=LATENCY_BUCKETS, registry=self.registry)
 

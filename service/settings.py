@@ -112,10 +112,12 @@ class Settings(BaseSettings):
                                   "503 + Retry-After")
     tile_queue_max_wait_seconds: float = Field(2.0, gt=0, description="a cold tile whose estimated wait "
                                                "for a render is longer gets 503 + Retry-After at once")
-    tile_zoom_out: Literal["supersample", "bounded"] = Field(
-        "supersample", description="zoomed-out tiles: 'supersample' averages every sub-sample (children "
-        "downsampled equal the parent; cost x4 per level, capped at x16), 'bounded' evaluates one hashed "
-        "sub-sample per pixel (a native tile's cost at every zoom; equal to the parent in expectation)")
+    tile_zoom_out: Literal["progressive", "supersample", "bounded"] = Field(
+        "progressive", description="zoomed-out tiles: 'supersample' averages every sub-sample (children "
+        "downsampled equal the parent; cost x4 per level, capped at x16); 'bounded' evaluates one hashed "
+        "sub-sample per pixel (a native tile's cost at every zoom; equal to the parent in expectation); "
+        "'progressive' answers a cold zoomed-out tile with the bounded one as a preview (no-cache, header "
+        "X-Texspace-Tile: preview) and renders the supersampled one behind it, served from then on")
     http_read_timeout_seconds: float = Field(60.0, gt=0, description="a request's headers and body must "
                                              "arrive within this long of the connection opening or "
                                              "its previous response ending")

@@ -5,6 +5,7 @@ import asyncio
 import contextvars
 import functools
 import hashlib
+import logging
 import math
 import threading
 import time
@@ -28,12 +29,18 @@ from .settings import Settings
 from .tables import Job, Texture
 from .tilecache import TileCache
 
+log = logging.getLogger(__name__)
+
 #: bump when tile rendering changes in a way that changes bytes for the same URL
 #: (2: box filter as a cascade of exact 2 x 2 means, so parents can be built from children)
 TILE_RENDER_VERSION = 2
 CACHE_CONTROL = "public, max-age=31536000, immutable"
 #: tiles of an upload whose refinement has not ended: caches must revalidate (If-None-Match)
 REFINING_CACHE_CONTROL = "public, no-cache"
+#: a zoomed-out tile's preview (progressive zoom-out): revalidated, the exact tile replaces it
+PREVIEW_CACHE_CONTROL = "public, no-cache"
+#: response header naming a preview; clients that can read headers ask again until it is gone
+PREVIEW_HEADER = ("X-Texspace-Tile", "preview")
 
 
 #: tiles of at most this many sampler calls are small: they never queue behind large ones
@@ -45,15 +52,33 @@ BAND_SAMPLES = 1 << 15
 YIELD_SECONDS = 0.25
 
 
+#: the most exact zoomed-out tiles waiting to render behind their previews; beyond, the
+#: oldest is dropped (it renders when next asked for)
+MAX_PENDING_EXACT = 64
+#: the longest a background band waits for interactive tiles to finish (then one band runs)
+BACKGROUND_YIELD_SECONDS = 2.0
+
+
 def tile_samples(z: int, size: int, zoom_out: str = "supersample") -> int:
     """Sampler calls of one tile: (size x supersampling factor)^2, or size^2 when zoom-out is
     ``bounded`` (one sub-sample per pixel)."""
     return size ** 2 if zoom_out == "bounded" else (size * supersample_for(z)) ** 2
 
 
+def final_zoom_out(settings: Settings) -> str:
+    """How a tile's final (cacheable) bytes are rendered: ``bounded`` in that mode, else
+    ``supersample`` (progressive mode's previews are bounded, its final tiles supersampled)."""
+    return "bounded" if settings.tile_zoom_out == "bounded" else "supersample"
+
+
+def serves_previews(settings: Settings, z: int) -> bool:
+    """Whether a cold tile at zoom z is answered with a preview first (progressive mode)."""
+    return settings.tile_zoom_out == "progressive" and z < NATIVE_ZOOM
+
+
 def check_tile_work(settings: Settings, z: int, size: int) -> None:
     """LimitExceeded (413) when a tile costs more sampler calls than ``max_tile_samples``."""
-    samples = tile_samples(z, size, settings.tile_zoom_out)
+    samples = tile_samples(z, size, final_zoom_out(settings))
     if samples > settings.max_tile_samples:
         raise LimitExceeded(f"a {size} px tile at zoom {z} costs {samples} samples ({supersample_for(z)}^2 "
                             f"per pixel), limit is {settings.max_tile_samples}: use a smaller size "
@@ -81,11 +106,11 @@ class TileLanes:
                 self._small -= 1
                 self._cond.notify_all()
 
-    def yield_to_small(self) -> None:
-        """Wait until no small tile renders, at most YIELD_SECONDS: under a steady stream of
+    def yield_to_small(self, timeout: float = YIELD_SECONDS) -> None:
+        """Wait until no small tile renders, at most ``timeout`` s: under a steady stream of
         small tiles a large one still advances a band at a time instead of starving."""
         with self._cond:
-            self._cond.wait_for(lambda: self._small == 0, timeout=YIELD_SECONDS)
+            self._cond.wait_for(lambda: self._small == 0, timeout=timeout)
 
 
 LANES = TileLanes()
@@ -188,6 +213,105 @@ class TileQueue:
                 self._large_samples -= samples
 
 
+class ExactRenders:
+    """Progressive zoom-out: the exact (supersampled) tiles behind previews, rendered one
+    at a time on a thread of their own, newest first (the view the user looks at now),
+    each band waiting for interactive tiles, into the tile cache under the exact ETag.
+    At most MAX_PENDING_EXACT wait; beyond, the oldest is dropped (asked for again, its
+    preview schedules it again)."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._waiting: dict[str, tuple] = {}  # exact ETag -> render arguments, oldest first
+        self._running: set[str] = set()
+        self._thread: threading.Thread | None = None
+
+    def pending(self, etag: str) -> bool:
+        with self._cond:
+            return etag in self._waiting or etag in self._running
+
+    def submit(self, services: Services, texture: Texture, etag: str, key: dict) -> None:
+        with self._cond:
+            if etag in self._waiting or etag in self._running:
+                return
+            self._waiting[etag] = (services, texture, key)
+            while len(self._waiting) > MAX_PENDING_EXACT:
+                self._waiting.pop(next(iter(self._waiting)))
+            if self._thread is None or not self._thread.is_alive():
+                self._thread = threading.Thread(target=self._run, name="exact-tiles", daemon=True)
+                self._thread.start()
+            self._cond.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: bool(self._waiting))
+                etag = next(reversed(self._waiting))  # newest first
+                services, texture, key = self._waiting.pop(etag)
+                self._running.add(etag)
+            try:
+                if services.tile_cache.get(etag) is None:
+                    data = render_tile_bytes(services, texture, zoom_out="supersample", background=True, **key)
+                    services.tile_cache.put(etag, data)
+            except Exception:  # noqa: BLE001 - a background render must not end the thread
+                log.exception("exact tile %s failed to render; its preview stays", etag)
+            finally:
+                with self._cond:
+                    self._running.discard(etag)
+
+
+EXACT = ExactRenders()
+
+
+async def final_tile(services: Services, texture: Texture, request: Request, if_none_match: str | None,
+                     key: dict) -> tuple[str, bytes | None]:
+    """A tile's final bytes: (ETag, bytes or None for 304), from the LRU or rendered (503
+    when over capacity)."""
+    etag = tile_etag(texture, **key, zoom_out=final_zoom_out(services.settings))
+    if etag_matches(if_none_match, etag):
+        return etag, None
+    data = services.tile_cache.get(etag)
+    if data is None:
+        services.metrics.tile_cache_misses.inc()
+        data = await render_tile_async(services, texture, request, **key)
+        services.tile_cache.put(etag, data)
+    else:
+        services.metrics.tile_cache_hits.inc()
+    return etag, data
+
+
+async def progressive_tile(services: Services, texture: Texture, request: Request, if_none_match: str | None,
+                           key: dict) -> tuple[str, bytes | None, bool]:
+    """A zoomed-out tile in progressive mode: (ETag, bytes or None for 304, is_preview).
+
+    The exact tile when it is cached or can be built from cached children; else the
+    bounded render as a preview (a native tile's cost) and the exact one queued behind it
+    (ExactRenders). A client revalidating its preview gets 304 until the exact tile is
+    ready, then the exact tile."""
+    exact = tile_etag(texture, **key, zoom_out="supersample")
+    if etag_matches(if_none_match, exact):
+        return exact, None, False
+    data = services.tile_cache.get(exact)
+    (services.metrics.tile_cache_misses if data is None else services.metrics.tile_cache_hits).inc()
+    if data is None and NATIVE_ZOOM - 2 <= key["z"]:
+        data = await run_in_threadpool(tile_from_cache, services, texture, **key)
+        if data is not None:
+            services.tile_cache.put(exact, data)
+    if data is not None:
+        return exact, data, False
+    preview = tile_etag(texture, **key, zoom_out="bounded")
+    if etag_matches(if_none_match, preview):
+        EXACT.submit(services, texture, exact, key)  # (again, if it was dropped meanwhile)
+        return preview, None, True
+    data = services.tile_cache.get(preview)
+    if data is None:
+        data = await render_tile_async(services, texture, request, zoom_out="bounded", **key)
+        services.tile_cache.put(preview, data)
+        services.metrics.tile_previews.inc()
+    EXACT.submit(services, texture, exact, key)  # after the preview: it must not wait for a band
+    return preview, data, True
+
+
 QUEUE = TileQueue()
 #: linear-light float32 copies of recent tiles at NATIVE_ZOOM and one out (tile_from_cache)
 LINEAR = TileCache(0)
@@ -226,7 +350,7 @@ def _linear_key(texture: Texture, key: dict, z: int, x: int, y: int) -> str:
 
 
 def _keeps_linear(services: Services, z: int) -> bool:
-    return (services.settings.tile_zoom_out == "supersample" and services.settings.tile_linear_cache_bytes > 0
+    return (final_zoom_out(services.settings) == "supersample" and services.settings.tile_linear_cache_bytes > 0
             and NATIVE_ZOOM - 1 <= z <= NATIVE_ZOOM)
 
 
@@ -236,7 +360,7 @@ def cached_linear(services: Services, texture: Texture, key: dict, z: int, x: in
     ``exact_parent(z)``) its four children's, downsampled: the same bits as a render.
     None when some are missing. (size, size, 3) float32."""
     size = key["size"]
-    if services.settings.tile_zoom_out != "supersample":
+    if final_zoom_out(services.settings) != "supersample":
         return None
     data = LINEAR.get(_linear_key(texture, key, z, x, y))
     if data is not None:
@@ -259,7 +383,7 @@ def tile_from_cache(services: Services, texture: Texture, *, z: int, x: int, y: 
                     plane: str, offset: float, fmt: str) -> bytes | None:
     """Encoded tile built from cached linear pixels (its own, or its children's), else None."""
     services.registry.get(texture.model_version)  # a retired model's textures: 503, even from the cache
-    key = dict(size=size, seed=seed, plane=plane, offset=offset, zoom_out=services.settings.tile_zoom_out)
+    key = dict(size=size, seed=seed, plane=plane, offset=offset, zoom_out=final_zoom_out(services.settings))
     LINEAR.max_bytes = services.settings.tile_linear_cache_bytes
     rgb = cached_linear(services, texture, key, z, x, y)
     if rgb is None:
@@ -270,19 +394,21 @@ def tile_from_cache(services: Services, texture: Texture, *, z: int, x: int, y: 
 
 
 async def render_tile_async(services: Services, texture: Texture, request: Request | None = None,
-                            **key) -> bytes:  # noqa: ANN003
+                            zoom_out: str | None = None, **key) -> bytes:  # noqa: ANN003
     """``render_tile_bytes`` off the event loop, first built from cached children where it
     can be; small tiles through the TileQueue onto the threadpool, large ones on their own
     lane (TileLanes). While the tile waits or renders, a client that disconnects stops it
-    (ClientGone); over capacity, Busy (503 + Retry-After)."""
+    (ClientGone); over capacity, Busy (503 + Retry-After). ``zoom_out``: the render
+    (default: the final tiles', ``final_zoom_out``; ``bounded`` for a preview)."""
     settings = services.settings
-    if settings.tile_zoom_out == "supersample" and NATIVE_ZOOM - 2 <= key["z"] <= NATIVE_ZOOM:
+    zoom_out = zoom_out or final_zoom_out(settings)
+    if zoom_out == "supersample" and NATIVE_ZOOM - 2 <= key["z"] <= NATIVE_ZOOM:
         data = await run_in_threadpool(tile_from_cache, services, texture, **key)
         if data is not None:
             return data
-    samples = tile_samples(key["z"], key["size"], settings.tile_zoom_out)
+    samples = tile_samples(key["z"], key["size"], zoom_out)
     cancel = threading.Event()
-    render = functools.partial(render_tile_bytes, services, texture, cancel=cancel, **key)
+    render = functools.partial(render_tile_bytes, services, texture, cancel=cancel, zoom_out=zoom_out, **key)
     if samples > SMALL_TILE_SAMPLES:
         with QUEUE.large(settings, samples):
             context = contextvars.copy_context()  # the request id of log lines, as run_in_threadpool does
@@ -317,12 +443,14 @@ async def _watch(future: asyncio.Future, cancel: threading.Event, request: Reque
 
 def render_tile_bytes(services: Services, texture: Texture, *, z: int, x: int, y: int, size: int,
                       seed: int, plane: str, offset: float, fmt: str,
-                      cancel: threading.Event | None = None) -> bytes:
+                      cancel: threading.Event | None = None, zoom_out: str | None = None,
+                      background: bool = False) -> bytes:
     """Render and encode one tile (CPU-bound: call from a worker thread). Renders in bands;
     ``cancel`` set stops it before the next band (ClientGone). Tiles at and one zoom out from
-    native leave a linear copy for parents built from children (tile_from_cache)."""
+    native leave a linear copy for parents built from children (tile_from_cache).
+    ``background``: each band first waits for interactive tiles (BACKGROUND_YIELD_SECONDS)."""
     started = time.perf_counter()
-    zoom_out = services.settings.tile_zoom_out
+    zoom_out = zoom_out or final_zoom_out(services.settings)
     args = (services.sampler_for(texture), texture.sampling_code(), seed, z, x, y, size)
     kwargs = dict(pixels_per_unit=services.pixels_per_unit(texture), plane=plane, offset=offset,
                   zoom_out=zoom_out, band_samples=BAND_SAMPLES)
@@ -331,16 +459,16 @@ def render_tile_bytes(services: Services, texture: Texture, *, z: int, x: int, y
         if cancel is not None and cancel.is_set():
             raise ClientGone("the client left; rendering stopped")
 
-    if tile_samples(z, size, zoom_out) <= SMALL_TILE_SAMPLES:
-        with LANES.small():
-            rgb = render_tile(*args, **kwargs, before_band=check_cancel)
-    else:
+    if background or tile_samples(z, size, zoom_out) > SMALL_TILE_SAMPLES:
         def before_band() -> None:
-            LANES.yield_to_small()
+            LANES.yield_to_small(BACKGROUND_YIELD_SECONDS if background else YIELD_SECONDS)
             check_cancel()
 
         rgb = render_tile(*args, **kwargs, before_band=before_band)
-    if _keeps_linear(services, z):
+    else:
+        with LANES.small():
+            rgb = render_tile(*args, **kwargs, before_band=check_cancel)
+    if _keeps_linear(services, z) and zoom_out == "supersample":
         LINEAR.max_bytes = services.settings.tile_linear_cache_bytes
         key = dict(size=size, seed=seed, plane=plane, offset=offset, zoom_out=zoom_out)
         LINEAR.put(_linear_key(texture, key, z, x, y), rgb.tobytes())

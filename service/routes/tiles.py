@@ -14,8 +14,8 @@ from .. import auth
 from ..deps import ServicesDep, TileAddress, TileFormat, TileParams, public_base_url, tile_address
 from ..errors import problem_responses
 from ..schemas import TileJSON
-from ..tiles import (CACHE_CONTROL, REFINING_CACHE_CONTROL, check_tile_work, etag_matches,
-                     render_tile_async, tile_etag, tiles_final)
+from ..tiles import (CACHE_CONTROL, PREVIEW_CACHE_CONTROL, PREVIEW_HEADER, REFINING_CACHE_CONTROL,
+                     check_tile_work, final_tile, progressive_tile, serves_previews, tiles_final)
 from .textures import load_texture
 
 router = APIRouter(prefix="/v1/textures", tags=["tiles"])
@@ -27,7 +27,8 @@ router = APIRouter(prefix="/v1/textures", tags=["tiles"])
     description=(f"Tile (z, x, y) of the texture's infinite plane; x and y may be negative. At zoom "
                  f"{NATIVE_ZOOM} one tile pixel is one exemplar pixel; each zoom step doubles the pixels "
                  f"per world unit (zoom {MIN_ZOOM}..{MAX_ZOOM}). Same URL, same bytes: strong ETag, "
-                 "immutable caching, 304 on If-None-Match."),
+                 "immutable caching, 304 on If-None-Match; a zoomed-out tile may first come as a preview "
+                 "(X-Texspace-Tile: preview, no-cache) until its exact render is ready."),
     responses={200: {"description": "the tile image", "content": {media_type(f): {} for f in TILE_FORMATS}},
                304: {"description": "unchanged (If-None-Match)"}, **problem_responses(404, 413, 422, 503)},
 )
@@ -46,25 +47,23 @@ async def get_tile(
     texture = await run_in_threadpool(load_texture, services, texture_id)
     key = dict(z=address.z, x=address.x, y=address.y, size=params.size, seed=params.seed,
                plane=params.plane, offset=params.offset, fmt=fmt)
-    etag = tile_etag(texture, **key, zoom_out=services.settings.tile_zoom_out)
     cache_control = CACHE_CONTROL
     refining = texture.refinement_job_id and not texture.sampler_key  # else final: no query
     if refining and not await run_in_threadpool(tiles_final, services, texture):
         cache_control = REFINING_CACHE_CONTROL  # same ETag, same bytes; the URL's bytes will change
+    if serves_previews(services.settings, address.z):
+        etag, data, preview = await progressive_tile(services, texture, request, if_none_match, key)
+    else:
+        (etag, data), preview = await final_tile(services, texture, request, if_none_match, key), False
+    headers = {"ETag": etag, "Cache-Control": PREVIEW_CACHE_CONTROL if preview else cache_control}
+    if preview:
+        headers[PREVIEW_HEADER[0]] = PREVIEW_HEADER[1]
     # with API keys, a tenant's tiles must not be served to others by a shared cache
     if auth.current_owner() is not None:
-        cache_control = cache_control.replace("public", "private")
-    headers = {"ETag": etag, "Cache-Control": cache_control}
-    if etag_matches(if_none_match, etag):
+        headers["Cache-Control"] = headers["Cache-Control"].replace("public", "private")
+    if data is None:
         services.metrics.tile_not_modified.inc()
         return Response(status_code=304, headers=headers)
-    data = services.tile_cache.get(etag)
-    if data is None:
-        services.metrics.tile_cache_misses.inc()
-        data = await render_tile_async(services, texture, request, **key)  # 503 when over capacity
-        services.tile_cache.put(etag, data)
-    else:
-        services.metrics.tile_cache_hits.inc()
     return Response(content=data, media_type=media_type(fmt), headers=headers)
 
 

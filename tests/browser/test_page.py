@@ -182,7 +182,12 @@ def test_interpolation_slider_and_strip(page, base_url: str, artifacts: Path) ->
     page.wait_for_function(ALL_TILES_LOADED, timeout=60_000)
     assert page.evaluate("window.texspace.textureMap.view()") == view_before
     assert page.input_value("#seed") == "1"
-    assert all("seed=1" in src for src in page.eval_on_selector_all("#map img.leaflet-tile", "i => i.map((t) => t.src)"))
+    # zoomed out, each tile is asked for again until the server answers with its exact
+    # render (progressive zoom-out: a preview first), then shown from that answer
+    page.wait_for_function("() => [...document.querySelectorAll('#map img.leaflet-tile')]"
+                           ".every((t) => t._texspaceExact && t.complete && t.naturalWidth > 0)", timeout=90_000)
+    sources = page.eval_on_selector_all("#map img.leaflet-tile", "i => i.map((t) => t.dataset.src || t.src)")
+    assert sources and all("seed=1" in src and "/tiles/5/" in src for src in sources)
     assert page_errors(page) == []
 
 

@@ -15,8 +15,9 @@ from .procs import Cluster, base_env
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory) -> Cluster:
     root = tmp_path_factory.mktemp("abandoned")
+    # supersample: the zoom-5 tiles below are the full 4 x cost, not previews
     cluster = Cluster(root, base_env(root / "data", TEXSPACE_TILE_WORKERS="1",
-                                    TEXSPACE_TILE_QUEUE_MAX_WAIT_SECONDS="60"))
+                                    TEXSPACE_TILE_QUEUE_MAX_WAIT_SECONDS="60", TEXSPACE_TILE_ZOOM_OUT="supersample"))
     cluster.start_api()
     yield cluster
     cluster.stop()
@@ -54,10 +55,14 @@ def test_abandoned_tiles_are_not_rendered(cluster: Cluster) -> None:
             after = http.get("/metrics").text
             gone = metric(after, "texspace_http_requests_total", status="499") - \
                 metric(before, "texspace_http_requests_total", status="499")
-            if gone >= 5:
+            renders = metric(after, "texspace_tile_render_seconds_count") - \
+                metric(before, "texspace_tile_render_seconds_count")
+            if gone + renders - 1 >= 5:  # every abandoned tile answered 499 or rendered
                 break
             time.sleep(0.2)
-        renders = metric(after, "texspace_tile_render_seconds_count") - metric(before, "texspace_tile_render_seconds_count")
         print(f"abandoned 5: {gone:g} answered 499, renders finished {renders:g} (the kept tile's included)")
-        assert gone == 5, "\n".join(l for l in after.splitlines() if "requests_total" in l) + cluster.log_tail()
-        assert renders <= 2  # the kept tile, and perhaps one that ended before its client's close was seen
+        # each abandoned tile was dropped (499), except perhaps the first, whose render may end
+        # (about 0.1 s on a quiet machine) before its client's close is seen
+        assert gone + renders - 1 == 5 and gone >= 4, \
+            "\n".join(l for l in after.splitlines() if "requests_total" in l) + cluster.log_tail()
+        assert renders <= 2  # the kept tile and at most that one

@@ -4,7 +4,7 @@
 // tile convention, so Leaflet's zoom is the API's zoom and no coordinate maths is needed.
 // noWrap and no bounds: x and y run over all integers, negatives included.
 /* global L */
-import { fetchBlob, hasApiKey, tileJson, tileTemplate } from './api.js';
+import { fetchBlob, fetchWithKey, hasApiKey, tileJson, tileTemplate } from './api.js';
 
 const TILE_SIZE = 256;
 
@@ -73,6 +73,36 @@ export const RetryingTileLayer = L.TileLayer.extend({
     }, Math.min(TILE_RETRY_MS * (tries + 1), TILE_RETRY_MAX_MS) * (0.75 + 0.5 * Math.random()));
   },
 });
+
+// Progressive zoom-out: a zoomed-out tile the server does not hold yet comes first as a
+// preview (header X-Texspace-Tile: preview, no-cache) while the exact tile renders behind
+// it. The map asks again (revalidating: 304 while it is still a preview) until the answer
+// is the exact tile, and shows that from a blob: URL (revoked when the tile unloads).
+const PREVIEW_POLL_MS = 1500;
+const PREVIEW_POLLS = 40; // about a minute: the exact tiles of a busy view render one by one
+
+async function sharpenPreview(tile, isLive) {
+  const url = tile.dataset.src || tile.src; // the API URL (a keyed layer shows a blob: URL)
+  for (let poll = 0; poll < PREVIEW_POLLS; poll += 1) {
+    await new Promise((resolve) => setTimeout(resolve, PREVIEW_POLL_MS));
+    if (!isLive()) return;
+    let response;
+    try {
+      response = await fetchWithKey(url, { cache: 'no-cache' });
+    } catch {
+      continue; // busy or briefly unreachable: the preview stays, try again later
+    }
+    if (response.headers.get('X-Texspace-Tile') === 'preview') continue;
+    const blobUrl = URL.createObjectURL(await response.blob());
+    if (!isLive()) { URL.revokeObjectURL(blobUrl); return; }
+    if (tile._texspaceBlobUrl) URL.revokeObjectURL(tile._texspaceBlobUrl);
+    tile._texspaceBlobUrl = blobUrl;
+    tile.dataset.src = url;
+    tile._texspaceExact = true;
+    tile.src = blobUrl;
+    return;
+  }
+}
 
 // worker/tiles.py NATIVE_ZOOM: used while the TileJSON does not say it (as `center[2]`).
 const DEFAULT_NATIVE_ZOOM = 6;
@@ -144,7 +174,15 @@ export class TextureMap {
       keepBuffer: 1,
       className: 'texture-tiles',
     });
-    this.layer.on('tileload', () => { this.tilesLoaded += 1; });
+    const layer = this.layer;
+    this.layer.on('tileload', ({ tile, coords }) => {
+      this.tilesLoaded += 1;
+      if (coords.z < this.nativeZoom && !tile._texspaceExact && !tile._texspacePolling) {
+        tile._texspacePolling = true;
+        sharpenPreview(tile, () => tile.isConnected && this.layer === layer);
+      }
+    });
+    this.layer.on('tileunload', ({ tile }) => KeyedTileLayer.release(tile)); // sharpened tiles' blob: URLs
     this.layer.on('tileerror', ({ error }) => { this.tilesFailed += 1; this.onTileError(error); });
     this.layer.addTo(this.map);
     this.onZoom(this.map.getZoom(), this.nativeZoom);
