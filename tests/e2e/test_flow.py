@@ -150,7 +150,9 @@ def test_killed_worker_loses_nothing(http, texture, deployment) -> None:
     import os
     import signal
 
-    job = http.post(texture["links"]["volumes"], json={"resolution": 96, "seed": 5}).json()
+    # 160^3 (4.1 M samples): a few seconds even on a quiet machine, so the poll sees it
+    # running (96^3 once ended in 0.5 s, between two polls)
+    job = http.post(texture["links"]["volumes"], json={"resolution": 160, "seed": 5}).json()
     running = wait_for(http, job["id"], states={"running"}, timeout=120, min_progress=0.01)
     host, pid = running["worker_id"].rsplit(":", 1)
     ours = {p.pid for p in deployment.procs} | _children(deployment)
@@ -160,7 +162,7 @@ def test_killed_worker_loses_nothing(http, texture, deployment) -> None:
     assert done["state"] == "succeeded", done
     assert done["attempt"] == 2 and done["worker_id"] != running["worker_id"]
     volume = np.load(io.BytesIO(http.get(done["links"]["result"]).content))
-    assert volume.shape == (96, 96, 96, 3)
+    assert volume.shape == (160, 160, 160, 3)
 
 
 def _children(deployment) -> set[int]:

@@ -51,9 +51,11 @@ def peak_rss(pid: int) -> int:
 def cluster(tmp_path_factory, database_url: str | None) -> Cluster:
     root = tmp_path_factory.mktemp("costly")
     database = {"TEXSPACE_DATABASE_URL": database_url} if database_url else {}
-    # uploads wait for decode room as long as two maximal ones take on a busy machine
+    # uploads wait for decode room as long as two maximal ones take on a busy machine;
+    # supersample: the maximal tile below renders in full for its request, not as a preview
     cluster = Cluster(root, base_env(root / "data", TEXSPACE_HTTP_READ_TIMEOUT_SECONDS="1.5",
-                                     TEXSPACE_DECODE_WAIT_SECONDS="150", **database))
+                                     TEXSPACE_DECODE_WAIT_SECONDS="150", TEXSPACE_TILE_ZOOM_OUT="supersample",
+                                     **database))
     cluster.start_api()
     yield cluster
     cluster.stop()
