@@ -28,6 +28,8 @@ from typing import Any
 import httpx
 
 TERMINAL = ("succeeded", "failed", "canceled")
+#: the response header of a zoomed-out tile's preview (openapi.yaml, getTile)
+PREVIEW_HEADER = "X-Texspace-Tile"
 Job = dict[str, Any]
 
 
@@ -113,10 +115,27 @@ class Client:
         self._call("DELETE", f"/v1/textures/{texture_id}")
 
     def tile(self, texture_id: str, z: int, x: int, y: int, *, fmt: str = "png", seed: int = 0,
-             size: int = 256, plane: str = "xy", offset: float = 0.0) -> bytes:
-        """The bytes of tile (z, x, y) in ``fmt`` (png, webp, exr)."""
+             size: int = 256, plane: str = "xy", offset: float = 0.0, exact: bool = True,
+             timeout: float = 300.0) -> bytes:
+        """The bytes of tile (z, x, y) in ``fmt`` (png, webp, exr).
+
+        A zoomed-out tile the server does not hold yet may come first as a preview
+        (header ``X-Texspace-Tile: preview``); with ``exact`` (the default) this asks again
+        (If-None-Match: 304 while it is still rendering) until the exact tile arrives, at
+        most ``timeout`` s (then TimeoutError); ``exact=False`` returns the preview."""
+        url = f"/v1/textures/{texture_id}/tiles/{z}/{x}/{y}.{fmt}"
         params = {"seed": seed, "size": size, "plane": plane, "offset": offset}
-        return self._call("GET", f"/v1/textures/{texture_id}/tiles/{z}/{x}/{y}.{fmt}", params=params).content
+        res = self._call("GET", url, params=params)
+        deadline, wait = time.monotonic() + timeout, 0.25
+        while exact and res.headers.get(PREVIEW_HEADER) == "preview":
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"tile {z}/{x}/{y} was still a preview after {timeout:g} s")
+            time.sleep(wait)
+            wait = min(2 * wait, 2.0)
+            again = self._call("GET", url, params=params, headers={"If-None-Match": res.headers["ETag"]})
+            if again.status_code != 304:
+                res = again
+        return res.content
 
     # --- jobs -----------------------------------------------------------------------
     def volume(self, texture_id: str, *, idempotency_key: str | None = None, **params: Any) -> Job:

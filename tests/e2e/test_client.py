@@ -32,6 +32,11 @@ def test_upload_tiles_jobs_and_downloads(ts: Client, tmp_path: Path) -> None:
     png = ts.tile(texture["id"], 6, -1, 2, size=64)
     assert Image.open(io.BytesIO(png)).size == (64, 64)
     assert ts.tile(texture["id"], 6, 0, 0, fmt="exr", size=64)[:4] == b"\x76\x2f\x31\x01"
+    # two zoom levels out: the server answers a preview first, the client waits for the exact tile
+    preview = ts.tile(texture["id"], 4, 7, -5, size=64, exact=False)
+    exact = ts.tile(texture["id"], 4, 7, -5, size=64)
+    assert exact != preview and Image.open(io.BytesIO(exact)).size == (64, 64)
+    assert ts.tile(texture["id"], 4, 7, -5, size=64, exact=False) == exact  # final from now on
 
     updates: list[dict] = []
     job = ts.volume(texture["id"], resolution=16, format="npy", idempotency_key="client-volume")
