@@ -14,7 +14,8 @@ from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
 from worker.volume_writers import FORMATS as VOLUME_FORMATS
 
 from .deps import SafeText
-from .tables import Job, Texture
+from .settings import JOB_KINDS
+from .tables import JOB_STATES, Job, Texture
 
 CODE_SIZE = 8
 Seed = Annotated[int, Field(ge=0, le=2**31 - 1, description="texture instance; same seed, same texture")]
@@ -36,7 +37,7 @@ class Refinement(BaseModel):
     texture serve its own fitted sampler (same id and URLs, new tile bytes and ETags)."""
 
     job_id: str
-    state: Literal["queued", "running", "succeeded", "failed", "canceled"]
+    state: Literal[JOB_STATES]
     progress: float = Field(ge=0, le=1)
 
 
@@ -217,8 +218,8 @@ class JobLinks(BaseModel):
 
 class JobOut(BaseModel):
     id: str
-    kind: Literal["volume", "bake", "fit", "region"]
-    state: Literal["queued", "running", "succeeded", "failed", "canceled"]
+    kind: Literal[JOB_KINDS]
+    state: Literal[JOB_STATES]
     texture_id: str | None
     params: dict[str, Any]
     progress: float = Field(ge=0, le=1)

@@ -14,9 +14,10 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-#: job kinds (tables.JOB_KINDS); a worker may run only some (``worker_kinds``)
+#: the job kinds (the one list: tables, schemas and routes use it); a worker may run only
+#: some (``worker_kinds``)
 JOB_KINDS = ("volume", "bake", "region", "fit")
-JobKind = Literal["volume", "bake", "region", "fit"]
+JobKind = Literal[JOB_KINDS]
 #: the model export shipped inside the package (``model/weights``)
 PACKAGED_MODEL_DIR = Path(__file__).resolve().parent.parent / "model" / "weights"
 

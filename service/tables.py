@@ -15,9 +15,10 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from worker.colour_match import texture_vector
 
+#: the job states (the one list: schemas, routes and metrics use it; the kinds are
+#: settings.JOB_KINDS)
 JOB_STATES = ("queued", "running", "succeeded", "failed", "canceled")
 TERMINAL_STATES = frozenset({"succeeded", "failed", "canceled"})
-JOB_KINDS = ("volume", "bake", "fit", "region")
 
 
 def utcnow() -> dt.datetime:

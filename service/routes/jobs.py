@@ -23,7 +23,7 @@ from ..errors import Problem, not_found, problem_for, problem_responses
 from ..job_kinds import torch_available
 from ..limits import check_mesh, check_queue_room
 from ..schemas import BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
-from ..tables import TERMINAL_STATES, Job, new_id
+from ..tables import JOB_STATES, TERMINAL_STATES, Job, new_id
 from ..uploads import read_limited, safe_filename, sha256
 from .textures import NOSNIFF, load_texture
 
@@ -151,7 +151,7 @@ def submit_region(services: ServicesDep, response: Response, texture_id: Texture
 def list_jobs(
     services: ServicesDep,
     page: Annotated[PageParams, Depends()],
-    state: Annotated[Literal["queued", "running", "succeeded", "failed", "canceled"] | None, Query()] = None,
+    state: Annotated[Literal[JOB_STATES] | None, Query()] = None,
     texture_id: Annotated[SafeText | None, Query(max_length=64)] = None,
 ) -> JobPage:
     query = auth.scoped(select(Job), Job)
