@@ -11,6 +11,8 @@ K octaves, D spatial dimensions (2 or 3).
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import asdict, dataclass
 
 import torch
@@ -70,6 +72,14 @@ class ModelConfig:
     # grain in 15).
     grain: str | None = None
     grain_stretch: float = 8.0
+    # Regular textures (bricks, tile grids, perforated metal): the 2D lattice the photo
+    # repeats on, two basis vectors in world units (ax, ay, bx, by) in the xy plane, or
+    # None. The decoder then also reads the point's phase on that lattice, sin and cos of
+    # 2 pi k u for k = 1..lattice_harmonics per lattice axis. Noise octaves have no period,
+    # and a decoder fed only noise drew bricks as irregular patches; with the phases a 60-s
+    # fit draws rows of bricks (docs/notes/regular-structure.md).
+    lattice: tuple[float, float, float, float] | None = None
+    lattice_harmonics: int = 4
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -78,6 +88,11 @@ class ModelConfig:
             raise ValueError("dims must be 2 or 3")
         if self.grain not in (None, "x", "y"):
             raise ValueError(f"grain must be None, 'x' or 'y', got {self.grain!r}")
+        if self.lattice is not None:
+            self.lattice = tuple(float(v) for v in self.lattice)  # (a list, read back from JSON)
+            ax, ay, bx, by = self.lattice
+            if len(self.lattice) != 4 or not abs(ax * by - ay * bx) > 0:
+                raise ValueError(f"lattice must be two independent 2D vectors (ax, ay, bx, by), got {self.lattice!r}")
 
     @property
     def flags(self) -> Variant:
@@ -221,11 +236,13 @@ class Decoder(nn.Module):
     per point.
     """
 
-    def __init__(self, n_noise: int, n_position: int, n_code: int, hidden: int, n_hidden_layers: int):
+    def __init__(self, n_noise: int, n_position: int, n_code: int, hidden: int, n_hidden_layers: int,
+                 n_phase: int = 0):
         super().__init__()
         self.hidden, self.n_hidden_layers = hidden, n_hidden_layers
         self.from_noise = nn.Linear(n_noise, hidden, bias=False) if n_noise else None
         self.from_position = nn.Linear(n_position, hidden, bias=False) if n_position else None
+        self.from_phase = nn.Linear(n_phase, hidden, bias=False) if n_phase else None
         self.from_code = nn.Linear(n_code, hidden * n_hidden_layers + 3)
         self.layers = nn.ModuleList(nn.Linear(hidden, hidden, bias=False) for _ in range(n_hidden_layers - 1))
         self.out = nn.Linear(hidden, 3, bias=False)
@@ -238,23 +255,27 @@ class Decoder(nn.Module):
                     nn.init.zeros_(layer.bias)
         nn.init.normal_(self.from_code.weight, std=1.0 / n_code**0.5)
         nn.init.normal_(self.out.weight, std=0.5 / hidden**0.5)
+        if self.from_phase is not None:  # zero: a fit starts exactly at the space's texture
+            nn.init.zeros_(self.from_phase.weight)
 
-    def forward(self, noise, position, code):
+    def forward(self, noise, position, code, phase=None):
         points = noise if noise is not None else position  # [B,P,*]
         if code.shape[0] == 1 or points.shape[1] == 1:
-            return self._forward_rows(noise, position, code)
+            return self._forward_rows(noise, position, code, phase)
         biases = self.from_code(code).unsqueeze(1)  # [B,1,H*L+3]
         h = biases[..., : self.hidden]
         if self.from_noise is not None:
             h = h + self.from_noise(noise)
         if self.from_position is not None:
             h = h + self.from_position(position)
+        if self.from_phase is not None:
+            h = h + self.from_phase(phase)
         h = F.relu(h)
         for i, layer in enumerate(self.layers, start=1):
             h = F.relu(layer(h) + biases[..., i * self.hidden : (i + 1) * self.hidden])
         return self.out(h) + biases[..., -3:]
 
-    def _forward_rows(self, noise, position, code):
+    def _forward_rows(self, noise, position, code, phase=None):
         """``forward`` where one code serves all points (B = 1) or each code one point
         (P = 1), the two shapes the exported sampler sees: then the points flatten to
         rows and each layer is one ``addmm`` with its code bias (an ONNX Gemm, which
@@ -266,6 +287,8 @@ class Decoder(nn.Module):
             h = torch.addmm(h, noise.reshape(-1, noise.shape[-1]), self.from_noise.weight.t())
         if self.from_position is not None:
             h = h + self.from_position(position.reshape(-1, position.shape[-1]))
+        if self.from_phase is not None:  # (addmm: the graph keeps the weight's name, which worker/shader.py reads)
+            h = torch.addmm(h, phase.reshape(-1, phase.shape[-1]), self.from_phase.weight.t())
         h = F.relu(h)
         for i, layer in enumerate(self.layers, start=1):
             h = F.relu(torch.addmm(biases[:, i * hidden : (i + 1) * hidden], h, layer.weight.t()))
@@ -288,8 +311,9 @@ class TextureField(nn.Module):
         k, d = cfg.n_octaves, cfg.dims
         self.translator = Translator(cfg)
         n_noise = k * 3 * (2 if cfg.nearest_input else 1) if flags.noise else 0
+        n_phase = 4 * cfg.lattice_harmonics if cfg.lattice else 0
         self.decoder = (
-            Decoder(n_noise, d if flags.position else 0, cfg.extended_size, cfg.hidden, cfg.n_hidden_layers)
+            Decoder(n_noise, d if flags.position else 0, cfg.extended_size, cfg.hidden, cfg.n_hidden_layers, n_phase)
             if flags.decoder
             else None
         )
@@ -306,6 +330,20 @@ class TextureField(nn.Module):
         if cfg.grain:
             scale[{"x": 0, "y": 1}[cfg.grain]] = 1.0 / cfg.grain_stretch
         self.register_buffer("world_scale", scale, persistent=False)
+        if cfg.lattice:
+            basis = torch.tensor(cfg.lattice, dtype=torch.float64).reshape(2, 2).t()  # columns a, b
+            self.register_buffer("lattice_inverse", torch.linalg.inv(basis), persistent=False)
+
+    def lattice_phases(self, points: torch.Tensor) -> torch.Tensor:
+        """float64 [B,P,>=2] -> float32 [B,P,4*H]: sin and cos of 2 pi k u, u the point's
+        (x, y) in lattice coordinates, k = 1..H (``lattice_harmonics``). Exactly periodic
+        on the lattice; u is taken in float64 so far-away points keep their phase."""
+        u = points[..., :2] @ self.lattice_inverse.t()  # [B,P,2]
+        k = torch.arange(1, self.cfg.lattice_harmonics + 1, dtype=torch.float64, device=points.device)
+        # the fractional part first: sin/cos of a small float32 angle, exact at any distance
+        angle = (2.0 * math.pi) * (u - torch.floor(u)).unsqueeze(-1) * k  # [B,P,2,H]
+        angle = angle.to(torch.float32).reshape(*u.shape[:-1], -1)
+        return torch.cat([torch.sin(angle), torch.cos(angle)], dim=-1)
 
     def lattice_points(self, points: torch.Tensor, transforms: torch.Tensor,
                        anchor: torch.Tensor | None = None) -> torch.Tensor:
@@ -401,7 +439,8 @@ class TextureField(nn.Module):
                 # Centred to [-1, 1]: zero-mean inputs suit the ReLU layers' init.
                 features = (torch.cat(parts, dim=-1).reshape(b, p, -1) - 0.5) * 2.0
             position = points.to(torch.float32) if flags.position else None
-            logits = self.decoder(features, position, extended)
+            phase = self.lattice_phases(points) if cfg.lattice else None
+            logits = self.decoder(features, position, extended, phase)
         return torch.sigmoid(2.0 * logits)  # = (tanh + 1) / 2, the authors' output range
 
 

@@ -35,7 +35,7 @@ def random_rotations(n: int, rng: np.random.Generator) -> np.ndarray:
 
 def random_planes(
     n: int, rng: np.random.Generator, *, oblique_fraction: float = 0.5, extent: float = 1000.0, dims: int = 3,
-    grain: str | None = None,
+    grain: str | None = None, photo_plane: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Random slice planes: (origins float64 [n,3], axes float64 [n,2,3]).
 
@@ -50,12 +50,18 @@ def random_planes(
     world y, u turned about y), so the grain shows on all of them in the exemplar's own
     orientation; planes across the grain are left free for the solid to fill with
     whatever cross-section is consistent.
+
+    ``photo_plane``: every plane is xy with u = world x, v = world y (rows), no flips: the
+    exemplar's own orientation, for a lattice fit whose phases are fixed in xy.
     """
     if grain not in (None, "x", "y"):
         raise ValueError(f"grain must be None, 'x' or 'y', got {grain!r}")
     origins = rng.uniform(-extent, extent, size=(n, 3))
     axes = np.zeros((n, 2, 3))
     for k in range(n):  # n is a batch size (a handful), not a pixel count
+        if photo_plane:
+            axes[k, 0, 0] = axes[k, 1, 1] = 1.0
+            continue
         if grain and dims == 3:
             turn = rng.uniform(0, 2 * np.pi) if rng.random() < oblique_fraction else rng.integers(0, 4) * np.pi / 2
             along, across = (0, 1) if grain == "x" else (1, 0)  # which of u, v follows the grain

@@ -91,6 +91,7 @@ class TrainConfig:
     smooth: bool = False
     no_rotations: bool = False
     grain: Grain | None = None
+    lattice: tuple[float, float, float, float] | None = None
     seed: int = 0
     probe_every: int = 0
     ckpt_every: int = 200
@@ -156,6 +157,10 @@ def parse_args(argv=None) -> TrainConfig:
                    help="anisotropic exemplar whose grain runs along the image's x (left-right) or y (up-down): "
                         "crops keep their orientation and every slice plane contains that world axis in the same "
                         "role, so tiles on the xy plane show the grain as the exemplar does")
+    p.add_argument("--lattice", type=lambda text: tuple(float(v) for v in text.split(",")),
+                   help="regular exemplar (bricks, tiles): its repeat lattice, two vectors in world units "
+                        "'ax,ay,bx,by' in the xy plane (model.fit detects it); the decoder also reads each "
+                        "point's phase on it, and every slice is an xy plane in the photo's orientation")
     p.add_argument("--seed", type=int)
     p.add_argument("--probe-every", type=int,
                    help="single mode: every N steps (and at the start and end) score the exemplar on fixed "
@@ -255,17 +260,23 @@ def build(cfg: TrainConfig) -> tuple[TextureSpace, torch.Tensor | None]:
     when it has none). Draws from torch's RNG (weight init), so it comes right after seeding."""
     model_cfg = ModelConfig(variant=cfg.variant, dims=cfg.dims, nearest_input=not cfg.no_nearest,
                             smooth=cfg.smooth, exemplar_short_side=cfg.short_side, grain=cfg.grain,
-                            colour_blind_encoder=cfg.colour_normalise, isotropic_transforms=cfg.isotropic_transforms)
+                            colour_blind_encoder=cfg.colour_normalise, isotropic_transforms=cfg.isotropic_transforms,
+                            lattice=cfg.lattice)
     model = TextureSpace(model_cfg)
     if not cfg.init:
         return model, None
     init, ckpt = load_checkpoint(cfg.init)
     # A grain fit starts from an isotropic space: the stretch is a fixed input transform;
+    # a lattice fit adds phase inputs (zero weights: it starts at the space's texture);
     # a colour-normalised run may start from a space whose encoder still read colour.
     if init.cfg.to_dict() | {"grain": model_cfg.grain, "colour_blind_encoder": model_cfg.colour_blind_encoder,
-                             "isotropic_transforms": model_cfg.isotropic_transforms} != model_cfg.to_dict():
+                             "isotropic_transforms": model_cfg.isotropic_transforms,
+                             "lattice": model_cfg.lattice} != model_cfg.to_dict():
         raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {model_cfg.to_dict()}")
-    model.load_state_dict(init.state_dict())
+    missing, unexpected = model.load_state_dict(init.state_dict(), strict=False)
+    new = {"field.decoder.from_phase.weight"} if model_cfg.lattice and not init.cfg.lattice else set()
+    if unexpected or set(missing) != new:
+        raise SystemExit(f"--init weights do not fit this model: missing {missing}, unexpected {unexpected}")
     return model, ckpt.get("codes")  # a space's learned code table, if it has one
 
 
@@ -307,7 +318,10 @@ def make_optimizer(cfg: TrainConfig, model: TextureSpace, codes: torch.nn.Parame
     mode) the encoder; each group carries its ``base_lr`` for the schedule."""
     # Group order is part of the checkpoint format (resuming needs the same groups), so
     # the transform head gets its own group only when it has its own learning rate.
-    head = list(model.field.translator.to_transform.parameters()) if cfg.transform_lr else []
+    # (a lattice fit's phase weights start at zero and move as fast as the transforms)
+    phase = model.field.decoder.from_phase if model.field.decoder is not None else None
+    head = [*model.field.translator.to_transform.parameters(),
+            *(phase.parameters() if phase is not None else ())] if cfg.transform_lr else []
     head_ids = {id(t) for t in head}
     groups = [{"params": [t for t in model.field.parameters() if id(t) not in head_ids], "base_lr": cfg.lr},
               {"params": [codes], "base_lr": cfg.code_lr}]
@@ -413,7 +427,7 @@ def train_step(run: Run) -> dict[str, float]:
     cfg, model, device = run.cfg, run.model, run.device
     t0 = time.monotonic()
     crops, indices = sample_batch(run.images, cfg.batch, run.crop, run.rng, return_indices=True,
-                                  rotations=not (cfg.no_rotations or cfg.grain))
+                                  rotations=not (cfg.no_rotations or cfg.grain or cfg.lattice))
     if cfg.mode == "space":  # each crop's code from the table; the encoder learns to predict it
         z = run.codes[torch.from_numpy(indices).to(device)]
         if cfg.colour_normalise:  # a colour-blind encoder also ignores tone curves
@@ -424,7 +438,7 @@ def train_step(run: Run) -> dict[str, float]:
         z = run.codes.expand(cfg.batch, -1)
         encoder_loss = torch.zeros((), device=device)
     origins, axes = random_planes(cfg.batch, run.rng, oblique_fraction=cfg.oblique, dims=cfg.dims,
-                                  extent=run.extent, grain=cfg.grain)
+                                  extent=run.extent, grain=cfg.grain, photo_plane=bool(cfg.lattice))
     seeds = torch.from_numpy(run.rng.integers(0, 2**31, size=cfg.batch)).to(device)
     synth = render_slices(model.field, z, seeds, origins.to(device), axes.to(device), cfg.patch)
     loss = run.objective(synth, indices)
@@ -461,7 +475,8 @@ class Probe:
     def __init__(self, run: Run):
         cfg, self.run = run.cfg, run
         origins, axes = random_planes(4, np.random.default_rng(12345), oblique_fraction=cfg.oblique,
-                                      dims=cfg.dims, extent=run.extent, grain=cfg.grain)
+                                      dims=cfg.dims, extent=run.extent, grain=cfg.grain,
+                                      photo_plane=bool(cfg.lattice))
         self.origins, self.axes = origins.to(run.device), axes.to(run.device)
         self.seeds = torch.arange(4, dtype=torch.int64, device=run.device) + 7
         self.best_score, self.best = self.score(), self.snapshot()

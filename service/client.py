@@ -161,10 +161,12 @@ class Client:
                           data=form, headers=self._key(idempotency_key)).json()
 
     def fit(self, texture_id: str, *, seconds: float = 60.0, grain: str | None = "auto",
-            idempotency_key: str | None = None) -> Job:
+            lattice: str | None = "auto", idempotency_key: str | None = None) -> Job:
         """Submit a fit (needs the train extra on the workers): refines the texture's sampler.
-        ``grain``: "x", "y", "auto" (detected from the photo) or None (isotropic)."""
-        return self._call("POST", f"/v1/textures/{texture_id}/fit", json={"seconds": seconds, "grain": grain},
+        ``grain``: "x", "y", "auto" (detected from the photo) or None (isotropic);
+        ``lattice``: "auto" (a repeat lattice detected from the photo) or None."""
+        return self._call("POST", f"/v1/textures/{texture_id}/fit",
+                          json={"seconds": seconds, "grain": grain, "lattice": lattice},
                           headers=self._key(idempotency_key)).json()
 
     def job(self, job: Job | str) -> Job:

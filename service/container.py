@@ -101,8 +101,10 @@ class Services:
         if texture.sampler_key:
             if self.storage.exists(tileable_key(texture.sampler_key)):
                 return None
-            return (f"texture {texture.id} was fitted before tileable textures existed and has no tileable "
-                    f"sampler: refit it (POST /v1/textures/{texture.id}/fit) to get one")
+            return (f"texture {texture.id} has a fitted sampler without a tileable twin: either it was fitted "
+                    "on a repeat lattice (bricks, tile grids: the lattice's phases do not wrap with an image's "
+                    "side) or before tileable textures existed; refit it with lattice null "
+                    f"(POST /v1/textures/{texture.id}/fit) to get one")
         if self.registry.get(texture.model_version).tileable_path is None:
             return (f"model {texture.model_version} has no tileable sampler: it was exported before "
                     "tileable textures; re-export it (python -m model.export)")

@@ -121,7 +121,8 @@ def auto_fit_params(services: Services, model_version: str) -> dict[str, Any] | 
         return None
     if not (services.registry.get(model_version).model_dir / "space.pt").is_file():
         return None
-    return {"seconds": min(settings.fit_seconds, settings.max_fit_seconds), "grain": "auto", "in_place": True}
+    return {"seconds": min(settings.fit_seconds, settings.max_fit_seconds), "grain": "auto", "lattice": "auto",
+            "in_place": True}
 
 
 def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -179,7 +180,7 @@ def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path
         raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
     # TEXSPACE_FIT_THREADS: a fit must not take the cores tiles need
     fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0, progress=report,
-                 grain=p.grain, threads=services.settings.fit_threads)
+                 grain=p.grain, lattice=p.lattice, threads=services.settings.fit_threads)
 
 
 def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],

@@ -132,6 +132,11 @@ class FitIn(BaseModel):
                             "that axis so tiles keep the grain in the photo's orientation. auto (default): "
                             "detected from the photo (luminance gradients >= 3x stronger across one axis than "
                             "along it at 1, 2 and 4 px); null: isotropic")
+    lattice: Literal["auto"] | None = Field(
+        "auto", description="regular exemplar (bricks, tile grids, perforated metal): auto (default) detects the "
+                            "2D lattice the photo repeats on (two independent autocorrelation peaks >= 0.6) and "
+                            "the fitted sampler also reads each point's phase on it, so tiles show rows and "
+                            "grids; such a texture has no tileable export or shader yet. null: off")
 
 
 class FitParams(FitIn):

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InvalidParameter, ModelInvalid
+from .errors import FeatureUnavailable, InvalidParameter, ModelInvalid
 
 LANGUAGES = ("glsl", "wgsl")  # extensions and media types: worker.files.FORMATS
 
@@ -206,6 +206,9 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
     data = Path(path).read_bytes()
     g = _read_graph(data)
     init = g.initializers
+    if any(k.endswith("decoder.from_phase.weight") for k in init):
+        raise FeatureUnavailable(f"{Path(path).name}: a sampler fitted on a repeat lattice (bricks, tile grids) "
+                                 "reads each point's phase on it, which this shader emitter does not write yet")
 
     def weight(suffix: str) -> np.ndarray:
         found = [v for k, v in init.items() if k.endswith(suffix)]

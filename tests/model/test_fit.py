@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 ort = pytest.importorskip("onnxruntime")
 
 from model.export import export_model  # noqa: E402
-from model.fit import detect_grain, fit_exemplar  # noqa: E402
+from model.fit import detect_grain, detect_lattice, fit_exemplar  # noqa: E402
 from model.evaluate import load_candidates  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
 
@@ -59,3 +59,75 @@ def test_detect_grain_finds_axis_aligned_streaks_only(skimage_textures):
     assert detect_grain(np.full((64, 64, 3), 0.5)) is None     # flat: no gradients at all
     for name in ("grass", "gravel"):                           # isotropic photos
         assert detect_grain(skimage_textures[name]) is None, name
+
+
+def _running_bond(size: int = 256, brick: int = 32, course: int = 11) -> np.ndarray:
+    """Bricks brick x course px in a running bond (every course shifted by half a brick),
+    1-px mortar, each brick its own shade: a regular photo with a known lattice."""
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:size, 0:size]
+    row = y // course
+    shifted = x + (row % 2) * (brick // 2)
+    shade = rng.uniform(0.35, 0.55, (size // course + 2, size // brick + 3))[row, shifted // brick]
+    mortar = (y % course == 0) | (shifted % brick == 0)
+    image = np.where(mortar, 0.85, shade) + 0.02 * rng.standard_normal((size, size))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+
+def test_detect_lattice_finds_a_running_bond_and_nothing_in_stochastic_photos(skimage_textures):
+    ax, ay, bx, by = detect_lattice(_running_bond())
+
+    def on_the_bond(x: float, y: float) -> bool:  # whole courses down, half a brick along per course
+        return y % 11 == 0 and (x - (y // 11) * 16) % 32 == 0
+
+    assert on_the_bond(ax, ay) and on_the_bond(bx, by)
+    assert abs(ax * by - ay * bx) == 32 * 11         # a basis of the bond's lattice, not of a sublattice
+    for name in ("grass", "gravel"):
+        assert detect_lattice(skimage_textures[name]) is None, name
+    assert detect_lattice(np.full((64, 64, 3), 0.5)) is None
+
+
+def test_lattice_fit_reads_phases_and_writes_no_tileable_sampler(tmp_path, vgg):
+    from model.export import TILEABLE_SAMPLER, export_tileable_sampler
+    from model.networks import load_checkpoint
+    from worker.errors import FeatureUnavailable
+    from worker.shader import emit_shader
+
+    torch.manual_seed(0)
+    export_model(TextureSpace(ModelConfig()), tmp_path / "space")
+    image = tmp_path / "bricks.png"
+    Image.fromarray((_running_bond() * 255).astype(np.uint8)).save(image)
+    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt",
+                          minutes=0.05, patch=32, lattice="auto", grain="auto")
+    ppu = ModelConfig().pixels_per_unit
+    assert result["grain"] is None and result["lattice"] is not None
+    ax, ay, bx, by = np.array(result["lattice"]) * ppu  # world units: one exemplar pixel = 1 / ppu
+    assert abs(ax * by - ay * bx) == pytest.approx(32 * 11)
+    manifest = json.loads((tmp_path / "fit" / "manifest.json").read_text())
+    assert manifest["lattice"] == result["lattice"] and manifest["tileable_sampler"] is None
+    assert not (tmp_path / "fit" / TILEABLE_SAMPLER).exists()
+    (fitted,) = [load_checkpoint(tmp_path / "fit" / "fit.pt")[0]]
+    field = fitted.field
+    # the phases repeat exactly on the lattice, far from the origin too
+    a, b = np.array(result["lattice"][:2]), np.array(result["lattice"][2:])
+    points = torch.from_numpy(np.random.default_rng(1).uniform(-1e4, 1e4, (1, 50, 3)))
+    moved = points.clone()
+    moved[..., :2] += torch.from_numpy(3 * a - 7 * b)
+    assert torch.allclose(field.lattice_phases(points), field.lattice_phases(moved), atol=1e-4)
+    with pytest.raises(ValueError, match="lattice"):
+        export_tileable_sampler(field, tmp_path / "t.onnx")
+    code = np.asarray(result["code"], np.float32)
+    with pytest.raises(FeatureUnavailable, match="lattice"):
+        emit_shader(tmp_path / "fit" / "sampler.onnx", np.concatenate([code, np.zeros(216, np.float32)]), "bricks")
+
+
+def test_a_lattice_field_starts_as_the_field_without_it() -> None:
+    torch.manual_seed(0)
+    plain = TextureSpace(ModelConfig()).field
+    lattice = TextureSpace(ModelConfig(lattice=(0.125, 0.0, 0.0625, 0.043))).field
+    missing, unexpected = lattice.load_state_dict(plain.state_dict(), strict=False)
+    assert missing == ["decoder.from_phase.weight"] and unexpected == []
+    points = torch.from_numpy(np.random.default_rng(2).uniform(-5, 5, (1, 200, 3)))
+    z = torch.randn(1, 8)
+    with torch.no_grad():  # zero phase weights: the same texture until a fit moves them
+        assert torch.equal(plain(points, z, torch.tensor(4)), lattice(points, z, torch.tensor(4)))

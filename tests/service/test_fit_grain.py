@@ -26,10 +26,10 @@ MODEL_DIR = REPO / "model" / "weights"
 
 def fake_fit_module(calls: list[dict]) -> types.ModuleType:
     def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain=None,  # noqa: ANN001, ANN202
-                     loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu"):
+                     loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu", lattice=None):
         calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),
                       "init_checkpoint": Path(init_checkpoint),
-                      "minutes": minutes, "grain": grain, "threads": threads})
+                      "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice})
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
@@ -90,7 +90,7 @@ def test_the_stand_in_has_the_real_fit_exemplar_signature() -> None:
 def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_calls) -> None:
     res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30, "grain": "y"})
     assert res.status_code == 202, res.text
-    assert res.json()["params"] == {"seconds": 30, "grain": "y"}
+    assert res.json()["params"] == {"seconds": 30, "grain": "y", "lattice": "auto"}
     job = fit_client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     assert job["params"]["grain"] == "y"                      # recorded on the job
@@ -109,6 +109,14 @@ def test_fit_without_grain_detects_it_and_null_is_isotropic(fit_client, fit_text
     res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30, "grain": None})
     assert res.status_code == 202, res.text
     assert fit_calls[1]["grain"] is None
+
+
+def test_fit_lattice_is_detected_by_default_and_null_turns_it_off(fit_client, fit_texture, fit_calls) -> None:
+    assert fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30}).status_code == 202
+    assert fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30, "lattice": None}).status_code == 202
+    assert [call["lattice"] for call in fit_calls] == ["auto", None]
+    res = fit_client.post(fit_texture["links"]["fit"], json={"lattice": [32, 0, 16, 11]})  # not a value it takes
+    assert res.status_code == 422 and "lattice" in res.json()["detail"]
 
 
 @pytest.mark.parametrize("grain", ["z", "Y", "", 1])

@@ -73,7 +73,8 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     assert services.fit_huey.pending_count() == 1 and services.huey.pending_count() == 0
     job = client.get(f"/v1/jobs/{refinement['job_id']}").json()
     assert job["kind"] == "fit" and job["texture_id"] == texture["id"]
-    assert job["params"] == {"seconds": services.settings.fit_seconds, "grain": "auto", "in_place": True}  # detected by model.fit
+    assert job["params"] == {"seconds": services.settings.fit_seconds, "grain": "auto", "lattice": "auto",
+                             "in_place": True}  # both detected by model.fit
 
     before = client.get(TILE.format(texture["id"]))
     assert before.status_code == 200

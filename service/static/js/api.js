@@ -325,10 +325,10 @@ export function startRegion(textureId, params) {
 
 /** A fit (the train extra on the workers): a new texture with its own fitted sampler
  * (`output_texture_id` of the succeeded job). `seconds`: the optimisation budget. */
-export function startFit(textureId, { seconds, grain = "auto" }) {
+export function startFit(textureId, { seconds, grain = "auto", lattice = "auto" }) {
   return submitJob(`textures/${textureId}/fit`, {
     headers: { 'content-type': 'application/json' },
-    body: JSON.stringify({ seconds, grain }),
+    body: JSON.stringify({ seconds, grain, lattice }),
   });
 }
 
