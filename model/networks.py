@@ -90,8 +90,8 @@ class ModelConfig:
             raise ValueError(f"grain must be None, 'x' or 'y', got {self.grain!r}")
         if self.lattice is not None:
             self.lattice = tuple(float(v) for v in self.lattice)  # (a list, read back from JSON)
-            ax, ay, bx, by = self.lattice
-            if len(self.lattice) != 4 or not abs(ax * by - ay * bx) > 0:
+            a, b = self.lattice[:2], self.lattice[2:]
+            if len(self.lattice) != 4 or not abs(a[0] * b[1] - a[1] * b[0]) > 0:
                 raise ValueError(f"lattice must be two independent 2D vectors (ax, ay, bx, by), got {self.lattice!r}")
 
     @property
