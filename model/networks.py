@@ -12,7 +12,6 @@ K octaves, D spatial dimensions (2 or 3).
 from __future__ import annotations
 
 import math
-
 from dataclasses import asdict, dataclass
 
 import torch

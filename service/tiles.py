@@ -293,8 +293,8 @@ async def progressive_tile(services: Services, texture: Texture, request: Reques
         return exact, None, False
     data = services.tile_cache.get(exact)
     (services.metrics.tile_cache_misses if data is None else services.metrics.tile_cache_hits).inc()
-    if data is None and NATIVE_ZOOM - 2 <= key["z"]:
-        data = await run_in_threadpool(tile_from_cache, services, texture, **key)
+    if data is None:
+        data = await built_from_cached(services, texture, key)
         if data is not None:
             services.tile_cache.put(exact, data)
     if data is not None:
@@ -393,6 +393,14 @@ def tile_from_cache(services: Services, texture: Texture, *, z: int, x: int, y: 
     return write_image(rgb, fmt)
 
 
+async def built_from_cached(services: Services, texture: Texture, key: dict) -> bytes | None:
+    """``tile_from_cache`` off the event loop for the zooms the linear cache can serve
+    (native and up to two out), else None without a thread hop."""
+    if not NATIVE_ZOOM - 2 <= key["z"] <= NATIVE_ZOOM:
+        return None
+    return await run_in_threadpool(tile_from_cache, services, texture, **key)
+
+
 async def render_tile_async(services: Services, texture: Texture, request: Request | None = None,
                             zoom_out: str | None = None, **key) -> bytes:  # noqa: ANN003
     """``render_tile_bytes`` off the event loop, first built from cached children where it
@@ -402,10 +410,8 @@ async def render_tile_async(services: Services, texture: Texture, request: Reque
     (default: the final tiles', ``final_zoom_out``; ``bounded`` for a preview)."""
     settings = services.settings
     zoom_out = zoom_out or final_zoom_out(settings)
-    if zoom_out == "supersample" and NATIVE_ZOOM - 2 <= key["z"] <= NATIVE_ZOOM:
-        data = await run_in_threadpool(tile_from_cache, services, texture, **key)
-        if data is not None:
-            return data
+    if zoom_out == "supersample" and (data := await built_from_cached(services, texture, key)) is not None:
+        return data
     samples = tile_samples(key["z"], key["size"], zoom_out)
     cancel = threading.Event()
     render = functools.partial(render_tile_bytes, services, texture, cancel=cancel, zoom_out=zoom_out, **key)

@@ -62,6 +62,11 @@ def upload_photo(client: TestClient, photo: bytes, **form: str) -> dict:
     return res.json()
 
 
+def tile_url(texture: dict, z: int, x: int, y: int, fmt: str = "png") -> str:
+    """The API path of tile (z, x, y) of an uploaded texture."""
+    return f"/v1/textures/{texture['id']}/tiles/{z}/{x}/{y}.{fmt}"
+
+
 @pytest.fixture
 def texture(client: TestClient, photo: bytes) -> dict:
     return upload_photo(client, photo, name="brick")

@@ -11,12 +11,10 @@ import pytest
 from service import tiles as service_tiles
 from worker.tiles import NATIVE_ZOOM
 
+from tests.service.conftest import tile_url
+
 N = NATIVE_ZOOM
 SIZE = {"size": 64}
-
-
-def tile_url(texture: dict, z: int, x: int, y: int) -> str:
-    return f"/v1/textures/{texture['id']}/tiles/{z}/{x}/{y}.png"
 
 
 def reference(client, services, texture: dict, url: str, mode: str) -> tuple[str, bytes]:

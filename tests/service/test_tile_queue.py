@@ -16,6 +16,8 @@ from worker.errors import Busy
 from worker.images import write_image
 from worker.tiles import NATIVE_ZOOM, render_tile
 
+from tests.service.conftest import tile_url
+
 
 def run_async(coroutine) -> None:  # noqa: ANN001
     """asyncio.run on a thread of its own: the browser tests' playwright driver keeps an
@@ -35,10 +37,6 @@ def run_async(coroutine) -> None:  # noqa: ANN001
         raise errors[0]
 
 N = NATIVE_ZOOM
-
-
-def tile_url(texture: dict, z: int, x: int, y: int) -> str:
-    return f"/v1/textures/{texture['id']}/tiles/{z}/{x}/{y}.png"
 
 
 class FakeRequest:

@@ -9,9 +9,7 @@ from PIL import Image
 
 from worker.tiles import MAX_ZOOM, NATIVE_ZOOM
 
-
-def tile_url(texture: dict, z: int, x: int, y: int, fmt: str = "png") -> str:
-    return f"/v1/textures/{texture['id']}/tiles/{z}/{x}/{y}.{fmt}"
+from tests.service.conftest import tile_url
 
 
 def test_png_tile_decodes_with_right_size(client, texture) -> None:
