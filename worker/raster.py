@@ -84,8 +84,8 @@ def rasterise(tri_uv: np.ndarray, resolution: int):
     (a texel on a shared edge may appear twice: same surface point either way).
     """
     R = int(resolution)
-    uv = np.asarray(tri_uv, dtype=np.float64)
-    x, y = uv[..., 0] * R, (1.0 - uv[..., 1]) * R                       # (F, 3): uv_to_texel's values
+    corners = uv_to_texel(np.asarray(tri_uv, dtype=np.float64), R)
+    x, y = corners[..., 0], corners[..., 1]                             # (F, 3) each
     lo_x = np.clip(np.ceil(np.minimum(np.minimum(x[:, 0], x[:, 1]), x[:, 2]) - 0.5), 0, R - 1).astype(np.int64)
     lo_y = np.clip(np.ceil(np.minimum(np.minimum(y[:, 0], y[:, 1]), y[:, 2]) - 0.5), 0, R - 1).astype(np.int64)
     hi_x = np.clip(np.floor(np.maximum(np.maximum(x[:, 0], x[:, 1]), x[:, 2]) - 0.5), -1, R - 1).astype(np.int64)
