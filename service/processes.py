@@ -31,9 +31,12 @@ def run_api(settings: Settings) -> None:
 def read_timeout_protocol(settings: Settings) -> type:
     """uvicorn's h11 protocol with a read deadline (uvicorn has none): a connection whose
     request headers and body have not all arrived ``http_read_timeout_seconds`` after it
-    opened (or after its previous response) is closed, so slowloris clients and bodies
-    shorter than their Content-Length do not hold connections forever. Requests already
-    read (a long tile, an event stream) are not affected."""
+    opened (or after the first byte of a later request on it) is closed, so slowloris
+    clients and bodies shorter than their Content-Length do not hold connections forever.
+    Idle time between requests is the keep-alive timeout's business, not this deadline's:
+    counting it here closed kept-alive connections under clients that paused before
+    their next request, mid-send. Requests already read (a long tile, an event stream)
+    are not affected."""
     import h11
     from uvicorn.protocols.http.h11_impl import H11Protocol
 
@@ -51,9 +54,16 @@ def read_timeout_protocol(settings: Settings) -> type:
             super().connection_made(transport)
             self._arm_read_deadline()
 
+        def data_received(self, data: bytes) -> None:
+            if self._read_deadline is None:      # the first byte of a request after a response
+                self._arm_read_deadline()
+            super().data_received(data)
+
         def on_response_complete(self) -> None:
             super().on_response_complete()
-            self._arm_read_deadline()
+            if self._read_deadline is not None:  # the keep-alive timeout watches the idle time
+                self._read_deadline.cancel()
+                self._read_deadline = None
 
         def connection_lost(self, exc: Exception | None) -> None:
             if self._read_deadline is not None:

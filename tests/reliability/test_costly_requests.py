@@ -68,16 +68,16 @@ def test_worst_upload_shapes_stay_under_1_5_gb(cluster: Cluster) -> None:
     (both refused from the header now); a 2048 x 32768 RGBA PNG is the longest strip
     allowed at the pixel limit; an 8192^2 RGBA PNG (the pixel limit) cost 2.8 GB, and two
     of them at once share the decode budget instead of doubling the peak."""
+    strip_png, big = png(2048, 32768, 4), png(8192, 8192, 4)   # built before any request: takes seconds
     with cluster.client() as http:
         http.timeout = 120
         for name in ("thin_16x1000000.png", "strip_16x16000.png"):
             res = http.post("/v1/textures", files={"image": (name, (BAD / name).read_bytes(), "image/png")})
             assert res.status_code == 422 and "16 times" in res.json()["detail"], res.text
-        strip = http.post("/v1/textures", files={"image": ("strip.png", png(2048, 32768, 4), "image/png")})
+        strip = http.post("/v1/textures", files={"image": ("strip.png", strip_png, "image/png")})
         assert strip.status_code == 201, strip.text
         assert (strip.json()["width"], strip.json()["height"]) == (2048, 32768)
         assert http.get("/healthz").status_code == 200
-        big = png(8192, 8192, 4)
         results: list[int] = []
 
         def upload() -> None:
@@ -156,6 +156,26 @@ def test_slow_and_lying_clients_are_disconnected(cluster: Cluster) -> None:
             assert not data or data.startswith(b"HTTP/1.1 "), data  # closed, perhaps after a status line
     with cluster.client() as http:
         assert http.get("/healthz").status_code == 200
+
+
+def test_a_pause_between_kept_alive_requests_is_not_a_slow_request(cluster: Cluster) -> None:
+    """The read deadline starts at a request's first byte, not at the previous response: a
+    client that pauses longer than it (but less than the 5 s keep-alive) before its next
+    request on the same connection is answered, and a slow request there is still cut off."""
+    request = b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n"
+    with socket.create_connection(("127.0.0.1", cluster.port), timeout=10) as sock:
+        sock.sendall(request)
+        assert sock.recv(4096).startswith(b"HTTP/1.1 200 ")
+        time.sleep(2.5)                                        # > 1.5 s read timeout, < 5 s keep-alive
+        sock.sendall(request)
+        assert sock.recv(4096).startswith(b"HTTP/1.1 200 ")
+        started = time.monotonic()
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Slow: ")
+        try:
+            data = sock.recv(4096)
+        except ConnectionResetError:
+            data = b""
+        assert data == b"" and 1.0 < time.monotonic() - started < 4.5
 
 
 @pytest.mark.parametrize("wait, max_waiting, seconds", [(0.3, 4, (0.25, 5)), (30.0, 0, (0, 0.25))],
