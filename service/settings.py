@@ -121,7 +121,7 @@ class Settings(BaseSettings):
         "X-Texspace-Tile: preview) and renders the supersampled one behind it, served from then on")
     http_read_timeout_seconds: float = Field(60.0, gt=0, description="a request's headers and body must "
                                              "arrive within this long of the connection opening or "
-                                             "its previous response ending")
+                                             "of the request's first byte")
     http_keep_alive_seconds: float = Field(5.0, gt=0, description="idle keep-alive connections close after")
     http_limit_concurrency: int = Field(256, ge=1, description="connections + running requests of one API "
                                         "process; beyond, 503")
