@@ -163,12 +163,25 @@ def test_a_pause_between_kept_alive_requests_is_not_a_slow_request(cluster: Clus
     client that pauses longer than it (but less than the 5 s keep-alive) before its next
     request on the same connection is answered, and a slow request there is still cut off."""
     request = b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n"
+
+    def response(sock: socket.socket) -> bytes:
+        """One whole response: headers, then Content-Length bytes (they may come in parts)."""
+        data = b""
+        while b"\r\n\r\n" not in data:
+            data += sock.recv(4096)
+        head, body = data.split(b"\r\n\r\n", 1)
+        length = int(next(line.split(b":")[1] for line in head.split(b"\r\n")
+                          if line.lower().startswith(b"content-length:")))
+        while len(body) < length:
+            body += sock.recv(4096)
+        return head
+
     with socket.create_connection(("127.0.0.1", cluster.port), timeout=10) as sock:
         sock.sendall(request)
-        assert sock.recv(4096).startswith(b"HTTP/1.1 200 ")
+        assert response(sock).startswith(b"HTTP/1.1 200 ")
         time.sleep(2.5)                                        # > 1.5 s read timeout, < 5 s keep-alive
         sock.sendall(request)
-        assert sock.recv(4096).startswith(b"HTTP/1.1 200 ")
+        assert response(sock).startswith(b"HTTP/1.1 200 ")
         started = time.monotonic()
         sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Slow: ")
         try:
