@@ -210,7 +210,7 @@ def uvs_usable(uv: np.ndarray | None, faces: np.ndarray, resolution: int,
         return False
     if vertices is not None and atlas.atlas_quality(vertices, faces, uv)["uv_degenerate_area"] > MAX_UV_DEGENERATE:
         return False
-    texel, _, _ = raster.rasterise(uv[faces], min(resolution, 1024))
+    texel, _ = raster.rasterise(uv[faces], min(resolution, 1024), barycentric=False)
     return len(texel) > 0 and raster.overlap_fraction(texel, min(resolution, 1024)) <= MAX_UV_OVERLAP
 
 
@@ -228,13 +228,16 @@ def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, p
     timings = {} if timings is None else timings
     clock = time.perf_counter()
     R = resolution
-    texel, face, bary = raster.rasterise(tri_uv, R)
-    texels, pick = raster.last_hits(texel, R)
-    face, bary = face[pick], bary[pick]
-    del texel, pick
+    texels, face = raster.rasterise(tri_uv, R, barycentric=False)
     covered = np.zeros(R * R, dtype=bool)
     covered[texels] = True
+    if np.count_nonzero(covered) != len(texels):   # texels on edges two triangles share: the last wins
+        texels, pick = raster.last_hits(texels, R)
+        face = face[pick]
+        del pick
     covered = covered.reshape(R, R)
+    affine = raster.face_affine(tri_uv, tri_xyz, R)
+    affine *= scale
     timings["raster"], clock = time.perf_counter() - clock, time.perf_counter()
     # While the sampler works (its session.run releases the GIL, as do scipy's distance
     # transform and numpy's loops), a helper thread computes the gutter's sources (they
@@ -247,21 +250,22 @@ def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, p
     def points_of(i: int) -> np.ndarray:
         # Surface points chunk by chunk: 6 MB arrays instead of 60 MB ones; 2^18 points per
         # call (not 2^16) so the sampler's two threads wait for each other 4x less often.
-        points = raster.barycentric_points(face[starts[i]:starts[i + 1]], bary[starts[i]:starts[i + 1]], tri_xyz)
-        points *= scale
-        return points
+        return raster.texel_points(texels[starts[i]:starts[i + 1]], face[starts[i]:starts[i + 1]], affine, R)
 
     def encode(i: int) -> None:
         encoded[starts[i]:starts[i + 1]] = raster.encode_srgb8(rgb[starts[i]:starts[i + 1]])
 
     with ThreadPoolExecutor(1, thread_name_prefix="bake-helper") as helper:
+        # The helper's queue: chunk 1's points, then the gutter's distance transform (done
+        # while the sampler works on chunks 0 and 1), then points and encodes as they come.
+        next_points = helper.submit(points_of, 1) if len(starts) > 2 else None
         sources = helper.submit(raster.gutter_sources, covered, padding)
-        encodes, next_points = [], None
+        encodes = []
         for i in range(len(starts) - 1):
             if should_cancel is not None and should_cancel():
                 raise Canceled("bake job canceled")
-            points = points_of(0) if i == 0 else next_points.result()   # the helper starts on the gutter
-            if i + 2 < len(starts):
+            points = points_of(0) if i == 0 else next_points.result()
+            if 0 < i and i + 2 < len(starts):
                 next_points = helper.submit(points_of, i + 1)
             rgb[starts[i]:starts[i + 1]] = sampler.sample(points, code, seed)
             encodes.append(helper.submit(encode, i))

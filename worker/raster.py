@@ -75,13 +75,16 @@ def _test_half_lines(slope: np.ndarray, noise: np.ndarray, column_shift: np.ndar
     return inv, lower, upper
 
 
-def rasterise(tri_uv: np.ndarray, resolution: int):
+def rasterise(tri_uv: np.ndarray, resolution: int, *, barycentric: bool = True):
     """Cover an atlas with triangles.
 
     tri_uv : (F, 3, 2) float64 UVs of each triangle's corners.
     Returns (texel (K,) int64 flat index r*R + c, face (K,) int64, bary (K, 3) float64)
     for every (texel, triangle) pair whose texel centre is inside the triangle
     (a texel on a shared edge may appear twice: same surface point either way).
+    ``barycentric=False`` returns (texel, face) only, as int32: what a bake needs with
+    ``face_affine``, a fifth of the memory (20 MB instead of 100 MB for 2.5M texels,
+    most of it first touched by this call).
     """
     R = int(resolution)
     corners = uv_to_texel(np.asarray(tri_uv, dtype=np.float64), R)
@@ -98,8 +101,12 @@ def rasterise(tri_uv: np.ndarray, resolution: int):
     # Faces by box area: no longer needed for batching, kept so the pairs come out in
     # the box rasteriser's order (last_hits then picks the same face on shared edges).
     faces = faces[np.argsort(width[faces] * height[faces], kind="stable")]
+    index = np.int64 if barycentric else np.int32
+    if R * R > np.iinfo(index).max:
+        index = np.int64
     if not len(faces):
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+        empty = np.zeros(0, index), np.zeros(0, index)
+        return (*empty, np.zeros((0, 3))) if barycentric else empty
     lo_x, lo_y, hi_x, hi_y, height = lo_x[faces], lo_y[faces], hi_x[faces], hi_y[faces], height[faces]
     x0, y0, inv_det = x[faces, 0], y[faces, 0], 1.0 / det[faces]
     # b1 = dx * a1 - dy * c1 and b2 = dy * c2 - dx * a2 (dx, dy from corner 0), the
@@ -148,9 +155,9 @@ def rasterise(tri_uv: np.ndarray, resolution: int):
     # Pass 2: generate the candidates chunk by chunk, test them, write the outputs in place.
     span_end = np.cumsum(span_width)
     total = int(span_end[-1]) if n_pairs else 0
-    out_texel = np.empty(total, np.int64)
-    out_face = np.empty(total, np.int64)
-    out_bary = np.empty((total, 3))
+    out_texel = np.empty(total, index)
+    out_face = np.empty(total, index)
+    out_bary = np.empty((total, 3)) if barycentric else None
     # Chunks of whole pairs, about CHUNK_CANDIDATES candidates each (one row at most more).
     cuts = np.searchsorted(span_end, np.arange(CHUNK_CANDIDATES, total, CHUNK_CANDIDATES))
     cuts = np.unique(np.concatenate([[0], cuts, [n_pairs]]))
@@ -177,11 +184,14 @@ def rasterise(tri_uv: np.ndarray, resolution: int):
         k = len(texel)
         out_texel[n:n + k] = texel
         out_face[n:n + k] = faces.take(face)
-        bary = out_bary[n:n + k]
-        bary[:, 0] = 1.0 - b1 - b2
-        bary[:, 1] = b1
-        bary[:, 2] = b2
+        if barycentric:
+            bary = out_bary[n:n + k]
+            bary[:, 0] = 1.0 - b1 - b2
+            bary[:, 1] = b1
+            bary[:, 2] = b2
         n += k
+    if not barycentric:
+        return out_texel[:n], out_face[:n]
     return out_texel[:n], out_face[:n], out_bary[:n]
 
 
@@ -199,27 +209,48 @@ def last_hits(texel: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarra
     return uniq, last[uniq]
 
 
-def barycentric_points(face: np.ndarray, bary: np.ndarray, tri_xyz: np.ndarray) -> np.ndarray:
-    """face (T,) int64, bary (T, 3) float64, tri_xyz (F, 3, 3) float64 -> points (T, 3) float64.
+def face_affine(tri_uv: np.ndarray, tri_xyz: np.ndarray, resolution: int) -> np.ndarray:
+    """Each triangle's map from texel centres to its 3D surface, as (3, 3, F) float64:
+    (origin, per column, per row) x (x, y, z) x face. The point of texel (row r, column c)
+    on face f is ``origin[:, f] + (c + 0.5) * per_column[:, f] + (r + 0.5) * per_row[:, f]``.
 
-    Corner by corner: three (T, 3) gathers instead of one (T, 3, 3) temporary.
+    The barycentric blend of the corners is affine in the texel centre, so a bake needs
+    only each covered texel's face, not its barycentric coordinates. Faces whose UVs have
+    no area (they cover no texel) get zeros. Face-last, so ``texel_points`` gathers from
+    contiguous rows.
     """
-    pts = bary[:, 0, None] * tri_xyz[face, 0]
-    pts += bary[:, 1, None] * tri_xyz[face, 1]
-    pts += bary[:, 2, None] * tri_xyz[face, 2]
-    return pts
+    corners = uv_to_texel(np.asarray(tri_uv, dtype=np.float64), int(resolution))
+    xyz = np.asarray(tri_xyz, dtype=np.float64)
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]      # (F, 2) texel space
+    edge1, edge2 = xyz[:, 1] - xyz[:, 0], xyz[:, 2] - xyz[:, 0]                # (F, 3) surface
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(np.abs(det) > 1e-12, 1.0 / det, 0.0)[:, None]
+    # b1 = (dx * e2y - dy * e2x) / det, b2 = (dy * e1x - dx * e1y) / det, point = p0 + b1 edge1 + b2 edge2
+    per_column = (e2[:, 1, None] * edge1 - e1[:, 1, None] * edge2) * inv
+    per_row = (e1[:, 0, None] * edge2 - e2[:, 0, None] * edge1) * inv
+    origin = xyz[:, 0] - corners[:, 0, 0, None] * per_column - corners[:, 0, 1, None] * per_row
+    return np.ascontiguousarray(np.stack([origin, per_column, per_row]).transpose(0, 2, 1))
 
 
-def surface_points(texel: np.ndarray, face: np.ndarray, bary: np.ndarray, tri_xyz: np.ndarray,
-                   resolution: int) -> tuple[np.ndarray, np.ndarray]:
-    """One 3D point per covered texel.
+def texel_points(texel: np.ndarray, face: np.ndarray, affine: np.ndarray, resolution: int) -> np.ndarray:
+    """texel (T,) flat indices, face (T,) their faces, affine (3, 3, F) from ``face_affine``
+    -> (T, 3) float64 surface points.
 
-    tri_xyz : (F, 3, 3) float64 triangle corners. Returns (texels (T,) unique flat
-    indices in increasing order, points (T, 3) float64); where a texel lies on several
-    triangles the last wins.
+    One coordinate at a time from 1-D gathers: 4x faster than gathering (T, 3) rows.
     """
-    uniq, pick = last_hits(texel, resolution)
-    return uniq, barycentric_points(face[pick], bary[pick], tri_xyz)
+    t = texel.astype(np.float64)
+    row = np.floor((t + 0.5) * (1.0 / resolution))       # exact: (c + 0.5) / R stays well inside (0, 1)
+    column = t - row * resolution
+    column += 0.5
+    row += 0.5
+    points = np.empty((len(t), 3))
+    for k in range(3):
+        coordinate = affine[0, k].take(face)
+        coordinate += affine[1, k].take(face) * column
+        coordinate += affine[2, k].take(face) * row
+        points[:, k] = coordinate
+    return points
 
 
 def overlap_fraction(texel: np.ndarray, resolution: int) -> float:

@@ -7,7 +7,7 @@ from scipy import ndimage
 
 from worker.bake import png_bytes
 from worker.colour import linear_to_srgb8
-from worker.raster import _srgb8_table, encode_srgb8, fill_gutter, gutter_sources
+from worker.raster import _srgb8_table, encode_srgb8, face_affine, fill_gutter, gutter_sources, rasterise, texel_points
 
 
 def test_srgb_table_is_bit_identical_to_the_curve():
@@ -60,3 +60,21 @@ def test_png_bytes_round_trip():
             image[: shape[0] // 2] = 200                           # runs, as in a baked atlas
         decoded = Image.open(io.BytesIO(png_bytes(image)))
         assert decoded.mode == "RGB" and np.array_equal(np.asarray(decoded), image)
+
+
+def test_texel_points_are_the_barycentric_blend_of_the_corners():
+    """A bake's surface points come from each texel's face alone (an affine map per face);
+    they must be the points the rasteriser's barycentric coordinates give, on every texel,
+    and rasterise without barycentrics must cover the same (texel, face) pairs."""
+    rng = np.random.default_rng(4)
+    R = 96
+    tri_uv = rng.random((300, 3, 2)) * 0.3 + rng.random((300, 1, 2)) * 0.7   # small, overlapping, any winding
+    tri_uv[:5] = tri_uv[:5, :1]                                               # UV-degenerate: cover nothing
+    tri_xyz = rng.normal(size=(300, 3, 3)) * 10 + 100
+    texel, face, bary = rasterise(tri_uv, R)
+    texel32, face32 = rasterise(tri_uv, R, barycentric=False)
+    assert texel32.dtype == face32.dtype == np.int32
+    assert np.array_equal(texel32, texel) and np.array_equal(face32, face) and len(texel) > 1000
+    want = np.einsum("kc,kcd->kd", bary, tri_xyz[face])
+    got = texel_points(texel32, face32, face_affine(tri_uv, tri_xyz, R), R)
+    assert got.shape == want.shape and np.abs(got - want).max() < 1e-9
