@@ -222,7 +222,7 @@ def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, p
 
     Only covered texels are evaluated and encoded; the gutter (``padding`` texels around
     charts) copies encoded texels. ``timings`` (optional) receives the seconds of the
-    raster, sample and gutter stages (the gutter's distance transform and the sRGB encode
+    raster, sample and gutter stages (the gutter's nearest-texel search and the sRGB encode
     run beside the sampler, inside ``sample``; ``gutter`` is what is left: the copies).
     """
     timings = {} if timings is None else timings
@@ -256,7 +256,7 @@ def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, p
         encoded[starts[i]:starts[i + 1]] = raster.encode_srgb8(rgb[starts[i]:starts[i + 1]])
 
     with ThreadPoolExecutor(1, thread_name_prefix="bake-helper") as helper:
-        # The helper's queue: chunk 1's points, then the gutter's distance transform (done
+        # The helper's queue: chunk 1's points, then the gutter's nearest-texel search (done
         # while the sampler works on chunks 0 and 1), then points and encodes as they come.
         next_points = helper.submit(points_of, 1) if len(starts) > 2 else None
         sources = helper.submit(raster.gutter_sources, covered, padding)

@@ -262,24 +262,70 @@ def overlap_fraction(texel: np.ndarray, resolution: int) -> float:
     return float((hits > 1).sum() / max(1, (hits > 0).sum()))
 
 
+def _nearest_in_row(covered: np.ndarray, cap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per texel of (R, W) ``covered``: the distance to the nearest covered texel in its
+    own row, capped at ``cap`` (uint8), and that texel's column (meaningful where the
+    distance is under the cap). Running max / min of covered columns from either side."""
+    width = covered.shape[1]
+    index = np.int16 if 2 * width + cap + 4 < np.iinfo(np.int16).max else np.int32
+    columns = np.arange(width, dtype=index)
+    far = index(width + cap + 2)
+    left = np.where(covered, columns, -far)                        # nearest covered column at or left of c
+    np.maximum.accumulate(left, axis=1, out=left)
+    right = np.where(covered[:, ::-1], columns[::-1], far + width)  # ... at or right of c, built reversed
+    np.minimum.accumulate(right, axis=1, out=right)
+    right = right[:, ::-1]
+    to_left, to_right = columns - left, right - columns
+    column = np.where(to_right < to_left, right, left)
+    distance = np.minimum(to_left, to_right)
+    np.minimum(distance, cap, out=distance)
+    return distance.astype(np.uint8), column
+
+
 def gutter_sources(covered: np.ndarray, padding: int) -> tuple[np.ndarray, np.ndarray]:
     """Gutter texels and the covered texel each copies.
 
-    covered : (R, R) bool. Returns (dst (G,) int64, src (G,) int64) flat indices: every
+    covered : (R, W) bool. Returns (dst (G,) int64, src (G,) int64) flat indices: every
     uncovered texel within ``padding`` texels (Euclidean, centre to centre) of a covered
-    one, and its nearest covered texel, from one exact distance transform (scipy) with
-    indices only; squared distances are compared in integers, so no float distance map.
+    one, and a nearest covered texel (exact; ties broken either way).
+
+    Separable, like an exact distance transform, but only as far as the padding: a row
+    pass finds each texel's nearest covered texel in its own row (``_nearest_in_row``),
+    then for the texels that can be within ``padding`` a column pass takes the least
+    dr^2 + h(r + dr)^2 over |dr| <= padding, as one packed integer minimum per dr (squared
+    distance in the high bits, dr in the low). The 2048^2 bench atlas: 0.11 s instead of
+    0.25 s for scipy's full distance transform with indices.
     """
-    width = covered.shape[1]
-    if padding <= 0 or covered.all() or not covered.any():
+    rows, width = covered.shape
+    pad = int(padding)
+    if pad <= 0 or covered.all() or not covered.any():
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    ri, ci = ndimage.distance_transform_edt(~covered, return_distances=False, return_indices=True)
-    dst = np.flatnonzero(~covered)
-    rows, cols = np.divmod(dst, width)
-    src_r, src_c = ri.ravel()[dst], ci.ravel()[dst]
-    d2 = (src_r - rows) ** 2 + (src_c - cols) ** 2
-    near = d2 <= int(padding) ** 2
-    return dst[near], (src_r[near].astype(np.int64) * width + src_c[near])
+    if pad > 100:
+        raise ValueError(f"gutter padding {pad} is over 100 texels")
+    distance, column = _nearest_in_row(covered, pad + 1)
+    # Row distances with ``pad`` rows of "too far" above and below: the column pass
+    # gathers rows r - pad .. r + pad without bounds checks.
+    h = np.full((rows + 2 * pad, width), pad + 1, np.uint8)
+    h[pad:pad + rows] = distance
+    del distance
+    # Candidates: uncovered texels with a row distance <= pad within pad rows.
+    reach = ndimage.minimum_filter1d(h, 2 * pad + 1, axis=0)[pad:pad + rows]
+    reach |= covered.view(np.uint8) * np.uint8(255)
+    candidates = np.flatnonzero(reach <= pad)
+    del reach
+    h = h.ravel()
+    bits = (2 * pad).bit_length()                                   # dr + pad in [0, 2 pad]
+    squares = np.arange(pad + 2, dtype=np.int32) ** 2
+    best = None
+    for dr in range(-pad, pad + 1):
+        packed = ((squares + dr * dr) << bits) + (dr + pad)         # by row distance, for this dr
+        key = packed.take(h.take(candidates + (dr + pad) * width))
+        best = key if best is None else np.minimum(best, key, out=best)
+    near = (best >> bits) <= pad * pad
+    dst = candidates[near]
+    source_row = dst + ((best[near] & ((1 << bits) - 1)) - pad) * width   # the source's row, dst's column
+    src = source_row - dst % width + column.ravel().take(source_row)
+    return dst, src.astype(np.int64)
 
 
 def fill_gutter(image: np.ndarray, covered: np.ndarray, padding: int) -> np.ndarray:

@@ -52,6 +52,22 @@ def chart_mask(uv, faces, res):
     return mask
 
 
+def copies_a_nearest_covered_texel(image: np.ndarray, covered: np.ndarray, dist: np.ndarray,
+                                    reach: int = 4) -> np.ndarray:
+    """(R, R) bool: the texel's colour is that of some covered texel at its distance
+    ``dist`` from coverage (ties between equally near texels may go either way)."""
+    R = len(covered)
+    padded = np.pad(image, ((reach, reach), (reach, reach), (0, 0)))
+    padded_cov = np.pad(covered, reach)
+    found = np.zeros(covered.shape, bool)
+    for dy in range(-reach, reach + 1):
+        for dx in range(-reach, reach + 1):
+            window = (slice(reach + dy, reach + dy + R), slice(reach + dx, reach + dx + R))
+            same = (padded[window] == image).all(axis=2) & padded_cov[window]
+            found |= same & np.isclose(np.hypot(dy, dx), dist)
+    return found
+
+
 def test_uvless_mesh_gets_an_atlas_and_a_loadable_glb(runtime, code, meshes, tmp_path):
     seen = []
     result = bake_mesh(runtime, code, 2, mesh_bytes=(meshes / "bunny.obj").read_bytes(),
@@ -79,10 +95,10 @@ def test_mesh_uvs_kept_and_coverage_exact(runtime, code, meshes, tmp_path):
     mask = chart_mask(uv, faces, RES)
     assert (result.covered != mask).sum() <= 0.002 * mask.sum()
     assert counting.points == result.covered.sum()
-    # Gutter: every texel within the padding copies its nearest covered texel (never black).
-    dist, (ri, ci) = ndimage.distance_transform_edt(~result.covered, return_indices=True)
+    # Gutter: every texel within the padding copies a nearest covered texel (never black).
+    dist = ndimage.distance_transform_edt(~result.covered)
     near = (dist <= 4) & ~result.covered
-    assert near.sum() > 0 and (image[near] == image[ri[near], ci[near]]).all()
+    assert near.sum() > 0 and copies_a_nearest_covered_texel(image, result.covered, dist)[near].all()
     assert image[near].max(axis=1).min() > 0
     assert (image[dist > 4] == 0).all()                              # beyond the padding: untouched
 

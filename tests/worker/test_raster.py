@@ -33,18 +33,26 @@ def test_srgb_table_is_bit_identical_to_the_curve():
 
 
 def test_gutter_copies_a_nearest_covered_texel_within_the_padding():
+    """Against scipy's exact distance transform, on masks sparse and dense, charts at the
+    borders, and paddings up to beyond the mask's size."""
     rng = np.random.default_rng(1)
-    covered = ndimage.binary_opening(rng.random((96, 80)) > 0.7, iterations=1)
-    covered[:5] = False
-    for padding in (0, 1, 3, 8):
-        dst, src = gutter_sources(covered, padding)
+    masks = [ndimage.binary_opening(rng.random((96, 80)) > density, iterations=1) for density in (0.5, 0.7, 0.8)]
+    masks.append(np.zeros((40, 70), bool))
+    masks[-1][0, 69] = masks[-1][39, 0] = masks[-1][20, 30:33] = True    # single texels at corners
+    for covered in masks:
+        covered[:5] = False
+        assert covered.any()
+        width = covered.shape[1]
         dist = ndimage.distance_transform_edt(~covered)
-        want = np.flatnonzero((dist <= padding) & ~covered)
-        assert np.array_equal(np.sort(dst), want)                    # exactly the texels within the padding
-        assert covered.ravel()[src].all()
-        r, c = np.divmod(dst, 80)
-        sr, sc = np.divmod(src, 80)
-        assert np.allclose(np.hypot(r - sr, c - sc), dist.ravel()[dst])   # a nearest one, Euclidean
+        for padding in (0, 1, 3, 8, 20, 100):
+            dst, src = gutter_sources(covered, padding)
+            want = np.flatnonzero((dist <= padding) & ~covered)
+            assert np.array_equal(np.sort(dst), want)                # exactly the texels within the padding
+            assert covered.ravel()[src].all()
+            r, c = np.divmod(dst, width)
+            sr, sc = np.divmod(src, width)
+            assert np.allclose(np.hypot(r - sr, c - sc), dist.ravel()[dst])   # a nearest one, Euclidean
+    covered = masks[0]
     image = rng.random((96, 80, 3)).astype(np.float32)
     filled = fill_gutter(image, covered, 2)
     assert np.array_equal(filled[covered], image[covered])
