@@ -188,7 +188,10 @@ def smooth_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     (split at UV seams) share one normal, so seams do not shade. A vertex with no face
     of non-zero area gets +z (glTF requires unit normals).
     """
-    _, weld = np.unique(vertices, axis=0, return_inverse=True)
+    # Weld by the bytes of each position (+ 0.0 turns -0.0 into 0.0): one sort of 24-byte
+    # items, 3x faster than np.unique(axis=0)'s field-by-field comparisons.
+    rows = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64) + 0.0).view("V24").reshape(-1)
+    _, weld = np.unique(rows, return_inverse=True)
     weld = weld.reshape(-1)
     tri = vertices[faces]
     face_normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])   # length = 2 x area
@@ -276,16 +279,24 @@ def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, p
         dst, src = sources.result()
     timings["sample"], clock = time.perf_counter() - clock, time.perf_counter()
     srgb = np.zeros((R * R, 3), dtype=np.uint8)
-    srgb[texels] = encoded
-    srgb[dst] = srgb[src]
+    _scatter_texels(srgb, texels, encoded, dst, src)
     image = None
     if linear:
         image = np.zeros((R * R, 3), dtype=np.float32)
-        image[texels] = rgb
-        image[dst] = image[src]
+        _scatter_texels(image, texels, rgb, dst, src)
         image = image.reshape(R, R, 3)
     timings["gutter"] = time.perf_counter() - clock
     return srgb.reshape(R, R, 3), covered, image
+
+
+def _scatter_texels(atlas: np.ndarray, texels: np.ndarray, values: np.ndarray,
+                    dst: np.ndarray, src: np.ndarray) -> None:
+    """atlas[texels] = values, then the gutter copies atlas[dst] = atlas[src]; atlas (N, 3).
+    Each texel moved as one opaque item (a void view), half the time of (N, 3) rows."""
+    item = f"V{atlas.itemsize * 3}"
+    flat = atlas.view(item).reshape(-1)
+    flat[texels] = np.ascontiguousarray(values).view(item).reshape(-1)
+    flat[dst] = flat[src]
 
 
 def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: bytes, filename: str,
@@ -368,9 +379,32 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
                       len(faces), len(vertices), timings)
 
 
-def png_bytes(srgb: np.ndarray) -> bytes:
+def _zlib_in_parts(data: np.ndarray, parts: int) -> bytes:
+    """One zlib stream (level 1, run-length strategy) of ``data``, its parts deflated on
+    ``parts`` threads (zlib releases the GIL). Each part but the last ends with a sync
+    flush (byte-aligned, not final), so the raw streams concatenate into one; run-length
+    matches reach back one byte, so the split costs a few bytes, not compression."""
+    bounds = np.linspace(0, len(data), parts + 1).astype(int)
+
+    def deflate(i: int) -> bytes:
+        compressor = zlib.compressobj(1, zlib.DEFLATED, -15, 9, zlib.Z_RLE)
+        last = i == parts - 1
+        return (compressor.compress(data[bounds[i]:bounds[i + 1]])
+                + compressor.flush(zlib.Z_FINISH if last else zlib.Z_SYNC_FLUSH))
+
+    if parts == 1:
+        pieces = [deflate(0)]
+    else:
+        with ThreadPoolExecutor(parts, thread_name_prefix="png") as pool:
+            pieces = list(pool.map(deflate, range(parts)))
+    header = b"\x78\x01"                                            # deflate, 32 KiB window, fastest
+    return header + b"".join(pieces) + struct.pack(">I", zlib.adler32(data))
+
+
+def png_bytes(srgb: np.ndarray, parts: int = 2) -> bytes:
     """(H, W, 3) uint8 -> PNG bytes: every row with the Up filter (numpy, one subtraction)
-    and zlib level 1 with the run-length strategy. The bench mesh's 2048^2 atlas: 0.1 s and
+    and zlib level 1 with the run-length strategy, deflated in ``parts`` pieces at once
+    (images of 2^18 pixels or more). The bench mesh's 2048^2 atlas, one part: 0.1 s and
     4.2 MB, against Pillow's adaptive filters 0.44 s / 4.1 MB at level 1, 0.95 s / 3.9 MB
     at level 3, 2.6 s / 3.6 MB at level 6 (same image, same run; docs/PERFORMANCE.md)."""
     h, w, c = srgb.shape
@@ -379,8 +413,7 @@ def png_bytes(srgb: np.ndarray) -> bytes:
     filtered[:, 0] = 2                                               # filter type Up
     filtered[0, 1:] = rows[0]
     np.subtract(rows[1:], rows[:-1], out=filtered[1:, 1:])          # uint8 wraps, as PNG wants
-    deflate = zlib.compressobj(1, zlib.DEFLATED, 15, 9, zlib.Z_RLE)
-    data = deflate.compress(filtered) + deflate.flush()
+    data = _zlib_in_parts(filtered.reshape(-1), parts if h * w >= 1 << 18 else 1)
 
     def chunk(kind: bytes, body: bytes) -> bytes:
         return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))

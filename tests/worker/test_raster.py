@@ -1,5 +1,6 @@
 """worker/raster.py pieces of a bake that must be exact: the sRGB table, the gutter."""
 import io
+import zlib
 
 import numpy as np
 from PIL import Image
@@ -68,6 +69,12 @@ def test_png_bytes_round_trip():
             image[: shape[0] // 2] = 200                           # runs, as in a baked atlas
         decoded = Image.open(io.BytesIO(png_bytes(image)))
         assert decoded.mode == "RGB" and np.array_equal(np.asarray(decoded), image)
+    big = rng.integers(0, 256, (600, 512, 3), dtype=np.uint8)       # deflated in parts, joined as one stream
+    big[100:300] = 7
+    for parts in (1, 2, 3):
+        encoded = png_bytes(big, parts)
+        assert np.array_equal(np.asarray(Image.open(io.BytesIO(encoded))), big)
+        assert zlib.decompress(encoded[41:-16]) == zlib.decompress(png_bytes(big, 1)[41:-16])
 
 
 def test_texel_points_are_the_barycentric_blend_of_the_corners():
