@@ -140,11 +140,12 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     original = services.storage.get_file(texture.exemplar_key, workdir / Path(texture.exemplar_key).name)
     image = read_image(original.read_bytes(), max_pixels=services.settings.max_image_pixels)
     out_dir = workdir / "fit"
-    _fit_exemplar(services, texture, p, original, out_dir, progress, should_cancel)
+    fitted = _fit_exemplar(services, texture, p, original, out_dir, progress, should_cancel)
+    structure = {"grain": fitted.get("grain"), "lattice": fitted.get("lattice")}
     code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
     values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
     if p.in_place:
-        _refine_in_place(services, job, texture, out_dir / "sampler.onnx", code, image)
+        _refine_in_place(services, job, texture, out_dir / "sampler.onnx", code, image, structure)
         return {**values, "output_texture_id": texture.id}
     new_id = fitted_texture_id(job.id)
     sampler_key = keys.sampler_key(new_id)
@@ -161,13 +162,15 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
                                 owner_id=texture.owner_id,
                                 exemplar_key=exemplar_key,
                                 exemplar_media_type=texture.exemplar_media_type,
-                                width=texture.width, height=texture.height, sampler_key=sampler_key))
+                                width=texture.width, height=texture.height, sampler_key=sampler_key,
+                                structure=structure))
     return {**values, "output_texture_id": new_id}
 
 
 def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path: Path, out_dir: Path,
-                  progress: Progress, should_cancel: ShouldCancel) -> None:
-    """Run model.fit.fit_exemplar (torch) from the texture's model's space.pt."""
+                  progress: Progress, should_cancel: ShouldCancel) -> dict[str, Any]:
+    """Run model.fit.fit_exemplar (torch) from the texture's model's space.pt; its result
+    (code, grain and lattice used, ...)."""
     from model.fit import fit_exemplar  # torch lives in model/, imported only here
 
     def report(fraction: float, *_: Any, **__: Any) -> None:  # no cancel hook: stop at a report
@@ -179,12 +182,12 @@ def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path
     if not checkpoint.is_file():
         raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
     # TEXSPACE_FIT_THREADS: a fit must not take the cores tiles need
-    fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0, progress=report,
-                 grain=p.grain, lattice=p.lattice, threads=services.settings.fit_threads)
+    return fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0,
+                        progress=report, grain=p.grain, lattice=p.lattice, threads=services.settings.fit_threads)
 
 
 def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],
-                     image: np.ndarray) -> None:
+                     image: np.ndarray, structure: dict[str, Any]) -> None:
     """Make ``texture`` serve the fitted sampler: store it under a key of this attempt's own
     (so a tile ETag, which includes the key, never names two samplers' bytes), then update
     the row if this attempt still holds the job. The encoder's code is kept for blends."""
@@ -206,6 +209,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
         if row.encoder_code is None:  # the first refinement: keep what the encoder gave, for blends
             row.encoder_code, row.encoder_colour = list(row.code), row.colour
         row.code, row.colour, row.sampler_key, row.updated_at = code, colour, sampler_key, utcnow()
+        row.structure = structure
 
 
 def _store_tileable(services: Services, sampler_key: str, fit_dir: Path) -> None:

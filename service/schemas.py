@@ -41,6 +41,18 @@ class Refinement(BaseModel):
     progress: float = Field(ge=0, le=1)
 
 
+class Structure(BaseModel):
+    """What a fit found in the photo and built into its sampler (model/fit.py)."""
+
+    grain: Literal["x", "y"] | None = Field(
+        description="the axis the noise is stretched along (the photo's grain: x left-right, y up-down); "
+                    "null: isotropic")
+    lattice: list[float] | None = Field(
+        None, min_length=4, max_length=4,
+        description="the photo's repeat lattice the sampler follows, two basis vectors (ax, ay, bx, by) in "
+                    "world units (x right, y down the photo); null: none")
+
+
 class TextureOut(BaseModel):
     id: str
     name: str
@@ -58,6 +70,8 @@ class TextureOut(BaseModel):
         description="what tiles come from: the model's sampler at the encoder's code, or a sampler fitted "
                     "to this exemplar (a fit's new texture, or an upload once its refinement succeeded)")
     refinement: Refinement | None = Field(None, description="the upload's automatic refinement, if one was queued")
+    structure: Structure | None = Field(
+        None, description="what the fitted sampler was built with (grain, repeat lattice); null from the encoder")
     created_at: dt.datetime
     updated_at: dt.datetime
     links: TextureLinks
@@ -71,6 +85,7 @@ class TextureOut(BaseModel):
                    sampler="fitted" if t.sampler_key else "encoder",
                    refinement=Refinement(job_id=refinement.id, state=refinement.state, progress=refinement.progress)
                    if refinement is not None else None,
+                   structure=Structure(**t.structure) if t.structure and t.sampler_key else None,
                    created_at=t.created_at, updated_at=t.updated_at,
                    links=TextureLinks(self=base, exemplar=f"{base}/exemplar" if t.exemplar_key else None,
                                       tiles=f"{base}/tiles/{{z}}/{{x}}/{{y}}.png", tilejson=f"{base}/tilejson.json",

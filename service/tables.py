@@ -91,6 +91,9 @@ class Texture(Base):
     # table of encoder_code with the model's sampler, kept with it when a refinement replaces both.
     colour: Mapped[list | None] = mapped_column(JSON, nullable=True)
     encoder_colour: Mapped[list | None] = mapped_column(JSON, nullable=True)
+    # What the fitted sampler was built with (model.fit): {"grain": "x" | "y" | None,
+    # "lattice": [ax, ay, bx, by] world units | None}. None for the encoder's code.
+    structure: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
     updated_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
 

@@ -24,6 +24,9 @@ REPO = Path(__file__).resolve().parents[2]
 MODEL_DIR = REPO / "model" / "weights"
 
 
+FAKE_LATTICE = [0.5, 0.0, -0.21875, 0.166875]
+
+
 def fake_fit_module(calls: list[dict]) -> types.ModuleType:
     def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain=None,  # noqa: ANN001, ANN202
                      loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu", lattice=None):
@@ -36,7 +39,9 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
         (out_dir / "code.json").write_text(json.dumps({"code": [0.0] * 8}))
         if progress:
             progress(1.0)
-        return {"code": [0.0] * 8, "sampler": str(out_dir / "sampler.onnx"), "version": "fake", "steps": 1}
+        # what model.fit reports it used: the grain asked for, a lattice when asked to detect one
+        return {"code": [0.0] * 8, "sampler": str(out_dir / "sampler.onnx"), "version": "fake", "steps": 1,
+                "grain": grain if grain in ("x", "y") else None, "lattice": FAKE_LATTICE if lattice == "auto" else None}
 
     module = types.ModuleType("model.fit")
     module.fit_exemplar = fit_exemplar
@@ -99,6 +104,8 @@ def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_call
     assert fit_calls[0]["init_checkpoint"].name == "space.pt"
     fitted = fit_client.get(job["links"]["output_texture"]).json()
     assert fitted["source"] == "fit" and fitted["parents"]["job"] == job["id"]
+    assert fitted["structure"] == {"grain": "y", "lattice": FAKE_LATTICE}   # what the fit says it built
+    assert fit_client.get(f"/v1/textures/{fit_texture['id']}").json()["structure"] is None   # the encoder's
 
 
 def test_fit_without_grain_detects_it_and_null_is_isotropic(fit_client, fit_texture, fit_calls) -> None:

@@ -21,6 +21,9 @@ def test_fit_job_makes_a_texture_with_its_own_sampler(client, texture) -> None:
     assert fitted["source"] == "fit" and fitted["has_own_sampler"]
     assert fitted["parents"]["texture"] == texture["id"]
     assert fitted["model_version"] == texture["model_version"]
+    structure = fitted["structure"]                 # what the real fit reports it built (grain/lattice auto)
+    assert structure["grain"] in (None, "x", "y")
+    assert structure["lattice"] is None or (len(structure["lattice"]) == 4 and structure["grain"] is None)
     tile = client.get(f"/v1/textures/{fitted['id']}/tiles/6/0/0.png?size=64")
     assert tile.status_code == 200 and Image.open(io.BytesIO(tile.content)).size == (64, 64)
     assert client.get(fitted["links"]["exemplar"]).status_code == 200

@@ -24,7 +24,7 @@ from service.tables import Texture
 from service.tiles import CACHE_CONTROL, REFINING_CACHE_CONTROL
 from tests.service.conftest import upload_photo
 
-from .test_fit_grain import MODEL_DIR, fake_fit_module
+from .test_fit_grain import FAKE_LATTICE, MODEL_DIR, fake_fit_module
 
 TILE = "/v1/textures/{}/tiles/6/0/0.png?size=64"
 
@@ -67,7 +67,7 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     client, services = refining
     texture = upload_photo(client, photo)
     # served from the encoder's code at once; the refinement is queued on the fit lane
-    assert texture["sampler"] == "encoder" and not texture["has_own_sampler"]
+    assert texture["sampler"] == "encoder" and not texture["has_own_sampler"] and texture["structure"] is None
     refinement = texture["refinement"]
     assert refinement["state"] == "queued" and refinement["progress"] == 0
     assert services.fit_huey.pending_count() == 1 and services.huey.pending_count() == 0
@@ -89,6 +89,7 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     assert refined["sampler"] == "fitted" and refined["has_own_sampler"]
     assert refined["refinement"] == {"job_id": job["id"], "state": "succeeded", "progress": 1.0}
     assert refined["code"] == [0.0] * 8                         # the fit's code (the stand-in's)
+    assert refined["structure"] == {"grain": None, "lattice": FAKE_LATTICE}   # what the fit detected
     assert refined["source"] == "upload" and refined["links"]["tiles"] == texture["links"]["tiles"]
     assert client.get("/v1/textures").json()["items"][0]["sampler"] == "fitted"
 

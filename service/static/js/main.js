@@ -124,6 +124,15 @@ function followRefinement(texture) {
   });
 }
 
+/** What the fit built in (texture.structure), for the status line: '' when nothing. */
+function structureNote(texture) {
+  const structure = texture.structure;
+  if (!structure) return '';
+  if (structure.lattice) return ' (follows the photo\'s repeat lattice)';
+  if (structure.grain) return ` (grain along ${structure.grain})`;
+  return '';
+}
+
 /** The refinement succeeded: the texture's tiles now come from its fitted sampler. */
 async function refined(textureId) {
   try {
@@ -133,7 +142,7 @@ async function refined(textureId) {
     state.current = texture;
     renderLibrary(); // its new code
     textureMap.update({ v: api.tileVersion(texture) });
-    showRefinement('refined: tiles from the fitted sampler', 'succeeded');
+    showRefinement(`refined: tiles from the fitted sampler${structureNote(texture)}`, 'succeeded');
   } catch (error) {
     sayError(error);
   }
