@@ -49,13 +49,21 @@ GRAIN_SCALES = (1.0, 2.0, 4.0)
 
 
 # Lattice detection (``lattice="auto"``): the photo repeats on a 2D lattice when its
-# luminance autocorrelation has two independent peaks (not the origin, within a quarter of
+# luminance autocorrelation has two independent peaks (not the origin, within a third of
 # the image, at least LATTICE_MIN_OFFSET px away) both at least LATTICE_PEAK of the
-# origin's value. Measured on the 41 packaged photos: the brick wall (0.88 / 0.71), cinder
-# blocks (0.77 / 0.74) and both metal grills (0.97-0.99) pass; the next best are corrugated
-# cardboard (0.68 / 0.54), ceiling tiles (0.51), brushed metal (0.49), floor tiles (0.44);
-# stochastic photos stay below 0.3.
-LATTICE_PEAK = 0.6
+# origin's value, and the lattice they span shows: of its points within a third of the
+# image, at least LATTICE_SUPPORT have a peak of LATTICE_SUPPORT_PEAK or more nearby (a
+# chance peak does not come back at 2a, a + b, ...; a lattice's does). Measured on the 41
+# packaged photos at 256 px (peaks; support): found in the brick wall (0.88 / 0.67; 1.00),
+# cinder blocks, both metal grills, white and black-and-white floor tiles, ceiling tiles
+# (0.83-1.0, 64 px tiles: a window of a quarter of the image, as before, missed them),
+# concrete tiles (0.61 / 0.56), a woven cardboard (0.68 / 0.53), wood planks (0.44 / 0.44)
+# and a concrete photo that is a CG texture repeated 4 x 4 (0.54 / 0.45), all supported
+# 0.95-1.00; another cardboard has peaks 0.41 / 0.37 but support 0.14; the other 30 have
+# no two peaks >= 0.3.
+LATTICE_PEAK = 0.3
+LATTICE_SUPPORT = 0.6
+LATTICE_SUPPORT_PEAK = 0.25
 LATTICE_MIN_OFFSET = 4
 LATTICE_TIE = 0.05  # peaks this close to the strongest count as equally strong
 # Refinement: every lattice point within a third of the image whose correlation peak is at
@@ -85,7 +93,7 @@ def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | Non
     dy, dx = np.meshgrid(dy, dx, indexing="ij")
     peaks = ((correlation == ndimage.maximum_filter(correlation, size=5, mode="wrap"))
              & (correlation >= LATTICE_PEAK) & (np.hypot(dx, dy) >= LATTICE_MIN_OFFSET)
-             & (np.abs(dx) < width // 4) & (np.abs(dy) < height // 4))
+             & (np.abs(dx) <= width // 3) & (np.abs(dy) <= height // 3))
     found = list(zip(correlation[peaks], np.hypot(dx[peaks], dy[peaks]), dx[peaks], dy[peaks]))
     if not found:
         return None
@@ -102,17 +110,21 @@ def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | Non
     if not others:
         return None
     _, _, bx, by = strongest(others)
-    (ax, ay), (bx, by) = refine_lattice(correlation, np.array([[ax, ay], [bx, by]], np.float64))
+    basis, support = refine_lattice(correlation, np.array([[ax, ay], [bx, by]], np.float64))
+    if support < LATTICE_SUPPORT:
+        return None
+    (ax, ay), (bx, by) = basis
     return float(ax), float(ay), float(bx), float(by)
 
 
-def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> np.ndarray:
+def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, float]:
     """A least-squares basis (2, 2) (rows a, b as x, y) for the lattice points i a + j b
-    that ``correlation`` (normalised, origin at [0, 0], wrapping) shows: around each
-    point within a third of the image, its local peak, if at least LATTICE_REFINE_PEAK,
-    to a fraction of a pixel (a parabola through the peak and its neighbours along x and
-    along y). ``basis`` comes back as it was when too few points agree or the fit moves
-    a vector by more than a fifth of its length."""
+    that ``correlation`` (normalised, origin at [0, 0], wrapping) shows, and the lattice's
+    support: the share of its points within a third of the image with a peak of at least
+    LATTICE_SUPPORT_PEAK nearby. The fit uses each point's local peak, if at least
+    LATTICE_REFINE_PEAK, to a fraction of a pixel (a parabola through the peak and its
+    neighbours along x and along y). ``basis`` comes back as it was when too few points
+    agree or the fit moves a vector by more than a fifth of its length."""
     height, width = correlation.shape
     shortest = float(np.hypot(*basis.T).min())
     reach = int(np.ceil(max(height, width) / shortest))
@@ -140,16 +152,19 @@ def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> np.ndarray:
     dy = vertex(correlation[(peak_y - 1) % height, peak_x % width], at, correlation[(peak_y + 1) % height, peak_x % width])
     # a true local maximum, not the window's edge climbing towards a neighbouring peak
     interior = (np.abs(peak_x - predicted[:, 0]) < radius) & (np.abs(peak_y - predicted[:, 1]) < radius)
+    if not len(value):
+        return basis, 0.0
+    support = float(np.mean(value >= LATTICE_SUPPORT_PEAK))
     use = (value >= LATTICE_REFINE_PEAK) & interior
     if use.sum() < 4 or np.linalg.matrix_rank(steps[use]) < 2:
-        return basis
+        return basis, support
     points = np.stack([peak_x + dx, peak_y + dy], axis=1)[use]
     weight = np.sqrt(value[use])[:, None]
     fitted, *_ = np.linalg.lstsq(steps[use] * weight, points * weight, rcond=None)
     moved = np.hypot(*(fitted - basis).T)
     if (moved > 0.2 * np.hypot(*basis.T)).any():
-        return basis
-    return fitted
+        return basis, support
+    return fitted, support
 
 
 def detect_grain(image: np.ndarray) -> str | None:
