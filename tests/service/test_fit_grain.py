@@ -6,7 +6,6 @@ shipped sampler.onnx and a code), so this runs in a second without the train ext
 """
 from __future__ import annotations
 
-import io
 import json
 import shutil
 import sys
