@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FeatureUnavailable, InvalidParameter, ModelInvalid
+from .errors import InvalidParameter, ModelInvalid
 
 LANGUAGES = ("glsl", "wgsl")  # extensions and media types: worker.files.FORMATS
 
@@ -181,24 +181,28 @@ class SamplerWeights:
     """What every texture of one sampler file shares: the decoder and how to probe it."""
 
     path: str
-    noise: np.ndarray  # float32 [H, K*3] first layer (noise features -> hidden)
+    noise: np.ndarray  # float32 [H, K*3 + 4*harmonics] first layer (noise, then phase features -> hidden)
     hidden: tuple[np.ndarray, ...]  # float32 [H, H] each
     out: np.ndarray  # float32 [3, H]
     code_size: int
-    probe_model: bytes  # the sampler with the biases and the lattice as extra outputs
+    probe_model: bytes  # the sampler with the biases and the lattices as extra outputs
     biases_name: str
-    lattice_name: str
+    lattice_names: tuple[str, ...]  # the noise lattice q [.., K, 3] and, fitted on a repeat lattice, u [.., 2]
+    n_noise: int  # K*3 noise features
+    harmonics: int  # per repeat-lattice axis (model/networks.py lattice_phases); 0: no repeat lattice
 
 
 @dataclass(frozen=True)
 class TextureConstants:
     """One texture's constants: float64 matrices [K,3,3] and offsets [K,3] (lattice =
-    M p + o), float32 biases [L*H + 3], float32 colour table [colour_size] (may be empty)."""
+    M p + o), float32 biases [L*H + 3], float32 colour table [colour_size] (may be empty),
+    and for a sampler fitted on a repeat lattice its map u = R p + r, float64 [2, 4] (R | r)."""
 
     matrices: np.ndarray
     offsets: np.ndarray
     biases: np.ndarray
     colour: np.ndarray
+    repeat: np.ndarray | None = None
 
 
 @functools.lru_cache(maxsize=8)
@@ -206,9 +210,6 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
     data = Path(path).read_bytes()
     g = _read_graph(data)
     init = g.initializers
-    if any(k.endswith("decoder.from_phase.weight") for k in init):
-        raise FeatureUnavailable(f"{Path(path).name}: a sampler fitted on a repeat lattice (bricks, tile grids) "
-                                 "reads each point's phase on it, which this shader emitter does not write yet")
 
     def weight(suffix: str) -> np.ndarray:
         found = [v for k, v in init.items() if k.endswith(suffix)]
@@ -221,18 +222,28 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
     biases = [o[0] for op, i, o, _ in g.nodes
               if op == "Gemm" and len(i) > 1 and i[1].endswith("decoder.from_code.weight")]
     # The cell lattice q = lattice - 0.5: the input of the Floor whose output is subtracted
-    # from that same input (frac = q - floor(q), model/noise.py).
+    # from that same input (frac = q - floor(q), model/noise.py). A sampler fitted on a
+    # repeat lattice has a second such input, the point's lattice coordinates u
+    # (model/networks.py lattice_phases); the probe tells them apart by shape.
     floors = {o[0]: i[0] for op, i, o, _ in g.nodes if op == "Floor"}
-    lattice = [i[0] for op, i, o, _ in g.nodes if op == "Sub" and len(i) == 2 and floors.get(i[1]) == i[0]]
-    if len(biases) != 1 or len(lattice) != 1 or not hidden:
+    lattices = [i[0] for op, i, o, _ in g.nodes if op == "Sub" and len(i) == 2 and floors.get(i[1]) == i[0]]
+    phase = [v for k, v in init.items() if k.endswith("decoder.from_phase.weight")]
+    noise = weight("decoder.from_noise.weight")
+    if len(biases) != 1 or len(lattices) != 1 + len(phase) or not hidden or len(phase) > 1:
         raise ModelInvalid(f"{Path(path).name}: not a TextureField sampler this shader emitter knows "
-                           f"(code-bias Gemm: {len(biases)}, lattice: {len(lattice)}, hidden layers: {len(hidden)})")
+                           f"(code-bias Gemm: {len(biases)}, lattices: {len(lattices)}, phase weights: {len(phase)}, "
+                           f"hidden layers: {len(hidden)})")
+    first = np.concatenate([noise, *phase], axis=1)
+    if first.shape[1] % 4 or noise.shape[1] % 4:
+        raise ModelInvalid(f"{Path(path).name}: decoder inputs ({noise.shape[1]} noise, {first.shape[1]} in all) "
+                           "are not whole vec4s")
     z = weight("translator.body.0.weight")
     return SamplerWeights(
-        path=path, noise=weight("decoder.from_noise.weight"), hidden=hidden, out=weight("decoder.out.weight"),
+        path=path, noise=first, hidden=hidden, out=weight("decoder.out.weight"),
         code_size=int(z.shape[1]),
-        probe_model=_with_outputs(data, {biases[0]: 1, lattice[0]: 11}),
-        biases_name=biases[0], lattice_name=lattice[0])
+        probe_model=_with_outputs(data, {biases[0]: 1, **{name: 11 for name in lattices}}),
+        biases_name=biases[0], lattice_names=tuple(lattices), n_noise=int(noise.shape[1]),
+        harmonics=int(phase[0].shape[1]) // 4 if phase else 0)
 
 
 def sampler_weights(path: str | os.PathLike) -> SamplerWeights:
@@ -259,13 +270,21 @@ def _constants(path: str, _mtime: float, vector: bytes) -> TextureConstants:
         if len(colour) != size:
             raise InvalidParameter(f"colour table has {len(colour)} numbers, the sampler takes {size}")
         feed["colour"] = colour[None].astype(np.float32)
-    biases, q = session.run([w.biases_name, w.lattice_name], feed)
-    if q.shape[0] != 3:
-        raise ModelInvalid(f"shaders are emitted for 3D samplers only (lattice {q.shape})")
+    biases, *lattices = session.run([w.biases_name, *w.lattice_names], feed)
+    repeat = q = None
+    for found in lattices:
+        if found.shape[-1] == 2:  # u = R p + r on the repeat lattice: [.., probe, 2]
+            u = found.reshape(len(_PROBES), 2)
+            repeat = np.concatenate([(u[1:] - u[0]).T, u[0][:, None]], axis=1)  # [2, 4]: R | r
+        else:
+            q = found
+    if q is None or q.shape[0] != 3 or (w.harmonics and repeat is None):
+        raise ModelInvalid(f"shaders are emitted for 3D samplers only (lattices {[x.shape for x in lattices]})")
     q = q.reshape(3, len(_PROBES), -1) + 0.5  # [D, probe, K]: the lattice points themselves
     offsets = q[:, 0, :].T  # [K, 3]
     matrices = np.stack([q[:, j + 1, :] - q[:, 0, :] for j in range(3)], axis=-1).transpose(1, 0, 2)  # [K, D, 3]
-    return TextureConstants(matrices, offsets, biases.reshape(-1).astype(np.float32), colour.astype(np.float32))
+    return TextureConstants(matrices, offsets, biases.reshape(-1).astype(np.float32), colour.astype(np.float32),
+                            repeat)
 
 
 def texture_constants(path: str | os.PathLike, vector: np.ndarray) -> TextureConstants:
@@ -404,6 +423,37 @@ def _knots(c: TextureConstants) -> int:
     return (len(c.colour) - 24) // 3 if len(c.colour) else 0
 
 
+def _phases(w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
+    """The repeat-lattice phase features after the noise ones (model/networks.py
+    lattice_phases): ph = R p + r, then sin and cos of 2 pi k frac(ph), k = 1..harmonics, as
+    x[noise + i * H + k - 1] (sin) and x[noise + 2H + i * H + k - 1] (cos) for axis i."""
+    if not w.harmonics:
+        return ""
+    h, first = w.harmonics, w.n_noise
+    rows = [s.ctor(s.vec3, c.repeat[i, :3]) for i in range(2)]
+    if s.f32 == "float":
+        return f"""  // phase on the photo's repeat lattice
+  vec2 ph = vec2(dot({rows[0]}, p), dot({rows[1]}, p)) + vec2({_num(c.repeat[0, 3])}, {_num(c.repeat[1, 3])});
+  ph -= floor(ph);
+  for (int i = 0; i < 2; ++i) for (int k = 1; k <= {h}; ++k) {{
+    float angle = {_num(2 * np.pi)} * ph[i] * float(k);
+    x[{first} + i * {h} + k - 1] = sin(angle);
+    x[{first + 2 * h} + i * {h} + k - 1] = cos(angle);
+  }}
+"""
+    return f"""  // phase on the photo's repeat lattice
+  var ph = vec2<f32>(dot({rows[0]}, p), dot({rows[1]}, p)) + vec2<f32>({_num(c.repeat[0, 3])}, {_num(c.repeat[1, 3])});
+  ph -= floor(ph);
+  for (var i = 0; i < 2; i++) {{
+    for (var k = 1; k <= {h}; k++) {{
+      let angle = {_num(2 * np.pi)} * ph[i] * f32(k);
+      x[{first} + i * {h} + k - 1] = sin(angle);
+      x[{first + 2 * h} + i * {h} + k - 1] = cos(angle);
+    }}
+  }}
+"""
+
+
 def _glsl_body(n: str, w: SamplerWeights, c: TextureConstants) -> str:
     k, nb = len(c.matrices), w.noise.shape[1] // 4
     scales, decoder, knots = _channel_scales(GLSL), _decoder(n, w, c, GLSL), _knots(c)
@@ -460,7 +510,7 @@ vec3 {n}(vec3 p, uint seed) {{
     vec3 feature = (level - 0.5) * 2.0;
     x[3 * k] = feature.x; x[3 * k + 1] = feature.y; x[3 * k + 2] = feature.z;
   }}
-{decoder}  vec3 raw = 1.0 / (1.0 + exp(-2.0 * o.xyz));  // sigmoid(2 logits)
+{_phases(w, c, GLSL)}{decoder}  vec3 raw = 1.0 / (1.0 + exp(-2.0 * o.xyz));  // sigmoid(2 logits)
 {colour}
 }}
 """
@@ -529,7 +579,7 @@ fn {n}(p: vec3<f32>, seed: u32) -> vec3<f32> {{
     let feature = (level - 0.5) * 2.0;
     x[3 * k] = feature.x; x[3 * k + 1] = feature.y; x[3 * k + 2] = feature.z;
   }}
-{decoder}  let raw = 1.0 / (1.0 + exp(-2.0 * o.xyz));  // sigmoid(2 logits)
+{_phases(w, c, WGSL)}{decoder}  let raw = 1.0 / (1.0 + exp(-2.0 * o.xyz));  // sigmoid(2 logits)
 {colour}
 }}
 """

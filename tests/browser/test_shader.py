@@ -19,6 +19,7 @@ import pytest
 
 from tests.browser.conftest import CHROMIUM, CHROMIUM_FLAGS
 from tests.browser.helpers import texture_photo_png
+from worker import shader
 from worker.colour_match import texture_vector
 from worker.runtime import SamplerSession
 
@@ -56,6 +57,27 @@ def uploaded(base_url) -> dict:
         return json.load(response)
 
 
+@pytest.fixture(scope="module")
+def lattice_sampler(tmp_path_factory) -> Path:
+    """A sampler fitted on a repeat lattice, as a fit of a brick wall makes one: the shipped
+    space's weights, a running-bond lattice (world units) and phase weights drawn at random
+    (a fit learns them; any values take the same path through the shader)."""
+    torch = pytest.importorskip("torch", reason="exporting a sampler needs the train extra")
+    from model.export import export_sampler
+    from model.networks import ModelConfig, TextureSpace
+
+    checkpoint = torch.load(SAMPLER.parent / "space.pt", map_location="cpu", weights_only=False)
+    field = TextureSpace(ModelConfig(**{**checkpoint["config"], "lattice": (0.125, 0.0, -0.054, 0.0417)})).field
+    state = {k[len("field."):]: v for k, v in checkpoint["model"].items() if k.startswith("field.")}
+    missing, _ = field.load_state_dict(state, strict=False)
+    assert missing == ["decoder.from_phase.weight"], missing
+    torch.manual_seed(0)
+    torch.nn.init.normal_(field.decoder.from_phase.weight, std=0.5)
+    path = tmp_path_factory.mktemp("lattice-sampler") / "sampler.onnx"
+    export_sampler(field.eval(), path)
+    return path
+
+
 def points() -> np.ndarray:
     """The shader's points, exactly: origin + (pixel centre) * scale in float32, row-major, y up."""
     j, i = np.mgrid[0:SIZE, 0:SIZE].astype(np.float32)
@@ -84,5 +106,28 @@ def test_shader_matches_the_sampler(gpu_page, base_url, uploaded, artifacts, lan
               "compiler_messages": result.get("messages", [])}
     (artifacts / f"shader_{language}.json").write_text(json.dumps(report, indent=2) + "\n")
     assert want.std() > 0.01  # a textured patch, not a flat one
+    assert diff.mean() <= LIMIT, report
+    assert diff.max() <= 8 * LIMIT, report
+
+
+@pytest.mark.parametrize("language", ["glsl", "wgsl"])
+def test_lattice_shader_matches_its_sampler(gpu_page, lattice_sampler, uploaded, artifacts, language):
+    """A texture fitted on a repeat lattice (bricks, tile grids): the shader computes each
+    point's phase on the lattice as the sampler does (model/networks.py lattice_phases)."""
+    vector = texture_vector(uploaded["code"], uploaded["colour"])
+    name = "texspace_bricks"
+    source = shader.emit_shader(lattice_sampler, vector, name, language)
+    harness = (HERE / f"shader_harness{'_wgsl' if language == 'wgsl' else ''}.js").read_text()
+    result = gpu_page.evaluate(harness, dict(source=source, name=name, size=SIZE, origin=list(ORIGIN),
+                                             scale=SCALE, seed=SEED))
+    assert not result.get("error"), (result.get("error"), result.get("messages"))
+    got = np.asarray(result["pixels"], np.float32).reshape(SIZE * SIZE, 4)[:, :3]
+    want = SamplerSession(lattice_sampler, threads=1).sample(points(), vector, SEED)
+    plain = SamplerSession(SAMPLER, threads=1).sample(points(), vector, SEED)
+    diff = np.abs(got - want)
+    report = {"language": language, "lattice": True, "mean_abs_255": float(diff.mean() * 255),
+              "max_abs_255": float(diff.max() * 255), "phase_effect_255": float(np.abs(want - plain).mean() * 255)}
+    (artifacts / f"shader_lattice_{language}.json").write_text(json.dumps(report, indent=2) + "\n")
+    assert np.abs(want - plain).mean() > 4 * LIMIT, report   # the phases change the texture
     assert diff.mean() <= LIMIT, report
     assert diff.max() <= 8 * LIMIT, report

@@ -126,11 +126,10 @@ def test_detect_lattice_finds_a_tile_grid_four_tiles_across():
     assert np.abs(change - np.rint(change)).max() < 0.02 and abs(abs(np.linalg.det(np.rint(change))) - 1) < 1e-9, found
 
 
-def test_lattice_fit_reads_phases_and_writes_no_tileable_sampler(tmp_path, vgg):
+def test_lattice_fit_reads_phases_has_a_shader_and_no_tileable_sampler(tmp_path, vgg):
     from model.export import TILEABLE_SAMPLER, export_tileable_sampler
     from model.networks import load_checkpoint
-    from worker.errors import FeatureUnavailable
-    from worker.shader import emit_shader
+    from worker.shader import emit_shader, texture_constants
 
     torch.manual_seed(0)
     export_model(TextureSpace(ModelConfig()), tmp_path / "space")
@@ -155,9 +154,22 @@ def test_lattice_fit_reads_phases_and_writes_no_tileable_sampler(tmp_path, vgg):
     assert torch.allclose(field.lattice_phases(points), field.lattice_phases(moved), atol=1e-4)
     with pytest.raises(ValueError, match="lattice"):
         export_tileable_sampler(field, tmp_path / "t.onnx")
+    # the shader reads the lattice out of the sampler: its phase features are the field's
     code = np.asarray(result["code"], np.float32)
-    with pytest.raises(FeatureUnavailable, match="lattice"):
-        emit_shader(tmp_path / "fit" / "sampler.onnx", np.concatenate([code, np.zeros(216, np.float32)]), "bricks")
+    vector = np.concatenate([code, np.zeros(216, np.float32)])
+    constants = texture_constants(tmp_path / "fit" / "sampler.onnx", vector)
+    repeat = constants.repeat                                   # u = R p + r
+    basis = np.array(result["lattice"]).reshape(2, 2).T         # columns a, b
+    assert np.allclose(repeat[:, :2] @ basis, np.eye(2), atol=1e-9) and np.allclose(repeat[:, 2:], 0, atol=1e-12)
+    near = np.random.default_rng(2).uniform(-3, 3, (40, 3))
+    u = near @ repeat[:, :3].T + repeat[:, 3]
+    angle = 2 * np.pi * (u - np.floor(u))[:, :, None] * np.arange(1, 5)          # [P, axis, k]
+    phases = np.concatenate([np.sin(angle).reshape(40, -1), np.cos(angle).reshape(40, -1)], axis=1)
+    want = field.lattice_phases(torch.from_numpy(near)[None]).numpy()[0]
+    assert np.allclose(phases, want, atol=1e-5)
+    for language in ("glsl", "wgsl"):
+        text = emit_shader(tmp_path / "fit" / "sampler.onnx", vector, "bricks", language)
+        assert "repeat lattice" in text and text.count("{") == text.count("}")
 
 
 def test_a_lattice_field_starts_as_the_field_without_it() -> None:
