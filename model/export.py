@@ -182,9 +182,6 @@ def export_sampler(field: TextureField, path: Path) -> None:
 
 
 def export_tileable_sampler(field: TextureField, path: Path) -> None:
-    if field.cfg.lattice:
-        raise ValueError("a field with a repeat lattice has no tileable sampler: its phases do not wrap "
-                         "with the tile period")
     points = torch.rand(64, 3, dtype=torch.float64)
     z = torch.zeros(1, field.cfg.code_size)
     seed = torch.tensor(0, dtype=torch.int64)

@@ -231,14 +231,13 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                                                "loss", "layers", "final_loss", "probe")} | {"init": str(init)},
                out_dir / "fit.pt")
     export_sampler(model.field, out_dir / "sampler.onnx")
-    if not lattice:  # a lattice's phases do not wrap with a tile's period: no tileable sampler
-        export_tileable_sampler(model.field, out_dir / TILEABLE_SAMPLER)
+    export_tileable_sampler(model.field, out_dir / TILEABLE_SAMPLER)
     code = ckpt["code"].reshape(-1).tolist()
     (out_dir / "code.json").write_text(json.dumps({"code": code}) + "\n")
     manifest = {
         "version": model_version(out_dir / "sampler.onnx"),
         "kind": "fitted",
-        "tileable_sampler": None if lattice else TILEABLE_SAMPLER,
+        "tileable_sampler": TILEABLE_SAMPLER,
         "base_model": init.name,
         "pixels_per_unit": space_cfg.pixels_per_unit,
         "code": code,

@@ -333,11 +333,19 @@ class TextureField(nn.Module):
             basis = torch.tensor(cfg.lattice, dtype=torch.float64).reshape(2, 2).t()  # columns a, b
             self.register_buffer("lattice_inverse", torch.linalg.inv(basis), persistent=False)
 
-    def lattice_phases(self, points: torch.Tensor) -> torch.Tensor:
+    def lattice_phases(self, points: torch.Tensor, period: torch.Tensor | None = None) -> torch.Tensor:
         """float64 [B,P,>=2] -> float32 [B,P,4*H]: sin and cos of 2 pi k u, u the point's
         (x, y) in lattice coordinates, k = 1..H (``lattice_harmonics``). Exactly periodic
-        on the lattice; u is taken in float64 so far-away points keep their phase."""
-        u = points[..., :2] @ self.lattice_inverse.t()  # [B,P,2]
+        on the lattice; u is taken in float64 so far-away points keep their phase.
+
+        ``period`` (float64 [], world units; tileable synthesis): the lattice nudged so that
+        it also repeats every ``period`` in x and y: period x the inverse basis rounded to
+        whole numbers (how many cells a period crosses along each lattice axis), divided by
+        the period. A 256-px tile of the brick wall moves its bond offset by half a pixel."""
+        inverse = self.lattice_inverse
+        if period is not None:
+            inverse = torch.round(period * inverse) / period
+        u = points[..., :2] @ inverse.t()  # [B,P,2]
         k = torch.arange(1, self.cfg.lattice_harmonics + 1, dtype=torch.float64, device=points.device)
         # the fractional part first: sin/cos of a small float32 angle, exact at any distance
         angle = (2.0 * math.pi) * (u - torch.floor(u)).unsqueeze(-1) * k  # [B,P,2,H]
@@ -438,7 +446,7 @@ class TextureField(nn.Module):
                 # Centred to [-1, 1]: zero-mean inputs suit the ReLU layers' init.
                 features = (torch.cat(parts, dim=-1).reshape(b, p, -1) - 0.5) * 2.0
             position = points.to(torch.float32) if flags.position else None
-            phase = self.lattice_phases(points) if cfg.lattice else None
+            phase = self.lattice_phases(points, period) if cfg.lattice else None
             logits = self.decoder(features, position, extended, phase)
         return torch.sigmoid(2.0 * logits)  # = (tanh + 1) / 2, the authors' output range
 

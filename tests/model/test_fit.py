@@ -127,7 +127,9 @@ def test_detect_lattice_finds_a_tile_grid_four_tiles_across():
 
 
 def test_lattice_fit_reads_phases_has_a_shader_and_no_tileable_sampler(tmp_path, vgg):
-    from model.export import TILEABLE_SAMPLER, export_tileable_sampler
+    from model.export import TILEABLE_SAMPLER
+    from worker.colour_match import identity_colour
+    from worker.runtime import PeriodicSampler, SamplerSession
     from model.networks import load_checkpoint
     from worker.shader import emit_shader, texture_constants
 
@@ -142,8 +144,7 @@ def test_lattice_fit_reads_phases_has_a_shader_and_no_tileable_sampler(tmp_path,
     ax, ay, bx, by = np.array(result["lattice"]) * ppu  # world units: one exemplar pixel = 1 / ppu
     assert abs(ax * by - ay * bx) == pytest.approx(32 * 11, rel=0.01)
     manifest = json.loads((tmp_path / "fit" / "manifest.json").read_text())
-    assert manifest["lattice"] == result["lattice"] and manifest["tileable_sampler"] is None
-    assert not (tmp_path / "fit" / TILEABLE_SAMPLER).exists()
+    assert manifest["lattice"] == result["lattice"] and manifest["tileable_sampler"] == TILEABLE_SAMPLER
     (fitted,) = [load_checkpoint(tmp_path / "fit" / "fit.pt")[0]]
     field = fitted.field
     # the phases repeat exactly on the lattice, far from the origin too
@@ -152,8 +153,21 @@ def test_lattice_fit_reads_phases_has_a_shader_and_no_tileable_sampler(tmp_path,
     moved = points.clone()
     moved[..., :2] += torch.from_numpy(3 * a - 7 * b)
     assert torch.allclose(field.lattice_phases(points), field.lattice_phases(moved), atol=1e-4)
-    with pytest.raises(ValueError, match="lattice"):
-        export_tileable_sampler(field, tmp_path / "t.onnx")
+    # the tileable sampler repeats every period in x and y, lattice phases included
+    tileable = PeriodicSampler(SamplerSession(tmp_path / "fit" / TILEABLE_SAMPLER, threads=1), period=0.9)
+    vector = np.concatenate([np.asarray(result["code"], np.float32), identity_colour(216)])
+    near = np.random.default_rng(3).uniform(0, 1, (200, 3))
+    base = tileable.sample(near, vector, 4)
+    for shift in ((0.9, 0.0, 0.0), (0.0, -1.8, 0.0)):
+        assert np.abs(tileable.sample(near + shift, vector, 4) - base).max() < 1e-4
+    # ... because the phases do (the fit has barely moved their weights from zero): the
+    # lattice is nudged to whole cells per period, and without the period it does not wrap
+    period = torch.tensor(0.9, dtype=torch.float64)
+    at = torch.from_numpy(near)[None]
+    for shift in ((0.9, 0.0, 0.0), (0.0, 2.7, 0.0)):
+        moved = at + torch.tensor(shift, dtype=torch.float64)
+        assert torch.allclose(field.lattice_phases(moved, period), field.lattice_phases(at, period), atol=1e-4)
+        assert not torch.allclose(field.lattice_phases(moved), field.lattice_phases(at), atol=1e-2)
     # the shader reads the lattice out of the sampler: its phase features are the field's
     code = np.asarray(result["code"], np.float32)
     vector = np.concatenate([code, np.zeros(216, np.float32)])
