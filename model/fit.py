@@ -54,14 +54,18 @@ GRAIN_SCALES = (1.0, 2.0, 4.0)
 # origin's value, and the lattice they span shows: of its points within a third of the
 # image, at least LATTICE_SUPPORT have a peak of LATTICE_SUPPORT_PEAK or more nearby (a
 # chance peak does not come back at 2a, a + b, ...; a lattice's does). Measured on the 41
-# packaged photos at 256 px (peaks; support): found in the brick wall (0.88 / 0.67; 1.00),
-# cinder blocks, both metal grills, white and black-and-white floor tiles, ceiling tiles
-# (0.83-1.0, 64 px tiles: a window of a quarter of the image, as before, missed them),
-# concrete tiles (0.61 / 0.56), a woven cardboard (0.68 / 0.53), wood planks (0.44 / 0.44)
-# and a concrete photo that is a CG texture repeated 4 x 4 (0.54 / 0.45), all supported
-# 0.95-1.00; another cardboard has peaks 0.41 / 0.37 but support 0.14; the other 30 have
-# no two peaks >= 0.3.
+# packaged photos at 256 px (peaks; support): found in 10, the brick wall (0.88 / 0.67;
+# 1.00), cinder blocks, both metal grills, white and black-and-white floor tiles, ceiling
+# tiles (0.83-1.0, 64 px tiles: a window of a quarter of the image, as before, missed
+# them), concrete tiles (0.61 / 0.56), a woven cardboard (0.68 / 0.53) and a concrete photo
+# that is a CG texture repeated 4 x 4 (0.54 / 0.45), all supported 0.95-1.00. The wood
+# planks' (0.44 / 0.44; 1.00) gives way to their grain (LATTICE_STRONG); another cardboard
+# has peaks 0.41 / 0.37 but support 0.14; the other 29 have no two peaks >= 0.3.
 LATTICE_PEAK = 0.3
+# A lattice whose peaks are not all this strong loses to grain when the photo has grain:
+# the wood planks' lattice (0.44) made a 60-s fit draw diagonal blobs, their grain (y)
+# vertical boards.
+LATTICE_STRONG = 0.6
 LATTICE_SUPPORT = 0.6
 LATTICE_SUPPORT_PEAK = 0.25
 LATTICE_MIN_OFFSET = 4
@@ -105,13 +109,15 @@ def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | Non
     # The strongest repeat first, then the strongest one at least 30 degrees from it: for a
     # running bond, one brick along the row and a few courses down (the course height
     # alone is not a repeat, the bricks shift by half a brick from one course to the next).
-    _, length_a, ax, ay = strongest(found)
+    value_a, length_a, ax, ay = strongest(found)
     others = [c for c in found if abs(ax * c[3] - ay * c[2]) > 0.5 * length_a * c[1]]
     if not others:
         return None
-    _, _, bx, by = strongest(others)
+    value_b, _, bx, by = strongest(others)
     basis, support = refine_lattice(correlation, np.array([[ax, ay], [bx, by]], np.float64))
     if support < LATTICE_SUPPORT:
+        return None
+    if min(value_a, value_b) < LATTICE_STRONG and detect_grain(image) is not None:
         return None
     (ax, ay), (bx, by) = basis
     return float(ax), float(ay), float(bx), float(by)

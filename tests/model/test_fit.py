@@ -126,7 +126,28 @@ def test_detect_lattice_finds_a_tile_grid_four_tiles_across():
     assert np.abs(change - np.rint(change)).max() < 0.02 and abs(abs(np.linalg.det(np.rint(change))) - 1) < 1e-9, found
 
 
-def test_lattice_fit_reads_phases_has_a_shader_and_no_tileable_sampler(tmp_path, vgg):
+def test_a_weak_lattice_gives_way_to_grain(monkeypatch):
+    """A lattice with peaks under LATTICE_STRONG is kept for a photo without grain and
+    dropped for one with grain (wood planks: their weak lattice drew blobs, their grain
+    boards); a strong lattice stays either way."""
+    import model.fit as fit
+
+    rng = np.random.default_rng(5)
+    size, tile = 256, 64
+    y, x = np.mgrid[0:size, 0:size]
+
+    def grid(noise: float) -> np.ndarray:
+        image = 0.8 + noise * ndimage.gaussian_filter(rng.standard_normal((size, size)), 2) / 0.14
+        image[(y % tile < 2) | (x % tile < 2)] -= 0.25
+        return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+    weak, strong = grid(0.05), grid(0.01)            # autocorrelation peaks ~0.56 and ~0.95
+    assert detect_lattice(weak) is not None and detect_lattice(strong) is not None
+    monkeypatch.setattr(fit, "detect_grain", lambda image: "y")
+    assert detect_lattice(weak) is None and detect_lattice(strong) is not None
+
+
+def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, vgg):
     from model.export import TILEABLE_SAMPLER
     from worker.colour_match import identity_colour
     from worker.runtime import PeriodicSampler, SamplerSession
