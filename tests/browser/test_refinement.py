@@ -50,4 +50,8 @@ def test_upload_shows_refinement_progress_then_fitted_tiles(page, refining_serve
     note = (" (follows the photo's repeat lattice)" if structure["lattice"] else
             f" (grain along {structure['grain']})" if structure["grain"] else "")
     assert page.text_content("#refinement") == "refined: tiles from the fitted sampler" + note
+    # opened again later, the texture still says what its tiles come from
+    page.reload()
+    page.wait_for_function("(text) => document.getElementById('refinement').textContent === text",
+                           arg="tiles from the fitted sampler" + note, timeout=60_000)
     assert page_errors(page) == []

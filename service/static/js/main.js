@@ -110,7 +110,11 @@ function followRefinement(texture) {
   stopRefinement();
   stopRefinement = () => {};
   const refinement = texture.refinement;
-  if (!refinement || texture.sampler === 'fitted' || ENDED.has(refinement.state)) {
+  if (texture.sampler === 'fitted') {
+    showRefinement(`tiles from the fitted sampler${structureNote(texture)}`, 'succeeded');
+    return;
+  }
+  if (!refinement || ENDED.has(refinement.state)) {
     showRefinement();
     return;
   }
