@@ -242,10 +242,11 @@ def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, p
     affine = raster.face_affine(tri_uv, tri_xyz, R)
     affine *= scale
     timings["raster"], clock = time.perf_counter() - clock, time.perf_counter()
-    # While the sampler works (its session.run releases the GIL, as do scipy's distance
-    # transform and numpy's loops), a helper thread computes the gutter's sources (they
-    # depend on coverage only), the next chunk's surface points and the previous chunk's
-    # sRGB codes, so little of that waits until after sampling.
+    # While the sampler works (its session.run releases the GIL, as do numpy's loops), a
+    # helper thread computes the gutter's sources (they depend on coverage only), the next
+    # chunk's surface points and the previous chunk's sRGB codes, so little of that waits
+    # until after sampling. It still takes CPU from the sampler's two threads about one
+    # for one (docs/PERFORMANCE.md), so each of those stages is kept cheap too.
     rgb = np.empty((len(texels), 3), dtype=np.float32)
     encoded = np.empty((len(texels), 3), dtype=np.uint8)
     starts = list(range(0, len(texels), chunk)) + [len(texels)]
