@@ -31,7 +31,8 @@ ROWS = [("data/textures/val/vpython_granite.png", "validation photo (not trained
         ("data/textures/val/miniworld_brick_wall_1.png", "validation photo"),
         ("data/textures/val/miniworld_wood_1.png", "validation photo"),
         ("data/textures/val/vpython_gravel.png", "validation photo"),
-        ("data/textures/val/miniworld_grass_2.png", "validation photo")]
+        ("data/textures/val/miniworld_grass_2.png", "validation photo"),
+        ("data/textures/val/miniworld_floor_tiles_white.png", "validation photo")]
 
 
 def fitted_tile(fit_dir: Path, image: np.ndarray, short_side: int, pixels_per_unit: float) -> np.ndarray:
