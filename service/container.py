@@ -101,9 +101,8 @@ class Services:
         if texture.sampler_key:
             if self.storage.exists(tileable_key(texture.sampler_key)):
                 return None
-            return (f"texture {texture.id} has a fitted sampler without a tileable twin: either it was fitted "
-                    "on a repeat lattice (bricks, tile grids: the lattice's phases do not wrap with an image's "
-                    "side) or before tileable textures existed; refit it with lattice null "
+            return (f"texture {texture.id} has a fitted sampler without a tileable twin: it was fitted before "
+                    "tileable textures existed (or, on a repeat lattice, before lattice fits got one); refit it "
                     f"(POST /v1/textures/{texture.id}/fit) to get one")
         if self.registry.get(texture.model_version).tileable_path is None:
             return (f"model {texture.model_version} has no tileable sampler: it was exported before "

@@ -149,9 +149,10 @@ class FitIn(BaseModel):
                             "along it at 1, 2 and 4 px); null: isotropic")
     lattice: Literal["auto"] | None = Field(
         "auto", description="regular exemplar (bricks, tile grids, perforated metal): auto (default) detects the "
-                            "2D lattice the photo repeats on (two independent autocorrelation peaks >= 0.6) and "
-                            "the fitted sampler also reads each point's phase on it, so tiles show rows and "
-                            "grids; such a texture has no tileable export or shader yet. null: off")
+                            "2D lattice the photo repeats on (two independent autocorrelation peaks >= 0.3 "
+                            "spanning a lattice whose other points show peaks too; a weak one gives way to "
+                            "grain) and the fitted sampler, its shader and its tileable twin also read each "
+                            "point's phase on it, so tiles show rows and grids. null: off")
 
 
 class FitParams(FitIn):
