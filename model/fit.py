@@ -140,6 +140,8 @@ def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> tuple[np.ndarr
     predicted = steps @ basis
     inside = (np.abs(predicted[:, 0]) < width / 3) & (np.abs(predicted[:, 1]) < height / 3)
     steps, predicted = steps[inside], np.rint(predicted[inside]).astype(int)
+    if not len(steps):
+        return basis, 0.0
     radius = max(1, int(0.2 * shortest))
     window = np.arange(-radius, radius + 1)
     ys = (predicted[:, 1, None, None] + window[None, :, None]) % height       # (N, K, 1)
@@ -158,8 +160,6 @@ def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> tuple[np.ndarr
     dy = vertex(correlation[(peak_y - 1) % height, peak_x % width], at, correlation[(peak_y + 1) % height, peak_x % width])
     # a true local maximum, not the window's edge climbing towards a neighbouring peak
     interior = (np.abs(peak_x - predicted[:, 0]) < radius) & (np.abs(peak_y - predicted[:, 1]) < radius)
-    if not len(value):
-        return basis, 0.0
     support = float(np.mean(value >= LATTICE_SUPPORT_PEAK))
     use = (value >= LATTICE_REFINE_PEAK) & interior
     if use.sum() < 4 or np.linalg.matrix_rank(steps[use]) < 2:
