@@ -181,7 +181,7 @@ class SamplerWeights:
     """What every texture of one sampler file shares: the decoder and how to probe it."""
 
     path: str
-    noise: np.ndarray  # float32 [H, K*3 + 4*harmonics] first layer (noise, then phase features -> hidden)
+    first: np.ndarray  # float32 [H, K*3 + 4*harmonics] first layer: noise, then phase features -> hidden
     hidden: tuple[np.ndarray, ...]  # float32 [H, H] each
     out: np.ndarray  # float32 [3, H]
     code_size: int
@@ -239,7 +239,7 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
                            "are not whole vec4s")
     z = weight("translator.body.0.weight")
     return SamplerWeights(
-        path=path, noise=first, hidden=hidden, out=weight("decoder.out.weight"),
+        path=path, first=first, hidden=hidden, out=weight("decoder.out.weight"),
         code_size=int(z.shape[1]),
         probe_model=_with_outputs(data, {biases[0]: 1, **{name: 11 for name in lattices}}),
         biases_name=biases[0], lattice_names=tuple(lattices), n_noise=int(noise.shape[1]),
@@ -392,10 +392,10 @@ def _decoder(n: str, w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
     output ``o``."""
     let = "vec4" if s.f32 == "float" else "let"
     zero = f"{s.vec4}(0.0)"
-    inputs = [f"x{j}" for j in range(w.noise.shape[1] // 4)]
+    inputs = [f"x{j}" for j in range(w.first.shape[1] // 4)]
     lines = [f"  {let} x{j} = {s.vec4}(x[{4 * j}], x[{4 * j + 1}], x[{4 * j + 2}], x[{4 * j + 3}]);\n"
              for j in range(len(inputs))]
-    layers = [w.noise, *w.hidden, w.out]
+    layers = [w.first, *w.hidden, w.out]
     offset = 0
     for depth, weight in enumerate(layers):
         blocks = _blocks(weight)
@@ -455,7 +455,7 @@ def _phases(w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
 
 
 def _glsl_body(n: str, w: SamplerWeights, c: TextureConstants) -> str:
-    k, nb = len(c.matrices), w.noise.shape[1] // 4
+    k, nb = len(c.matrices), w.first.shape[1] // 4
     scales, decoder, knots = _channel_scales(GLSL), _decoder(n, w, c, GLSL), _knots(c)
     colour = f"""
   // colour table: fourth-root compression, A, per-channel curves, B, back to linear
@@ -517,7 +517,7 @@ vec3 {n}(vec3 p, uint seed) {{
 
 
 def _wgsl_body(n: str, w: SamplerWeights, c: TextureConstants) -> str:
-    k, nb = len(c.matrices), w.noise.shape[1] // 4
+    k, nb = len(c.matrices), w.first.shape[1] // 4
     scales, decoder, knots = _channel_scales(WGSL), _decoder(n, w, c, WGSL), _knots(c)
     colour = f"""
   // colour table: fourth-root compression, A, per-channel curves, B, back to linear
