@@ -40,7 +40,6 @@ import os
 import struct
 import time
 import zipfile
-import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,7 +52,7 @@ from worker.bake_outputs import add_bake_outputs, check_options
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH
 from worker.errors import Canceled, InvalidMesh, InvalidParameter, LimitExceeded
 from worker.files import ZIP_TIME, atomic_output, media_type
-from worker.images import write_image
+from worker.images import png_bytes, write_image
 from worker.runtime import Sampler
 
 FORMATS = ("glb", "obj")  # extensions and media types: worker.files (an obj bake is a zip)
@@ -378,49 +377,6 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     report(1.0)
     return BakeResult(out_path, exr_path, uv_source, resolution, float(scale), covered,
                       len(faces), len(vertices), timings)
-
-
-def _zlib_in_parts(data: np.ndarray, parts: int) -> bytes:
-    """One zlib stream (level 1, run-length strategy) of ``data``, its parts deflated on
-    ``parts`` threads (zlib releases the GIL). Each part but the last ends with a sync
-    flush (byte-aligned, not final), so the raw streams concatenate into one; run-length
-    matches reach back one byte, so the split costs a few bytes, not compression."""
-    bounds = np.linspace(0, len(data), parts + 1).astype(int)
-
-    def deflate(i: int) -> bytes:
-        compressor = zlib.compressobj(1, zlib.DEFLATED, -15, 9, zlib.Z_RLE)
-        last = i == parts - 1
-        return (compressor.compress(data[bounds[i]:bounds[i + 1]])
-                + compressor.flush(zlib.Z_FINISH if last else zlib.Z_SYNC_FLUSH))
-
-    if parts == 1:
-        pieces = [deflate(0)]
-    else:
-        with ThreadPoolExecutor(parts, thread_name_prefix="png") as pool:
-            pieces = list(pool.map(deflate, range(parts)))
-    header = b"\x78\x01"                                            # deflate, 32 KiB window, fastest
-    return header + b"".join(pieces) + struct.pack(">I", zlib.adler32(data))
-
-
-def png_bytes(srgb: np.ndarray, parts: int = 2) -> bytes:
-    """(H, W, 3) uint8 -> PNG bytes: every row with the Up filter (numpy, one subtraction)
-    and zlib level 1 with the run-length strategy, deflated in ``parts`` pieces at once
-    (images of 2^18 pixels or more). The bench mesh's 2048^2 atlas, one part: 0.1 s and
-    4.2 MB, against Pillow's adaptive filters 0.44 s / 4.1 MB at level 1, 0.95 s / 3.9 MB
-    at level 3, 2.6 s / 3.6 MB at level 6 (same image, same run; docs/PERFORMANCE.md)."""
-    h, w, c = srgb.shape
-    rows = np.ascontiguousarray(srgb).reshape(h, w * c)
-    filtered = np.empty((h, w * c + 1), dtype=np.uint8)
-    filtered[:, 0] = 2                                               # filter type Up
-    filtered[0, 1:] = rows[0]
-    np.subtract(rows[1:], rows[:-1], out=filtered[1:, 1:])          # uint8 wraps, as PNG wants
-    data = _zlib_in_parts(filtered.reshape(-1), parts if h * w >= 1 << 18 else 1)
-
-    def chunk(kind: bytes, body: bytes) -> bytes:
-        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
-
-    header = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)           # 8-bit RGB, no interlace
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", data) + chunk(b"IEND", b"")
 
 
 def glb_bytes(vertices, faces, uv, normals, png: bytes) -> bytes:

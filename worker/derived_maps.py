@@ -20,12 +20,11 @@ painted stripe on a flat wall).
 """
 from __future__ import annotations
 
-import io
 
 import numpy as np
-from PIL import Image
 
 from worker.errors import InvalidParameter
+from worker.images import png_bytes
 
 LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 DEFAULT_NORMAL_STRENGTH = 4.0
@@ -82,17 +81,12 @@ def decode_normals8(codes: np.ndarray) -> np.ndarray:
 
 def height_png(height: np.ndarray) -> bytes:
     """16-bit greyscale PNG of a 0..1 height map (linear values)."""
-    codes = (np.clip(height, 0.0, 1.0) * 65535.0 + 0.5).astype(">u2")   # PNG is big-endian
-    buf = io.BytesIO()
-    Image.frombytes("I;16B", (codes.shape[1], codes.shape[0]), codes.tobytes()).save(buf, "PNG")
-    return buf.getvalue()
+    return png_bytes((np.clip(height, 0.0, 1.0) * 65535.0 + 0.5).astype(np.uint16))
 
 
 def normal_png(normals: np.ndarray) -> bytes:
     """8-bit RGB PNG of unit normals (``encode_normals8``)."""
-    buf = io.BytesIO()
-    Image.fromarray(encode_normals8(normals), "RGB").save(buf, "PNG")
-    return buf.getvalue()
+    return png_bytes(encode_normals8(normals))
 
 
 def derived_map_files(rgb: np.ndarray, maps, *, strength: float = DEFAULT_NORMAL_STRENGTH,

@@ -9,7 +9,8 @@ most ``wait_seconds`` behind at most ``max_waiting`` others, else it raises ``Bu
 (503 + Retry-After): a waiting upload holds a threadpool thread and its bytes.
 
 Writing (``write_image``) takes *linear* float RGB (the sampler's output) and returns
-bytes: PNG / WebP / JPEG are 8-bit sRGB (Pillow, in memory, no metadata), EXR is half
+bytes: PNG / WebP / JPEG are 8-bit sRGB (PNG: ``png_bytes``, Up filter + fast deflate;
+WebP / JPEG: Pillow; in memory, no metadata), EXR is half
 float linear (OIIO, zip), TIFF is 16-bit sRGB (OIIO, zip). No timestamps are written,
 so the same pixels always give the same bytes.
 """
@@ -17,7 +18,10 @@ from __future__ import annotations
 
 import io
 import os
+import struct
 import tempfile
+import zlib
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import OpenImageIO as oiio
@@ -145,15 +149,64 @@ def write_image(rgb: np.ndarray, fmt: str, *, colour: str = "linear", quality: i
         srgb16 = srgb8.astype(np.uint16) * 257 if colour == "srgb" else \
             (linear_to_srgb(rgb) * 65535 + 0.5).astype(np.uint16)
         return _write_oiio(srgb16, "tif", "uint16", {"compression": "zip", "oiio:ColorSpace": "sRGB"})
+    if fmt == "png":
+        return png_bytes(srgb8)
     buf = io.BytesIO()
     pil = Image.fromarray(srgb8, "RGB")
-    if fmt == "png":
-        pil.save(buf, "PNG", compress_level=6)
-    elif fmt == "webp":
+    if fmt == "webp":
         pil.save(buf, "WEBP", quality=quality, method=4)
     else:
         pil.save(buf, "JPEG", quality=quality, optimize=False)
     return buf.getvalue()
+
+
+def _zlib_in_parts(data: np.ndarray, parts: int) -> bytes:
+    """One zlib stream (level 1, run-length strategy) of ``data``, its parts deflated on
+    ``parts`` threads (zlib releases the GIL). Each part but the last ends with a sync
+    flush (byte-aligned, not final), so the raw streams concatenate into one; run-length
+    matches reach back one byte, so the split costs a few bytes, not compression."""
+    bounds = np.linspace(0, len(data), parts + 1).astype(int)
+
+    def deflate(i: int) -> bytes:
+        compressor = zlib.compressobj(1, zlib.DEFLATED, -15, 9, zlib.Z_RLE)
+        last = i == parts - 1
+        return (compressor.compress(data[bounds[i]:bounds[i + 1]])
+                + compressor.flush(zlib.Z_FINISH if last else zlib.Z_SYNC_FLUSH))
+
+    if parts == 1:
+        pieces = [deflate(0)]
+    else:
+        with ThreadPoolExecutor(parts, thread_name_prefix="png") as pool:
+            pieces = list(pool.map(deflate, range(parts)))
+    header = b"\x78\x01"                                            # deflate, 32 KiB window, fastest
+    return header + b"".join(pieces) + struct.pack(">I", zlib.adler32(data))
+
+
+def png_bytes(pixels: np.ndarray, parts: int = 2) -> bytes:
+    """(H, W, 3) RGB or (H, W) grey, uint8 or uint16 -> PNG bytes: every row with the Up
+    filter (numpy, one subtraction) and zlib level 1 with the run-length strategy,
+    deflated in ``parts`` pieces at once (images of 2^18 pixels or more). The bench mesh's 2048^2 atlas, one part: 0.1 s and
+    4.2 MB, against Pillow's adaptive filters 0.44 s / 4.1 MB at level 1, 0.95 s / 3.9 MB
+    at level 3, 2.6 s / 3.6 MB at level 6 (same image, same run; docs/PERFORMANCE.md).
+    A 256^2 tile: 2 ms against Pillow's 8-15 ms at level 6, 1-5% more bytes (textures
+    are noise to deflate: level 6 saved no more than that)."""
+    if pixels.dtype not in (np.uint8, np.uint16) or pixels.shape[2:] not in ((), (3,)) or pixels.ndim < 2:
+        raise InvalidParameter(f"png_bytes takes (H, W) or (H, W, 3) uint8 or uint16, got {pixels.shape} {pixels.dtype}")
+    h, w = pixels.shape[:2]
+    # samples big-endian, as PNG stores them; the Up filter works on bytes, whatever the depth
+    rows = np.ascontiguousarray(pixels, dtype=pixels.dtype.newbyteorder(">")).view(np.uint8).reshape(h, -1)
+    filtered = np.empty((h, rows.shape[1] + 1), dtype=np.uint8)
+    filtered[:, 0] = 2                                               # filter type Up
+    filtered[0, 1:] = rows[0]
+    np.subtract(rows[1:], rows[:-1], out=filtered[1:, 1:])          # uint8 wraps, as PNG wants
+    data = _zlib_in_parts(filtered.reshape(-1), parts if h * w >= 1 << 18 else 1)
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    depth, colour_type = 8 * pixels.dtype.itemsize, 2 if pixels.ndim == 3 else 0  # RGB or grey
+    header = struct.pack(">IIBBBBB", w, h, depth, colour_type, 0, 0, 0)  # no interlace
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", data) + chunk(b"IEND", b"")
 
 
 def _write_oiio(pixels: np.ndarray, ext: str, dtype: str, attrs: dict[str, str]) -> bytes:

@@ -12,7 +12,7 @@ from PIL import Image
 from worker.colour import linear_to_srgb, srgb_to_linear
 from worker import decode, images
 from worker.errors import InvalidImage, InvalidParameter, LimitExceeded
-from worker.images import (encode_image, encoder_crops, read_image, resize_short_side, sniff_format,
+from worker.images import (encode_image, encoder_crops, png_bytes, read_image, resize_short_side, sniff_format,
                            thumbnail, write_image)
 
 MAX = 4096 * 4096
@@ -206,3 +206,32 @@ def test_decode_budget_holds_pixels_while_the_image_lives():
         assert images._budget.used == 0
     finally:
         images.set_decode_budget(None)
+
+
+def test_png_bytes_round_trip():
+    rng = np.random.default_rng(2)
+    for shape in ((1, 1, 3), (1, 9, 3), (37, 16, 3), (64, 64, 3)):
+        image = rng.integers(0, 256, shape, dtype=np.uint8)
+        if shape[0] > 8:
+            image[: shape[0] // 2] = 200                           # runs, as in a baked atlas
+        decoded = Image.open(io.BytesIO(png_bytes(image)))
+        assert decoded.mode == "RGB" and np.array_equal(np.asarray(decoded), image)
+    big = rng.integers(0, 256, (600, 512, 3), dtype=np.uint8)       # deflated in parts, joined as one stream
+    big[100:300] = 7
+    for parts in (1, 2, 3):
+        encoded = png_bytes(big, parts)
+        assert np.array_equal(np.asarray(Image.open(io.BytesIO(encoded))), big)
+        assert zlib.decompress(encoded[41:-16]) == zlib.decompress(png_bytes(big, 1)[41:-16])
+
+
+def test_png_bytes_writes_16_bit_grey_and_refuses_what_png_cannot_hold():
+    rng = np.random.default_rng(3)
+    height = rng.integers(0, 65536, (33, 20), dtype=np.uint16)
+    height[:5] = 0x1234                                             # two different bytes per sample
+    decoded = Image.open(io.BytesIO(png_bytes(height)))
+    assert decoded.mode.startswith("I") and np.array_equal(np.asarray(decoded).astype(np.uint16), height)
+    grey8 = rng.integers(0, 256, (7, 5), dtype=np.uint8)
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(png_bytes(grey8)))), grey8)
+    for bad in (np.zeros((4, 4, 4), np.uint8), np.zeros((4, 4), np.float32), np.zeros(4, np.uint8)):
+        with pytest.raises(InvalidParameter):
+            png_bytes(bad)

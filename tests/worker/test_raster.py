@@ -1,12 +1,7 @@
 """worker/raster.py pieces of a bake that must be exact: the sRGB table, the gutter."""
-import io
-import zlib
-
 import numpy as np
-from PIL import Image
 from scipy import ndimage
 
-from worker.bake import png_bytes
 from worker.colour import linear_to_srgb8
 from worker.raster import _srgb8_table, encode_srgb8, face_affine, fill_gutter, gutter_sources, rasterise, texel_points
 
@@ -59,22 +54,6 @@ def test_gutter_copies_a_nearest_covered_texel_within_the_padding():
     assert np.array_equal(filled[covered], image[covered])
     assert gutter_sources(np.zeros((8, 8), bool), 4)[0].size == 0
     assert gutter_sources(np.ones((8, 8), bool), 4)[0].size == 0
-
-
-def test_png_bytes_round_trip():
-    rng = np.random.default_rng(2)
-    for shape in ((1, 1, 3), (1, 9, 3), (37, 16, 3), (64, 64, 3)):
-        image = rng.integers(0, 256, shape, dtype=np.uint8)
-        if shape[0] > 8:
-            image[: shape[0] // 2] = 200                           # runs, as in a baked atlas
-        decoded = Image.open(io.BytesIO(png_bytes(image)))
-        assert decoded.mode == "RGB" and np.array_equal(np.asarray(decoded), image)
-    big = rng.integers(0, 256, (600, 512, 3), dtype=np.uint8)       # deflated in parts, joined as one stream
-    big[100:300] = 7
-    for parts in (1, 2, 3):
-        encoded = png_bytes(big, parts)
-        assert np.array_equal(np.asarray(Image.open(io.BytesIO(encoded))), big)
-        assert zlib.decompress(encoded[41:-16]) == zlib.decompress(png_bytes(big, 1)[41:-16])
 
 
 def test_texel_points_are_the_barycentric_blend_of_the_corners():
