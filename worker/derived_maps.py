@@ -20,7 +20,6 @@ painted stripe on a flat wall).
 """
 from __future__ import annotations
 
-
 import numpy as np
 
 from worker.errors import InvalidParameter
