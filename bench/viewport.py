@@ -6,13 +6,13 @@
 A viewport is 16 cold 256^2 tiles (a 4 x 4 block never asked for before) requested at
 once, as a map asks for them. Measured: per-tile latency from the common start (p50,
 p95) and the time to the last tile, at native zoom idle (on a settled server:
-``settle``), at native zoom while 4 volume jobs of 128^3 run (2 at a time on the
-worker, 2 queued), two zoom levels out cold with
-the default progressive zoom-out (the previews, then each tile asked again as the page
-does until it is exact), and one zoom level out over native tiles viewed before (parents
-built from cached children). Then two levels out on a server with
-``TEXSPACE_TILE_ZOOM_OUT=supersample`` (every tile exact at once), and in process the
-previews' (bounded render's) difference against the supersampled tiles.
+``settle``), at native zoom while 4 volume jobs of 128^3 run (2 at a time on the worker,
+2 queued), two zoom levels out cold with the default progressive zoom-out (the previews,
+then each tile asked again as the page does until it is exact), and one zoom level out
+over native tiles viewed before (parents built from cached children). Then two levels
+out on a server with ``TEXSPACE_TILE_ZOOM_OUT=supersample`` (every tile exact at once),
+and in process the previews' (bounded render's) difference against the supersampled
+tiles.
 """
 from __future__ import annotations
 
