@@ -6,9 +6,12 @@ plain ONNX and to mean the same thing in torch, numpy, ONNX Runtime and a GPU sh
 
 * Hashing is 32-bit integer arithmetic held in int32: additions and multiplications
   wrap modulo 2**32 (two's complement, as in torch, ONNX Runtime and GLSL ``uint``),
-  and every right shift is logical (``_shr``; exported as Cast(uint32) -> BitShift ->
-  Cast(int32), since ONNX ``BitShift`` takes unsigned types only). 32-bit lanes are
-  twice as many per SIMD register as the int64 this replaced, and need no masks.
+  and every right shift is logical (``_shr``; the exported graph runs the hash in
+  uint32, model/export.py, where it is one ``BitShift``).
+* Few bitwise operations: ONNX Runtime's bitwise kernels (Xor, And, BitShift) cost about
+  3x its Add or Mul per element. A cell's hash is two xorshift-multiply rounds, and its
+  three colour values are the top bits of the hash times three odd constants, read by
+  a cast to float, not masked fields.
 * Lattice coordinates are float64 until the cell index is taken, so a point at 1e7
   world units still lands in exactly the right cell at the finest octave.
 * The lattice is infinite: a cell index is hashed as its low 32 bits plus a term for
@@ -20,7 +23,8 @@ Layout of the result (``n_octaves`` octaves, 3 colour channels):
 
 ``nearest`` is the value of the cell holding the point, ``interpolated`` the
 (multi)linear blend of the 2**D cell centres around it (cell-centred lattice: the value
-of cell k sits at k + 0.5). Both are uniform in [0, 1) per cell.
+of cell k sits at k + 0.5). Cell values are uniform in [0, 1] (multiples of 2**-32
+rounded to float32).
 """
 
 from __future__ import annotations
@@ -43,15 +47,11 @@ _COORD_LO = tuple(_int32(c) for c in (0x9E3779B1, 0x85EBCA77, 0xC2B2AE3D))
 _COORD_HI = tuple(_int32(c) for c in (0x27D4EB2F, 0x165667B1, 0x61C88647))
 _SEED_MULT = _int32(0x68E31DA5)
 _OCTAVE_MULT = _int32(0x2545F491)
-# Three colour channels share one 32-bit hash: bits 1-30, 10 per channel. Bit 31 is left
-# out so that a field reads the same as a signed or an unsigned number (the exported
-# graph runs the hash in uint32, model/export.py).
-_CHANNEL_BITS = 10
-_CHANNEL_LEVELS = 1 << _CHANNEL_BITS
-_CHANNEL_LOW_BIT = (1, 11, 21)
-_CHANNEL_MASKS = torch.tensor([(_CHANNEL_LEVELS - 1) << b for b in _CHANNEL_LOW_BIT], dtype=torch.int32)
-_CHANNEL_SCALES = torch.tensor([2.0 ** -(b + _CHANNEL_BITS) for b in _CHANNEL_LOW_BIT], dtype=torch.float32)
-_HALF_BIN = 0.5 / _CHANNEL_LEVELS  # bin centres: added after interpolation (weights sum to 1)
+# A cell's three colour values: the hash times each of these odd constants (mod 2**32),
+# read as an unsigned number and scaled by 2**-32. The top bits of a product depend on
+# every bit of the hash, so no final xorshift is needed before them.
+_CHANNEL_MULTS = torch.tensor([1, _int32(0xA54FF53B), _int32(0x510E527F)], dtype=torch.int32)
+_FIELD_SCALE = 2.0 ** -32
 _TWO32 = 2.0 ** 32
 
 
@@ -71,26 +71,58 @@ class _LogicalShiftRight(torch.autograd.Function):
         return g.op("texspace::ShiftRight", h, bits_i=bits).setType(h.type())
 
 
+class _UnsignedToFloat(torch.autograd.Function):
+    """An int32's bits read as an unsigned number, to float32 (rounded to nearest).
+
+    Exported as a plain Cast to float: the graph holds the hash as uint32
+    (``model/export.py``), so the cast reads it unsigned there, as here."""
+
+    @staticmethod
+    def forward(ctx, h: torch.Tensor) -> torch.Tensor:
+        return torch.bitwise_and(h.to(torch.int64), 0xFFFFFFFF).to(torch.float32)
+
+    @staticmethod
+    def symbolic(g, h):
+        from torch.onnx import TensorProtoDataType
+
+        return g.op("Cast", h, to_i=int(TensorProtoDataType.FLOAT))
+
+
 def _shr(h: torch.Tensor, bits: int) -> torch.Tensor:
     return _LogicalShiftRight.apply(h, bits)
 
 
 def mix32(h: torch.Tensor) -> torch.Tensor:
-    """Avalanche a 32-bit value: int32 [...] -> int32 [...] (a bijection)."""
+    """Avalanche a 32-bit value (lowbias32): int32 [...] -> int32 [...] (a bijection).
+
+    For the per-request seeds; cell corners use the cheaper ``cell_mix``."""
     h = torch.bitwise_xor(h, _shr(h, 16)) * _MIX_A
     h = torch.bitwise_xor(h, _shr(h, 15)) * _MIX_B
     return torch.bitwise_xor(h, _shr(h, 16))
 
 
+def cell_mix(h: torch.Tensor) -> torch.Tensor:
+    """lowbias32 without its last xorshift: int32 [...] -> int32 [...].
+
+    That last step folds the high bits into the low ones; ``channel_fields`` reads only
+    the top bits of products of the result, so a cell's hash skips it (two of the
+    eight bitwise ops a corner cost)."""
+    h = torch.bitwise_xor(h, _shr(h, 16)) * _MIX_A
+    return torch.bitwise_xor(h, _shr(h, 15)) * _MIX_B
+
+
 def _split32(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Integer-valued float64 -> (low 32 bits, the bits above), both int32.
 
-    Both halves pass through int64 and wrap to 32 bits there (exact for |c| < 2**63; a
-    float64 -> 32-bit cast of an out-of-range value is undefined in C). The high half is
-    taken in float64: exact, as c is an integer and the division a power of two.
+    Both halves are taken in float64 (exact for |c| < 2**53: c is an integer and the
+    scale a power of two) and cast only once in [-2**31, 2**32). ONNX Runtime (1.31)
+    runs the exported Cast(float64 -> int64) -> Cast(int64 -> uint32) as one direct
+    conversion, wrong outside that range: a plain c.to(int64).to(int32) gave every cell
+    past 2**32 the wrong low half in the graph, though not in torch.
     """
-    lo = c.to(torch.int64).to(torch.int32)
-    hi = torch.floor(c * (1.0 / _TWO32)).to(torch.int64).to(torch.int32)
+    high = torch.floor(c * (1.0 / _TWO32))
+    lo = (c - high * _TWO32).to(torch.int64).to(torch.int32)  # in [0, 2**32)
+    hi = high.to(torch.int64).to(torch.int32)  # |hi| < 2**31 for |c| < 2**63
     return lo, hi
 
 
@@ -116,7 +148,7 @@ def _axis_terms(cells: torch.Tensor, first_axis: int = 0) -> torch.Tensor:
             lattice axes ``first_axis`` .. ``first_axis + D - 1``
     returns int32 [D, 2, ...]: index [d, i] is the term of cell ``cells[d] + i``
 
-    The hash of a cell is mix32 of (seed + sum over axes of these terms), all mod 2**32,
+    The hash of a cell is cell_mix of (seed + sum over axes of these terms), all mod 2**32,
     so a cell's 2**D corners need only 2 terms per axis, summed by broadcasting. The
     upper neighbour's term is the lower one + the axis constant, plus the high-half
     constant where the low half wraps (lo = -1, once every 2**32 cells).
@@ -175,7 +207,7 @@ def _corner_hashes_major(cells: torch.Tensor, seeds: torch.Tensor, wrap: torch.T
         h = seeds + _cell_term(i, 0) + _cell_term(j, 1)  # [2, 2, ...]
         if dims == 3:
             h = h.unsqueeze(2) + _axis_terms(cells[2:], first_axis=2)[0]  # + [2, ...]: third corner axis
-        return mix32(h)
+        return cell_mix(h)
     terms = _axis_terms(cells)  # [D, 2, ...]
     h = seeds
     for d in range(dims):
@@ -185,7 +217,7 @@ def _corner_hashes_major(cells: torch.Tensor, seeds: torch.Tensor, wrap: torch.T
         for _ in range(d):
             t = t.unsqueeze(0)
         h = h + t
-    return mix32(h)
+    return cell_mix(h)
 
 
 def corner_hashes(base: torch.Tensor, seeds: torch.Tensor) -> torch.Tensor:
@@ -203,35 +235,23 @@ def corner_hashes(base: torch.Tensor, seeds: torch.Tensor) -> torch.Tensor:
 
 
 def channel_fields(h: torch.Tensor, axis: int = -1) -> torch.Tensor:
-    """The three 10-bit fields of a 32-bit hash, masked in place, as float32: int32 [...]
-    -> float32 with a new channel axis of size 3 at ``axis`` (last by default).
+    """A cell hash's three colour values, unscaled: int32 [...] -> float32 in [0, 2**32]
+    with a new channel axis of size 3 at ``axis`` (last by default).
 
-    A field has at most 10 significant bits, so the cast is exact, and ``channel_scales``
-    (powers of two) turn it into level / 1024 exactly, also after a blend: the blends
-    below are linear, so they run on the unscaled fields and one multiply per channel
-    follows instead of one per corner.
+    Channel c is the hash times ``_CHANNEL_MULTS[c]`` (mod 2**32) read unsigned. One
+    Mul and one Cast per element in the graph, where masking 10-bit fields out of the
+    hash took a BitwiseAnd (three times the cost). The blends below are linear, so they
+    run on these unscaled values and one multiply by ``_FIELD_SCALE`` follows.
     """
     h = h.unsqueeze(axis)
     shape = [1] * h.dim()
     shape[axis] = 3
-    return torch.bitwise_and(h, _CHANNEL_MASKS.to(h.device).reshape(shape)).to(torch.float32)
-
-
-def channel_scales(ndim: int, axis: int, device=None) -> torch.Tensor:
-    """The per-channel powers of two of ``channel_fields``, shaped to broadcast along ``axis``."""
-    shape = [1] * ndim
-    shape[axis] = 3
-    return _CHANNEL_SCALES.to(device).reshape(shape)
+    return _UnsignedToFloat.apply(h * _CHANNEL_MULTS.to(h.device).reshape(shape))
 
 
 def channel_values(h: torch.Tensor) -> torch.Tensor:
-    """Three uniform values in (0, 1) from one 32-bit hash: int32 [...] -> float32 [..., 3].
-
-    10 bits per channel; values are the centres of 1024 equal bins, so the mean is
-    exactly 0.5 and the variance (1 - 1024**-2) / 12.
-    """
-    fields = channel_fields(h)
-    return fields * channel_scales(fields.dim(), -1, h.device) + _HALF_BIN
+    """Three uniform values in [0, 1] from one cell hash: int32 [...] -> float32 [..., 3]."""
+    return channel_fields(h) * _FIELD_SCALE
 
 
 def _blend(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
@@ -276,15 +296,14 @@ def noise_features(
     q = lattice_points.movedim(lattice_points.dim() - 1, 0) - 0.5  # [D, ..., K] (ONNX: no negative perm)
     base = torch.floor(q)
     frac = (q - base).to(torch.float32)  # keeps the gradient w.r.t. transforms
-    # Unscaled fields, without the half-bin offset: both blends below are linear with
-    # weights summing to 1, so scale and offset are applied once per octave after them.
+    # Unscaled fields: both blends below are linear with weights summing to 1, so the
+    # scale is applied once after them.
     dims = q.shape[0]
     fields = channel_fields(_corner_hashes_major(base, seeds, wrap), axis=dims)  # [2,2(,2), 3, ..., K]
 
     weights = frac * frac * (3.0 - 2.0 * frac) if smooth else frac
-    scales = channel_scales(q.dim(), 0, q.device)  # [3, 1, ...]
-    interpolated = _blend(fields, weights) * scales + _HALF_BIN  # [3, ..., K]
+    interpolated = _blend(fields, weights) * _FIELD_SCALE  # [3, ..., K]
     # The nearest cell centre is the corner each rounded fraction picks.
-    nearest = _pick(fields, frac >= 0.5) * scales + _HALF_BIN
+    nearest = _pick(fields, frac >= 0.5) * _FIELD_SCALE
     last = interpolated.dim() - 1
     return nearest.movedim(0, last), interpolated.movedim(0, last)

@@ -14,7 +14,10 @@ the texture's own ``sampler.onnx`` (the shared model's, or a fitted texture's):
   biases and the lattice coordinates of four probe points (the origin and the unit
   vectors), which give each octave's affine map ``lattice = M_k p + o_k`` exactly;
 * the noise hash is model/noise.py's (its constants below; ``hash_constants_in_graph``
-  lets a test check each one against the graph).
+  lets a test check each one against the graph). Samplers exported before 2026-11-26
+  read three masked 10-bit fields of a full lowbias32 hash; later ones the top bits of
+  the hash times three odd constants. ``SamplerWeights.fields`` says which, found from
+  the graph's constants, so a stored texture keeps its own noise.
 
 Precision: ``p`` is float32 on a GPU where the graph takes float64. The finest octave has
 about ``FINEST_CELLS_PER_UNIT`` cells per world unit, so a lattice coordinate is off by up
@@ -36,11 +39,16 @@ from .errors import InvalidParameter, ModelInvalid
 LANGUAGES = ("glsl", "wgsl")  # extensions and media types: worker.files.FORMATS
 
 # model/noise.py's hash, exactly (uint32 arithmetic): lowbias32 mixer, per-axis cell
-# constants (low 32 bits, bits above), seed and octave multipliers, 10-bit channel fields.
+# constants (low 32 bits, bits above), seed and octave multipliers, and the channel
+# multipliers of a cell's colour values (top bits of hash * multiplier, times 2**-32).
 MIX_A, MIX_B = 0x7FEB352D, 0x846CA68B
 COORD_LO = (0x9E3779B1, 0x85EBCA77, 0xC2B2AE3D)
 COORD_HI = (0x27D4EB2F, 0x165667B1, 0x61C88647)
 SEED_MULT, OCTAVE_MULT = 0x68E31DA5, 0x2545F491
+CHANNEL_MULTS = (1, 0xA54FF53B, 0x510E527F)
+FIELD_SCALE = 2.0**-32
+# Samplers exported before 2026-11-26: the cell hash is the full lowbias32 and its colour
+# values are 10-bit fields at bits 1, 11, 21, each at the centre of its bin.
 CHANNEL_LOW_BIT, CHANNEL_BITS = (1, 11, 21), 10
 HALF_BIN = 0.5 / (1 << CHANNEL_BITS)
 MASKS = tuple(((1 << CHANNEL_BITS) - 1) << b for b in CHANNEL_LOW_BIT)
@@ -190,6 +198,7 @@ class SamplerWeights:
     lattice_names: tuple[str, ...]  # the noise lattice q [.., K, 3] and, fitted on a repeat lattice, u [.., 2]
     n_noise: int  # K*3 noise features
     harmonics: int  # per repeat-lattice axis (model/networks.py lattice_phases); 0: no repeat lattice
+    fields: str = "multiply"  # how a cell hash gives its colour values: "multiply" or "mask" (before 2026-11-26)
 
 
 @dataclass(frozen=True)
@@ -238,12 +247,20 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
         raise ModelInvalid(f"{Path(path).name}: decoder inputs ({noise.shape[1]} noise, {first.shape[1]} in all) "
                            "are not whole vec4s")
     z = weight("translator.body.0.weight")
+    held = _held_uint32(g)
+    if CHANNEL_MULTS[1] in held and CHANNEL_MULTS[2] in held:
+        fields = "multiply"
+    elif all(m in held for m in MASKS):
+        fields = "mask"
+    else:
+        raise ModelInvalid(f"{Path(path).name}: its noise reads colour values neither by the channel multipliers "
+                           "nor by the 10-bit masks this shader emitter knows")
     return SamplerWeights(
         path=path, first=first, hidden=hidden, out=weight("decoder.out.weight"),
         code_size=int(z.shape[1]),
         probe_model=_with_outputs(data, {biases[0]: 1, **{name: 11 for name in lattices}}),
         biases_name=biases[0], lattice_names=tuple(lattices), n_noise=int(noise.shape[1]),
-        harmonics=int(phase[0].shape[1]) // 4 if phase else 0)
+        harmonics=int(phase[0].shape[1]) // 4 if phase else 0, fields=fields)
 
 
 def sampler_weights(path: str | os.PathLike) -> SamplerWeights:
@@ -300,15 +317,20 @@ def _identity_colour(size: int) -> np.ndarray:
     return np.asarray(identity_colour(size), np.float32)
 
 
+def _held_uint32(g: _Graph) -> set[int]:
+    """Every uint32 number the graph holds as an initializer or a constant."""
+    arrays = list(g.initializers.values()) + [t for *_, ts in g.nodes for t in ts]
+    return {int(v) for a in arrays if a.dtype == np.uint32 for v in a.reshape(-1)}
+
+
 def hash_constants_in_graph(path: str | os.PathLike) -> dict[str, bool]:
     """For each hash constant here: whether the sampler graph holds it (as a uint32
     initializer or constant). A test's check that this module and model/noise.py agree."""
-    g = _read_graph(Path(path).read_bytes())
-    arrays = list(g.initializers.values()) + [t for *_, ts in g.nodes for t in ts]
-    held = {int(v) for a in arrays if a.dtype == np.uint32 for v in a.reshape(-1)}
+    held = _held_uint32(_read_graph(Path(path).read_bytes()))
     wanted = {"MIX_A": MIX_A, "MIX_B": MIX_B, "SEED_MULT": SEED_MULT, "OCTAVE_MULT": OCTAVE_MULT,
               **{f"COORD_LO{i}": c for i, c in enumerate(COORD_LO)},
-              **{f"COORD_HI{i}": c for i, c in enumerate(COORD_HI)}}
+              **{f"COORD_HI{i}": c for i, c in enumerate(COORD_HI)},
+              **{f"CHANNEL_MULT{i}": c for i, c in enumerate(CHANNEL_MULTS) if c != 1}}
     return {k: v in held for k, v in wanted.items()}
 
 
@@ -413,9 +435,31 @@ def _decoder(n: str, w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
     return "".join(lines)
 
 
-def _channel_scales(s: _Syntax) -> str:
-    """The powers of two that turn the three masked hash fields into level / 1024."""
-    return s.ctor(s.vec3, [2.0 ** -(b + CHANNEL_BITS) for b in CHANNEL_LOW_BIT])
+def _cell_hash(w: SamplerWeights, s: _Syntax, n: str) -> str:
+    """The cell hash and its colour values (model/noise.py cell_mix, channel_fields), and
+    the expression that turns blended values into [0, 1], for this sampler's noise."""
+    glsl = s.f32 == "float"
+    head = f"uint {n}_cell(uint x) {{" if glsl else f"fn {n}_cell(x: u32) -> u32 {{"
+    var = "uint h = x;" if glsl else "var h = x;"
+    if w.fields == "mask":
+        cell = f"{head}  // lowbias32\n  return {n}_mix(x);\n}}\n"
+        ctor = "vec3" if glsl else "vec3<f32>"
+        cast = "float" if glsl else "f32"
+        fields = ", ".join(f"{cast}(h & {m:#x}u)" for m in MASKS)
+        head = (f"vec3 {n}_fields(uint h) {{" if glsl else f"fn {n}_fields(h: u32) -> vec3<f32> {{")
+        fields = f"{head}  // three 10-bit fields at bits 1, 11, 21, unscaled\n  return {ctor}({fields});\n}}\n"
+        scale = f" * {s.ctor(s.vec3, [2.0 ** -(b + CHANNEL_BITS) for b in CHANNEL_LOW_BIT])} + {_num(HALF_BIN)}"
+        return cell + "\n" + fields, scale
+    cell = (f"{head}  // lowbias32 without its last xorshift\n  {var}\n"
+            f"  h ^= h >> 16u; h *= {MIX_A:#010x}u;\n  h ^= h >> 15u;\n  return h * {MIX_B:#010x}u;\n}}\n")
+    mults = ", ".join(f"{m:#010x}u" for m in CHANNEL_MULTS)
+    if glsl:
+        fields = (f"vec3 {n}_fields(uint h) {{  // top bits of h times three odd constants, unscaled\n"
+                  f"  return vec3(uvec3(h) * uvec3({mults}));\n}}\n")
+    else:
+        fields = (f"fn {n}_fields(h: u32) -> vec3<f32> {{  // top bits of h times three odd constants, unscaled\n"
+                  f"  return vec3<f32>(vec3<u32>(h) * vec3<u32>({mults}));\n}}\n")
+    return cell + "\n" + fields, f" * {_num(FIELD_SCALE)}"
 
 
 def _knots(c: TextureConstants) -> int:
@@ -456,7 +500,7 @@ def _phases(w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
 
 def _glsl_body(n: str, w: SamplerWeights, c: TextureConstants) -> str:
     k, nb = len(c.matrices), w.first.shape[1] // 4
-    scales, decoder, knots = _channel_scales(GLSL), _decoder(n, w, c, GLSL), _knots(c)
+    (cell, scale), decoder, knots = _cell_hash(w, GLSL, n), _decoder(n, w, c, GLSL), _knots(c)
     colour = f"""
   // colour table: fourth-root compression, A, per-channel curves, B, back to linear
   vec3 u = {n}_AB[0] * sqrt(sqrt(clamp(raw, 0.0, 1.0) + {_num(FLOOR)}));
@@ -485,10 +529,7 @@ uvec2 {n}_terms(float c, uint lo_mult, uint hi_mult) {{
   return uvec2(t, t + (lo == 0xffffffffu ? lo_mult + hi_mult : lo_mult));
 }}
 
-vec3 {n}_fields(uint h) {{  // three 10-bit fields at bits 1, 11, 21, unscaled
-  return vec3({", ".join(f"float(h & {m:#x}u)" for m in MASKS)});
-}}
-
+{cell}
 vec3 {n}(vec3 p, uint seed) {{
   uint base = {n}_mix({n}_mix(seed));
   float x[{4 * nb}];
@@ -502,11 +543,11 @@ vec3 {n}(vec3 p, uint seed) {{
     vec3 v[4];  // blended along x first, then y, then z, as the graph does
     for (int j = 0; j < 2; ++j) for (int l = 0; l < 2; ++l) {{
       uint h = s + ty[j] + tz[l];
-      vec3 a = {n}_fields({n}_mix(h + tx[0]));
-      v[j * 2 + l] = a + wt.x * ({n}_fields({n}_mix(h + tx[1])) - a);
+      vec3 a = {n}_fields({n}_cell(h + tx[0]));
+      v[j * 2 + l] = a + wt.x * ({n}_fields({n}_cell(h + tx[1])) - a);
     }}
     vec3 v0 = v[0] + wt.y * (v[2] - v[0]), v1 = v[1] + wt.y * (v[3] - v[1]);
-    vec3 level = (v0 + wt.z * (v1 - v0)) * {scales} + {_num(HALF_BIN)};
+    vec3 level = (v0 + wt.z * (v1 - v0)){scale};
     vec3 feature = (level - 0.5) * 2.0;
     x[3 * k] = feature.x; x[3 * k + 1] = feature.y; x[3 * k + 2] = feature.z;
   }}
@@ -518,7 +559,7 @@ vec3 {n}(vec3 p, uint seed) {{
 
 def _wgsl_body(n: str, w: SamplerWeights, c: TextureConstants) -> str:
     k, nb = len(c.matrices), w.first.shape[1] // 4
-    scales, decoder, knots = _channel_scales(WGSL), _decoder(n, w, c, WGSL), _knots(c)
+    (cell, scale), decoder, knots = _cell_hash(w, WGSL, n), _decoder(n, w, c, WGSL), _knots(c)
     colour = f"""
   // colour table: fourth-root compression, A, per-channel curves, B, back to linear
   let u = {n}_AB[0] * sqrt(sqrt(clamp(raw, vec3<f32>(0.0), vec3<f32>(1.0)) + {_num(FLOOR)}));
@@ -549,10 +590,7 @@ fn {n}_terms(c: f32, lo_mult: u32, hi_mult: u32) -> vec2<u32> {{
   return vec2<u32>(t, t + select(lo_mult, lo_mult + hi_mult, lo == 0xffffffffu));
 }}
 
-fn {n}_fields(h: u32) -> vec3<f32> {{  // three 10-bit fields at bits 1, 11, 21, unscaled
-  return vec3<f32>({", ".join(f"f32(h & {m:#x}u)" for m in MASKS)});
-}}
-
+{cell}
 fn {n}(p: vec3<f32>, seed: u32) -> vec3<f32> {{
   let base = {n}_mix({n}_mix(seed));
   var x: array<f32, {4 * nb}>;
@@ -569,13 +607,13 @@ fn {n}(p: vec3<f32>, seed: u32) -> vec3<f32> {{
     for (var j = 0; j < 2; j++) {{
       for (var l = 0; l < 2; l++) {{
         let h = s + ty[j] + tz[l];
-        let a = {n}_fields({n}_mix(h + tx[0]));
-        v[j * 2 + l] = a + wt.x * ({n}_fields({n}_mix(h + tx[1])) - a);
+        let a = {n}_fields({n}_cell(h + tx[0]));
+        v[j * 2 + l] = a + wt.x * ({n}_fields({n}_cell(h + tx[1])) - a);
       }}
     }}
     let v0 = v[0] + wt.y * (v[2] - v[0]);
     let v1 = v[1] + wt.y * (v[3] - v[1]);
-    let level = (v0 + wt.z * (v1 - v0)) * {scales} + {_num(HALF_BIN)};
+    let level = (v0 + wt.z * (v1 - v0)){scale};
     let feature = (level - 0.5) * 2.0;
     x[3 * k] = feature.x; x[3 * k + 1] = feature.y; x[3 * k + 2] = feature.z;
   }}

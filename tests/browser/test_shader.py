@@ -78,6 +78,17 @@ def lattice_sampler(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def mask_noise_sampler(tmp_path_factory) -> Path:
+    """The shipped space with the noise of samplers exported before 2026-11-26."""
+    pytest.importorskip("torch", reason="exporting a sampler needs the train extra")
+    from tests.helpers import export_mask_noise_sampler
+
+    path = tmp_path_factory.mktemp("mask-sampler") / "sampler.onnx"
+    export_mask_noise_sampler(path)
+    return path
+
+
 def points() -> np.ndarray:
     """The shader's points, exactly: origin + (pixel centre) * scale in float32, row-major, y up."""
     j, i = np.mgrid[0:SIZE, 0:SIZE].astype(np.float32)
@@ -129,5 +140,28 @@ def test_lattice_shader_matches_its_sampler(gpu_page, lattice_sampler, uploaded,
               "max_abs_255": float(diff.max() * 255), "phase_effect_255": float(np.abs(want - plain).mean() * 255)}
     (artifacts / f"shader_lattice_{language}.json").write_text(json.dumps(report, indent=2) + "\n")
     assert np.abs(want - plain).mean() > 4 * LIMIT, report   # the phases change the texture
+    assert diff.mean() <= LIMIT, report
+    assert diff.max() <= 8 * LIMIT, report
+
+
+@pytest.mark.parametrize("language", ["glsl", "wgsl"])
+def test_shader_of_a_sampler_with_the_earlier_noise(gpu_page, mask_noise_sampler, uploaded, artifacts, language):
+    """A texture stored before 2026-11-26 (masked 10-bit fields of a full lowbias32 hash)
+    gets a shader with that noise, not today's."""
+    vector = texture_vector(uploaded["code"], uploaded["colour"])
+    name = "texspace_earlier"
+    source = shader.emit_shader(mask_noise_sampler, vector, name, language)
+    harness = (HERE / f"shader_harness{'_wgsl' if language == 'wgsl' else ''}.js").read_text()
+    result = gpu_page.evaluate(harness, dict(source=source, name=name, size=SIZE, origin=list(ORIGIN),
+                                             scale=SCALE, seed=SEED))
+    assert not result.get("error"), (result.get("error"), result.get("messages"))
+    got = np.asarray(result["pixels"], np.float32).reshape(SIZE * SIZE, 4)[:, :3]
+    want = SamplerSession(mask_noise_sampler, threads=1).sample(points(), vector, SEED)
+    today = SamplerSession(SAMPLER, threads=1).sample(points(), vector, SEED)
+    diff = np.abs(got - want)
+    report = {"language": language, "noise": "mask", "mean_abs_255": float(diff.mean() * 255),
+              "max_abs_255": float(diff.max() * 255), "noise_effect_255": float(np.abs(want - today).mean() * 255)}
+    (artifacts / f"shader_mask_noise_{language}.json").write_text(json.dumps(report, indent=2) + "\n")
+    assert np.abs(want - today).mean() > 4 * LIMIT, report  # the two noises differ
     assert diff.mean() <= LIMIT, report
     assert diff.max() <= 8 * LIMIT, report

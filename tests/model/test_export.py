@@ -141,6 +141,29 @@ def test_far_from_origin_has_the_same_statistics(exported):
     assert not np.allclose(near, far)  # a different place, not a copy
 
 
+def test_exported_noise_matches_torch_past_2_32_cells(tmp_path):
+    # ONNX Runtime 1.31 runs Cast(float64 -> int64) -> Cast(int64 -> uint32) as one direct
+    # conversion that is wrong past 2**32: the graph's noise once differed from torch there
+    # (tiles a few million world units out). Cells on both sides of the carry, both signs.
+    from model.export import _export
+    from model.noise import noise_features, octave_seeds
+
+    class Noise(torch.nn.Module):
+        def forward(self, lattice, seed):
+            return noise_features(lattice, octave_seeds(seed.reshape([]), 4), smooth=True)[1]
+
+    rng = np.random.default_rng(5)
+    offsets = np.array([0.0, 2.0**32 - 50, 5e9, -5e9, 3e12, -(2.0**40)])[:, None, None, None]
+    lattice = torch.from_numpy((rng.uniform(0, 100, (6, 400, 4, 3)) + offsets).reshape(1, -1, 4, 3))
+    path = tmp_path / "noise.onnx"
+    _export(Noise(), (lattice, torch.tensor(3)), path, ["lattice", "seed"], ["noise"], {"lattice": {1: "P"}})
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = session.run(None, {"lattice": lattice.numpy(), "seed": np.array(3, np.int64)})[0]
+    with torch.no_grad():
+        want = Noise()(lattice, torch.tensor(3)).numpy()
+    assert np.abs(got - want).max() < 1e-5
+
+
 def test_grain_model_is_fibres_along_its_axis_and_exports(tmp_path):
     # A y-grain solid changes slowly along world y and quickly across it, and the stretch
     # survives export (torch and ONNX Runtime agree).
@@ -204,11 +227,13 @@ def test_noise_hash_runs_in_uint32_without_casts(exported):
     types = {v.name: v.type.tensor_type.elem_type for v in list(graph.value_info) + list(graph.input)}
     types |= {t.name: t.data_type for t in graph.initializer}
     shifts = [n for n in graph.node if n.op_type == "BitShift"]
-    assert len(shifts) >= 6  # three per mix32, for the seeds and for the cell corners
+    assert len(shifts) >= 6  # three per seed mix32, two per corner hash
     assert all(types[n.input[0]] == TensorProto.UINT32 for n in shifts)
     consumers = {i: n for n in graph.node for i in n.input}
     assert {consumers[n.output[0]].op_type for n in shifts} == {"BitwiseXor"}  # no Cast back
     assert TensorProto.INT32 not in types.values()
+    # Channel values are multiplied out of the hash, not masked: no BitwiseAnd (3x a Mul).
+    assert not [n for n in graph.node if n.op_type == "BitwiseAnd"]
 
 
 def test_tileable_sampler_repeats_exactly_and_matches_torch(exported):

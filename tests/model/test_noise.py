@@ -29,7 +29,46 @@ def test_cell_values_are_uniform_with_the_right_moments():
     v = values_at(cell_grid())
     assert abs(v.mean() - 0.5) < 0.01
     assert abs(v.var() - 1 / 12) < 0.005
-    assert v.min() > 0 and v.max() < 1
+    assert v.min() >= 0 and v.max() <= 1
+    for c in range(3):  # each channel fills [0, 1] evenly: ten equal bins hold 10% each
+        counts = np.histogram(v[..., c], bins=10, range=(0, 1))[0] / v[..., c].size
+        assert np.abs(counts - 0.1).max() < 0.01
+    assert len(np.unique(v)) > 100_000  # continuous values, not a few levels
+
+
+def _reference_cell_values(cells: np.ndarray, seed: int) -> np.ndarray:
+    """The documented hash written again in numpy uint32: seed lowbias32 chain, cell
+    terms, two xorshift-multiply rounds, three odd multipliers, top bits to [0, 1]."""
+    u = np.uint32
+
+    def shr(h, b):
+        return h >> u(b)
+
+    def lowbias32(h):
+        h = (h ^ shr(h, 16)) * u(0x7FEB352D)
+        h = (h ^ shr(h, 15)) * u(0x846CA68B)
+        return h ^ shr(h, 16)
+
+    with np.errstate(over="ignore"):
+        base = lowbias32(lowbias32(u(seed)) ^ (u(0) * u(0x68E31DA5)))
+        octave_seed = lowbias32(base ^ u(0x2545F491))  # octave 1 of 1
+        lo = cells.astype(np.int64).astype(np.uint32)
+        hi = np.floor(cells / 2.0**32).astype(np.int64).astype(np.uint32)
+        mult_lo = np.array([0x9E3779B1, 0x85EBCA77, 0xC2B2AE3D], u)
+        mult_hi = np.array([0x27D4EB2F, 0x165667B1, 0x61C88647], u)
+        h = octave_seed + (lo * mult_lo + hi * mult_hi).sum(axis=-1, dtype=u)
+        h = (h ^ shr(h, 16)) * u(0x7FEB352D)
+        h = (h ^ shr(h, 15)) * u(0x846CA68B)
+        fields = h[..., None] * np.array([1, 0xA54FF53B, 0x510E527F], u)
+    return fields.astype(np.float32) * np.float32(2.0**-32)
+
+
+def test_hash_matches_an_independent_uint32_reference():
+    # What the shader emitter (worker/shader.py) and any other port must reproduce.
+    cells = cell_grid(64).reshape(-1, 3)
+    cells = torch.cat([cells, cells + 2**32 - 5, cells - 10**9])
+    got = values_at(cells, seed=7)
+    assert np.array_equal(got, _reference_cell_values(cells.numpy(), 7))
 
 
 def test_neighbour_cells_and_channels_are_uncorrelated():
@@ -39,6 +78,8 @@ def test_neighbour_cells_and_channels_are_uncorrelated():
     assert corr(v[:, :, 0], v[:, :, 1]) < 0.02  # z neighbours
     assert corr(v[1:, 1:], v[:-1, :-1]) < 0.02  # diagonal
     assert corr(v[..., 0], v[..., 1]) < 0.02  # colour channels
+    assert corr(v[..., 1], v[..., 2]) < 0.02
+    assert corr(v[..., 0], v[..., 2]) < 0.02
 
 
 def test_far_cells_have_the_same_statistics_and_no_period():

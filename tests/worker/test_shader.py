@@ -19,6 +19,21 @@ def test_hash_constants_are_the_graphs():
     assert all(shader.hash_constants_in_graph(SAMPLER).values()), shader.hash_constants_in_graph(SAMPLER)
 
 
+def test_noise_kind_is_read_from_each_graph(tmp_path):
+    # A texture stored before the multiply hash (2026-11-26) keeps its own noise in its shader.
+    pytest.importorskip("torch", reason="exporting a sampler needs the train extra")
+    from tests.helpers import export_mask_noise_sampler
+
+    old = tmp_path / "sampler.onnx"
+    export_mask_noise_sampler(old)
+    assert shader.sampler_weights(SAMPLER).fields == "multiply"
+    assert shader.sampler_weights(old).fields == "mask"
+    vector = np.concatenate([np.zeros(8, np.float32), identity_colour(216)])
+    new_text, old_text = (shader.emit_shader(p, vector, "texspace_t", "glsl") for p in (SAMPLER, old))
+    assert "0xa54ff53bu" in new_text and "h & 0x7feu" not in new_text
+    assert "h & 0x7feu" in old_text and "0xa54ff53bu" not in old_text
+
+
 def test_lattice_maps_are_affine_and_isotropic():
     z = np.random.default_rng(1).normal(size=8).astype(np.float32)
     c = shader.texture_constants(SAMPLER, np.concatenate([z, identity_colour(216)]))

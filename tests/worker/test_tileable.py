@@ -64,8 +64,11 @@ def check_seamless(runtime, vector, tmp_path, size, seeds) -> dict:
     # no seam: each wrap within 4 sigma of the interior lines, and no bias over seeds
     assert np.abs(tiled).max() < 4.0, tiled
     assert abs(tiled.mean()) < 2.0, tiled
-    # the statistic sees a seam where there is one: the infinite texture's wrap
-    assert plain.min() > 6.0, plain
+    # the statistic sees a seam where there is one: every wrap of the infinite texture lies
+    # beyond the bound a tileable one must keep, and on average far beyond it (the size of
+    # that wrap's jump is itself random: 4.8-10 sigma over these seeds and axes)
+    assert plain.min() > 4.0, plain
+    assert plain.mean() > 6.0, plain
     stats = {name: (im.reshape(-1, 3).mean(0), im.reshape(-1, 3).std(0))
              for name, im in (("tileable", image), ("plain", reference))}
     return {"tileable": tiled, "plain": plain, "stats": stats}
