@@ -62,8 +62,9 @@ def _hash_in_uint32(graph) -> None:
     usable uint32; every op it applies to them (Add, Mul, BitwiseXor, Equal, Where,
     casts from int64) gives the same bits read as uint32, its casts to float read the
     bits unsigned (``_UnsignedToFloat`` in torch, a plain Cast here), and its right
-    shifts are logical, which is what the uint32 BitShift does. ONNX BitShift takes unsigned types only; as uint32 the shifts
-    need no casts around them, and the graph none of the 5 casts per mix32 it needed.
+    shifts are logical, which is what the uint32 BitShift does. ONNX BitShift takes
+    unsigned types only; as uint32 the shifts need no casts around them, and the graph
+    none of the 5 casts per mix32 it needed.
     """
     from onnx import TensorProto, helper, numpy_helper, shape_inference
 

@@ -435,31 +435,25 @@ def _decoder(n: str, w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
     return "".join(lines)
 
 
-def _cell_hash(w: SamplerWeights, s: _Syntax, n: str) -> str:
-    """The cell hash and its colour values (model/noise.py cell_mix, channel_fields), and
-    the expression that turns blended values into [0, 1], for this sampler's noise."""
+def _cell_hash(w: SamplerWeights, s: _Syntax, n: str) -> tuple[str, str]:
+    """The cell hash and colour-value functions of this sampler's noise (model/noise.py
+    cell_mix, channel_fields), and the expression that turns blended values into [0, 1]."""
     glsl = s.f32 == "float"
-    head = f"uint {n}_cell(uint x) {{" if glsl else f"fn {n}_cell(x: u32) -> u32 {{"
-    var = "uint h = x;" if glsl else "var h = x;"
+    cell = f"uint {n}_cell(uint x) {{" if glsl else f"fn {n}_cell(x: u32) -> u32 {{"
+    fields = f"vec3 {n}_fields(uint h) {{" if glsl else f"fn {n}_fields(h: u32) -> vec3<f32> {{"
     if w.fields == "mask":
-        cell = f"{head}  // lowbias32\n  return {n}_mix(x);\n}}\n"
-        ctor = "vec3" if glsl else "vec3<f32>"
-        cast = "float" if glsl else "f32"
-        fields = ", ".join(f"{cast}(h & {m:#x}u)" for m in MASKS)
-        head = (f"vec3 {n}_fields(uint h) {{" if glsl else f"fn {n}_fields(h: u32) -> vec3<f32> {{")
-        fields = f"{head}  // three 10-bit fields at bits 1, 11, 21, unscaled\n  return {ctor}({fields});\n}}\n"
+        masked = ", ".join(f"{s.f32}(h & {m:#x}u)" for m in MASKS)
         scale = f" * {s.ctor(s.vec3, [2.0 ** -(b + CHANNEL_BITS) for b in CHANNEL_LOW_BIT])} + {_num(HALF_BIN)}"
-        return cell + "\n" + fields, scale
-    cell = (f"{head}  // lowbias32 without its last xorshift\n  {var}\n"
-            f"  h ^= h >> 16u; h *= {MIX_A:#010x}u;\n  h ^= h >> 15u;\n  return h * {MIX_B:#010x}u;\n}}\n")
+        return (f"{cell}  // lowbias32\n  return {n}_mix(x);\n}}\n\n"
+                f"{fields}  // three 10-bit fields at bits 1, 11, 21, unscaled\n"
+                f"  return {s.vec3}({masked});\n}}\n"), scale
+    local = "uint h = x;" if glsl else "var h = x;"
+    uvec3 = "uvec3" if glsl else "vec3<u32>"
     mults = ", ".join(f"{m:#010x}u" for m in CHANNEL_MULTS)
-    if glsl:
-        fields = (f"vec3 {n}_fields(uint h) {{  // top bits of h times three odd constants, unscaled\n"
-                  f"  return vec3(uvec3(h) * uvec3({mults}));\n}}\n")
-    else:
-        fields = (f"fn {n}_fields(h: u32) -> vec3<f32> {{  // top bits of h times three odd constants, unscaled\n"
-                  f"  return vec3<f32>(vec3<u32>(h) * vec3<u32>({mults}));\n}}\n")
-    return cell + "\n" + fields, f" * {_num(FIELD_SCALE)}"
+    return (f"{cell}  // lowbias32 without its last xorshift\n  {local}\n"
+            f"  h ^= h >> 16u; h *= {MIX_A:#010x}u;\n  h ^= h >> 15u;\n  return h * {MIX_B:#010x}u;\n}}\n\n"
+            f"{fields}  // top bits of h times three odd constants, unscaled\n"
+            f"  return {s.vec3}({uvec3}(h) * {uvec3}({mults}));\n}}\n"), f" * {_num(FIELD_SCALE)}"
 
 
 def _knots(c: TextureConstants) -> int:

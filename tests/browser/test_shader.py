@@ -98,16 +98,35 @@ def points() -> np.ndarray:
     return np.stack(xyz, -1).reshape(-1, 3).astype(np.float64)
 
 
-@pytest.mark.parametrize("language", ["glsl", "wgsl"])
-def test_shader_matches_the_sampler(gpu_page, base_url, uploaded, artifacts, language):
-    with urllib.request.urlopen(f"{base_url}v1/textures/{uploaded['id']}/shader.{language}", timeout=120) as r:
-        source = r.read().decode()
-    name = f"texspace_{uploaded['id']}"
+def render(gpu_page, source: str, name: str, language: str) -> tuple[np.ndarray, dict]:
+    """The shader's linear RGB [SIZE * SIZE, 3] at ``points()`` in Chromium, and the harness's result."""
     harness = (HERE / f"shader_harness{'_wgsl' if language == 'wgsl' else ''}.js").read_text()
     result = gpu_page.evaluate(harness, dict(source=source, name=name, size=SIZE, origin=list(ORIGIN),
                                              scale=SCALE, seed=SEED))
     assert not result.get("error"), (result.get("error"), result.get("messages"))
-    got = np.asarray(result["pixels"], np.float32).reshape(SIZE * SIZE, 4)[:, :3]
+    return np.asarray(result["pixels"], np.float32).reshape(SIZE * SIZE, 4)[:, :3], result
+
+
+def check_emitted(gpu_page, sampler_path: Path, vector, name: str, language: str, artifacts, label: str) -> None:
+    """The shader emitted from ``sampler_path`` matches that sampler, and that sampler differs
+    from the shipped one (so the check sees the difference it is about)."""
+    got, _ = render(gpu_page, shader.emit_shader(sampler_path, vector, name, language), name, language)
+    want = SamplerSession(sampler_path, threads=1).sample(points(), vector, SEED)
+    shipped = SamplerSession(SAMPLER, threads=1).sample(points(), vector, SEED)
+    diff = np.abs(got - want)
+    report = {"language": language, label: True, "mean_abs_255": float(diff.mean() * 255),
+              "max_abs_255": float(diff.max() * 255), "effect_255": float(np.abs(want - shipped).mean() * 255)}
+    (artifacts / f"shader_{label}_{language}.json").write_text(json.dumps(report, indent=2) + "\n")
+    assert np.abs(want - shipped).mean() > 4 * LIMIT, report
+    assert diff.mean() <= LIMIT, report
+    assert diff.max() <= 8 * LIMIT, report
+
+
+@pytest.mark.parametrize("language", ["glsl", "wgsl"])
+def test_shader_matches_the_sampler(gpu_page, base_url, uploaded, artifacts, language):
+    with urllib.request.urlopen(f"{base_url}v1/textures/{uploaded['id']}/shader.{language}", timeout=120) as r:
+        source = r.read().decode()
+    got, result = render(gpu_page, source, f"texspace_{uploaded['id']}", language)
     vector = texture_vector(uploaded["code"], uploaded["colour"])
     want = SamplerSession(SAMPLER, threads=1).sample(points(), vector, SEED)
     diff = np.abs(got - want)
@@ -124,24 +143,10 @@ def test_shader_matches_the_sampler(gpu_page, base_url, uploaded, artifacts, lan
 @pytest.mark.parametrize("language", ["glsl", "wgsl"])
 def test_lattice_shader_matches_its_sampler(gpu_page, lattice_sampler, uploaded, artifacts, language):
     """A texture fitted on a repeat lattice (bricks, tile grids): the shader computes each
-    point's phase on the lattice as the sampler does (model/networks.py lattice_phases)."""
+    point's phase on the lattice as the sampler does (model/networks.py lattice_phases);
+    the phases change the texture."""
     vector = texture_vector(uploaded["code"], uploaded["colour"])
-    name = "texspace_bricks"
-    source = shader.emit_shader(lattice_sampler, vector, name, language)
-    harness = (HERE / f"shader_harness{'_wgsl' if language == 'wgsl' else ''}.js").read_text()
-    result = gpu_page.evaluate(harness, dict(source=source, name=name, size=SIZE, origin=list(ORIGIN),
-                                             scale=SCALE, seed=SEED))
-    assert not result.get("error"), (result.get("error"), result.get("messages"))
-    got = np.asarray(result["pixels"], np.float32).reshape(SIZE * SIZE, 4)[:, :3]
-    want = SamplerSession(lattice_sampler, threads=1).sample(points(), vector, SEED)
-    plain = SamplerSession(SAMPLER, threads=1).sample(points(), vector, SEED)
-    diff = np.abs(got - want)
-    report = {"language": language, "lattice": True, "mean_abs_255": float(diff.mean() * 255),
-              "max_abs_255": float(diff.max() * 255), "phase_effect_255": float(np.abs(want - plain).mean() * 255)}
-    (artifacts / f"shader_lattice_{language}.json").write_text(json.dumps(report, indent=2) + "\n")
-    assert np.abs(want - plain).mean() > 4 * LIMIT, report   # the phases change the texture
-    assert diff.mean() <= LIMIT, report
-    assert diff.max() <= 8 * LIMIT, report
+    check_emitted(gpu_page, lattice_sampler, vector, "texspace_bricks", language, artifacts, "lattice")
 
 
 @pytest.mark.parametrize("language", ["glsl", "wgsl"])
@@ -149,19 +154,4 @@ def test_shader_of_a_sampler_with_the_earlier_noise(gpu_page, mask_noise_sampler
     """A texture stored before 2026-11-26 (masked 10-bit fields of a full lowbias32 hash)
     gets a shader with that noise, not today's."""
     vector = texture_vector(uploaded["code"], uploaded["colour"])
-    name = "texspace_earlier"
-    source = shader.emit_shader(mask_noise_sampler, vector, name, language)
-    harness = (HERE / f"shader_harness{'_wgsl' if language == 'wgsl' else ''}.js").read_text()
-    result = gpu_page.evaluate(harness, dict(source=source, name=name, size=SIZE, origin=list(ORIGIN),
-                                             scale=SCALE, seed=SEED))
-    assert not result.get("error"), (result.get("error"), result.get("messages"))
-    got = np.asarray(result["pixels"], np.float32).reshape(SIZE * SIZE, 4)[:, :3]
-    want = SamplerSession(mask_noise_sampler, threads=1).sample(points(), vector, SEED)
-    today = SamplerSession(SAMPLER, threads=1).sample(points(), vector, SEED)
-    diff = np.abs(got - want)
-    report = {"language": language, "noise": "mask", "mean_abs_255": float(diff.mean() * 255),
-              "max_abs_255": float(diff.max() * 255), "noise_effect_255": float(np.abs(want - today).mean() * 255)}
-    (artifacts / f"shader_mask_noise_{language}.json").write_text(json.dumps(report, indent=2) + "\n")
-    assert np.abs(want - today).mean() > 4 * LIMIT, report  # the two noises differ
-    assert diff.mean() <= LIMIT, report
-    assert diff.max() <= 8 * LIMIT, report
+    check_emitted(gpu_page, mask_noise_sampler, vector, "texspace_earlier", language, artifacts, "mask_noise")
