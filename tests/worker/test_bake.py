@@ -17,7 +17,7 @@ from scipy import ndimage
 from skimage.draw import polygon
 
 from worker import atlas
-from worker.bake import BakeLimits, bake_mesh, bake_texture, load_mesh, read_mesh
+from worker.bake import BakeLimits, bake_mesh, bake_texture, load_mesh, read_mesh, read_plain_obj
 from worker.colour import linear_to_srgb8
 from worker.errors import AtlasFailed, Canceled, InvalidMesh, LimitExceeded
 from worker.raster import uv_to_texel
@@ -165,6 +165,37 @@ def test_bad_meshes(filename, data, message):
 def test_mesh_limits(meshes):
     with pytest.raises(LimitExceeded, match="902 faces"):
         load_mesh((meshes / "bunny.obj").read_bytes(), "bunny.obj", BakeLimits(max_faces=900))
+
+
+def test_plain_obj_reads_as_trimesh_does(meshes):
+    """The fast path for v/f-only OBJs gives trimesh's arrays, bit for bit (so the atlas
+    cache, keyed by them, hits either way); anything else falls back to trimesh."""
+    rng = np.random.default_rng(4)
+    bunny = trimesh.load(str(meshes / "bunny.obj"), process=False, force="mesh")
+    vertices = np.vstack([bunny.vertices + rng.normal(0, 1e-3, bunny.vertices.shape), [[5.0, 5.0, 5.0]]])
+    buf = io.StringIO()      # an unreferenced vertex (the last) and exponent notation
+    np.savetxt(buf, vertices, fmt="v %.9g %.9e %.7f")
+    np.savetxt(buf, bunny.faces + 1, fmt="f %d %d %d")
+    data = buf.getvalue().encode()
+    want = trimesh.load(io.BytesIO(data), file_type="obj", process=False)
+    got = read_plain_obj(data)
+    assert got is not None and np.array_equal(got[0], want.vertices) and np.array_equal(got[1], want.faces)
+    assert len(got[0]) == len(vertices) - 1
+    assert np.array_equal(read_plain_obj(data.rstrip(b"\n"))[1], want.faces)      # no final newline
+    mesh = read_mesh(data, "plain.obj")
+    assert np.array_equal(mesh.vertices, want.vertices) and mesh.uv is None and mesh.normals is None
+    square = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"
+    for other in (square + b"f 1 2 3 4\nf 1 2\n",         # a quad and a short line: same count of numbers
+                  square + b"f 1 2 3\nf -1 -2 -3\n",      # relative indices
+                  square + b"f 1/1 2/2 3/3\n",             # texture indices
+                  square + b"vn 0 0 1\nf 1 2 3\n",
+                  square.replace(b"\n", b"\r\n") + b"f 1 2 3\r\n",
+                  square + b"f 1 2 3 \n",
+                  b"o thing\n" + square + b"f 1 2 3\n",
+                  square + b"f 1 2 3\nv 2 2 2\n",
+                  b"v 0 0 0 1 0 0\nv 1 0 0 1 0 0\nv 0 1 0 1 0 0\nf 1 2 3\n"):   # vertex colours
+        assert read_plain_obj(other) is None, other
+    assert read_mesh(square + b"f 1 2 3 4\n", "quad.obj").faces.shape == (2, 3)   # trimesh's path
 
 
 @pytest.fixture
