@@ -261,24 +261,22 @@ def overlap_fraction(texel: np.ndarray, resolution: int) -> float:
     return float((hits > 1).sum() / max(1, (hits > 0).sum()))
 
 
-def _nearest_in_row(covered: np.ndarray, cap: int) -> tuple[np.ndarray, np.ndarray]:
+def _row_distance(covered: np.ndarray, cap: int) -> np.ndarray:
     """Per texel of (R, W) ``covered``: the distance to the nearest covered texel in its
-    own row, capped at ``cap`` (uint8), and that texel's column (meaningful where the
-    distance is under the cap). Running max / min of covered columns from either side."""
-    width = covered.shape[1]
-    index = np.int16 if 2 * width + cap + 4 < np.iinfo(np.int16).max else np.int32
-    columns = np.arange(width, dtype=index)
-    far = index(width + cap + 2)
-    left = np.where(covered, columns, -far)                        # nearest covered column at or left of c
-    np.maximum.accumulate(left, axis=1, out=left)
-    right = np.where(covered[:, ::-1], columns[::-1], far + width)  # ... at or right of c, built reversed
-    np.minimum.accumulate(right, axis=1, out=right)
-    right = right[:, ::-1]
-    to_left, to_right = columns - left, right - columns
-    column = np.where(to_right < to_left, right, left)
-    distance = np.minimum(to_left, to_right)
-    np.minimum(distance, cap, out=distance)
-    return distance.astype(np.uint8), column
+    own row, capped at ``cap``, as uint8.
+
+    The distance is ``cap`` less the number of k in 0 .. cap - 1 for which a covered
+    texel lies within k columns: one widening of that neighbourhood (two shifted ORs) and
+    one uint8 add per k, each over whole rows. 5 ms on the 2048^2 bench atlas at cap 9,
+    where running max / min of covered columns took 43-57 ms.
+    """
+    near = covered.copy()
+    count = covered.view(np.uint8).copy()
+    for k in range(1, cap):
+        near[:, k:] |= covered[:, :-k]
+        near[:, :-k] |= covered[:, k:]
+        count += near.view(np.uint8)
+    return np.uint8(cap) - count
 
 
 def _window_min_rows(h: np.ndarray, size: int) -> np.ndarray:
@@ -306,11 +304,11 @@ def gutter_sources(covered: np.ndarray, padding: int) -> tuple[np.ndarray, np.nd
     one, and a nearest covered texel (exact; ties broken either way).
 
     Separable, like an exact distance transform, but only as far as the padding: a row
-    pass finds each texel's nearest covered texel in its own row (``_nearest_in_row``),
+    pass finds each texel's distance to the nearest covered texel in its own row (``_row_distance``),
     then for the texels that can be within ``padding`` a column pass takes the least
     dr^2 + h(r + dr)^2 over |dr| <= padding, as one packed integer minimum per dr (squared
-    distance in the high bits, dr in the low). The 2048^2 bench atlas: 0.11 s instead of
-    0.25 s for scipy's full distance transform with indices.
+    distance in the high bits, dr in the low). The 2048^2 bench atlas at padding 8: 0.05 s
+    (best of 5) instead of 0.25 s for scipy's full distance transform with indices.
     """
     rows, width = covered.shape
     pad = int(padding)
@@ -318,7 +316,7 @@ def gutter_sources(covered: np.ndarray, padding: int) -> tuple[np.ndarray, np.nd
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     if pad > 100:
         raise ValueError(f"gutter padding {pad} is over 100 texels")
-    distance, column = _nearest_in_row(covered, pad + 1)
+    distance = _row_distance(covered, pad + 1)
     # Row distances with ``pad`` rows of "too far" above and below: the column pass
     # gathers rows r - pad .. r + pad without bounds checks.
     h = np.full((rows + 2 * pad, width), pad + 1, np.uint8)
@@ -340,8 +338,12 @@ def gutter_sources(covered: np.ndarray, padding: int) -> tuple[np.ndarray, np.nd
     near = (best >> bits) <= pad * pad
     dst = candidates[near]
     source_row = dst + ((best[near] & ((1 << bits) - 1)) - pad) * width   # the source's row, dst's column
-    src = source_row - dst % width + column.ravel().take(source_row)
-    return dst, src.astype(np.int64)
+    # The source lies h columns left or right of there, and the left one is in the row
+    # when it is covered (a texel at the row's start has h <= its column otherwise).
+    shift = h.take(source_row + pad * width).astype(np.int64)
+    left = source_row - shift
+    src = np.where((shift <= dst % width) & covered.ravel().take(np.maximum(left, 0)), left, source_row + shift)
+    return dst, src
 
 
 def fill_gutter(image: np.ndarray, covered: np.ndarray, padding: int) -> np.ndarray:
