@@ -188,14 +188,16 @@ def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
         ratio("viewport_4_volumes_last_s", last, "<= 1.5 s", last <= 1.5,
               "viewport, 4 volume jobs 128^3 running: last", f"{last:.3f} s",
               f"{last / vp['native_idle']['last_s']:.2f} x idle; p50 {vp['native_4_volumes']['p50_s']:.3f} s")
-    for key, name, native_key in (("out2_progressive_cold", "progressive previews", "native_idle"),
-                                  ("out2_supersample_cold", "supersample", "supersample_native_idle")):
-        native = vp.get(native_key)
-        if key in vp and native:
-            x = vp[key]["last_s"] / native["last_s"]
-            ratio(f"viewport_out2_{name.split()[0]}_vs_native", x, "<= 1.5", x <= 1.5,
-                  f"viewport two zoom levels out, cold, {name}: last", f"{vp[key]['last_s']:.3f} s",
-                  f"{x:.2f} x native {native['last_s']:.3f} s")
+    if "out2_progressive_cold" in vp:   # the default server: the target
+        x = vp["out2_progressive_cold"]["last_s"] / vp["native_idle"]["last_s"]
+        ratio("viewport_out2_progressive_vs_native", x, "<= 1.5", x <= 1.5,
+              "viewport two zoom levels out, cold, progressive previews: last",
+              f"{vp['out2_progressive_cold']['last_s']:.3f} s", f"{x:.2f} x native {vp['native_idle']['last_s']:.3f} s")
+    if "out2_supersample_cold" in vp and "supersample_native_idle" in vp:   # opt-in exact mode: reported
+        native = vp["supersample_native_idle"]["last_s"]
+        rows.append(("viewport two zoom levels out, cold, supersample server: last",
+                     f"{vp['out2_supersample_cold']['last_s']:.3f} s",
+                     f"{vp['out2_supersample_cold']['last_s'] / native:.2f} x its native {native:.3f} s", "-"))
     if "out2_progressive_cold" in vp:
         exact_last = vp["out2_progressive_cold"]["exact_last_s"]
         rows.append(("viewport two zoom levels out, progressive: last exact tile", f"{exact_last:.3f} s",
