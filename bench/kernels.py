@@ -64,24 +64,109 @@ def gemm_gflops(threads: int) -> dict:
     return {"numpy_1024": 2 * 1024 ** 3 / numpy_s / 1e9, "onnxruntime_decoder_shape": 2 * 65536 * 128 * 128 / ort_s / 1e9}
 
 
+def _static_shapes(path: Path, dim_value) -> tuple:
+    """The ONNX graph at ``path`` with its inputs' dynamic dims fixed to ``dim_value(input
+    name, axis)`` and shapes inferred: (model, {tensor name: (shape, ONNX element type)})
+    for every tensor whose shape is then static, initializers included."""
+    import onnx
+    from onnx import shape_inference
+
+    model = onnx.load(str(path))
+    for info in model.graph.input:
+        for axis, dim in enumerate(info.type.tensor_type.shape.dim):
+            if not dim.HasField("dim_value"):
+                dim.ClearField("dim_param")
+                dim.dim_value = dim_value(info.name, axis)
+    model = shape_inference.infer_shapes(model, strict_mode=True)
+    shapes = {init.name: (tuple(init.dims), init.data_type) for init in model.graph.initializer}
+    for info in (*model.graph.input, *model.graph.value_info, *model.graph.output):
+        dims = info.type.tensor_type.shape.dim
+        if all(d.HasField("dim_value") for d in dims):
+            shapes[info.name] = (tuple(d.dim_value for d in dims), info.type.tensor_type.elem_type)
+    return model, shapes
+
+
+# Nodes that only relabel a tensor's shape (ONNX Runtime reuses the buffer) or make
+# constants: no pass over the points' data.
+_NO_PASS = {"Reshape", "Unsqueeze", "Squeeze", "Shape", "Constant", "Range"}
+_BITWISE = {"BitwiseXor", "BitwiseAnd", "BitwiseOr", "BitShift"}
+_GEMM = {"Gemm", "MatMul"}
+
+
+def noise_floor(passes: dict, ns: dict, threads: int) -> float:
+    """Points/s the sampler's non-decoder work allows on ``threads`` threads if every
+    element-op ran at the measured cost of an Add (bitwise ones at a Xor's): a floor for
+    the noise's time, since most of its ops (casts, gathers, splits) cost more."""
+    seconds = (passes["bitwise_ops"] * ns["xor"] + passes["other_ops"] * ns["add"]) * 1e-9
+    return threads / seconds
+
+
+def sampler_passes(path: Path, chunk: int = 2048) -> dict:
+    """What the sampler graph does per point besides its decoder (the noise, its lattice
+    transforms and the colour stage), from one run of ``chunk`` points with every
+    intermediate tensor made an output (shapes inferred from the graph alone miss the
+    data-dependent ones): element-ops (output elements of every node that passes over
+    data, per point; bitwise ones apart, they cost ~3x an Add in ONNX Runtime) and bytes
+    moved (inputs read + outputs written, per point). The decoder's nodes are left out:
+    its GEMMs are the roofline's, and ONNX Runtime fuses its ReLUs into them."""
+    import onnx
+    import onnxruntime as ort
+
+    model = onnx.load(str(path))
+    listed = {o.name for o in model.graph.output}
+    model.graph.output.extend(onnx.ValueInfoProto(name=name) for node in model.graph.node
+                              for name in node.output if name and name not in listed)
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    dtypes = {"tensor(double)": np.float64, "tensor(float)": np.float32, "tensor(int64)": np.int64}
+    feed = {i.name: np.zeros([d if isinstance(d, int) else (chunk if i.name == "points" else 1) for d in i.shape],
+                             dtypes[i.type]) for i in session.get_inputs()}
+    feed["points"] = bench_points(chunk)
+    names = [o.name for o in session.get_outputs()]
+    tensors = dict(zip(names, session.run(names, feed)))
+    tensors.update(feed)
+    tensors.update({init.name: onnx.numpy_helper.to_array(init) for init in model.graph.initializer})
+    ops = {"bitwise": 0, "other": 0}
+    nbytes = 0
+    for node in model.graph.node:
+        if node.op_type in _NO_PASS or node.op_type in _GEMM or "/decoder/" in node.name:
+            continue
+        kind = "bitwise" if node.op_type in _BITWISE else "other"
+        ops[kind] += sum(tensors[name].size for name in node.output if name)
+        nbytes += sum(tensors[name].nbytes for name in (*node.input, *node.output) if name in tensors)
+    return {"bitwise_ops": ops["bitwise"] / chunk, "other_ops": ops["other"] / chunk, "bytes": nbytes / chunk}
+
+
+def elementwise_ns(elements: int = 1 << 17) -> dict:
+    """ONNX Runtime's cost per element on one thread, measured now: an Add of two float32
+    tensors and a BitwiseXor of two uint32 tensors of ``elements`` elements (the size of
+    the sampler's per-chunk temporaries)."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper
+
+    costs = {}
+    for name, op, dtype, proto in (("add", "Add", np.float32, TensorProto.FLOAT),
+                                   ("xor", "BitwiseXor", np.uint32, TensorProto.UINT32)):
+        graph = helper.make_graph([helper.make_node(op, ["a", "b"], ["c"])], name,
+                                  [helper.make_tensor_value_info(n, proto, [elements]) for n in "ab"],
+                                  [helper.make_tensor_value_info("c", proto, [elements])])
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+        model.ir_version = 9
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = 1
+        sess = ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
+        feed = {n: np.arange(elements).astype(dtype) for n in "ab"}
+        sess.run(None, feed)
+        costs[name] = best_of(lambda: sess.run(None, feed), 50) / elements * 1e9
+    return costs
+
+
 def encoder_flops(path: Path, size: int = 128) -> dict:
     """Multiply-adds x 2 of one [1, 3, size, size] image through an encoder ONNX graph,
     counted from the graph with shapes inferred for batch 1: Conv (2 x output elements x
     Cin/group x kh x kw), Gemm and MatMul (2 x M x N x K). Normalisation, activations and
     reductions are a few passes over the activations and are not counted."""
-    import onnx
-    from onnx import shape_inference
-
-    model = onnx.load(str(path))
-    for dim, value in zip(model.graph.input[0].type.tensor_type.shape.dim, (1, 3, size, size)):
-        dim.ClearField("dim_param")
-        dim.dim_value = value
-    model = shape_inference.infer_shapes(model, strict_mode=True)
-    shapes = {init.name: tuple(init.dims) for init in model.graph.initializer}
-    for info in (*model.graph.input, *model.graph.value_info, *model.graph.output):
-        dims = info.type.tensor_type.shape.dim
-        if all(d.HasField("dim_value") for d in dims):
-            shapes[info.name] = tuple(d.dim_value for d in dims)
+    model, typed = _static_shapes(path, lambda name, axis: (1, 3, size, size)[axis])
+    shapes = {name: shape for name, (shape, _) in typed.items()}
 
     def shape(name: str, node) -> tuple[int, ...]:
         if name not in shapes:

@@ -74,6 +74,13 @@ def measure(only: set[str], quick: bool) -> dict:
             "sampler_default_points_per_s": sweep["default"]["points_per_s"],
             "sampler_grid": sweep["grid"],
         })
+        passes = kernels.sampler_passes(model_dir / "sampler.onnx", sweep["best"]["chunk"])
+        ns = kernels.elementwise_ns()
+        floor = kernels.noise_floor(passes, ns, sweep["best"]["threads"])
+        log(f"  noise and colour stage per point: {passes['bitwise_ops'] + passes['other_ops']:.0f} element-ops "
+            f"({passes['bitwise_ops']:.0f} bitwise), {passes['bytes'] / 1e3:.1f} kB moved; one thread per element: "
+            f"Add {ns['add']:.3f} ns, Xor {ns['xor']:.3f} ns -> floor {floor / 1e6:.2f} M points/s")
+        results.update({"noise_passes_per_point": passes, "elementwise_ns": ns, "noise_floor_points_per_s": floor})
         eager = kernels.torch_eager(model_dir, threads, log=log)
         if eager is None:
             results["torch_eager_points_per_s"] = None
@@ -150,6 +157,16 @@ def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
         x = sampler / r["roofline_points_per_s"]
         ratio("sampler_vs_roofline", x, ">= 0.5", x >= 0.5, "sampler points/s",
               f"{sampler / 1e6:.3f} M", f"{x:.2f} x roofline {r['roofline_points_per_s'] / 1e6:.2f} M")
+    if sampler and r.get("roofline_points_per_s") and r.get("noise_floor_points_per_s"):
+        # The decoder's GEMMs and the noise run one after the other on each chunk: the two
+        # floors add up in time per point.
+        floor, passes = r["noise_floor_points_per_s"], r["noise_passes_per_point"]
+        limit = 1.0 / (1.0 / r["roofline_points_per_s"] + 1.0 / floor)
+        rows.append(("noise floor (elementwise ops at an Add's cost)", f"{floor / 1e6:.3f} M",
+                     f"{passes['bitwise_ops'] + passes['other_ops']:.0f} ops, {passes['bytes'] / 1e3:.1f} kB per point",
+                     "-"))
+        rows.append(("sampler vs GEMM roofline + noise floor", f"{sampler / 1e6:.3f} M",
+                     f"{sampler / limit:.2f} x limit {limit / 1e6:.2f} M", "-"))
     if sampler and r.get("torch_eager_points_per_s"):
         x = sampler / r["torch_eager_points_per_s"]
         ratio("sampler_vs_torch_eager", x, ">= 3", x >= 3.0, "sampler vs torch eager",  # issue 15's target

@@ -37,3 +37,20 @@ def test_a_missed_target_is_reported_as_missed():
     ratios, rows = verdicts({**BAKE, "bake_2048_excl_xatlas_s": 1.70})
     assert ratios["bake_vs_sampler"]["met"] is False
     assert any(row[0] == "bake excl. xatlas" and row[3].endswith("NOT MET") for row in rows)
+
+
+def test_noise_floor_rows_and_the_shipped_samplers_op_count():
+    """The noise's own floor is reported beside the GEMM roofline; its bitwise op count is
+    the hash's: 8 octaves x 8 corners x 2 xorshift rounds x (shift + xor) per point."""
+    from bench.common import SHIPPED_MODEL
+    from bench.kernels import noise_floor, sampler_passes
+
+    passes = sampler_passes(SHIPPED_MODEL / "sampler.onnx", chunk=256)
+    assert round(passes["bitwise_ops"]) == 8 * 8 * 2 * 2      # (+ the seeds' few, once per chunk)
+    assert 1000 < passes["other_ops"] < 4000 and passes["bytes"] > 1000
+    floor = noise_floor(passes, {"add": 0.14, "xor": 0.5}, threads=2)
+    assert abs(floor - 2 / ((passes["bitwise_ops"] * 0.5 + passes["other_ops"] * 0.14) * 1e-9)) < 1
+    _, rows = verdicts({"sampler_points_per_s": 2e6, "roofline_points_per_s": 3.5e6,
+                        "noise_floor_points_per_s": floor, "noise_passes_per_point": passes})
+    assert [row[0] for row in rows][1:] == ["noise floor (elementwise ops at an Add's cost)",
+                                            "sampler vs GEMM roofline + noise floor"]
