@@ -97,7 +97,10 @@ def bench_bake(model_dir: Path, resolution: int = 2048, log=print) -> dict:
 
     The reference is the sampler itself on as many points as the bake has texels (surface
     points of the mesh, scaled as the bake scales them), timed in this run between the two bakes
-    and right after the second bake (the shorter counts, so a quiet moment never flatters the bake).
+    and right after the second bake. Both sides are best of two: the bake excluding atlas
+    work is the shorter of the two bakes' (the second loads its atlas from the cache and
+    otherwise does the same work), the sampler the shorter of its two calls; consecutive
+    sampler calls alone differ by up to 10% on this shared machine.
     Atlas quality (texel utilisation, stretch) is reported next to the atlas time.
     """
     import trimesh
@@ -135,29 +138,33 @@ def bench_bake(model_dir: Path, resolution: int = 2048, log=print) -> dict:
         size = result.path.stat().st_size
     sampler_s = min(before, after)
     # CPU seconds (all threads of this process), less disturbed by other work on a shared machine
-    cpu_ratio = cpu_seconds["bake.glb"] / min(cpu_before, cpu_after)
-    excl = seconds - result.timings["atlas"]
+    bake_cpu = min(cpu_seconds.values())
+    cpu_ratio = bake_cpu / min(cpu_before, cpu_after)
+    first_excl, repeat_excl = seconds - result.timings["atlas"], again_seconds - again.timings["atlas"]
+    excl = min(first_excl, repeat_excl)
     stages = {k: round(v, 3) for k, v in result.timings.items()}
     utilisation = texels / resolution ** 2
     log(f"  bake {resolution}^2, {faces} faces, {texels} texels: {seconds:.2f} s (atlas {result.timings['atlas']:.2f} s; "
         f"stages {stages}; GLB {size / 1e6:.2f} MB)")
     log(f"  sampler alone on {texels} surface points: {before:.2f} s between the bakes, {after:.2f} s after; "
-        f"bake excl. atlas {excl:.2f} s = {excl / sampler_s:.2f} x sampler; everything but the sampler "
+        f"bake excl. atlas {first_excl:.2f} s, repeated {repeat_excl:.2f} s: best {excl:.2f} s = "
+        f"{excl / sampler_s:.2f} x sampler; everything but the sampler "
         f"{excl - sampler_s:.2f} s = {(excl - sampler_s) / sampler_s:.2f} x; in CPU seconds "
-        f"{cpu_seconds['bake.glb']:.2f} / {min(cpu_before, cpu_after):.2f} = {cpu_ratio:.2f} x")
+        f"{bake_cpu:.2f} / {min(cpu_before, cpu_after):.2f} = {cpu_ratio:.2f} x")
     log(f"  atlas: texel utilisation {utilisation:.3f}, L2 stretch {quality['stretch_l2']:.3f}, texel density "
         f"p5/p95 {quality['area_ratio_p5_p95'][0]:.2f}/{quality['area_ratio_p5_p95'][1]:.2f}; repeated bake "
         f"{again_seconds:.2f} s = {(again_seconds - again.timings['atlas']) / sampler_s:.2f} x sampler excl. atlas, "
         f"atlas {again.timings['atlas']:.3f} s (cached)")
     return {"bake_2048_s": seconds, "bake_2048_xatlas_s": result.timings["atlas"],
-            "bake_2048_excl_xatlas_s": excl, "bake_2048_texels": texels,
+            "bake_2048_excl_xatlas_s": excl, "bake_2048_excl_xatlas_first_repeat_s": [first_excl, repeat_excl],
+            "bake_2048_texels": texels,
             "bake_2048_faces": faces, "bake_2048_stages_s": stages, "bake_2048_uv_source": result.uv_source,
             "bake_2048_sampler_s": sampler_s, "bake_2048_sampler_before_after_s": [before, after],
             "bake_2048_vs_sampler": excl / sampler_s, "bake_2048_post_sampling_s": excl - sampler_s,
             "bake_2048_glb_bytes": size, "bake_2048_texel_utilisation": utilisation,
             "bake_2048_atlas_quality": quality, "bake_2048_repeat_s": again_seconds,
             "bake_2048_repeat_vs_sampler": (again_seconds - again.timings["atlas"]) / sampler_s,
-            "bake_2048_repeat_atlas_s": again.timings["atlas"], "bake_2048_cpu_s": cpu_seconds["bake.glb"],
+            "bake_2048_repeat_atlas_s": again.timings["atlas"], "bake_2048_cpu_s": bake_cpu,
             "bake_2048_sampler_cpu_s": min(cpu_before, cpu_after), "bake_2048_cpu_vs_sampler": cpu_ratio}
 
 
