@@ -231,6 +231,15 @@ def _unit_normals(normals, count: int) -> np.ndarray | None:
     return normals
 
 
+def vertex_normals(mesh: Mesh) -> np.ndarray:
+    """The mesh's own vertex normals, smooth ones (``smooth_normals``) where it has none."""
+    normals = mesh.normals
+    if normals is not None and normals.any(axis=1).all():
+        return normals
+    smooth = smooth_normals(mesh.vertices, mesh.faces)
+    return smooth if normals is None else np.where(normals.any(axis=1)[:, None], normals, smooth)
+
+
 def smooth_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted smooth vertex normals (V, 3) float64, unit length.
 
@@ -281,37 +290,39 @@ def bake_texture(sampler: Sampler, code, seed, tri_uv, tri_xyz, *, resolution, p
     timings = {} if timings is None else timings
     clock = time.perf_counter()
     R = resolution
-    texels, face = raster.rasterise(tri_uv, R, barycentric=False)
-    covered = np.zeros(R * R, dtype=bool)
-    covered[texels] = True
-    if np.count_nonzero(covered) != len(texels):   # texels on edges two triangles share: the last wins
-        texels, pick = raster.last_hits(texels, R)
-        face = face[pick]
-        del pick
-    covered = covered.reshape(R, R)
-    affine = raster.face_affine(tri_uv, tri_xyz, R)
-    affine *= scale
-    timings["raster"], clock = time.perf_counter() - clock, time.perf_counter()
-    # While the sampler works (its session.run releases the GIL, as do numpy's loops), a
-    # helper thread computes the gutter's sources (they depend on coverage only), the next
-    # chunk's surface points and the previous chunk's sRGB codes, so little of that waits
-    # until after sampling. It still takes CPU from the sampler's two threads about one
-    # for one (docs/PERFORMANCE.md), so each of those stages is kept cheap too.
-    rgb = np.empty((len(texels), 3), dtype=np.float32)
-    encoded = np.empty((len(texels), 3), dtype=np.uint8)
-    starts = list(range(0, len(texels), chunk)) + [len(texels)]
-
-    def points_of(i: int) -> np.ndarray:
-        # Surface points chunk by chunk: 6 MB arrays instead of 60 MB ones; 2^18 points per
-        # call (not 2^16) so the sampler's two threads wait for each other 4x less often.
-        return raster.texel_points(texels[starts[i]:starts[i + 1]], face[starts[i]:starts[i + 1]], affine, R)
-
-    def encode(i: int) -> None:
-        encoded[starts[i]:starts[i + 1]] = raster.encode_srgb8(rgb[starts[i]:starts[i + 1]])
-
+    # A helper thread takes what does not need the sampler off the main thread: each
+    # face's affine map while the (single-threaded) raster runs, then the gutter's
+    # nearest-texel search (it depends on coverage only), the next chunk's surface points
+    # and the previous chunk's sRGB codes while the sampler works (its session.run releases
+    # the GIL, as do numpy's loops). Beside the sampler's two threads it still takes CPU
+    # about one for one (docs/PERFORMANCE.md), so each of those stages is kept cheap too.
     with ThreadPoolExecutor(1, thread_name_prefix="bake-helper") as helper:
-        # The helper's queue: chunk 1's points, then the gutter's nearest-texel search (done
-        # while the sampler works on chunks 0 and 1), then points and encodes as they come.
+        affine_job = helper.submit(raster.face_affine, tri_uv, tri_xyz, R)
+        texels, face = raster.rasterise(tri_uv, R, barycentric=False)
+        covered = np.zeros(R * R, dtype=bool)
+        covered[texels] = True
+        if np.count_nonzero(covered) != len(texels):   # texels on edges two triangles share: the last wins
+            texels, pick = raster.last_hits(texels, R)
+            face = face[pick]
+            del pick
+        covered = covered.reshape(R, R)
+        affine = affine_job.result()
+        affine *= scale
+        timings["raster"], clock = time.perf_counter() - clock, time.perf_counter()
+        rgb = np.empty((len(texels), 3), dtype=np.float32)
+        encoded = np.empty((len(texels), 3), dtype=np.uint8)
+        starts = list(range(0, len(texels), chunk)) + [len(texels)]
+
+        def points_of(i: int) -> np.ndarray:
+            # Surface points chunk by chunk: 6 MB arrays instead of 60 MB ones; 2^18 points per
+            # call (not 2^16) so the sampler's two threads wait for each other 4x less often.
+            return raster.texel_points(texels[starts[i]:starts[i + 1]], face[starts[i]:starts[i + 1]], affine, R)
+
+        def encode(i: int) -> None:
+            encoded[starts[i]:starts[i + 1]] = raster.encode_srgb8(rgb[starts[i]:starts[i + 1]])
+
+        # The helper's queue: chunk 1's points, then the gutter search (done while the
+        # sampler works on chunks 0 and 1), then points and encodes as they come.
         next_points = helper.submit(points_of, 1) if len(starts) > 2 else None
         sources = helper.submit(raster.gutter_sources, covered, padding)
         encodes = []
@@ -384,32 +395,34 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     vertices, faces, uv = mesh.vertices, mesh.faces, mesh.uv
     step(0.05)
     timings["load"], clock = time.perf_counter() - clock, time.perf_counter()
-    normals = mesh.normals
-    if normals is None or not normals.any(axis=1).all():
-        smooth = smooth_normals(vertices, faces)
-        normals = smooth if normals is None else np.where(normals.any(axis=1)[:, None], normals, smooth)
-    timings["normals"], clock = time.perf_counter() - clock, time.perf_counter()
-    uv_source = "mesh"
-    if not uvs_usable(uv, faces, resolution, vertices):
-        vmap, faces, uv = atlas.parametrize(
-            vertices, faces, resolution=resolution, padding=max(1, padding // 2),
-            timeout=limits.atlas_timeout, memory_bytes=limits.atlas_memory_bytes,
-            should_cancel=should_cancel,
-            cache_dir=atlas_cache_dir, cache_bytes=atlas_cache_bytes)
-        vertices, normals, uv_source = vertices[vmap], normals[vmap], "xatlas"
-    timings["atlas"] = time.perf_counter() - clock
-    step(0.3)
-    if scale is None:
-        ppu = pixels_per_unit or getattr(sampler, "pixels_per_unit", None)
-        if ppu is None:
-            raise InvalidParameter("scale or pixels_per_unit is required for a bare sampler session")
-        scale = DEFAULT_SPAN_PIXELS / float(ppu) / max(float(np.ptp(vertices, axis=0).max()), 1e-12)
-    srgb, covered, image = bake_texture(
-        sampler, code, seed, uv[faces], vertices[faces], resolution=resolution, padding=padding,
-        scale=scale, progress=lambda f: report(0.3 + 0.6 * f), should_cancel=should_cancel,
-        timings=timings, linear=exr or extras)
-    step(0.9)
-    clock = time.perf_counter()
+    # Normals are needed only for writing: a thread computes them while xatlas's child or
+    # the single-threaded raster leaves a core idle.
+    with ThreadPoolExecutor(1, thread_name_prefix="bake-normals") as beside:
+        normals_job = beside.submit(vertex_normals, mesh)
+        uv_source, vmap = "mesh", None
+        if not uvs_usable(uv, faces, resolution, vertices):
+            vmap, faces, uv = atlas.parametrize(
+                vertices, faces, resolution=resolution, padding=max(1, padding // 2),
+                timeout=limits.atlas_timeout, memory_bytes=limits.atlas_memory_bytes,
+                should_cancel=should_cancel,
+                cache_dir=atlas_cache_dir, cache_bytes=atlas_cache_bytes)
+            vertices, uv_source = vertices[vmap], "xatlas"
+        timings["atlas"] = time.perf_counter() - clock
+        step(0.3)
+        if scale is None:
+            ppu = pixels_per_unit or getattr(sampler, "pixels_per_unit", None)
+            if ppu is None:
+                raise InvalidParameter("scale or pixels_per_unit is required for a bare sampler session")
+            scale = DEFAULT_SPAN_PIXELS / float(ppu) / max(float(np.ptp(vertices, axis=0).max()), 1e-12)
+        srgb, covered, image = bake_texture(
+            sampler, code, seed, uv[faces], vertices[faces], resolution=resolution, padding=padding,
+            scale=scale, progress=lambda f: report(0.3 + 0.6 * f), should_cancel=should_cancel,
+            timings=timings, linear=exr or extras)
+        step(0.9)
+        clock = time.perf_counter()
+        normals = normals_job.result()
+    normals = normals if vmap is None else normals[vmap]
+    timings["normals"], clock = time.perf_counter() - clock, time.perf_counter()   # the wait for them
     out_path = Path(out_path)
     exr_path = out_path.with_name(out_path.name + ".exr") if exr and fmt == "glb" else None
     png = png_bytes(srgb)
