@@ -3,7 +3,8 @@
 Steps, each reported through ``progress`` and preceded by a ``should_cancel`` check:
 
 1. Load with trimesh (OBJ, PLY, STL, GLB/glTF binary; ``process=False`` so seam
-   vertices stay split) and validate: parse errors, no faces, non-finite vertices or
+   vertices stay split; an OBJ of plain ``v``/``f`` lines by ``read_plain_obj``, the same
+   arrays faster) and validate: parse errors, no faces, non-finite vertices or
    coordinates beyond +-``MAX_COORDINATE``, out-of-range indices, all-degenerate faces -> InvalidMesh; face/vertex counts over
    the limits -> LimitExceeded. Degenerate (zero-area) faces are kept in the output
    but cover no texel. Vertex normals: the file's own (OBJ ``vn``, glTF ``NORMAL``) when
