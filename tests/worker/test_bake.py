@@ -182,6 +182,12 @@ def test_plain_obj_reads_as_trimesh_does(meshes):
     assert got is not None and np.array_equal(got[0], want.vertices) and np.array_equal(got[1], want.faces)
     assert len(got[0]) == len(vertices) - 1
     assert np.array_equal(read_plain_obj(data.rstrip(b"\n"))[1], want.faces)      # no final newline
+    written = bunny.export(file_type="obj", include_normals=False).encode()   # a comment and "o bunny" first
+    assert written.startswith(b"#") and b"\no bunny\n" in written
+    loaded = trimesh.load(io.BytesIO(written), file_type="obj", process=False, force="mesh")
+    vertices, faces = read_plain_obj(written)
+    assert np.array_equal(vertices, loaded.vertices) and np.array_equal(faces, loaded.faces)
+    assert read_plain_obj(b"# only a comment") is None
     mesh = read_mesh(data, "plain.obj")
     assert np.array_equal(mesh.vertices, want.vertices) and mesh.uv is None and mesh.normals is None
     square = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\n"
@@ -191,7 +197,7 @@ def test_plain_obj_reads_as_trimesh_does(meshes):
                   square + b"vn 0 0 1\nf 1 2 3\n",
                   square.replace(b"\n", b"\r\n") + b"f 1 2 3\r\n",
                   square + b"f 1 2 3 \n",
-                  b"o thing\n" + square + b"f 1 2 3\n",
+                  square + b"usemtl stone\nf 1 2 3\n",
                   square + b"f 1 2 3\nv 2 2 2\n",
                   b"v 0 0 0 1 0 0\nv 1 0 0 1 0 0\nv 0 1 0 1 0 0\nf 1 2 3\n"):   # vertex colours
         assert read_plain_obj(other) is None, other
