@@ -75,6 +75,14 @@ LATTICE_TIE = 0.05  # peaks this close to the strongest count as equally strong
 # squares; a basis read off single integer peaks can be a pixel or two off (the validation
 # brick wall's was -14 px instead of about -16 px down, and its bond leaned).
 LATTICE_REFINE_PEAK = 0.3
+# Patch side of a fit's steps, in working-resolution pixels. 60-s fits, one thread, two at a
+# time, seeds 0 and 1, quality-protocol style error (mean of the seeds, 64 -> 128 px):
+# gravel 2.17 -> 1.75, granite 0.445 -> 0.318, wood 0.041 -> 0.034, concrete 0.009 ->
+# 0.007, cardboard 0.066 -> 0.063, grass 0.011 -> 0.015, with a quarter of the steps (~100
+# instead of ~410): the Gram statistics of the deeper layers need the larger patch. Lattice
+# fits keep 64 (floor tiles 0.325 -> 0.492, grill 2.53 -> 3.63 at 128: they need the steps).
+PATCH = 128
+LATTICE_PATCH = 64
 # A lattice fit trains one patch per step instead of two: it needs ~600 steps before the
 # bricks' joints form. The brick wall on one thread, 60 s, best probe score (lower is
 # better): batch 2 425 steps 0.28 (courses only), 90 s 625 steps 0.10 (bricks), batch 1
@@ -191,11 +199,12 @@ def detect_grain(image: np.ndarray) -> str | None:
 
 
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
-                 patch: int = 64, grain: str | None = None, loss: str = "gram", progress=None, quiet: bool = True,
-                 seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None) -> dict:
+                 patch: int | None = None, grain: str | None = None, loss: str = "gram", progress=None,
+                 quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None) -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
     'lattice'}.
 
+    ``patch``: side of the training patches; None: ``PATCH``, ``LATTICE_PATCH`` for a lattice fit.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"`` (``detect_grain`` on the
     photo; the manifest and the result say what was used).
     ``lattice``: ``"auto"`` (``detect_lattice``; a photo with a lattice gets no grain) or
@@ -217,6 +226,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
     if grain == "auto":
         grain = None if lattice else detect_grain(photo)
+    patch = patch or (LATTICE_PATCH if lattice else PATCH)
     with tempfile.TemporaryDirectory() as run_dir:
         cfg = TrainConfig(
             mode="single", exemplar=str(image_path), out=run_dir, init=str(init),
@@ -248,6 +258,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "pixels_per_unit": space_cfg.pixels_per_unit,
         "code": code,
         "steps": ckpt["step"],
+        "patch": patch,
         "wall_seconds": round(ckpt["wall_seconds"], 1),
         "final_loss": ckpt.get("final_loss"),
         "probe": ckpt.get("probe"),
@@ -267,7 +278,8 @@ def main(argv=None):
     p.add_argument("outdir")
     p.add_argument("--init", default=str(DEFAULT_INIT), help="space checkpoint to start from")
     p.add_argument("--minutes", type=float, default=DEFAULT_MINUTES)
-    p.add_argument("--patch", type=int, default=64)
+    p.add_argument("--patch", type=int, default=None,
+                   help=f"training patch side in px (default {PATCH}; {LATTICE_PATCH} for a lattice fit)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--grain", choices=["x", "y", "auto", "none"], default="auto",
                    help="anisotropic exemplar: its grain runs along image x or y; auto (default): detected from "

@@ -217,3 +217,30 @@ def test_a_lattice_field_starts_as_the_field_without_it() -> None:
     z = torch.randn(1, 8)
     with torch.no_grad():  # zero phase weights: the same texture until a fit moves them
         assert torch.equal(plain(points, z, torch.tensor(4)), lattice(points, z, torch.tensor(4)))
+
+
+def test_patch_side_defaults_to_128_and_64_for_a_lattice(tmp_path, monkeypatch):
+    """The measured defaults (model/fit.py: PATCH, LATTICE_PATCH); an explicit patch wins."""
+    import model.fit as fit
+
+    class Stop(Exception):
+        pass
+
+    seen = []
+
+    def fake_train(cfg, progress=None):
+        seen.append(cfg.patch)
+        raise Stop
+
+    monkeypatch.setattr(fit, "train", fake_train)
+    torch.manual_seed(0)
+    export_model(TextureSpace(ModelConfig()), tmp_path / "space")
+    bricks, plain = tmp_path / "bricks.png", tmp_path / "plain.png"
+    Image.fromarray((_running_bond() * 255).astype(np.uint8)).save(bricks)
+    noise = ndimage.gaussian_filter(np.random.default_rng(2).random((256, 256)), 3)
+    Image.fromarray((np.repeat(noise[..., None], 3, axis=2) * 255).astype(np.uint8)).save(plain)
+    for image, patch in ((plain, None), (bricks, None), (plain, 48)):
+        with pytest.raises(Stop):
+            fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt", patch=patch,
+                         lattice="auto", grain="auto")
+    assert seen == [fit.PATCH, fit.LATTICE_PATCH, 48] and (fit.PATCH, fit.LATTICE_PATCH) == (128, 64)
