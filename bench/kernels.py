@@ -35,55 +35,40 @@ def decoder_flops_per_point(config: dict) -> int:
     return 2 * (inputs * hidden + (layers - 1) * hidden * hidden + hidden * 3)
 
 
+def _one_op_session(op: str, inputs: list[tuple[str, list]], output_shape: list, proto: int, threads: int):
+    """An ONNX Runtime session of one ``op`` node on ``inputs`` (name, shape), all of element
+    type ``proto``, on ``threads`` intra-op threads that sleep when idle."""
+    import onnxruntime as ort
+    from onnx import helper
+
+    graph = helper.make_graph([helper.make_node(op, [name for name, _ in inputs], ["out"])], op,
+                              [helper.make_tensor_value_info(name, proto, shape) for name, shape in inputs],
+                              [helper.make_tensor_value_info("out", proto, output_shape)])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 9
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
+
+
 def gemm_gflops(threads: int) -> dict:
     """float32 GEMM throughput measured now: numpy (BLAS, square 1024) and onnxruntime
     (MatMul of the decoder's own shape, 65536 x 128 @ 128 x 128); GFLOP/s each."""
-    import onnxruntime as ort
-    from onnx import TensorProto, helper
+    from onnx import TensorProto
 
     rng = np.random.default_rng(0)
     a = rng.standard_normal((1024, 1024), dtype=np.float32)
     b = rng.standard_normal((1024, 1024), dtype=np.float32)
     a @ b
     numpy_s = best_of(lambda: a @ b, 7)
-    graph = helper.make_graph(
-        [helper.make_node("MatMul", ["x", "w"], ["y"])], "gemm",
-        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [None, 128]),
-         helper.make_tensor_value_info("w", TensorProto.FLOAT, [128, 128])],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [None, 128])])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
-    model.ir_version = 9
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    sess = ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
+    sess = _one_op_session("MatMul", [("x", [None, 128]), ("w", [128, 128])], [None, 128], TensorProto.FLOAT,
+                           threads)
     x = rng.standard_normal((65536, 128), dtype=np.float32)
     w = rng.standard_normal((128, 128), dtype=np.float32)
     sess.run(None, {"x": x, "w": w})
     ort_s = best_of(lambda: sess.run(None, {"x": x, "w": w}), 7)
     return {"numpy_1024": 2 * 1024 ** 3 / numpy_s / 1e9, "onnxruntime_decoder_shape": 2 * 65536 * 128 * 128 / ort_s / 1e9}
-
-
-def _static_shapes(path: Path, dim_value) -> tuple:
-    """The ONNX graph at ``path`` with its inputs' dynamic dims fixed to ``dim_value(input
-    name, axis)`` and shapes inferred: (model, {tensor name: (shape, ONNX element type)})
-    for every tensor whose shape is then static, initializers included."""
-    import onnx
-    from onnx import shape_inference
-
-    model = onnx.load(str(path))
-    for info in model.graph.input:
-        for axis, dim in enumerate(info.type.tensor_type.shape.dim):
-            if not dim.HasField("dim_value"):
-                dim.ClearField("dim_param")
-                dim.dim_value = dim_value(info.name, axis)
-    model = shape_inference.infer_shapes(model, strict_mode=True)
-    shapes = {init.name: (tuple(init.dims), init.data_type) for init in model.graph.initializer}
-    for info in (*model.graph.input, *model.graph.value_info, *model.graph.output):
-        dims = info.type.tensor_type.shape.dim
-        if all(d.HasField("dim_value") for d in dims):
-            shapes[info.name] = (tuple(d.dim_value for d in dims), info.type.tensor_type.elem_type)
-    return model, shapes
 
 
 # Nodes that only relabel a tensor's shape (ONNX Runtime reuses the buffer) or make
@@ -140,20 +125,12 @@ def elementwise_ns(elements: int = 1 << 17) -> dict:
     """ONNX Runtime's cost per element on one thread, measured now: an Add of two float32
     tensors and a BitwiseXor of two uint32 tensors of ``elements`` elements (the size of
     the sampler's per-chunk temporaries)."""
-    import onnxruntime as ort
-    from onnx import TensorProto, helper
+    from onnx import TensorProto
 
     costs = {}
     for name, op, dtype, proto in (("add", "Add", np.float32, TensorProto.FLOAT),
                                    ("xor", "BitwiseXor", np.uint32, TensorProto.UINT32)):
-        graph = helper.make_graph([helper.make_node(op, ["a", "b"], ["c"])], name,
-                                  [helper.make_tensor_value_info(n, proto, [elements]) for n in "ab"],
-                                  [helper.make_tensor_value_info("c", proto, [elements])])
-        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
-        model.ir_version = 9
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = 1
-        sess = ort.InferenceSession(model.SerializeToString(), opts, providers=["CPUExecutionProvider"])
+        sess = _one_op_session(op, [("a", [elements]), ("b", [elements])], [elements], proto, 1)
         feed = {n: np.arange(elements).astype(dtype) for n in "ab"}
         sess.run(None, feed)
         costs[name] = best_of(lambda: sess.run(None, feed), 50) / elements * 1e9
@@ -165,8 +142,19 @@ def encoder_flops(path: Path, size: int = 128) -> dict:
     counted from the graph with shapes inferred for batch 1: Conv (2 x output elements x
     Cin/group x kh x kw), Gemm and MatMul (2 x M x N x K). Normalisation, activations and
     reductions are a few passes over the activations and are not counted."""
-    model, typed = _static_shapes(path, lambda name, axis: (1, 3, size, size)[axis])
-    shapes = {name: shape for name, (shape, _) in typed.items()}
+    import onnx
+    from onnx import shape_inference
+
+    model = onnx.load(str(path))
+    for dim, value in zip(model.graph.input[0].type.tensor_type.shape.dim, (1, 3, size, size)):
+        dim.ClearField("dim_param")
+        dim.dim_value = value
+    model = shape_inference.infer_shapes(model, strict_mode=True)
+    shapes = {init.name: tuple(init.dims) for init in model.graph.initializer}
+    for info in (*model.graph.input, *model.graph.value_info, *model.graph.output):
+        dims = info.type.tensor_type.shape.dim
+        if all(d.HasField("dim_value") for d in dims):
+            shapes[info.name] = tuple(d.dim_value for d in dims)
 
     def shape(name: str, node) -> tuple[int, ...]:
         if name not in shapes:
