@@ -92,12 +92,17 @@ def _shr(h: torch.Tensor, bits: int) -> torch.Tensor:
     return _LogicalShiftRight.apply(h, bits)
 
 
+def _xorshift_multiply(h: torch.Tensor) -> torch.Tensor:
+    """lowbias32's two xorshift-multiply rounds."""
+    h = torch.bitwise_xor(h, _shr(h, 16)) * _MIX_A
+    return torch.bitwise_xor(h, _shr(h, 15)) * _MIX_B
+
+
 def mix32(h: torch.Tensor) -> torch.Tensor:
     """Avalanche a 32-bit value (lowbias32): int32 [...] -> int32 [...] (a bijection).
 
     For the per-request seeds; cell corners use the cheaper ``cell_mix``."""
-    h = torch.bitwise_xor(h, _shr(h, 16)) * _MIX_A
-    h = torch.bitwise_xor(h, _shr(h, 15)) * _MIX_B
+    h = _xorshift_multiply(h)
     return torch.bitwise_xor(h, _shr(h, 16))
 
 
@@ -107,8 +112,7 @@ def cell_mix(h: torch.Tensor) -> torch.Tensor:
     That last step folds the high bits into the low ones; ``channel_fields`` reads only
     the top bits of products of the result, so a cell's hash skips it (two of the
     eight bitwise ops a corner cost)."""
-    h = torch.bitwise_xor(h, _shr(h, 16)) * _MIX_A
-    return torch.bitwise_xor(h, _shr(h, 15)) * _MIX_B
+    return _xorshift_multiply(h)
 
 
 def _split32(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

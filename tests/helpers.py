@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 import subprocess
-from pathlib import Path
 from collections.abc import Callable, Iterable
+from pathlib import Path
 
 import pytest
 
@@ -17,6 +17,7 @@ def wait_ready(base_url: str, procs: Iterable[subprocess.Popen], timeout: float,
         spawn.wait_ready(base_url, procs, timeout, output=output, name=name, path=path)
     except spawn.NotReady as exc:
         pytest.fail(str(exc))
+
 
 def export_mask_noise_sampler(path) -> None:
     """The shipped space exported with the noise of samplers made before 2026-11-26 (full
