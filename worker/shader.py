@@ -447,11 +447,9 @@ def _cell_hash(w: SamplerWeights, s: _Syntax, n: str) -> tuple[str, str]:
         return (f"{cell}  // lowbias32\n  return {n}_mix(x);\n}}\n\n"
                 f"{fields}  // three 10-bit fields at bits 1, 11, 21, unscaled\n"
                 f"  return {s.vec3}({masked});\n}}\n"), scale
-    local = "uint h = x;" if glsl else "var h = x;"
     uvec3 = "uvec3" if glsl else "vec3<u32>"
     mults = ", ".join(f"{m:#010x}u" for m in CHANNEL_MULTS)
-    return (f"{cell}  // lowbias32 without its last xorshift\n  {local}\n"
-            f"  h ^= h >> 16u; h *= {MIX_A:#010x}u;\n  h ^= h >> 15u;\n  return h * {MIX_B:#010x}u;\n}}\n\n"
+    return (f"{cell}  // lowbias32 without its last xorshift\n  return {n}_rounds(x);\n}}\n\n"
             f"{fields}  // top bits of h times three odd constants, unscaled\n"
             f"  return {s.vec3}({uvec3}(h) * {uvec3}({mults}));\n}}\n"), f" * {_num(FIELD_SCALE)}"
 
@@ -509,9 +507,14 @@ def _glsl_body(n: str, w: SamplerWeights, c: TextureConstants) -> str:
   e = e * e;
   return clamp(e * e - {_num(FLOOR)}, 0.0, 1.0);""" if knots else "\n  return raw;"
     return f"""
-uint {n}_mix(uint h) {{  // lowbias32
+uint {n}_rounds(uint h) {{  // lowbias32's two xorshift-multiply rounds
   h ^= h >> 16u; h *= {MIX_A:#010x}u;
-  h ^= h >> 15u; h *= {MIX_B:#010x}u;
+  h ^= h >> 15u;
+  return h * {MIX_B:#010x}u;
+}}
+
+uint {n}_mix(uint x) {{  // lowbias32
+  uint h = {n}_rounds(x);
   return h ^ (h >> 16u);
 }}
 
@@ -568,10 +571,15 @@ def _wgsl_body(n: str, w: SamplerWeights, c: TextureConstants) -> str:
   e = e * e;
   return clamp(e * e - {_num(FLOOR)}, vec3<f32>(0.0), vec3<f32>(1.0));""" if knots else "\n  return raw;"
     return f"""
-fn {n}_mix(x: u32) -> u32 {{  // lowbias32
+fn {n}_rounds(x: u32) -> u32 {{  // lowbias32's two xorshift-multiply rounds
   var h = x;
   h ^= h >> 16u; h *= {MIX_A:#010x}u;
-  h ^= h >> 15u; h *= {MIX_B:#010x}u;
+  h ^= h >> 15u;
+  return h * {MIX_B:#010x}u;
+}}
+
+fn {n}_mix(x: u32) -> u32 {{  // lowbias32
+  let h = {n}_rounds(x);
   return h ^ (h >> 16u);
 }}
 
