@@ -238,7 +238,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             minutes=float(minutes), patch=patch, batch=1 if lattice else 2, lr=FIT_LR,
             transform_lr=FIT_TRANSFORM_LR, warmup=20,
             seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
-            grain=grain or None, lattice=lattice, threads=threads or 0)
+            grain=grain or None, lattice=lattice, lattice_cell=bool(lattice), threads=threads or 0)
         ckpt_path = train(cfg, progress=progress)
         model, ckpt = load_checkpoint(ckpt_path)
     # Weights, config and code without the optimiser: what model.evaluate needs to compare

@@ -79,6 +79,11 @@ class ModelConfig:
     # fit draws rows of bricks (docs/notes/regular-structure.md).
     lattice: tuple[float, float, float, float] | None = None
     lattice_harmonics: int = 4
+    # The photo's mean repeat cell (``lattice_mean_cell``, a fit measures it): its size in
+    # samples along the lattice's two axes, or None. The decoder also reads the mean cell's
+    # colour at the point's phase: grout lines and bonds drawn exactly where the photo has
+    # them, while what differs from one repeat to the next averages away and is left to noise.
+    lattice_cell: tuple[int, int] | None = None
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -92,6 +97,10 @@ class ModelConfig:
             a, b = self.lattice[:2], self.lattice[2:]
             if len(self.lattice) != 4 or not abs(a[0] * b[1] - a[1] * b[0]) > 0:
                 raise ValueError(f"lattice must be two independent 2D vectors (ax, ay, bx, by), got {self.lattice!r}")
+        if self.lattice_cell is not None:
+            self.lattice_cell = tuple(int(v) for v in self.lattice_cell)
+            if self.lattice is None or len(self.lattice_cell) != 2 or min(self.lattice_cell) < 2:
+                raise ValueError(f"lattice_cell needs a lattice and two sizes >= 2, got {self.lattice_cell!r}")
 
     @property
     def flags(self) -> Variant:
@@ -310,7 +319,7 @@ class TextureField(nn.Module):
         k, d = cfg.n_octaves, cfg.dims
         self.translator = Translator(cfg)
         n_noise = k * 3 * (2 if cfg.nearest_input else 1) if flags.noise else 0
-        n_phase = 4 * cfg.lattice_harmonics if cfg.lattice else 0
+        n_phase = (4 * cfg.lattice_harmonics if cfg.lattice else 0) + (3 if cfg.lattice_cell else 0)
         self.decoder = (
             Decoder(n_noise, d if flags.position else 0, cfg.extended_size, cfg.hidden, cfg.n_hidden_layers, n_phase)
             if flags.decoder
@@ -332,6 +341,8 @@ class TextureField(nn.Module):
         if cfg.lattice:
             basis = torch.tensor(cfg.lattice, dtype=torch.float64).reshape(2, 2).t()  # columns a, b
             self.register_buffer("lattice_inverse", torch.linalg.inv(basis), persistent=False)
+        if cfg.lattice_cell:  # [n_a, n_b, 3], standardised colour; a fit fills it in
+            self.register_buffer("lattice_mean_cell", torch.zeros(*cfg.lattice_cell, 3), persistent=True)
 
     def lattice_phases(self, points: torch.Tensor, period: torch.Tensor | None = None) -> torch.Tensor:
         """float64 [B,P,>=2] -> float32 [B,P,4*H]: sin and cos of 2 pi k u, u the point's
@@ -350,7 +361,33 @@ class TextureField(nn.Module):
         # the fractional part first: sin/cos of a small float32 angle, exact at any distance
         angle = (2.0 * math.pi) * (u - torch.floor(u)).unsqueeze(-1) * k  # [B,P,2,H]
         angle = angle.to(torch.float32).reshape(*u.shape[:-1], -1)
-        return torch.cat([torch.sin(angle), torch.cos(angle)], dim=-1)
+        features = [torch.sin(angle), torch.cos(angle)]
+        if self.cfg.lattice_cell:
+            features.append(self.mean_cell_colour(u - torch.floor(u)))
+        return torch.cat(features, dim=-1)
+
+    def mean_cell_colour(self, phase: torch.Tensor) -> torch.Tensor:
+        """float64 [...,2] in [0,1)^2 -> float32 [...,3]: ``lattice_mean_cell`` read
+        bilinearly at the phase, wrapping around the cell (samples at cell-centred phases)."""
+        n_a, n_b = self.cfg.lattice_cell
+        sizes = torch.tensor([n_a, n_b], dtype=torch.float64, device=phase.device)
+        x = phase * sizes - 0.5
+        low = torch.floor(x)
+        # x + (-low), not x - low: worker/shader.py finds the noise and phase lattices in the
+        # graph as the inputs of "x - floor(x)", and this is neither
+        t = (x + low.neg()).to(torch.float32)
+        low = low.to(torch.int64)
+        i0, j0 = torch.remainder(low[..., 0], n_a), torch.remainder(low[..., 1], n_b)
+        i1, j1 = torch.remainder(i0 + 1, n_a), torch.remainder(j0 + 1, n_b)
+        table = self.lattice_mean_cell  # (indexed whole: the graph keeps its name and shape for worker/shader.py)
+
+        def at(i, j):
+            return table[i, j]
+
+        ta, tb = t[..., :1], t[..., 1:]
+        top = at(i0, j0) + ta * (at(i1, j0) - at(i0, j0))
+        bottom = at(i0, j1) + ta * (at(i1, j1) - at(i0, j1))
+        return top + tb * (bottom - top)
 
     def lattice_points(self, points: torch.Tensor, transforms: torch.Tensor,
                        anchor: torch.Tensor | None = None) -> torch.Tensor:

@@ -47,6 +47,13 @@ from model.vgg import GATYS_LAYERS, shared_vgg
 
 
 POSITION_EXTENT = 4.0  # world units around the origin where position-input variants train
+# A lattice fit's tiles must differ from one another as much as the photo's tiles do. A
+# Gram loss cannot tell: it let the phase inputs stamp one blotch into every floor tile of
+# a 4-minute fit, where the photo's tiles each have their own marbling. So its patches come
+# in pairs a whole number of lattice vectors apart (same seed and depth) and a hinge holds
+# their mean squared difference up to the photo's own (``lattice_contrast``).
+LATTICE_CONTRAST_WEIGHT = 1.0
+LATTICE_PARTNER_STEPS = 2  # a partner lies up to this many lattice vectors away along each
 
 Mode = Literal["space", "single"]
 Loss = Literal["gram", "swd"]
@@ -92,6 +99,7 @@ class TrainConfig:
     no_rotations: bool = False
     grain: Grain | None = None
     lattice: tuple[float, float, float, float] | None = None
+    lattice_cell: bool = False
     seed: int = 0
     probe_every: int = 0
     ckpt_every: int = 200
@@ -160,7 +168,11 @@ def parse_args(argv=None) -> TrainConfig:
     p.add_argument("--lattice", type=lambda text: tuple(float(v) for v in text.split(",")),
                    help="regular exemplar (bricks, tiles): its repeat lattice, two vectors in world units "
                         "'ax,ay,bx,by' in the xy plane (model.fit detects it); the decoder also reads each "
-                        "point's phase on it, and every slice is an xy plane in the photo's orientation")
+                        "point's phase on it, and every slice is an xy plane in the photo's orientation; single "
+                        "mode: patches come in pairs whole lattice steps apart (Objective's pair contrast)")
+    p.add_argument("--lattice-cell", action="store_true",
+                   help="with --lattice: the decoder also reads the exemplar's mean repeat cell at each point's "
+                        "phase (lattice_mean_cell; model.fit turns it on for every lattice fit)")
     p.add_argument("--seed", type=int)
     p.add_argument("--probe-every", type=int,
                    help="single mode: every N steps (and at the start and end) score the exemplar on fixed "
@@ -171,6 +183,62 @@ def parse_args(argv=None) -> TrainConfig:
                    help="where steps run (auto: cuda when available); checkpoints always hold CPU tensors")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return TrainConfig(**vars(p.parse_args(argv)))
+
+
+def lattice_contrast(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> float:
+    """How much a photo's repeats differ: the mean squared sRGB distance between the photo
+    and itself shifted by each lattice vector (pixels, x along columns, y along rows), the
+    mean over the two vectors. Each shift is the best whole-pixel one within a pixel of the
+    vector, so a grid drawn a fraction of a pixel off does not count as difference."""
+    height, width = image.shape[:2]
+    per_vector = []
+    for vx, vy in (lattice_px[:2], lattice_px[2:]):
+        best = math.inf
+        for dx in range(math.floor(vx) - 1, math.ceil(vx) + 2):
+            for dy in range(math.floor(vy) - 1, math.ceil(vy) + 2):
+                if abs(dx) >= width // 2 or abs(dy) >= height // 2 or dx == dy == 0:
+                    continue
+                a = image[max(0, dy):height + min(0, dy), max(0, dx):width + min(0, dx)]
+                b = image[max(0, -dy):height + min(0, -dy), max(0, -dx):width + min(0, -dx)]
+                best = min(best, float(np.square(a - b).sum(axis=2).mean()))
+        per_vector.append(best)
+    return float(np.mean(per_vector))
+
+
+def lattice_mean_cell(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> np.ndarray:
+    """The photo's mean repeat cell: float32 [n_a, n_b, 3], n about one sample per pixel of
+    each lattice vector. Every pixel centre lands at a phase on the lattice (pixels, x along
+    columns, y along rows, as ``lattice_phases`` reads world points); each sample is the mean
+    colour of the pixels in its bin, standardised (zero mean, unit spread over the cell)."""
+    height, width = image.shape[:2]
+    a, b = np.array(lattice_px[:2]), np.array(lattice_px[2:])
+    sizes = np.maximum(2, np.round([np.hypot(*a), np.hypot(*b)]).astype(int))
+    rows, cols = np.mgrid[0:height, 0:width]
+    points = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], axis=1)
+    u = points @ np.linalg.inv(np.stack([a, b], axis=1)).T
+    bins = np.floor((u - np.floor(u)) * sizes).astype(int) % sizes
+    index = bins[:, 0] * sizes[1] + bins[:, 1]
+    counts = np.bincount(index, minlength=sizes.prod())
+    colours = image.reshape(-1, 3)
+    sums = np.stack([np.bincount(index, colours[:, c], minlength=sizes.prod()) for c in range(3)], axis=1)
+    cell = sums / np.maximum(counts, 1)[:, None]
+    cell[counts == 0] = colours.mean(axis=0)  # (a bin no pixel fell in: a lattice longer than the photo)
+    cell = (cell - cell.mean(axis=0)) / (cell.std() + 1e-6)
+    return cell.reshape(*sizes, 3).astype(np.float32)
+
+
+def lattice_partners(origins: torch.Tensor, lattice: tuple[float, float, float, float],
+                     rng: np.random.Generator) -> torch.Tensor:
+    """Each origin moved by a random whole, nonzero combination of the lattice vectors
+    (world units, in the xy plane): a patch there has the same phases, other noise."""
+    steps = np.zeros((len(origins), 2), dtype=np.int64)
+    while True:
+        redraw = ~steps.any(axis=1)
+        if not redraw.any():
+            break
+        steps[redraw] = rng.integers(-LATTICE_PARTNER_STEPS, LATTICE_PARTNER_STEPS + 1, size=(redraw.sum(), 2))
+    basis = np.array([[lattice[0], lattice[1], 0.0], [lattice[2], lattice[3], 0.0]])
+    return origins + torch.from_numpy(steps @ basis).to(origins)
 
 
 def colour_moments(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -187,11 +255,17 @@ class Objective:
     ``colour_weight`` adds the squared error of the patch's mean colour and colour
     covariance to the exemplar's. The Gram loss alone let a 6000-step space settle on
     wrong hues (olive wood, blue-grey marble) whose deeper-layer statistics matched.
+
+    ``lattice_px`` (a lattice fit, pixels): called with ``pairs=True``, the batch's second
+    half are the first half's lattice partners, and their mean squared difference short of
+    the photo's ``lattice_contrast`` adds ``LATTICE_CONTRAST_WEIGHT * (1 - ratio)^2``.
     """
 
     def __init__(self, images: list[np.ndarray], layers: tuple[str, ...], kind: str, colour_weight: float = 0.0,
-                 colour_normalise: bool = False, device: torch.device | str = "cpu"):
+                 colour_normalise: bool = False, device: torch.device | str = "cpu",
+                 lattice_px: tuple[float, float, float, float] | None = None):
         self.vgg = shared_vgg(layers, device)  # one per device: moving the shared one would move it for all
+        self.contrasts = [lattice_contrast(image, lattice_px) for image in images] if lattice_px else None
         self.kind = kind
         self.colour_weight = 0.0 if colour_normalise else colour_weight
         self.colour_normalise = colour_normalise
@@ -206,11 +280,12 @@ class Objective:
                 self.colours.append(colour_moments(tensor))
                 self.compressed.append(compressed_moments(srgb_to_linear(tensor)))
 
-    def __call__(self, synth: torch.Tensor, indices: np.ndarray) -> torch.Tensor:
+    def __call__(self, synth: torch.Tensor, indices: np.ndarray, pairs: bool = False) -> torch.Tensor:
         if self.colour_normalise:
             mean = torch.cat([self.compressed[k][0] for k in indices])
             covariance = torch.cat([self.compressed[k][1] for k in indices])
             synth = linear_to_srgb(transfer_colour_moments(srgb_to_linear(synth), mean, covariance))
+        contrast = self.pair_contrast(synth, indices) if pairs else 0.0
         feats = self.vgg(synth)
         losses = []
         means, covariances = colour_moments(synth)
@@ -224,7 +299,16 @@ class Objective:
                 mean, covariance = self.colours[k]
                 colour = (means[b] - mean[0]).square().sum() + (covariances[b] - covariance[0]).square().sum()
                 losses[-1] = losses[-1] + self.colour_weight * colour
-        return torch.stack(losses).mean()
+        return torch.stack(losses).mean() + contrast
+
+    def pair_contrast(self, synth: torch.Tensor, indices: np.ndarray) -> torch.Tensor:
+        """The hinge on lattice partners (first half of the batch against the second)."""
+        if self.contrasts is None:
+            raise ValueError("pairs=True needs an Objective built with lattice_px")
+        half = len(synth) // 2
+        difference = (synth[:half] - synth[half:]).square().sum(dim=1).mean(dim=(1, 2))
+        target = torch.tensor([self.contrasts[k] for k in indices[:half]], dtype=synth.dtype, device=synth.device)
+        return LATTICE_CONTRAST_WEIGHT * torch.relu(1 - difference / target).square().mean()
 
 
 def resolve_device(name: str) -> torch.device:
@@ -255,14 +339,17 @@ def load_exemplars(cfg: TrainConfig) -> tuple[list[str], list[np.ndarray]]:
     return [dataset.names[k] for k in kept], [dataset.images[k] for k in kept]
 
 
-def build(cfg: TrainConfig) -> tuple[TextureSpace, torch.Tensor | None]:
+def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[TextureSpace, torch.Tensor | None]:
     """The model, with --init's weights when given, and --init's learned code table (None
-    when it has none). Draws from torch's RNG (weight init), so it comes right after seeding."""
+    when it has none). Draws from torch's RNG (weight init), so it comes right after seeding.
+    ``mean_cell``: a lattice fit's ``lattice_mean_cell`` of its photo."""
     model_cfg = ModelConfig(variant=cfg.variant, dims=cfg.dims, nearest_input=not cfg.no_nearest,
                             smooth=cfg.smooth, exemplar_short_side=cfg.short_side, grain=cfg.grain,
                             colour_blind_encoder=cfg.colour_normalise, isotropic_transforms=cfg.isotropic_transforms,
-                            lattice=cfg.lattice)
+                            lattice=cfg.lattice, lattice_cell=mean_cell.shape[:2] if mean_cell is not None else None)
     model = TextureSpace(model_cfg)
+    if mean_cell is not None:
+        model.field.lattice_mean_cell.copy_(torch.from_numpy(mean_cell))
     if not cfg.init:
         return model, None
     init, ckpt = load_checkpoint(cfg.init)
@@ -271,10 +358,11 @@ def build(cfg: TrainConfig) -> tuple[TextureSpace, torch.Tensor | None]:
     # a colour-normalised run may start from a space whose encoder still read colour.
     if init.cfg.to_dict() | {"grain": model_cfg.grain, "colour_blind_encoder": model_cfg.colour_blind_encoder,
                              "isotropic_transforms": model_cfg.isotropic_transforms,
-                             "lattice": model_cfg.lattice} != model_cfg.to_dict():
+                             "lattice": model_cfg.lattice, "lattice_cell": model_cfg.lattice_cell} != model_cfg.to_dict():
         raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {model_cfg.to_dict()}")
     missing, unexpected = model.load_state_dict(init.state_dict(), strict=False)
     new = {"field.decoder.from_phase.weight"} if model_cfg.lattice and not init.cfg.lattice else set()
+    new |= {"field.lattice_mean_cell"} if model_cfg.lattice_cell and not init.cfg.lattice_cell else set()
     if unexpected or set(missing) != new:
         raise SystemExit(f"--init weights do not fit this model: missing {missing}, unexpected {unexpected}")
     return model, ckpt.get("codes")  # a space's learned code table, if it has one
@@ -372,7 +460,11 @@ def setup(cfg: TrainConfig) -> Run:
 
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    model, init_codes = build(cfg)
+    mean_cell = None
+    if cfg.lattice and cfg.lattice_cell:
+        ppu = ModelConfig().pixels_per_unit  # (what model.fit divides the detected lattice by)
+        mean_cell = lattice_mean_cell(images[0], tuple(v * ppu for v in cfg.lattice))
+    model, init_codes = build(cfg, mean_cell)
     model.to(device)
     codes = learned_codes(cfg, model, images, crop, rng, init_codes)
     # Position-input baselines (mlp, oursP) only work near the origin they saw in training;
@@ -440,8 +532,12 @@ def train_step(run: Run) -> dict[str, float]:
     origins, axes = random_planes(cfg.batch, run.rng, oblique_fraction=cfg.oblique, dims=cfg.dims,
                                   extent=run.extent, grain=cfg.grain, photo_plane=bool(cfg.lattice))
     seeds = torch.from_numpy(run.rng.integers(0, 2**31, size=cfg.batch)).to(device)
+    pairs = bool(cfg.lattice) and cfg.mode == "single"
+    if pairs:  # each patch and its lattice partner (Objective's pair contrast)
+        origins = torch.cat([origins, lattice_partners(origins, cfg.lattice, run.rng)])
+        axes, seeds, z, indices = axes.repeat(2, 1, 1), seeds.repeat(2), z.repeat(2, 1), np.tile(indices, 2)
     synth = render_slices(model.field, z, seeds, origins.to(device), axes.to(device), cfg.patch)
-    loss = run.objective(synth, indices)
+    loss = run.objective(synth, indices, pairs=pairs)
 
     decay = (cfg.decay_start, cfg.decay_end or cfg.steps) if cfg.decay_start is not None else None
     for group in run.optimizer.param_groups:
@@ -474,11 +570,15 @@ class Probe:
 
     def __init__(self, run: Run):
         cfg, self.run = run.cfg, run
-        origins, axes = random_planes(4, np.random.default_rng(12345), oblique_fraction=cfg.oblique,
-                                      dims=cfg.dims, extent=run.extent, grain=cfg.grain,
-                                      photo_plane=bool(cfg.lattice))
-        self.origins, self.axes = origins.to(run.device), axes.to(run.device)
-        self.seeds = torch.arange(4, dtype=torch.int64, device=run.device) + 7
+        rng = np.random.default_rng(12345)
+        origins, axes = random_planes(4, rng, oblique_fraction=cfg.oblique, dims=cfg.dims, extent=run.extent,
+                                      grain=cfg.grain, photo_plane=bool(cfg.lattice))
+        seeds = torch.arange(4, dtype=torch.int64) + 7
+        self.pairs = bool(cfg.lattice)  # as in training: two planes and their lattice partners
+        if self.pairs:
+            origins = torch.cat([origins[:2], lattice_partners(origins[:2], cfg.lattice, rng)])
+            seeds = seeds[:2].repeat(2)
+        self.origins, self.axes, self.seeds = origins.to(run.device), axes.to(run.device), seeds.to(run.device)
         self.best_score, self.best = self.score(), self.snapshot()
         self.log(self.best_score)
 
@@ -487,7 +587,7 @@ class Probe:
         with torch.no_grad():
             patches = render_slices(self.run.model.field, self.run.codes.expand(4, -1), self.seeds, self.origins,
                                     self.axes, self.run.cfg.patch * 2)
-            return float(self.run.objective(patches, np.zeros(4, dtype=np.int64)))
+            return float(self.run.objective(patches, np.zeros(4, dtype=np.int64), pairs=self.pairs))
 
     def snapshot(self) -> dict:
         run = self.run
@@ -577,8 +677,10 @@ def train(cfg: TrainConfig, progress=None) -> Path:
     if run.ckpt_path.exists():
         resume(run, run.ckpt_path)
     # After the resume: the VGG's first construction in a process draws from torch's RNG.
+    ppu = run.model.cfg.pixels_per_unit
     run.objective = Objective(run.images, tuple(cfg.layers.split(",")), cfg.loss, cfg.colour_weight,
-                              cfg.colour_normalise, run.device)
+                              cfg.colour_normalise, run.device,
+                              lattice_px=tuple(v * ppu for v in cfg.lattice) if cfg.lattice else None)
     run.log = (run.out / "log.jsonl").open("a")
     probe = Probe(run) if cfg.probe_every and cfg.mode == "single" else None  # a fit keeps its best state
     stop = threading.Event()

@@ -199,6 +199,7 @@ class SamplerWeights:
     n_noise: int  # K*3 noise features
     harmonics: int  # per repeat-lattice axis (model/networks.py lattice_phases); 0: no repeat lattice
     fields: str = "multiply"  # how a cell hash gives its colour values: "multiply" or "mask" (before 2026-11-26)
+    mean_cell: np.ndarray | None = None  # float32 [n_a, n_b, 3]: the photo's mean repeat cell, read at the phase
 
 
 @dataclass(frozen=True)
@@ -242,10 +243,14 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
         raise ModelInvalid(f"{Path(path).name}: not a TextureField sampler this shader emitter knows "
                            f"(code-bias Gemm: {len(biases)}, lattices: {len(lattices)}, phase weights: {len(phase)}, "
                            f"hidden layers: {len(hidden)})")
+    cells = [v for k, v in init.items() if k.endswith("lattice_mean_cell")]
+    mean_cell = cells[0] if len(cells) == 1 and phase and cells[0].ndim == 3 and cells[0].shape[2] == 3 else None
     first = np.concatenate([noise, *phase], axis=1)
-    if first.shape[1] % 4 or noise.shape[1] % 4:
-        raise ModelInvalid(f"{Path(path).name}: decoder inputs ({noise.shape[1]} noise, {first.shape[1]} in all) "
-                           "are not whole vec4s")
+    if mean_cell is not None:  # its 3 inputs come last; one zero column makes whole vec4s
+        first = np.concatenate([first, np.zeros((first.shape[0], 1), first.dtype)], axis=1)
+    if first.shape[1] % 4 or noise.shape[1] % 4 or len(cells) != (mean_cell is not None):
+        raise ModelInvalid(f"{Path(path).name}: decoder inputs ({noise.shape[1]} noise, {first.shape[1]} in all, "
+                           f"{len(cells)} mean cells) are not whole vec4s this shader emitter knows")
     z = weight("translator.body.0.weight")
     held = _held_uint32(g)
     if CHANNEL_MULTS[1] in held and CHANNEL_MULTS[2] in held:
@@ -260,7 +265,8 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
         code_size=int(z.shape[1]),
         probe_model=_with_outputs(data, {biases[0]: 1, **{name: 11 for name in lattices}}),
         biases_name=biases[0], lattice_names=tuple(lattices), n_noise=int(noise.shape[1]),
-        harmonics=int(phase[0].shape[1]) // 4 if phase else 0, fields=fields)
+        harmonics=(int(phase[0].shape[1]) - (3 if mean_cell is not None else 0)) // 4 if phase else 0,
+        fields=fields, mean_cell=mean_cell)
 
 
 def sampler_weights(path: str | os.PathLike) -> SamplerWeights:
@@ -395,6 +401,9 @@ def _tables(w: SamplerWeights, c: TextureConstants, s: _Syntax, n: str) -> str:
         arr(s.mat3, lattice, f"{n}_M"),
         arr(s.vec3, list(c.offsets - 0.5), f"{n}_O"),
     ]
+    if w.mean_cell is not None:
+        parts += ["// the photo's mean repeat cell, [i_a * n_b + i_b] (model/networks.py mean_cell_colour)\n",
+                  arr(s.vec3, list(w.mean_cell.reshape(-1, 3)), f"{n}_CELL")]
     if len(c.colour):
         knots = _knots(c)
         t = c.colour
@@ -459,7 +468,7 @@ def _knots(c: TextureConstants) -> int:
     return (len(c.colour) - 24) // 3 if len(c.colour) else 0
 
 
-def _phases(w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
+def _phases(w: SamplerWeights, c: TextureConstants, s: _Syntax, n: str) -> str:
     """The repeat-lattice phase features after the noise ones (model/networks.py
     lattice_phases): ph = R p + r, then sin and cos of 2 pi k frac(ph), k = 1..harmonics, as
     x[noise + i * H + k - 1] (sin) and x[noise + 2H + i * H + k - 1] (cos) for axis i."""
@@ -476,7 +485,7 @@ def _phases(w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
     x[{first} + i * {h} + k - 1] = sin(angle);
     x[{first + 2 * h} + i * {h} + k - 1] = cos(angle);
   }}
-"""
+{_mean_cell(w, s, n, first + 4 * h)}"""
     return f"""  // phase on the photo's repeat lattice
   var ph = vec2<f32>(dot({rows[0]}, p), dot({rows[1]}, p)) + vec2<f32>({_num(c.repeat[0, 3])}, {_num(c.repeat[1, 3])});
   ph -= floor(ph);
@@ -487,6 +496,38 @@ def _phases(w: SamplerWeights, c: TextureConstants, s: _Syntax) -> str:
       x[{first + 2 * h} + i * {h} + k - 1] = cos(angle);
     }}
   }}
+{_mean_cell(w, s, n, first + 4 * h)}"""
+
+
+def _mean_cell(w: SamplerWeights, s: _Syntax, n: str, at: int) -> str:
+    """The mean repeat cell's colour at phase ``ph``, bilinear and wrapping (model/networks.py
+    mean_cell_colour), into x[at..at+2]; x[at+3] is the zero column that completes the vec4."""
+    if w.mean_cell is None:
+        return ""
+    na, nb = w.mean_cell.shape[:2]
+    if s.f32 == "float":
+        return f"""  // the photo's mean repeat cell at this phase
+  vec2 cx = ph * vec2({na}.0, {nb}.0) - 0.5;
+  vec2 lo = floor(cx), ct = cx - lo;
+  int a0 = (int(lo.x) + {na}) % {na}, b0 = (int(lo.y) + {nb}) % {nb};
+  int a1 = (a0 + 1) % {na}, b1 = (b0 + 1) % {nb};
+  vec3 top = {n}_CELL[a0 * {nb} + b0] + ct.x * ({n}_CELL[a1 * {nb} + b0] - {n}_CELL[a0 * {nb} + b0]);
+  vec3 bottom = {n}_CELL[a0 * {nb} + b1] + ct.x * ({n}_CELL[a1 * {nb} + b1] - {n}_CELL[a0 * {nb} + b1]);
+  vec3 mc = top + ct.y * (bottom - top);
+  x[{at}] = mc.x; x[{at + 1}] = mc.y; x[{at + 2}] = mc.z; x[{at + 3}] = 0.0;
+"""
+    return f"""  // the photo's mean repeat cell at this phase
+  let cx = ph * vec2<f32>({na}.0, {nb}.0) - 0.5;
+  let lo = floor(cx);
+  let ct = cx - lo;
+  let a0 = (i32(lo.x) + {na}) % {na};
+  let b0 = (i32(lo.y) + {nb}) % {nb};
+  let a1 = (a0 + 1) % {na};
+  let b1 = (b0 + 1) % {nb};
+  let top = {n}_CELL[a0 * {nb} + b0] + ct.x * ({n}_CELL[a1 * {nb} + b0] - {n}_CELL[a0 * {nb} + b0]);
+  let bottom = {n}_CELL[a0 * {nb} + b1] + ct.x * ({n}_CELL[a1 * {nb} + b1] - {n}_CELL[a0 * {nb} + b1]);
+  let mc = top + ct.y * (bottom - top);
+  x[{at}] = mc.x; x[{at + 1}] = mc.y; x[{at + 2}] = mc.z; x[{at + 3}] = 0.0;
 """
 
 
@@ -548,7 +589,7 @@ vec3 {n}(vec3 p, uint seed) {{
     vec3 feature = (level - 0.5) * 2.0;
     x[3 * k] = feature.x; x[3 * k + 1] = feature.y; x[3 * k + 2] = feature.z;
   }}
-{_phases(w, c, GLSL)}{decoder}  vec3 raw = 1.0 / (1.0 + exp(-2.0 * o.xyz));  // sigmoid(2 logits)
+{_phases(w, c, GLSL, n)}{decoder}  vec3 raw = 1.0 / (1.0 + exp(-2.0 * o.xyz));  // sigmoid(2 logits)
 {colour}
 }}
 """
@@ -619,7 +660,7 @@ fn {n}(p: vec3<f32>, seed: u32) -> vec3<f32> {{
     let feature = (level - 0.5) * 2.0;
     x[3 * k] = feature.x; x[3 * k + 1] = feature.y; x[3 * k + 2] = feature.z;
   }}
-{_phases(w, c, WGSL)}{decoder}  let raw = 1.0 / (1.0 + exp(-2.0 * o.xyz));  // sigmoid(2 logits)
+{_phases(w, c, WGSL, n)}{decoder}  let raw = 1.0 / (1.0 + exp(-2.0 * o.xyz));  // sigmoid(2 logits)
 {colour}
 }}
 """

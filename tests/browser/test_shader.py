@@ -60,19 +60,22 @@ def uploaded(base_url) -> dict:
 @pytest.fixture(scope="module")
 def lattice_sampler(tmp_path_factory) -> Path:
     """A sampler fitted on a repeat lattice, as a fit of a brick wall makes one: the shipped
-    space's weights, a running-bond lattice (world units) and phase weights drawn at random
-    (a fit learns them; any values take the same path through the shader)."""
+    space's weights, a running-bond lattice (world units), a mean repeat cell and phase
+    weights drawn at random (a fit measures and learns them; any values take the same path
+    through the shader)."""
     torch = pytest.importorskip("torch", reason="exporting a sampler needs the train extra")
     from model.export import export_sampler
     from model.networks import ModelConfig, TextureSpace
 
     checkpoint = torch.load(SAMPLER.parent / "space.pt", map_location="cpu", weights_only=False)
-    field = TextureSpace(ModelConfig(**{**checkpoint["config"], "lattice": (0.125, 0.0, -0.054, 0.0417)})).field
+    field = TextureSpace(ModelConfig(**{**checkpoint["config"], "lattice": (0.125, 0.0, -0.054, 0.0417),
+                                        "lattice_cell": (32, 13)})).field
     state = {k[len("field."):]: v for k, v in checkpoint["model"].items() if k.startswith("field.")}
     missing, _ = field.load_state_dict(state, strict=False)
-    assert missing == ["decoder.from_phase.weight"], missing
+    assert sorted(missing) == ["decoder.from_phase.weight", "lattice_mean_cell"], missing
     torch.manual_seed(0)
     torch.nn.init.normal_(field.decoder.from_phase.weight, std=0.5)
+    field.lattice_mean_cell.normal_()
     path = tmp_path_factory.mktemp("lattice-sampler") / "sampler.onnx"
     export_sampler(field.eval(), path)
     return path
@@ -143,8 +146,8 @@ def test_shader_matches_the_sampler(gpu_page, base_url, uploaded, artifacts, lan
 @pytest.mark.parametrize("language", ["glsl", "wgsl"])
 def test_lattice_shader_matches_its_sampler(gpu_page, lattice_sampler, uploaded, artifacts, language):
     """A texture fitted on a repeat lattice (bricks, tile grids): the shader computes each
-    point's phase on the lattice as the sampler does (model/networks.py lattice_phases);
-    the phases change the texture."""
+    point's phase on the lattice and reads the photo's mean repeat cell there as the sampler
+    does (model/networks.py lattice_phases); the phases change the texture."""
     vector = texture_vector(uploaded["code"], uploaded["colour"])
     check_emitted(gpu_page, lattice_sampler, vector, "texspace_bricks", language, artifacts, "lattice")
 

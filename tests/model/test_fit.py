@@ -201,10 +201,35 @@ def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, 
     angle = 2 * np.pi * (u - np.floor(u))[:, :, None] * np.arange(1, 5)          # [P, axis, k]
     phases = np.concatenate([np.sin(angle).reshape(40, -1), np.cos(angle).reshape(40, -1)], axis=1)
     want = field.lattice_phases(torch.from_numpy(near)[None]).numpy()[0]
-    assert np.allclose(phases, want, atol=1e-5)
+    assert np.allclose(phases, want[:, :16], atol=1e-5)  # (then the mean cell's colour: 3 more)
+    # the fit measured the photo's mean repeat cell, and the shader carries it
+    assert fitted.cfg.lattice_cell == tuple(field.lattice_mean_cell.shape[:2])
+    assert float(field.lattice_mean_cell.std()) == pytest.approx(1.0, rel=0.01)  # standardised
     for language in ("glsl", "wgsl"):
         text = emit_shader(tmp_path / "fit" / "sampler.onnx", vector, "bricks", language)
         assert "repeat lattice" in text and text.count("{") == text.count("}")
+        assert "mean repeat cell" in text and f"{field.lattice_mean_cell.shape[0]}.0" in text
+
+
+def test_mean_cell_holds_the_grout_where_the_photo_has_it_and_reads_back_between_samples():
+    from model.train import lattice_mean_cell
+
+    rng = np.random.default_rng(0)
+    photo = 0.8 + 0.05 * rng.standard_normal((128, 160, 3)).astype(np.float32)  # marbling: averages away
+    photo[3::16] = photo[:, 5::20] = 0.1  # grout: rows 3, 19, ...; columns 5, 25, ...
+    cell = lattice_mean_cell(photo, (20.0, 0.0, 0.0, 16.0))  # [n_a (x), n_b (y), 3]
+    assert cell.shape == (20, 16, 3)
+    dark = cell.mean(axis=2) < -1.0
+    # pixel centres at 5.5 and 3.5 px fall in bins 5 and 3 of their axes: those lines and nothing else
+    assert dark[5].all() and dark[:, 3].all() and dark.sum() == 16 + 20 - 1
+    # the field reads it bilinearly at cell-centred samples, wrapping across the cell's edge
+    field = TextureSpace(ModelConfig(lattice=(20 / 256, 0.0, 0.0, 16 / 256), lattice_cell=(20, 16))).field
+    field.lattice_mean_cell.copy_(torch.from_numpy(cell))
+    centres = (torch.stack(torch.meshgrid(torch.arange(20), torch.arange(16), indexing="ij"), -1) + 0.5)
+    phase = centres.to(torch.float64) / torch.tensor([20.0, 16.0], dtype=torch.float64)
+    assert torch.allclose(field.mean_cell_colour(phase), torch.from_numpy(cell), atol=1e-6)
+    edge = field.mean_cell_colour(torch.tensor([[0.0, 0.5 / 16]], dtype=torch.float64))
+    assert torch.allclose(edge[0], torch.from_numpy((cell[0, 0] + cell[-1, 0]) / 2), atol=1e-6)
 
 
 def test_a_lattice_field_starts_as_the_field_without_it() -> None:
@@ -213,10 +238,15 @@ def test_a_lattice_field_starts_as_the_field_without_it() -> None:
     lattice = TextureSpace(ModelConfig(lattice=(0.125, 0.0, 0.0625, 0.043))).field
     missing, unexpected = lattice.load_state_dict(plain.state_dict(), strict=False)
     assert missing == ["decoder.from_phase.weight"] and unexpected == []
+    cell = TextureSpace(ModelConfig(lattice=(0.125, 0.0, 0.0625, 0.043), lattice_cell=(32, 11))).field
+    missing, _ = cell.load_state_dict(plain.state_dict(), strict=False)
+    assert sorted(missing) == ["decoder.from_phase.weight", "lattice_mean_cell"]
+    cell.lattice_mean_cell.normal_()
     points = torch.from_numpy(np.random.default_rng(2).uniform(-5, 5, (1, 200, 3)))
     z = torch.randn(1, 8)
     with torch.no_grad():  # zero phase weights: the same texture until a fit moves them
         assert torch.equal(plain(points, z, torch.tensor(4)), lattice(points, z, torch.tensor(4)))
+        assert torch.equal(plain(points, z, torch.tensor(4)), cell(points, z, torch.tensor(4)))
 
 
 def test_patch_side_defaults_to_128_and_64_for_a_lattice(tmp_path, monkeypatch):

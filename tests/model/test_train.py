@@ -13,7 +13,8 @@ torch = pytest.importorskip("torch")
 
 from model.networks import VARIANTS, ModelConfig, TextureSpace, load_checkpoint  # noqa: E402
 from model.slices import random_planes, render_slices  # noqa: E402
-from model.train import Objective, TrainConfig, main as train_main, parse_args, train  # noqa: E402
+from model.train import (LATTICE_CONTRAST_WEIGHT, Objective, TrainConfig, lattice_contrast,  # noqa: E402
+                         lattice_partners, main as train_main, parse_args, train)
 
 
 @pytest.fixture(scope="module")
@@ -79,6 +80,43 @@ def test_probe_keeps_the_best_scoring_state(tmp_path, brick, vgg):
     best = min(scores, key=lambda s: s["probe"])
     assert ckpt["probe"]["step"] == best["step"] and ckpt["step"] == 4
     assert abs(ckpt["probe"]["score"] - best["probe"]) < 1e-4
+
+
+def test_lattice_contrast_counts_what_differs_between_repeats_not_the_grid():
+    rng = np.random.default_rng(0)
+    grid = np.ones((128, 128, 3), np.float32)
+    grid[::16] = grid[:, ::16] = 0.2  # grout every 16 px
+    assert lattice_contrast(grid, (16.0, 0.0, 0.0, 16.0)) == 0.0
+    assert lattice_contrast(grid, (15.6, 0.0, 0.3, 16.4)) == 0.0  # a vector a fraction of a pixel off
+    marbled = grid + 0.1 * np.kron(rng.standard_normal((8, 8, 1)), np.ones((16, 16, 3))).astype(np.float32)
+    # each tile its own shade: neighbours differ by 0.1^2 * 2 per channel, 3 channels
+    assert lattice_contrast(marbled, (16.0, 0.0, 0.0, 16.0)) == pytest.approx(0.06, rel=0.35)
+
+
+def test_lattice_partners_share_the_phases_not_the_place():
+    lattice = (0.25, 0.0, 0.125, 0.3)
+    field = TextureSpace(ModelConfig(lattice=lattice)).field
+    origins = torch.from_numpy(np.random.default_rng(1).uniform(-50, 50, (64, 3)))
+    partners = lattice_partners(origins, lattice, np.random.default_rng(2))
+    steps = (partners - origins)[:, :2].numpy() @ np.linalg.inv(np.array(lattice).reshape(2, 2))
+    assert np.allclose(steps, np.round(steps), atol=1e-9) and np.all(np.abs(np.round(steps)).sum(axis=1) > 0)
+    assert torch.equal(partners[:, 2], origins[:, 2])  # same depth: the same slice plane, moved
+    phases = field.lattice_phases(torch.stack([origins, partners])[:, :, None, :].reshape(2, -1, 3))
+    assert torch.allclose(phases[0], phases[1], atol=1e-4)
+
+
+def test_pair_contrast_charges_identical_repeats_and_frees_varied_ones(vgg):
+    rng = np.random.default_rng(0)
+    photo = rng.uniform(0.3, 0.7, (64, 64, 3)).astype(np.float32)
+    objective = Objective([photo], ("relu1_1",), "gram", lattice_px=(16.0, 0.0, 0.0, 16.0))
+    patch = torch.rand(1, 3, 32, 32)
+    indices = np.zeros(2, np.int64)
+    stamped = objective.pair_contrast(torch.cat([patch, patch]), indices)
+    assert float(stamped) == pytest.approx(LATTICE_CONTRAST_WEIGHT)
+    varied = objective.pair_contrast(torch.cat([patch, torch.rand(1, 3, 32, 32)]), indices)
+    assert float(varied) == 0.0  # as different as the photo's repeats: no charge
+    assert float(objective(torch.cat([patch, patch]), indices, pairs=True)) > float(
+        objective(torch.cat([patch, patch]), indices))
 
 
 @pytest.mark.parametrize("grain, axis, role", [("x", 0, 0), ("y", 1, 1)])
