@@ -24,7 +24,7 @@ from scipy import ndimage
 from model.data import load_exemplar
 from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
 from model.networks import load_checkpoint
-from model.train import TrainConfig, train
+from model.train import TrainConfig, fold_on_lattice, lattice_cell_sizes, train
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
 DEFAULT_MINUTES = 4.0  # inside the 5-minute budget on 2 cores, with export
@@ -83,10 +83,12 @@ LATTICE_REFINE_PEAK = 0.3
 # fits keep 64 (floor tiles 0.325 -> 0.492, grill 2.53 -> 3.63 at 128: they need the steps).
 PATCH = 128
 LATTICE_PATCH = 64
-# A lattice fit trains one patch per step instead of two: it needs ~600 steps before the
-# bricks' joints form. The brick wall on one thread, 60 s, best probe score (lower is
-# better): batch 2 425 steps 0.28 (courses only), 90 s 625 steps 0.10 (bricks), batch 1
-# 648 steps 0.086 (bricks).
+# A lattice fit trains one patch per step (and its lattice partner, model/train.py) instead
+# of two: it needs the steps. Measured before the partners, the brick wall on one thread,
+# 60 s, best probe score (lower is better): batch 2 425 steps 0.28 (courses only), 90 s
+# 625 steps 0.10 (bricks), batch 1 648 steps 0.086 (bricks).
+# fold_lattice: how far (px) it moves each coordinate of the detected lattice, in what steps
+FOLD_REACH, FOLD_STEP = 3.0, 0.25
 
 
 def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | None:
@@ -181,6 +183,30 @@ def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> tuple[np.ndarr
     return fitted, support
 
 
+def fold_lattice(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    """The lattice within ``FOLD_REACH`` px of ``lattice_px`` (each vector's x and y) on which
+    the photo folds sharpest: the largest spread of its mean repeat cell (``fold_on_lattice``,
+    bins fixed), by coordinate search in ``FOLD_STEP`` px, twice over. Autocorrelation peaks
+    put the validation brick wall's bond at -13.8 px per course, where its vertical joints
+    average out of the mean cell; folded, it comes out at -16 (half a brick), where they show."""
+    sizes = lattice_cell_sizes(lattice_px)
+
+    def spread(lattice: np.ndarray) -> float:
+        means, counts = fold_on_lattice(image, tuple(lattice), sizes)
+        return float(means[counts > 0].var(axis=0).sum())
+
+    best = np.array(lattice_px, np.float64)
+    offsets = np.arange(-FOLD_REACH, FOLD_REACH + FOLD_STEP / 2, FOLD_STEP)
+    for _ in range(2):
+        for k in range(4):
+            trials = np.repeat(best[None], len(offsets), axis=0)
+            trials[:, k] += offsets
+            if abs(np.linalg.det(trials.reshape(-1, 2, 2))).min() < 1.0:
+                continue  # (never near a degenerate basis)
+            best = trials[int(np.argmax([spread(t) for t in trials]))]
+    return tuple(float(v) for v in best)
+
+
 def detect_grain(image: np.ndarray) -> str | None:
     """The axis the photo's grain runs along, ``"x"`` (left-right) or ``"y"`` (up-down),
     or None for an isotropic photo. ``image``: (H, W, 3) RGB in [0, 1] at the working
@@ -222,6 +248,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     space_cfg = space.cfg
     photo = load_exemplar(image_path, space_cfg.exemplar_short_side)
     found = detect_lattice(photo) if lattice == "auto" else None
+    found = fold_lattice(photo, found) if found else None
     # world units: one exemplar pixel is 1 / pixels_per_unit; image rows run along +y
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
     if grain == "auto":

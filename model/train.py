@@ -205,24 +205,36 @@ def lattice_contrast(image: np.ndarray, lattice_px: tuple[float, float, float, f
     return float(np.mean(per_vector))
 
 
-def lattice_mean_cell(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> np.ndarray:
-    """The photo's mean repeat cell: float32 [n_a, n_b, 3], n about one sample per pixel of
-    each lattice vector. Every pixel centre lands at a phase on the lattice (pixels, x along
-    columns, y along rows, as ``lattice_phases`` reads world points); each sample is the mean
-    colour of the pixels in its bin, standardised (zero mean, unit spread over the cell)."""
+def fold_on_lattice(image: np.ndarray, lattice_px: tuple[float, float, float, float],
+                    sizes: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Every pixel of the photo binned by its phase on the lattice, ``sizes`` bins along the
+    two lattice vectors (pixels, x along columns, y along rows, as ``lattice_phases`` reads
+    world points): the mean colour float64 [n_a * n_b, 3] and the pixel count [n_a * n_b]
+    of each bin (row i_a * n_b + i_b)."""
     height, width = image.shape[:2]
-    a, b = np.array(lattice_px[:2]), np.array(lattice_px[2:])
-    sizes = np.maximum(2, np.round([np.hypot(*a), np.hypot(*b)]).astype(int))
     rows, cols = np.mgrid[0:height, 0:width]
     points = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], axis=1)
-    u = points @ np.linalg.inv(np.stack([a, b], axis=1)).T
+    u = points @ np.linalg.inv(np.array(lattice_px, np.float64).reshape(2, 2).T).T
     bins = np.floor((u - np.floor(u)) * sizes).astype(int) % sizes
     index = bins[:, 0] * sizes[1] + bins[:, 1]
-    counts = np.bincount(index, minlength=sizes.prod())
+    n = int(np.prod(sizes))
+    counts = np.bincount(index, minlength=n)
     colours = image.reshape(-1, 3)
-    sums = np.stack([np.bincount(index, colours[:, c], minlength=sizes.prod()) for c in range(3)], axis=1)
-    cell = sums / np.maximum(counts, 1)[:, None]
-    cell[counts == 0] = colours.mean(axis=0)  # (a bin no pixel fell in: a lattice longer than the photo)
+    sums = np.stack([np.bincount(index, colours[:, c], minlength=n) for c in range(3)], axis=1)
+    return sums / np.maximum(counts, 1)[:, None], counts
+
+
+def lattice_cell_sizes(lattice_px: tuple[float, float, float, float]) -> tuple[int, int]:
+    """Bins of a mean repeat cell: about one per pixel along each lattice vector."""
+    return tuple(int(max(2, round(float(np.hypot(*v))))) for v in (lattice_px[:2], lattice_px[2:]))
+
+
+def lattice_mean_cell(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> np.ndarray:
+    """The photo's mean repeat cell: float32 [n_a, n_b, 3] (``fold_on_lattice`` at
+    ``lattice_cell_sizes``), standardised: zero mean, unit spread over the cell."""
+    sizes = lattice_cell_sizes(lattice_px)
+    cell, counts = fold_on_lattice(image, lattice_px, sizes)
+    cell[counts == 0] = image.reshape(-1, 3).mean(axis=0)  # (a bin no pixel fell in: a lattice longer than the photo)
     cell = (cell - cell.mean(axis=0)) / (cell.std() + 1e-6)
     return cell.reshape(*sizes, 3).astype(np.float32)
 

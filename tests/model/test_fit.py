@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 ort = pytest.importorskip("onnxruntime")
 
 from model.export import export_model  # noqa: E402
-from model.fit import detect_grain, detect_lattice, fit_exemplar  # noqa: E402
+from model.fit import detect_grain, detect_lattice, fit_exemplar, fold_lattice  # noqa: E402
 from model.evaluate import load_candidates  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
 
@@ -88,6 +88,16 @@ def test_detect_lattice_finds_a_running_bond_and_nothing_in_stochastic_photos(sk
     for name in ("grass", "gravel"):
         assert detect_lattice(skimage_textures[name]) is None, name
     assert detect_lattice(np.full((64, 64, 3), 0.5)) is None
+
+
+def test_fold_lattice_moves_a_bond_that_is_off_onto_the_photos_own():
+    # the validation brick wall's peaks gave -13.8 px per course where the bond is -16: a
+    # lattice that far off averages the vertical joints out of the mean cell
+    image = _running_bond()
+    off = fold_lattice(image, (32.0, 0.0, -13.8, 11.0))
+    assert off[:2] == pytest.approx((32.0, 0.0), abs=0.3)
+    assert off[2] == pytest.approx(-16.0, abs=0.3) and off[3] == pytest.approx(11.0, abs=0.3)
+    assert fold_lattice(image, (32.0, 0.0, 16.0, 11.0)) == pytest.approx((32.0, 0.0, 16.0, 11.0), abs=0.3)
 
 
 def test_detect_lattice_measures_a_skewed_lattice_to_a_fraction_of_a_pixel():
