@@ -345,9 +345,10 @@ class TextureField(nn.Module):
             self.register_buffer("lattice_mean_cell", torch.zeros(*cfg.lattice_cell, 3), persistent=True)
 
     def lattice_phases(self, points: torch.Tensor, period: torch.Tensor | None = None) -> torch.Tensor:
-        """float64 [B,P,>=2] -> float32 [B,P,4*H]: sin and cos of 2 pi k u, u the point's
-        (x, y) in lattice coordinates, k = 1..H (``lattice_harmonics``). Exactly periodic
-        on the lattice; u is taken in float64 so far-away points keep their phase.
+        """float64 [B,P,>=2] -> float32 [B,P,4*H (+3)]: sin and cos of 2 pi k u, u the point's
+        (x, y) in lattice coordinates, k = 1..H (``lattice_harmonics``), then, with a
+        ``lattice_cell``, the mean cell's colour at the phase. Exactly periodic on the
+        lattice; u is taken in float64 so far-away points keep their phase.
 
         ``period`` (float64 [], world units; tileable synthesis): the lattice nudged so that
         it also repeats every ``period`` in x and y: period x the inverse basis rounded to
@@ -359,11 +360,12 @@ class TextureField(nn.Module):
         u = points[..., :2] @ inverse.t()  # [B,P,2]
         k = torch.arange(1, self.cfg.lattice_harmonics + 1, dtype=torch.float64, device=points.device)
         # the fractional part first: sin/cos of a small float32 angle, exact at any distance
-        angle = (2.0 * math.pi) * (u - torch.floor(u)).unsqueeze(-1) * k  # [B,P,2,H]
+        phase = u - torch.floor(u)
+        angle = (2.0 * math.pi) * phase.unsqueeze(-1) * k  # [B,P,2,H]
         angle = angle.to(torch.float32).reshape(*u.shape[:-1], -1)
         features = [torch.sin(angle), torch.cos(angle)]
         if self.cfg.lattice_cell:
-            features.append(self.mean_cell_colour(u - torch.floor(u)))
+            features.append(self.mean_cell_colour(phase))
         return torch.cat(features, dim=-1)
 
     def mean_cell_colour(self, phase: torch.Tensor) -> torch.Tensor:
@@ -379,14 +381,10 @@ class TextureField(nn.Module):
         low = low.to(torch.int64)
         i0, j0 = torch.remainder(low[..., 0], n_a), torch.remainder(low[..., 1], n_b)
         i1, j1 = torch.remainder(i0 + 1, n_a), torch.remainder(j0 + 1, n_b)
-        table = self.lattice_mean_cell  # (indexed whole: the graph keeps its name and shape for worker/shader.py)
-
-        def at(i, j):
-            return table[i, j]
-
+        cell = self.lattice_mean_cell  # (indexed whole: the graph keeps its name and shape for worker/shader.py)
         ta, tb = t[..., :1], t[..., 1:]
-        top = at(i0, j0) + ta * (at(i1, j0) - at(i0, j0))
-        bottom = at(i0, j1) + ta * (at(i1, j1) - at(i0, j1))
+        top = cell[i0, j0] + ta * (cell[i1, j0] - cell[i0, j0])
+        bottom = cell[i0, j1] + ta * (cell[i1, j1] - cell[i0, j1])
         return top + tb * (bottom - top)
 
     def lattice_points(self, points: torch.Tensor, transforms: torch.Tensor,
