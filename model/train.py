@@ -53,6 +53,12 @@ POSITION_EXTENT = 4.0  # world units around the origin where position-input vari
 # in pairs a whole number of lattice vectors apart (same seed and depth) and a hinge holds
 # their mean squared difference up to the photo's own (``lattice_contrast``).
 LATTICE_CONTRAST_WEIGHT = 1.0
+# Pairs only where the photo's repeats differ by at least this share of the difference
+# between two random pixels of it. The grill's holes repeat almost exactly (0.035; floor
+# tiles 0.16, bricks 0.26): there the hinge never has anything to hold up, and pairs would
+# only halve the fit's steps (60-s grill fits, seeds 1 and 2: 9.25 and 5.03 with pairs,
+# 3.22 and 5.26 without).
+LATTICE_PAIRS_MIN = 0.1
 LATTICE_PARTNER_STEPS = 2  # a partner lies up to this many lattice vectors away along each
 
 Mode = Literal["space", "single"]
@@ -271,6 +277,7 @@ class Objective:
     ``lattice_px`` (a lattice fit, pixels): called with ``pairs=True``, the batch's second
     half are the first half's lattice partners, and their mean squared difference short of
     the photo's ``lattice_contrast`` adds ``LATTICE_CONTRAST_WEIGHT * (1 - ratio)^2``.
+    ``self.pairs`` says whether training should use pairs (``LATTICE_PAIRS_MIN``).
     """
 
     def __init__(self, images: list[np.ndarray], layers: tuple[str, ...], kind: str, colour_weight: float = 0.0,
@@ -278,6 +285,10 @@ class Objective:
                  lattice_px: tuple[float, float, float, float] | None = None):
         self.vgg = shared_vgg(layers, device)  # one per device: moving the shared one would move it for all
         self.contrasts = [lattice_contrast(image, lattice_px) for image in images] if lattice_px else None
+        # whether a lattice fit trains on pairs: every photo's repeats differ enough to charge
+        self.pairs = self.contrasts is not None and all(
+            contrast >= LATTICE_PAIRS_MIN * 2 * image.reshape(-1, 3).var(axis=0).sum()
+            for contrast, image in zip(self.contrasts, images))
         self.kind = kind
         self.colour_weight = 0.0 if colour_normalise else colour_weight
         self.colour_normalise = colour_normalise
@@ -544,7 +555,7 @@ def train_step(run: Run) -> dict[str, float]:
     origins, axes = random_planes(cfg.batch, run.rng, oblique_fraction=cfg.oblique, dims=cfg.dims,
                                   extent=run.extent, grain=cfg.grain, photo_plane=bool(cfg.lattice))
     seeds = torch.from_numpy(run.rng.integers(0, 2**31, size=cfg.batch)).to(device)
-    pairs = bool(cfg.lattice) and cfg.mode == "single"
+    pairs = run.objective.pairs and cfg.mode == "single"
     if pairs:  # each patch and its lattice partner (Objective's pair contrast)
         origins = torch.cat([origins, lattice_partners(origins, cfg.lattice, run.rng)])
         axes, seeds, z, indices = axes.repeat(2, 1, 1), seeds.repeat(2), z.repeat(2, 1), np.tile(indices, 2)
@@ -586,7 +597,7 @@ class Probe:
         origins, axes = random_planes(4, rng, oblique_fraction=cfg.oblique, dims=cfg.dims, extent=run.extent,
                                       grain=cfg.grain, photo_plane=bool(cfg.lattice))
         seeds = torch.arange(4, dtype=torch.int64) + 7
-        self.pairs = bool(cfg.lattice)  # as in training: two planes and their lattice partners
+        self.pairs = run.objective.pairs  # as in training: two planes and their lattice partners
         if self.pairs:
             origins = torch.cat([origins[:2], lattice_partners(origins[:2], cfg.lattice, rng)])
             seeds = seeds[:2].repeat(2)

@@ -117,6 +117,11 @@ def test_pair_contrast_charges_identical_repeats_and_frees_varied_ones(vgg):
     assert float(varied) == 0.0  # as different as the photo's repeats: no charge
     assert float(objective(torch.cat([patch, patch]), indices, pairs=True)) > float(
         objective(torch.cat([patch, patch]), indices))
+    assert objective.pairs  # (random pixels: its 16-px "repeats" differ as much as any two pixels)
+    # a photo whose repeats are the same (the grill's holes) gives pairs nothing to charge
+    repeated = np.tile(photo[:16, :16], (4, 4, 1))
+    assert not Objective([repeated], ("relu1_1",), "gram", lattice_px=(16.0, 0.0, 0.0, 16.0)).pairs
+    assert not Objective([photo], ("relu1_1",), "gram").pairs
 
 
 @pytest.mark.parametrize("grain, axis, role", [("x", 0, 0), ("y", 1, 1)])
