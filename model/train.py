@@ -191,6 +191,13 @@ def parse_args(argv=None) -> TrainConfig:
     return TrainConfig(**vars(p.parse_args(argv)))
 
 
+def lattice_pixels(lattice: tuple[float, float, float, float] | None) -> tuple[float, float, float, float] | None:
+    """A lattice in world units (``--lattice``) in the exemplar's working-resolution pixels,
+    where the photo is measured (model.fit divides the detected one by the same factor)."""
+    ppu = ModelConfig().pixels_per_unit
+    return tuple(v * ppu for v in lattice) if lattice else None
+
+
 def lattice_contrast(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> float:
     """How much a photo's repeats differ: the mean squared sRGB distance between the photo
     and itself shifted by each lattice vector (pixels, x along columns, y along rows), the
@@ -485,8 +492,7 @@ def setup(cfg: TrainConfig) -> Run:
     rng = np.random.default_rng(cfg.seed)
     mean_cell = None
     if cfg.lattice and cfg.lattice_cell:
-        ppu = ModelConfig().pixels_per_unit  # (what model.fit divides the detected lattice by)
-        mean_cell = lattice_mean_cell(images[0], tuple(v * ppu for v in cfg.lattice))
+        mean_cell = lattice_mean_cell(images[0], lattice_pixels(cfg.lattice))
     model, init_codes = build(cfg, mean_cell)
     model.to(device)
     codes = learned_codes(cfg, model, images, crop, rng, init_codes)
@@ -700,10 +706,8 @@ def train(cfg: TrainConfig, progress=None) -> Path:
     if run.ckpt_path.exists():
         resume(run, run.ckpt_path)
     # After the resume: the VGG's first construction in a process draws from torch's RNG.
-    ppu = run.model.cfg.pixels_per_unit
     run.objective = Objective(run.images, tuple(cfg.layers.split(",")), cfg.loss, cfg.colour_weight,
-                              cfg.colour_normalise, run.device,
-                              lattice_px=tuple(v * ppu for v in cfg.lattice) if cfg.lattice else None)
+                              cfg.colour_normalise, run.device, lattice_px=lattice_pixels(cfg.lattice))
     run.log = (run.out / "log.jsonl").open("a")
     probe = Probe(run) if cfg.probe_every and cfg.mode == "single" else None  # a fit keeps its best state
     stop = threading.Event()
