@@ -1,19 +1,25 @@
 """Training on a lent GPU machine that takes at most 64 MiB of files and has no network.
 
-    python docs/notes/gpu_pack.py pack CHECKPOINT OUT       # here: writes OUT/ (~18 MiB)
-    python3 OUT/gpu_pack.py train -- TRAIN_ARGS...           # there: model.train with the packed files
+    python docs/notes/gpu_pack.py pack gpu                   # here: writes gpu/ (~13 MiB; ignore it in git)
+    python3 gpu/gpu_pack.py train CHECKPOINT -- TRAIN_ARGS   # there: model.train with the packed files
 
-``pack`` writes into OUT: the VGG16 convs conv1_1..conv5_1 quantised to int8 per output
-channel (the verified fp32 cache is 59 MB; the int8 features at relu1_1..relu5_1 are within
-0.2-3% of the exact ones), the training photos resized to the working resolution (short
-side 256, as training loads them), CHECKPOINT's weights and code table without the Adam
-state (for ``--init``), and a copy of this script. ``train`` restores the VGG weights to
-fp32, hands them to model.vgg in place of its cache and runs ``model.train`` with
-``--data OUT/data --init OUT/init.pt`` added. How the shipped space was made with it:
-model/weights/MODEL_CARD.md, "The shipped space".
+``pack`` writes into its folder: the VGG16 convs conv1_1..conv5_1 quantised to int8 per
+output channel (the verified fp32 cache is 59 MB; the int8 features at relu1_1..relu5_1 are
+within 0.2-3% of the exact ones), the training photos resized to the working resolution
+(short side 256, as training loads them), and a copy of this script. ``train`` restores the
+VGG weights to fp32, hands them to model.vgg in place of its cache, and runs ``model.train``
+with ``--data gpu/data --init`` CHECKPOINT's weights and code table (its Adam state left
+out). CHECKPOINT is a file in the tree that travels (``model/checkpoints/space-train.pt``:
+the repository's 50 MB and the pack fit the limit, a second checkpoint does not).
+``model.train`` resumes a run folder that holds a ``checkpoint.pt`` instead: copy
+CHECKPOINT there first to keep its Adam state. Where OpenImageIO is missing, Pillow reads the
+packed PNGs. The shipped space's two calls: docs/notes/model-history.md, "Isotropic
+transforms trained".
 """
 from __future__ import annotations
 
+import importlib.util
+import io
 import shutil
 import sys
 from pathlib import Path
@@ -25,7 +31,7 @@ VGG_CONVS = ("conv1_1", "conv1_2", "conv2_1", "conv2_2", "conv3_1", "conv3_2", "
 HERE = Path(__file__).resolve().parent
 
 
-def pack(checkpoint: str, out: str, data: str = "data/textures/train", short_side: int = 256) -> None:
+def pack(out: str, data: str = "data/textures/train", short_side: int = 256) -> None:
     from PIL import Image
 
     from model.vgg import fetch_vgg16_weights
@@ -41,9 +47,6 @@ def pack(checkpoint: str, out: str, data: str = "data/textures/train", short_sid
         packed[f"{name}.weight.scale"] = scale
         packed[f"{name}.bias"] = state[f"{name}.bias"]
     torch.save(packed, out_dir / "vgg16_int8.pt")
-    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    torch.save({k: ckpt[k] for k in ("config", "model", "step", "codes", "data", "mode") if k in ckpt},
-               out_dir / "init.pt")
     for photo in sorted(Path(data).glob("*.png")):
         image = Image.open(photo).convert("RGB")
         scale = short_side / min(image.size)
@@ -53,8 +56,28 @@ def pack(checkpoint: str, out: str, data: str = "data/textures/train", short_sid
     shutil.copy(__file__, out_dir / "gpu_pack.py")
 
 
-def train(argv: list[str]) -> None:
+def _pillow_reader() -> None:
+    """Stand in for worker.decode where OpenImageIO is not installed (the GPU machine has
+    no network to install it). The packed photos are 8-bit RGB PNGs, which Pillow decodes
+    to the same values."""
+    import types
+
+    import numpy as np
+    from PIL import Image
+
+    def read_image(data: bytes, **_) -> np.ndarray:
+        with Image.open(io.BytesIO(data)) as image:
+            return np.asarray(image.convert("RGB"), dtype=np.float32) / 255
+
+    module = types.ModuleType("worker.decode")
+    module.SUFFIXES, module.read_image = (".png",), read_image
+    sys.modules["worker.decode"] = module
+
+
+def train(checkpoint: str, argv: list[str]) -> None:
     sys.path.insert(0, str(HERE.parent))  # the repository root, OUT's parent
+    if importlib.util.find_spec("OpenImageIO") is None:
+        _pillow_reader()
     import model.vgg as vgg
 
     packed = torch.load(HERE / "vgg16_int8.pt")
@@ -63,13 +86,16 @@ def train(argv: list[str]) -> None:
     vgg._cached_state = lambda: state  # the forward pass never reaches conv5_2 for relu5_1
     from model.train import main
 
-    main(["--data", str(HERE / "data"), "--init", str(HERE / "init.pt"), *argv])
+    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    init = HERE / "init.pt"
+    torch.save({k: ckpt[k] for k in ("config", "model", "step", "codes", "data", "mode") if k in ckpt}, init)
+    main(["--data", str(HERE / "data"), "--init", str(init), *argv])
 
 
 if __name__ == "__main__":
-    if len(sys.argv) >= 4 and sys.argv[1] == "pack":
+    if len(sys.argv) >= 3 and sys.argv[1] == "pack":
         pack(*sys.argv[2:])
-    elif len(sys.argv) >= 2 and sys.argv[1] == "train":
-        train([a for a in sys.argv[2:] if a != "--"])
+    elif len(sys.argv) >= 3 and sys.argv[1] == "train":
+        train(sys.argv[2], [a for a in sys.argv[3:] if a != "--"])
     else:
         sys.exit(__doc__)
