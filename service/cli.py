@@ -239,6 +239,29 @@ def cmd_migrate(args: argparse.Namespace, settings: Settings) -> None:
     print(f"database at head: {settings.resolved_database_url}")
 
 
+def cmd_reencode(args: argparse.Namespace, settings: Settings) -> None:
+    """``texspace reencode [--from VERSION]... [--to VERSION] [--dry-run]``: move textures onto
+    a loaded model (:mod:`service.reencode`); refinements go to the queue for the workers."""
+    from worker.errors import ModelNotFound
+
+    from .reencode import reencode_textures
+
+    services = build_services(settings)
+    try:
+        report = reencode_textures(services, set(args.versions) if args.versions else None, target=args.to,
+                                   dry_run=args.dry_run)
+    except ModelNotFound as exc:
+        raise CliError(str(exc)) from None
+    verb = "would move" if args.dry_run else "moved"
+    print(f"{verb} {len(report.encoded)} textures (photo encoded again) and {len(report.blended)} blends "
+          f"onto model {report.target}; {len(report.refinements)} refinements "
+          f"{'would be ' if args.dry_run else ''}queued")
+    for texture_id, why in report.skipped.items():
+        print(f"skipped {texture_id}: {why}")
+    if report.skipped and not args.dry_run:
+        raise CliError(f"{len(report.skipped)} textures were not moved (listed above)", code=1)
+
+
 def cmd_encode(args: argparse.Namespace, settings: Settings) -> None:
     source = TextureSource(settings, args.image)
     print(json.dumps({"code": [round(float(c), 7) for c in source.z], "model_version": source.model_version}))
@@ -352,7 +375,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     fields = Settings.model_fields
     parser = Parser(prog="texspace", formatter_class=HelpFormatter,
-                    description="processes (api, worker, serve, migrate) and offline tools (encode, tile, "
+                    description="processes (api, worker, serve, migrate, reencode) and offline tools (encode, tile, "
                                 "volume, bake, tileable, shader) that work without a server",
                     epilog="An error is one line on stderr; exit status 2: bad input, 1: the work failed.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -375,6 +398,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"threads, overrides TEXSPACE_WORKERS (default: {fields['workers'].default})")
     p.add_argument("--no-migrate", action="store_true", help="assume the database is migrated (default: migrate)")
     proc("migrate", cmd_migrate, "apply database migrations")
+    p = proc("reencode", cmd_reencode, "move textures onto a loaded model: encode their photos again, mix "
+                                       "blends again, queue refinements (after retiring a model)")
+    p.add_argument("--from", dest="versions", action="append", metavar="VERSION",
+                   help="textures of this model version (repeatable; default: of every model not loaded)")
+    p.add_argument("--to", metavar="VERSION",
+                   help="the model to move them to (default: TEXSPACE_DEFAULT_MODEL_VERSION, else the newest)")
+    p.add_argument("--dry-run", action="store_true", help="report what would move; change nothing (default: move them)")
 
     p = proc("encode", cmd_encode, "print the texture code of an image file or stored texture id")
     p.add_argument("image", help="IMAGE file or TEXTURE_ID (required)")

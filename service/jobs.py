@@ -16,12 +16,12 @@ from sqlalchemy.exc import IntegrityError
 
 from worker.errors import Canceled
 
-from .auth import current_owner
+from .auth import current_owner, owner_var
 from .container import Services
 from .db import session_scope
 from .errors import Problem, problem_for
 from .limits import check_queue_room
-from .tables import TERMINAL_STATES, Job, new_id, utcnow
+from .tables import TERMINAL_STATES, Job, Texture, new_id, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +64,21 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
     except Exception:  # broker down: the row is saved (the truth); the reaper re-sends the message
         log.exception("could not send the job to the queue; the reaper will re-send it")
     return get(services, job.id), True
+
+
+def queue_refinement(services: Services, texture: Texture, params: dict[str, Any]) -> None:
+    """Submit an upload's in-place refinement (job id: ``texture.refinement_job_id``), owned
+    by the texture's owner. It never fails the caller: with the queue full, the texture
+    simply keeps its encoder code."""
+    token = owner_var.set(texture.owner_id)
+    try:
+        submit(services, kind="fit", texture_id=texture.id, params=params, job_id=texture.refinement_job_id)
+    except Exception as exc:
+        log.warning("texture not refined: %s", getattr(exc, "detail", exc), extra={"texture_id": texture.id})
+        with session_scope(services.sessions) as session:
+            session.execute(update(Texture).where(Texture.id == texture.id).values(refinement_job_id=None))
+    finally:
+        owner_var.reset(token)
 
 
 def same_request(job: Job, fingerprint: str) -> Job:

@@ -101,6 +101,16 @@ class Texture(Base):
         """What this texture's sampler takes as its code: z, then the colour table if any."""
         return texture_vector(self.code, self.colour)
 
+    def model_space(self) -> tuple[list, list | None] | None:
+        """The code and colour table for its model's own sampler, what blends mix: a refined
+        upload's kept encoder values, any other texture's own; None for a fit's new texture,
+        which only its own sampler can draw."""
+        if self.encoder_code is not None:
+            return self.encoder_code, self.encoder_colour
+        if self.sampler_key:
+            return None
+        return self.code, self.colour
+
 
 class Job(Base):
     """A long-running job (volume, bake, fit, region): the single source of truth."""

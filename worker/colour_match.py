@@ -144,3 +144,14 @@ def texture_vector(code, colour) -> np.ndarray:
     if colour is not None and len(colour):
         parts.append(np.asarray(colour, np.float32).reshape(-1))
     return np.concatenate(parts)
+
+
+def blend_textures(a, b, t: float, colour_size: int) -> tuple[list[float], list[float] | None]:
+    """(1 - t) a + t b of two textures' (code, colour table) pairs in one model's space.
+    Tables blend knot by knot; a texture without one has the identity (``colour_size`` 0:
+    the model has no colour stage, and the blend none)."""
+    (za, ca), (zb, cb) = a, b
+    code = (1.0 - t) * np.asarray(za, np.float64) + t * np.asarray(zb, np.float64)
+    ca, cb = (np.asarray(c or identity_colour(colour_size), np.float64) if colour_size else np.zeros(0)
+              for c in (ca, cb))
+    return [float(c) for c in code], [float(c) for c in (1.0 - t) * ca + t * cb] or None

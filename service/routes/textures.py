@@ -5,12 +5,11 @@ import hashlib
 import logging
 from typing import Annotated, Literal
 
-import numpy as np
 from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFile, status
 from fastapi.responses import StreamingResponse
-from sqlalchemy import select, update
+from sqlalchemy import select
 
-from worker.colour_match import identity_colour
+from worker.colour_match import blend_textures
 from worker.files import media_type, media_type_of_extension
 from worker.images import encode_texture, read_image, sniff_format
 from worker.shader import LANGUAGES, emit_shader, shader_name
@@ -86,31 +85,9 @@ def create_texture(
         services.storage.delete_prefix(keys.texture_prefix(texture_id))
         raise
     if refine:
-        queue_refinement(services, texture, refine)
+        jobs.queue_refinement(services, texture, refine)
     response.headers["Location"] = f"/v1/textures/{texture_id}"
     return texture_out(services, load_texture(services, texture_id))
-
-
-def queue_refinement(services, texture: Texture, params: dict) -> None:  # noqa: ANN001
-    """Submit the upload's refinement job (id: ``texture.refinement_job_id``). The upload
-    never fails for it: with the queue full, the texture simply keeps its encoder code."""
-    try:
-        jobs.submit(services, kind="fit", texture_id=texture.id, params=params, job_id=texture.refinement_job_id)
-    except Exception as exc:
-        log.warning("upload not refined: %s", getattr(exc, "detail", exc), extra={"texture_id": texture.id})
-        with session_scope(services.sessions) as session:
-            session.execute(update(Texture).where(Texture.id == texture.id).values(refinement_job_id=None))
-
-
-def in_model_space(texture: Texture) -> tuple[list, list | None] | None:
-    """The texture's code and colour table for its model's own sampler, what blends mix: a
-    refined upload's kept encoder values, any other texture's own; None for a fit's new
-    texture, which only its own sampler can draw."""
-    if texture.encoder_code is not None:
-        return texture.encoder_code, texture.encoder_colour
-    if texture.sampler_key:
-        return None
-    return texture.code, texture.colour
 
 
 def texture_outs(services, textures: list[Texture]) -> list[TextureOut]:  # noqa: ANN001
@@ -145,18 +122,13 @@ def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) 
         raise Problem(409, f"textures were encoded by different models ({a.model_version} and "
                            f"{b.model_version}); codes from different spaces cannot be blended",
                       slug="model-mismatch")
-    ends = [in_model_space(t) for t in (a, b)]
+    ends = [t.model_space() for t in (a, b)]
     if None in ends:
         raise Problem(409, "fitted textures carry their own sampler and have no shared latent space; "
                            "interpolate the textures they were fitted from", slug="fitted-texture")
-    (za, ca), (zb, cb) = ends
-    code = (1.0 - body.t) * np.asarray(za, np.float64) + body.t * np.asarray(zb, np.float64)
-    # colour tables blend knot by knot (model/colour.py); a texture without one has the identity
-    size = services.registry.get(a.model_version).sampler.colour_size
-    ca, cb = (np.asarray(c or identity_colour(size), np.float64) if size else np.zeros(0) for c in (ca, cb))
-    colour = [float(c) for c in (1.0 - body.t) * ca + body.t * cb] or None
+    code, colour = blend_textures(*ends, body.t, services.registry.get(a.model_version).sampler.colour_size)
     texture = Texture(id=new_id(), name=body.name or blend_name(a.name or a.id, b.name or b.id, body.t),
-                      code=[float(c) for c in code], colour=colour,
+                      code=code, colour=colour,
                       model_version=a.model_version, source="interpolate",
                       parents={"a": a.id, "b": b.id, "t": body.t}, owner_id=auth.current_owner())
     with session_scope(services.sessions) as session:

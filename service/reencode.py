@@ -1,0 +1,145 @@
+"""Move textures onto another model: ``texspace reencode``.
+
+A texture is drawn by the model that encoded it, so a model that is no longer loaded
+(retired from ``TEXSPACE_MODEL_DIRS``) leaves its textures answering 503. Re-encoding
+gives each one a code in the target model's space from the photo it keeps:
+
+- a texture with an exemplar (uploads, fits' own textures) is encoded again, exactly as
+  an upload is, and loses what was fitted in the old space (its refined sampler files
+  are deleted); where refinement runs (``TEXSPACE_AUTO_FIT``), a new one is queued;
+- a blend (``POST /v1/textures/interpolate``) is mixed again from its two parents' new
+  codes, once both are on the target model;
+- anything else (a blend whose parent was deleted) stays and is reported.
+
+Tiles change (the model, and so the ETag, is new). Run it with the workers idle: a
+refinement still running for the old model would fail anyway.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from sqlalchemy import select
+
+from worker.colour_match import blend_textures
+from worker.images import encode_texture, read_image
+
+from . import jobs, keys
+from .db import session_scope
+from .job_kinds import auto_fit_params
+from .tables import Texture, new_id, utcnow
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ReencodeReport:
+    """What one run did (or, with ``dry_run``, would do), by texture id."""
+
+    target: str
+    encoded: list[str] = field(default_factory=list)
+    blended: list[str] = field(default_factory=list)
+    refinements: list[str] = field(default_factory=list)
+    skipped: dict[str, str] = field(default_factory=dict)  # id -> why
+
+
+def stale_textures(services, versions: set[str] | None = None) -> list[Texture]:  # noqa: ANN001
+    """Textures of ``versions``, or (None) of every model that is not loaded; oldest first."""
+    loaded = set(services.registry.models)
+    query = select(Texture).order_by(Texture.created_at, Texture.id)
+    query = query.where(Texture.model_version.in_(versions) if versions is not None
+                        else Texture.model_version.not_in(loaded))
+    with session_scope(services.sessions) as session:
+        return list(session.scalars(query))
+
+
+def reencode_textures(services, versions: set[str] | None = None, *, target: str | None = None,  # noqa: ANN001
+                      dry_run: bool = False) -> ReencodeReport:
+    """Move the textures of ``versions`` (default: of every unloaded model) onto ``target``
+    (default: the model new uploads get)."""
+    runtime = services.registry.get(target if target is not None else services.settings.default_model_version)
+    report = ReencodeReport(target=runtime.version)
+    textures = [t for t in stale_textures(services, versions) if t.model_version != runtime.version]
+    refine = auto_fit_params(services, runtime.version)
+    for texture in textures:  # photos first: blends mix their parents' new codes
+        if texture.exemplar_key:
+            if not dry_run:
+                try:
+                    if not _encode_again(services, runtime, texture, refine):
+                        continue  # deleted meanwhile
+                except Exception as exc:  # one bad photo (missing, unreadable) must not stop the rest
+                    log.warning("texture not re-encoded: %s", exc, extra={"texture_id": texture.id})
+                    report.skipped[texture.id] = f"its photo could not be encoded again: {exc}"
+                    continue
+            report.encoded.append(texture.id)
+            if refine:
+                report.refinements.append(texture.id)
+    moved = set(report.encoded)
+    for texture in textures:
+        if texture.exemplar_key:
+            continue
+        why = _blend_problem(services, texture, runtime.version, moved)
+        if why:
+            report.skipped[texture.id] = why
+            continue
+        if not dry_run:
+            _blend_again(services, runtime, texture)
+        report.blended.append(texture.id)
+        moved.add(texture.id)
+    return report
+
+
+def _encode_again(services, runtime, texture: Texture, refine: dict | None) -> bool:  # noqa: ANN001
+    """The texture's code and colour table from its photo in ``runtime``'s space; what it
+    had fitted in the old space is dropped, and a refinement queued where they run. False:
+    the texture was deleted meanwhile."""
+    pixels = read_image(services.storage.get_bytes(texture.exemplar_key),
+                        max_pixels=services.settings.max_image_pixels)
+    code, colour = encode_texture(runtime, pixels)
+    with session_scope(services.sessions) as session:
+        row = session.get(Texture, texture.id)
+        if row is None:
+            return False
+        row.code, row.colour = [float(c) for c in code], [float(c) for c in colour] or None
+        row.encoder_code = row.encoder_colour = row.structure = row.sampler_key = None
+        row.model_version, row.updated_at = runtime.version, utcnow()
+        row.refinement_job_id = new_id() if refine else None
+    # the old space's refinements go (a fit's own texture keeps its first sampler file until it is deleted)
+    services.storage.delete_prefix(f"{keys.texture_prefix(texture.id)}/refined")
+    for path in services.cached_samplers(texture.id):
+        path.unlink(missing_ok=True)
+    log.info("texture re-encoded", extra={"texture_id": texture.id, "model_version": runtime.version})
+    if refine:
+        jobs.queue_refinement(services, row, refine)
+    return True
+
+
+def _blend_problem(services, texture: Texture, version: str, moved: set[str]) -> str | None:  # noqa: ANN001
+    """Why ``texture`` cannot be mixed again on ``version`` (None: it can)."""
+    parents = texture.parents or {}
+    if texture.source != "interpolate" or not {"a", "b", "t"} <= set(parents):
+        return "no exemplar and not a blend: nothing to encode again"
+    with session_scope(services.sessions) as session:
+        for end in ("a", "b"):
+            parent = session.get(Texture, parents[end])
+            if parent is None:
+                return f"its parent {parents[end]} was deleted"
+            if parent.id in moved:
+                continue
+            if parent.model_version != version:
+                return f"its parent {parent.id} is on model {parent.model_version}, not {version}"
+            if parent.model_space() is None:
+                return f"its parent {parent.id} is a fitted texture, which has no code in the model's space"
+    return None
+
+
+def _blend_again(services, runtime, texture: Texture) -> None:  # noqa: ANN001
+    """Mix the blend again from its parents' values in ``runtime``'s space, as
+    ``POST /v1/textures/interpolate`` does."""
+    parents = texture.parents
+    with session_scope(services.sessions) as session:
+        a, b = (session.get(Texture, parents[end]) for end in ("a", "b"))
+        row = session.get(Texture, texture.id)
+        row.code, row.colour = blend_textures(a.model_space(), b.model_space(), float(parents["t"]),
+                                              runtime.sampler.colour_size)
+        row.model_version, row.updated_at = runtime.version, utcnow()
