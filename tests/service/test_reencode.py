@@ -2,7 +2,9 @@
 loaded model (photos encoded again, blends mixed again, refinements queued)."""
 from __future__ import annotations
 
+import os
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -16,23 +18,38 @@ from service.main import create_app
 from service.reencode import reencode_textures
 from service.settings import PACKAGED_MODEL_DIR, Settings
 from service.tables import Job, Texture
+from tests.conftest import fresh_postgres_database
 from tests.service.conftest import brick_png
 from tests.service.test_model_versions import second_model
 from worker.colour_match import blend_textures
 from worker.images import encode_texture, read_image
 
 
-def settings_for(tmp_path: Path, model_dir: Path, **extra) -> Settings:
-    return Settings(data_dir=tmp_path / "data", model_dirs=[model_dir], log_json=False, **{"auto_fit": False, **extra})
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database(request) -> Iterator[dict]:
+    """Settings for the embedded SQLite default, or for a fresh PostgreSQL database."""
+    if request.param == "sqlite":
+        yield {}
+        return
+    with fresh_postgres_database() as url:
+        yield {"database_url": url}
 
 
 @pytest.fixture
-def old_world(tmp_path: Path) -> dict:
+def settings_for(tmp_path: Path, database: dict):
+    def settings_for(model_dir: Path, **extra) -> Settings:
+        return Settings(data_dir=tmp_path / "data", model_dirs=[model_dir], log_json=False,
+                        **{"auto_fit": False, **database, **extra})
+    return settings_for
+
+
+@pytest.fixture
+def old_world(tmp_path: Path, settings_for) -> dict:
     """Under the old model: two uploads, a blend of them, a blend of a deleted texture, and
     the first upload refined (its sampler file in storage)."""
     old_dir = tmp_path / "models" / "old"
     shutil.copytree(PACKAGED_MODEL_DIR, old_dir)
-    services = build_services(settings_for(tmp_path, old_dir), immediate=True)
+    services = build_services(settings_for(old_dir), immediate=True)
     with TestClient(create_app(services=services)) as client:
         def upload(photo: bytes, name: str) -> dict:
             return client.post("/v1/textures", files={"image": (f"{name}.png", photo)}, data={"name": name}).json()
@@ -54,9 +71,9 @@ def old_world(tmp_path: Path) -> dict:
             "refined": refined, "new_dir": second_model(tmp_path / "models" / "new")}
 
 
-def test_reencode_moves_retired_textures_onto_the_loaded_model(tmp_path: Path, old_world: dict) -> None:
+def test_reencode_moves_retired_textures_onto_the_loaded_model(old_world: dict, settings_for) -> None:
     a, b, blend, orphan = (old_world[k] for k in ("a", "b", "blend", "orphan"))
-    services = build_services(settings_for(tmp_path, old_world["new_dir"]), immediate=True)
+    services = build_services(settings_for(old_world["new_dir"]), immediate=True)
     new = services.registry.get()
     url = f"/v1/textures/{a['id']}/tiles/6/0/0.png?size=64"
     with TestClient(create_app(services=services)) as client:
@@ -93,10 +110,10 @@ def test_reencode_moves_retired_textures_onto_the_loaded_model(tmp_path: Path, o
     services.engine.dispose()
 
 
-def test_reencode_queues_refinements_for_the_owners(tmp_path: Path, old_world: dict) -> None:
+def test_reencode_queues_refinements_for_the_owners(old_world: dict, settings_for) -> None:
     pytest.importorskip("torch", reason="refinement needs the train extra")
     # a real (not immediate) queue: the fit jobs wait for a worker
-    services = build_services(settings_for(tmp_path, old_world["new_dir"], auto_fit=True))
+    services = build_services(settings_for(old_world["new_dir"], auto_fit=True))
     report = reencode_textures(services)
     assert report.refinements == report.encoded == [old_world["a"]["id"], old_world["b"]["id"]]
     with session_scope(services.sessions) as session:
@@ -108,7 +125,10 @@ def test_reencode_queues_refinements_for_the_owners(tmp_path: Path, old_world: d
     services.engine.dispose()
 
 
+@pytest.mark.parametrize("database", ["sqlite"], indirect=True)
 def test_cli_reencode(tmp_path: Path, old_world: dict, monkeypatch, capsys) -> None:
+    for key in [k for k in os.environ if k.startswith("TEXSPACE_")]:
+        monkeypatch.delenv(key)
     monkeypatch.setenv("TEXSPACE_DATA_DIR", str(tmp_path / "data"))
     monkeypatch.setenv("TEXSPACE_MODEL_DIRS", str(old_world["new_dir"]))
     monkeypatch.setenv("TEXSPACE_AUTO_FIT", "false")
