@@ -5,8 +5,8 @@ A texture is drawn by the model that encoded it, so a model that is no longer lo
 gives each one a code in the target model's space from the photo it keeps:
 
 - a texture with an exemplar (uploads, fits' own textures) is encoded again, exactly as
-  an upload is, and loses what was fitted in the old space (its refined sampler files
-  are deleted); where refinement runs (``TEXSPACE_AUTO_FIT``), a new one is queued;
+  an upload is, and loses what was fitted in the old space (those sampler files are
+  deleted); where refinement runs (``TEXSPACE_AUTO_FIT``), a new one is queued;
 - a blend (``POST /v1/textures/interpolate``) is mixed again from its two parents' new
   codes, once both are on the target model;
 - anything else (a blend whose parent was deleted) stays and is reported.
@@ -104,8 +104,11 @@ def _encode_again(services, runtime, texture: Texture, refine: dict | None) -> b
         row.encoder_code = row.encoder_colour = row.structure = row.sampler_key = None
         row.model_version, row.updated_at = runtime.version, utcnow()
         row.refinement_job_id = new_id() if refine else None
-    # the old space's refinements go (a fit's own texture keeps its first sampler file until it is deleted)
+    # what was fitted in the old space: refinements, and a fit's own texture's sampler pair
     services.storage.delete_prefix(f"{keys.texture_prefix(texture.id)}/refined")
+    if texture.sampler_key and not texture.sampler_key.startswith(f"{keys.texture_prefix(texture.id)}/refined/"):
+        services.storage.delete(texture.sampler_key)
+        services.storage.delete(keys.tileable_key(texture.sampler_key))
     for path in services.cached_samplers(texture.id):
         path.unlink(missing_ok=True)
     log.info("texture re-encoded", extra={"texture_id": texture.id, "model_version": runtime.version})

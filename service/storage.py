@@ -69,6 +69,10 @@ class Storage:
         except StorageKeyError:
             return False
 
+    def delete(self, key: str) -> bool:
+        """Delete one object; False if there was none."""
+        raise NotImplementedError
+
     def delete_prefix(self, prefix: str) -> int:
         """Delete every object whose key starts with ``prefix/``; return how many."""
         raise NotImplementedError
@@ -134,6 +138,13 @@ class LocalStorage(Storage):
         if not path.is_file():
             raise StorageKeyError(key)
         return path.stat().st_size
+
+    def delete(self, key: str) -> bool:
+        path = self._path(key)
+        if not path.is_file():
+            return False
+        path.unlink(missing_ok=True)
+        return True
 
     def delete_prefix(self, prefix: str) -> int:
         folder = self._path(prefix)
@@ -243,6 +254,12 @@ class S3Storage(Storage):
             if self._missing(exc):
                 raise StorageKeyError(key) from None
             raise
+
+    def delete(self, key: str) -> bool:
+        if not self.exists(key):
+            return False
+        self.client.delete_object(Bucket=self.bucket, Key=self._key(key))
+        return True
 
     def delete_prefix(self, prefix: str) -> int:
         full = self._key(prefix) + "/"

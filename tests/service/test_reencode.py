@@ -62,13 +62,21 @@ def old_world(tmp_path: Path, settings_for) -> dict:
         tile = client.get(f"/v1/textures/{a['id']}/tiles/6/0/0.png?size=64")
     refined = f"textures/{a['id']}/refined/job-1/sampler.onnx"
     services.storage.put_bytes(refined, b"a sampler fitted in the old space")
+    # a fit's own texture (POST .../fit): its photo, and its sampler pair beside it
+    fitted = "f" * 32
+    own = [f"textures/{fitted}/{name}" for name in ("exemplar.png", "sampler.onnx", "sampler_tileable.onnx")]
+    for key in own:
+        services.storage.put_bytes(key, brick_png(72) if key.endswith(".png") else b"fitted in the old space")
     with session_scope(services.sessions) as session:
         row = session.get(Texture, a["id"])
         row.encoder_code, row.encoder_colour, row.code, row.sampler_key = row.code, row.colour, [0.0] * 8, refined
         row.structure = {"grain": None, "lattice": None}
+        session.add(Texture(id=fitted, name="a (fitted)", code=[0.0] * 8, model_version=a["model_version"],
+                            source="fit", parents={"texture": a["id"], "job": "j"}, exemplar_key=own[0],
+                            sampler_key=own[1], structure={"grain": None, "lattice": None}))
     services.engine.dispose()
     return {"a": a, "b": b, "blend": blend, "orphan": orphan, "old_etag": tile.headers["etag"],
-            "refined": refined, "new_dir": second_model(tmp_path / "models" / "new")}
+            "refined": refined, "fitted": fitted, "own": own, "new_dir": second_model(tmp_path / "models" / "new")}
 
 
 def test_reencode_moves_retired_textures_onto_the_loaded_model(old_world: dict, settings_for) -> None:
@@ -84,7 +92,7 @@ def test_reencode_moves_retired_textures_onto_the_loaded_model(old_world: dict, 
         report = reencode_textures(services)
         assert (dry.encoded, dry.blended, dry.skipped) == (report.encoded, report.blended, report.skipped)
         assert report.target == new.version and report.refinements == []  # refinement is off here
-        assert report.encoded == [a["id"], b["id"]] and report.blended == [blend["id"]]
+        assert report.encoded == [a["id"], b["id"], old_world["fitted"]] and report.blended == [blend["id"]]
         assert "deleted" in report.skipped[orphan["id"]]
 
         tile = client.get(url)
@@ -101,6 +109,9 @@ def test_reencode_moves_retired_textures_onto_the_loaded_model(old_world: dict, 
     np.testing.assert_allclose(rows[a["id"]].colour, colour, atol=1e-6)
     assert rows[a["id"]].sampler_key is rows[a["id"]].encoder_code is rows[a["id"]].structure is None
     assert not services.storage.exists(old_world["refined"])
+    photo, *samplers = old_world["own"]  # the fit's own texture keeps its photo, not its old samplers
+    assert services.storage.exists(photo) and not any(services.storage.exists(k) for k in samplers)
+    assert rows[old_world["fitted"]].sampler_key is None and rows[old_world["fitted"]].model_version == new.version
     # the blend: its parents' new values mixed at its t
     mixed = blend_textures((rows[a["id"]].code, rows[a["id"]].colour), (rows[b["id"]].code, rows[b["id"]].colour),
                            0.3, new.sampler.colour_size)
@@ -115,7 +126,7 @@ def test_reencode_queues_refinements_for_the_owners(old_world: dict, settings_fo
     # a real (not immediate) queue: the fit jobs wait for a worker
     services = build_services(settings_for(old_world["new_dir"], auto_fit=True))
     report = reencode_textures(services)
-    assert report.refinements == report.encoded == [old_world["a"]["id"], old_world["b"]["id"]]
+    assert report.refinements == report.encoded == [old_world["a"]["id"], old_world["b"]["id"], old_world["fitted"]]
     with session_scope(services.sessions) as session:
         for texture_id in report.refinements:
             texture = session.get(Texture, texture_id)
@@ -134,11 +145,11 @@ def test_cli_reencode(tmp_path: Path, old_world: dict, monkeypatch, capsys) -> N
     monkeypatch.setenv("TEXSPACE_AUTO_FIT", "false")
     main(["reencode", "--dry-run"])
     out = capsys.readouterr().out
-    assert out.startswith("would move 2 textures (photo encoded again) and 1 blends") and "skipped" in out
+    assert out.startswith("would move 3 textures (photo encoded again) and 1 blends") and "skipped" in out
     with pytest.raises(SystemExit) as exit_:  # the orphan blend cannot move: the run says so and fails
         main(["reencode"])
     assert exit_.value.code == 1
-    assert capsys.readouterr().out.startswith("moved 2 textures")
+    assert capsys.readouterr().out.startswith("moved 3 textures")
     with pytest.raises(SystemExit) as exit_:
         main(["reencode", "--to", "0123456789abcdef"])
     assert exit_.value.code == 2 and "not loaded" in capsys.readouterr().err

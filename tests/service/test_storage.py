@@ -43,6 +43,14 @@ class StorageContract:
         assert not storage.exists("textures/t1/a.png")
         assert storage.get_bytes("textures/t2/a.png") == b"keep"
 
+    def test_delete_one_object(self, storage) -> None:
+        storage.put_bytes("textures/t1/sampler.onnx", b"s")
+        storage.put_bytes("textures/t1/sampler.onnx.kept", b"k")
+        assert storage.delete("textures/t1/sampler.onnx") is True
+        assert storage.delete("textures/t1/sampler.onnx") is False  # already gone
+        assert not storage.exists("textures/t1/sampler.onnx")
+        assert storage.get_bytes("textures/t1/sampler.onnx.kept") == b"k"
+
     @pytest.mark.parametrize("key", ["../x", "/abs", "a//b", "a/./b", ""])
     def test_rejects_unsafe_keys(self, storage, key: str) -> None:
         with pytest.raises(ValueError):
