@@ -348,8 +348,8 @@ class ModelRegistry:
         try:
             return self.models[version]
         except KeyError:
-            raise ModelNotFound(f"model version {version!r} is not loaded "
-                                f"(have {sorted(self.models)})") from None
+            raise ModelNotFound(f"model version {version!r} is not loaded (have {sorted(self.models)}); its "
+                                "textures come back when it is loaded again or moved with `texspace reencode`") from None
 
     def fitted_sampler(self, path: str | os.PathLike) -> SamplerSession:
         """A fitted texture's own sampler.onnx (or its sampler_tileable.onnx), opened once and

@@ -85,7 +85,8 @@ def test_reencode_moves_retired_textures_onto_the_loaded_model(old_world: dict, 
     new = services.registry.get()
     url = f"/v1/textures/{a['id']}/tiles/6/0/0.png?size=64"
     with TestClient(create_app(services=services)) as client:
-        assert client.get(url).status_code == 503  # the old model is retired
+        retired = client.get(url)  # the old model is retired: the answer says what brings it back
+        assert retired.status_code == 503 and "texspace reencode" in retired.json()["detail"]
 
         dry = reencode_textures(services, dry_run=True)
         assert client.get(url).status_code == 503  # a dry run changes nothing
