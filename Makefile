@@ -100,6 +100,20 @@ train-gpu:
 	$(PY) -m model.train --out runs/space-gpu --device cuda --steps $(GPU_STEPS) --minutes $(GPU_MINUTES) $(GPU_ARGS)
 	$(PY) -m model.export runs/space-gpu/checkpoint.pt $(GPU_EXPORT)
 
+# make gpu-pack: for a lent GPU machine that takes 64 MiB of files and has no network (the
+# device tool): writes gpu/ (ignored by git, ~13 MiB: int8 VGG16, the training photos at
+# the working resolution, docs/notes/gpu_pack.py). Carry gpu/ there and run, in one call:
+#   mkdir -p $$OUT/run && cp model/checkpoints/space-train.pt $$OUT/run/checkpoint.pt &&
+#   python3 gpu/gpu_pack.py train model/checkpoints/space-train.pt -- --out $$OUT/run \
+#     --device cuda --minutes 7.5 GPU_ARGS...
+# (the copy makes it resume with its Adam state); bring back $$OUT/run/checkpoint.pt, put
+# it at model/checkpoints/space-train.pt and export here. How the shipped space was made:
+# docs/notes/model-history.md, "Isotropic transforms trained".
+.PHONY: gpu-pack
+gpu-pack: data
+	rm -rf gpu
+	$(PY) docs/notes/gpu_pack.py pack gpu
+
 # The comparison: every variant trained as a space from scratch with the same settings and
 # the same number of steps (runs/compare/<variant>), then evaluated on the validation
 # exemplars together with the shipped space. One thread per run: `make -j2 compare` runs two at once

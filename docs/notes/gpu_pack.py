@@ -1,6 +1,6 @@
 """Training on a lent GPU machine that takes at most 64 MiB of files and has no network.
 
-    python docs/notes/gpu_pack.py pack gpu                   # here: writes gpu/ (~13 MiB; ignore it in git)
+    python docs/notes/gpu_pack.py pack gpu                   # here (make gpu-pack): writes gpu/, ~13 MiB
     python3 gpu/gpu_pack.py train CHECKPOINT -- TRAIN_ARGS   # there: model.train with the packed files
 
 ``pack`` writes into its folder: the VGG16 convs conv1_1..conv5_1 quantised to int8 per
