@@ -20,6 +20,7 @@ import logging
 from dataclasses import dataclass, field
 
 from sqlalchemy import select
+from sqlalchemy.orm import load_only
 
 from worker.colour_match import blend_textures
 from worker.images import encode_texture, read_image
@@ -44,9 +45,13 @@ class ReencodeReport:
 
 
 def stale_textures(services, versions: set[str] | None = None) -> list[Texture]:  # noqa: ANN001
-    """Textures of ``versions``, or (None) of every model that is not loaded; oldest first."""
+    """Textures of ``versions``, or (None) of every model that is not loaded; oldest first.
+    Only the columns that decide what to do are loaded (not codes and colour tables: a
+    database of a million textures fits in memory this way)."""
     loaded = set(services.registry.models)
-    query = select(Texture).order_by(Texture.created_at, Texture.id)
+    query = (select(Texture).order_by(Texture.created_at, Texture.id)
+             .options(load_only(Texture.id, Texture.model_version, Texture.source, Texture.parents,
+                                Texture.exemplar_key, Texture.sampler_key, Texture.created_at)))
     query = query.where(Texture.model_version.in_(versions) if versions is not None
                         else Texture.model_version.not_in(loaded))
     with session_scope(services.sessions) as session:
