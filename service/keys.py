@@ -24,10 +24,15 @@ def sampler_key(texture_id: str) -> str:
     return f"{texture_prefix(texture_id)}/{SAMPLER}"
 
 
+def refinements_prefix(texture_id: str) -> str:
+    """Every in-place refinement of a texture, one folder per attempt."""
+    return f"{texture_prefix(texture_id)}/refined"
+
+
 def refinement_prefix(texture_id: str, job_id: str, attempt: int) -> str:
     """The folder of one attempt of an in-place refinement: its own key per attempt, so a
     tile ETag (which includes the sampler key) never names two samplers' bytes."""
-    return f"{texture_prefix(texture_id)}/refined/{job_id}-{attempt}"
+    return f"{refinements_prefix(texture_id)}/{job_id}-{attempt}"
 
 
 def tileable_key(sampler_key: str) -> str:

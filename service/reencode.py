@@ -110,8 +110,9 @@ def _encode_again(services, runtime, texture: Texture, refine: dict | None) -> b
         row.model_version, row.updated_at = runtime.version, utcnow()
         row.refinement_job_id = new_id() if refine else None
     # what was fitted in the old space: refinements, and a fit's own texture's sampler pair
-    services.storage.delete_prefix(f"{keys.texture_prefix(texture.id)}/refined")
-    if texture.sampler_key and not texture.sampler_key.startswith(f"{keys.texture_prefix(texture.id)}/refined/"):
+    # (a refinement's pair is already gone with its folder: deleting it again finds nothing)
+    services.storage.delete_prefix(keys.refinements_prefix(texture.id))
+    if texture.sampler_key:
         services.storage.delete(texture.sampler_key)
         services.storage.delete(keys.tileable_key(texture.sampler_key))
     for path in services.cached_samplers(texture.id):
