@@ -8,8 +8,8 @@ output channel (the verified fp32 cache is 59 MB; the int8 features at relu1_1..
 within 0.2-3% of the exact ones), the training photos resized to the working resolution
 (short side 256, as training loads them), and a copy of this script. ``train`` restores the
 VGG weights to fp32, hands them to model.vgg in place of its cache, and runs ``model.train``
-with ``--data gpu/data --init`` CHECKPOINT's weights and code table (its Adam state left
-out). CHECKPOINT is a file in the tree that travels (``model/checkpoints/space-train.pt``:
+with ``--data gpu/data --init CHECKPOINT`` (its weights and code table; ``--init`` leaves
+its Adam state unread). CHECKPOINT is a file in the tree that travels (``model/checkpoints/space-train.pt``:
 the repository's 50 MB and the pack fit the limit, a second checkpoint does not).
 ``model.train`` resumes a run folder that holds a ``checkpoint.pt`` instead: copy
 CHECKPOINT there first to keep its Adam state. Where OpenImageIO is missing, Pillow reads the
@@ -86,10 +86,7 @@ def train(checkpoint: str, argv: list[str]) -> None:
     vgg._cached_state = lambda: state  # the forward pass never reaches conv5_2 for relu5_1
     from model.train import main
 
-    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    init = HERE / "init.pt"
-    torch.save({k: ckpt[k] for k in ("config", "model", "step", "codes", "data", "mode") if k in ckpt}, init)
-    main(["--data", str(HERE / "data"), "--init", str(init), *argv])
+    main(["--data", str(HERE / "data"), "--init", checkpoint, *argv])
 
 
 if __name__ == "__main__":
