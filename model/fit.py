@@ -75,6 +75,16 @@ LATTICE_TIE = 0.05  # peaks this close to the strongest count as equally strong
 # squares; a basis read off single integer peaks can be a pixel or two off (the validation
 # brick wall's was -14 px instead of about -16 px down, and its bond leaned).
 LATTICE_REFINE_PEAK = 0.3
+# Stripes (``detect_stripes``): a repeat along one direction only, seen at its multiples.
+# The validation corrugated cardboard: period 8.8 px down, peaks 0.44, 0.37, 0.30, 0.28,
+# 0.26, 0.25, 0.23, 0.20, 0.19 at 1..9 periods (its large tone patches decorrelate
+# slowly).
+STRIPE_SUPPORT_PEAK = 0.15
+# Gradient energy across the stripes over that along them (1-px blur): both corrugated
+# cardboards 4.0, the other packaged photos with one repeat direction are grain (wood,
+# brushed metal) or have a second repeat.
+STRIPE_ANISOTROPY = 2.0
+STRIPE_MIN_REPEATS = 6  # multiples within a third of the image, both signs: |a| <= 1/9 of it
 # Patch side of a fit's steps, in working-resolution pixels. 60-s fits, one thread, two at a
 # time, seeds 0 and 1, quality-protocol style error (mean of the seeds, 64 -> 128 px):
 # gravel 2.17 -> 1.75, granite 0.445 -> 0.318, wood 0.041 -> 0.034, concrete 0.009 ->
@@ -91,9 +101,11 @@ LATTICE_PATCH = 64
 FOLD_REACH, FOLD_STEP = 3.0, 0.25
 
 
-def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | None:
-    """The 2D lattice a regular photo repeats on, two basis vectors in pixels (ax, ay, bx,
-    by; x right, y down) at the image's resolution, or None. ``image``: (H, W, 3) RGB."""
+def luminance_correlation(image: np.ndarray) -> tuple[np.ndarray, list[tuple]] | None:
+    """The photo's luminance autocorrelation, normalised to 1 at the origin ([0, 0],
+    wrapping), and its repeat peaks: local maxima of at least LATTICE_PEAK, at least
+    LATTICE_MIN_OFFSET px from the origin and within a third of the image, as (value,
+    length, dx, dy). None for a flat photo."""
     luminance = np.asarray(image, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
     luminance -= luminance.mean()
     spectrum = np.fft.fft2(luminance)
@@ -108,22 +120,30 @@ def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | Non
     peaks = ((correlation == ndimage.maximum_filter(correlation, size=5, mode="wrap"))
              & (correlation >= LATTICE_PEAK) & (np.hypot(dx, dy) >= LATTICE_MIN_OFFSET)
              & (np.abs(dx) <= width // 3) & (np.abs(dy) <= height // 3))
-    found = list(zip(correlation[peaks], np.hypot(dx[peaks], dy[peaks]), dx[peaks], dy[peaks]))
-    if not found:
+    return correlation, list(zip(correlation[peaks], np.hypot(dx[peaks], dy[peaks]), dx[peaks], dy[peaks]))
+
+
+def _strongest(candidates: list[tuple]) -> tuple:
+    """The shortest of the (near-)strongest peaks: not a multiple of it."""
+    top = max(value for value, *_ in candidates)
+    return min((c for c in candidates if c[0] >= top - LATTICE_TIE), key=lambda c: c[1])
+
+
+def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | None:
+    """The 2D lattice a regular photo repeats on, two basis vectors in pixels (ax, ay, bx,
+    by; x right, y down) at the image's resolution, or None. ``image``: (H, W, 3) RGB."""
+    measured = luminance_correlation(image)
+    if measured is None or not measured[1]:
         return None
-
-    def strongest(candidates):  # the shortest of the (near-)strongest: not a multiple of it
-        top = max(value for value, *_ in candidates)
-        return min((c for c in candidates if c[0] >= top - LATTICE_TIE), key=lambda c: c[1])
-
+    correlation, found = measured
     # The strongest repeat first, then the strongest one at least 30 degrees from it: for a
     # running bond, one brick along the row and a few courses down (the course height
     # alone is not a repeat, the bricks shift by half a brick from one course to the next).
-    value_a, length_a, ax, ay = strongest(found)
+    value_a, length_a, ax, ay = _strongest(found)
     others = [c for c in found if abs(ax * c[3] - ay * c[2]) > 0.5 * length_a * c[1]]
     if not others:
         return None
-    value_b, _, bx, by = strongest(others)
+    value_b, _, bx, by = _strongest(others)
     basis, support = refine_lattice(correlation, np.array([[ax, ay], [bx, by]], np.float64))
     if support < LATTICE_SUPPORT:
         return None
@@ -133,14 +153,38 @@ def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | Non
     return float(ax), float(ay), float(bx), float(by)
 
 
+def _locate_peaks(correlation: np.ndarray, predicted: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Near each predicted repeat (N, 2) (x, y px; rounded), the correlation's largest value
+    within ``radius``: its position to a fraction of a pixel (a parabola through it and its
+    neighbours along x and along y) (N, 2), its value (N,), and whether it is a true local
+    maximum, not the window's edge climbing towards a neighbouring peak (N,)."""
+    height, width = correlation.shape
+    window = np.arange(-radius, radius + 1)
+    ys = (predicted[:, 1, None, None] + window[None, :, None]) % height       # (N, K, 1)
+    xs = (predicted[:, 0, None, None] + window[None, None, :]) % width        # (N, 1, K)
+    values = correlation[ys, xs].reshape(len(predicted), -1)
+    best = values.argmax(axis=1)
+    peak_y, peak_x = predicted[:, 1] + window[best // len(window)], predicted[:, 0] + window[best % len(window)]
+
+    def vertex(before, at, after):  # offset of a parabola's top from the middle sample
+        curve = before - 2 * at + after
+        return np.where(curve < 0, 0.5 * (before - after) / np.where(curve < 0, curve, -1.0), 0.0)
+
+    at = correlation[peak_y % height, peak_x % width]
+    dx = vertex(correlation[peak_y % height, (peak_x - 1) % width], at, correlation[peak_y % height, (peak_x + 1) % width])
+    dy = vertex(correlation[(peak_y - 1) % height, peak_x % width], at, correlation[(peak_y + 1) % height, peak_x % width])
+    interior = (np.abs(peak_x - predicted[:, 0]) < radius) & (np.abs(peak_y - predicted[:, 1]) < radius)
+    return np.stack([peak_x + dx, peak_y + dy], axis=1), values.max(axis=1), interior
+
+
 def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, float]:
     """A least-squares basis (2, 2) (rows a, b as x, y) for the lattice points i a + j b
     that ``correlation`` (normalised, origin at [0, 0], wrapping) shows, and the lattice's
     support: the share of its points within a third of the image with a peak of at least
     LATTICE_SUPPORT_PEAK nearby. The fit uses each point's local peak, if at least
-    LATTICE_REFINE_PEAK, to a fraction of a pixel (a parabola through the peak and its
-    neighbours along x and along y). ``basis`` comes back as it was when too few points
-    agree or the fit moves a vector by more than a fifth of its length."""
+    LATTICE_REFINE_PEAK, to a fraction of a pixel (``_locate_peaks``). ``basis`` comes back
+    as it was when too few points agree or the fit moves a vector by more than a fifth of
+    its length."""
     height, width = correlation.shape
     shortest = float(np.hypot(*basis.T).min())
     reach = int(np.ceil(max(height, width) / shortest))
@@ -152,35 +196,78 @@ def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> tuple[np.ndarr
     steps, predicted = steps[inside], np.rint(predicted[inside]).astype(int)
     if not len(steps):
         return basis, 0.0
-    radius = max(1, int(0.2 * shortest))
-    window = np.arange(-radius, radius + 1)
-    ys = (predicted[:, 1, None, None] + window[None, :, None]) % height       # (N, K, 1)
-    xs = (predicted[:, 0, None, None] + window[None, None, :]) % width        # (N, 1, K)
-    values = correlation[ys, xs].reshape(len(steps), -1)
-    best = values.argmax(axis=1)
-    peak_y, peak_x = predicted[:, 1] + window[best // len(window)], predicted[:, 0] + window[best % len(window)]
-    value = values.max(axis=1)
-
-    def vertex(before, at, after):  # offset of a parabola's top from the middle sample
-        curve = before - 2 * at + after
-        return np.where(curve < 0, 0.5 * (before - after) / np.where(curve < 0, curve, -1.0), 0.0)
-
-    at = correlation[peak_y % height, peak_x % width]
-    dx = vertex(correlation[peak_y % height, (peak_x - 1) % width], at, correlation[peak_y % height, (peak_x + 1) % width])
-    dy = vertex(correlation[(peak_y - 1) % height, peak_x % width], at, correlation[(peak_y + 1) % height, peak_x % width])
-    # a true local maximum, not the window's edge climbing towards a neighbouring peak
-    interior = (np.abs(peak_x - predicted[:, 0]) < radius) & (np.abs(peak_y - predicted[:, 1]) < radius)
+    points, value, interior = _locate_peaks(correlation, predicted, max(1, int(0.2 * shortest)))
     support = float(np.mean(value >= LATTICE_SUPPORT_PEAK))
     use = (value >= LATTICE_REFINE_PEAK) & interior
     if use.sum() < 4 or np.linalg.matrix_rank(steps[use]) < 2:
         return basis, support
-    points = np.stack([peak_x + dx, peak_y + dy], axis=1)[use]
     weight = np.sqrt(value[use])[:, None]
-    fitted, *_ = np.linalg.lstsq(steps[use] * weight, points * weight, rcond=None)
+    fitted, *_ = np.linalg.lstsq(steps[use] * weight, points[use] * weight, rcond=None)
     moved = np.hypot(*(fitted - basis).T)
     if (moved > 0.2 * np.hypot(*basis.T)).any():
         return basis, support
     return fitted, support
+
+
+def detect_stripes(image: np.ndarray) -> tuple[float, float, float, float] | None:
+    """A photo that repeats along one direction only (corrugated cardboard, ribbed or
+    fluted surfaces): its period vector a in pixels, as a lattice (ax, ay, bx, by) whose b
+    is a turned a quarter turn (along the stripes), or None. Where ``detect_lattice`` finds
+    no second repeat.
+
+    The repeat is the strongest autocorrelation peak; it counts when the peaks come back at
+    its multiples k a within a third of the image (a share of at least LATTICE_SUPPORT
+    reach STRIPE_SUPPORT_PEAK), and a is their least-squares period. b carries no repeat of
+    the photo: the fit's phase inputs along it start at zero weight, and the photo's mean
+    cell, folded on a square cell of side |a|, is flat along it. Meant for photos where
+    ``detect_lattice`` finds no lattice: peaks in other directions are not looked at.
+
+    Stripes sharper and straighter than the packaged cardboards' can show
+    ``detect_lattice`` a second "repeat" on a stripe (docs/notes/model-history.md)."""
+    measured, across = luminance_correlation(image), stripe_normal(image)
+    if measured is None or not measured[1] or across is None:
+        return None
+    correlation, found = measured
+    value, length, ax, ay = _strongest(found)
+    # Any repeat a + t s (s along the stripes) shows the same stripes, and the peak found can
+    # be any of them (the validation cardboard's is (2, 9) px, not (0, 9)): the period is
+    # the repeat's part across the stripes. A repeat along the stripes (a brick wall's
+    # bricks along their courses) is no period across them.
+    if abs(ax * across[0] + ay * across[1]) < LATTICE_MIN_OFFSET:
+        return None
+    height, width = correlation.shape
+    reach = int(np.ceil(max(height, width) / length))
+    steps = np.array([k for k in range(-reach, reach + 1) if k], np.float64)
+    predicted = steps[:, None] * np.array([ax, ay], np.float64)
+    inside = (np.abs(predicted[:, 0]) < width / 3) & (np.abs(predicted[:, 1]) < height / 3)
+    steps, predicted = steps[inside], np.rint(predicted[inside]).astype(int)
+    if len(steps) < STRIPE_MIN_REPEATS:
+        return None
+    points, values, interior = _locate_peaks(correlation, predicted, max(1, int(0.2 * length)))
+    if np.mean(values >= STRIPE_SUPPORT_PEAK) < LATTICE_SUPPORT:
+        return None
+    if value < LATTICE_STRONG and detect_grain(image) is not None:
+        return None
+    use = interior & (values >= STRIPE_SUPPORT_PEAK)
+    weight = np.sqrt(values[use])
+    # least squares of k a = p_k over the located peaks: a = sum w k p / sum w k^2
+    repeat = (weight[:, None] * steps[use, None] * points[use]).sum(axis=0) / (weight * steps[use] ** 2).sum()
+    ax, ay = float(repeat @ across) * across
+    return float(ax), float(ay), float(-ay), float(ax)
+
+
+def stripe_normal(image: np.ndarray) -> np.ndarray | None:
+    """The unit vector (x, y) across a striped photo's stripes: the dominant direction of
+    its luminance gradients (the structure tensor's first eigenvector, after a 1-px blur),
+    or None when the gradient energy along it is under STRIPE_ANISOTROPY times that along
+    the stripes."""
+    luminance = ndimage.gaussian_filter(np.asarray(image, np.float64) @ np.array([0.2126, 0.7152, 0.0722]), 1.0)
+    gy, gx = np.gradient(luminance)
+    tensor = np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])
+    energy, vectors = np.linalg.eigh(tensor)  # ascending
+    if not energy[1] >= STRIPE_ANISOTROPY * max(energy[0], 1e-12):
+        return None
+    return vectors[:, 1]
 
 
 def fold_lattice(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
@@ -233,8 +320,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``patch``: side of the training patches; None: ``PATCH``, ``LATTICE_PATCH`` for a lattice fit.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"`` (``detect_grain`` on the
     photo; the manifest and the result say what was used).
-    ``lattice``: ``"auto"`` (``detect_lattice``; a photo with a lattice gets no grain) or
-    None; the manifest and the result give the lattice used, in world units.
+    ``lattice``: ``"auto"`` (``detect_lattice``, else ``detect_stripes``; a photo with a
+    lattice gets no grain) or None; the manifest and the result give the lattice used, in
+    world units.
     ``threads``: torch threads (process-wide; 0 leaves torch's setting as it is).
     ``device``: where the steps run, ``cpu`` | ``cuda`` | ``auto`` (cuda when available);
     the export and the files written are the same either way.
@@ -249,6 +337,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     photo = load_exemplar(image_path, space_cfg.exemplar_short_side)
     found = detect_lattice(photo) if lattice == "auto" else None
     found = fold_lattice(photo, found) if found else None
+    if lattice == "auto" and found is None:  # stripes: a lattice whose second vector carries no repeat
+        found = detect_stripes(photo)
     # world units: one exemplar pixel is 1 / pixels_per_unit; image rows run along +y
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
     if grain == "auto":
@@ -312,8 +402,9 @@ def main(argv=None):
                    help="anisotropic exemplar: its grain runs along image x or y; auto (default): detected from "
                         "the photo (detect_grain); none: isotropic")
     p.add_argument("--lattice", choices=["auto", "none"], default="auto",
-                   help="regular exemplar (bricks, tile grids): auto (default) detects its repeat lattice "
-                        "(detect_lattice) and the decoder reads each point's phase on it; none: off")
+                   help="regular exemplar (bricks, tile grids, corrugation): auto (default) detects its repeat "
+                        "lattice (detect_lattice) or stripes (detect_stripes) and the decoder reads each "
+                        "point's phase on it; none: off")
     p.add_argument("--loss", choices=["gram", "swd"], default="gram", help="VGG feature statistics to match")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu",
                    help="where the fit's steps run (auto: cuda when available)")

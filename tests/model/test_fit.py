@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 ort = pytest.importorskip("onnxruntime")
 
 from model.export import export_model  # noqa: E402
-from model.fit import detect_grain, detect_lattice, fit_exemplar, fold_lattice  # noqa: E402
+from model.fit import detect_grain, detect_lattice, detect_stripes, fit_exemplar, fold_lattice  # noqa: E402
 from model.evaluate import load_candidates  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
 
@@ -155,6 +155,56 @@ def test_a_weak_lattice_gives_way_to_grain(monkeypatch):
     assert detect_lattice(weak) is not None and detect_lattice(strong) is not None
     monkeypatch.setattr(fit, "detect_grain", lambda image: "y")
     assert detect_lattice(weak) is None and detect_lattice(strong) is not None
+
+
+def _corrugation(period: float = 8.8, size: int = 256) -> np.ndarray:
+    """Corrugated board: sharp ridges every ``period`` px down the photo, running along x
+    and wandering by about a pixel (as pressed board does), over large tone patches (like
+    the validation cardboard's) and fine noise."""
+    rng = np.random.default_rng(7)
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    wander = ndimage.gaussian_filter(rng.standard_normal((size, size)), 12)
+    ridges = (0.5 + 0.5 * np.cos(2 * np.pi * (y + 1.5 * wander / np.abs(wander).max()) / period)) ** 8
+    patches = ndimage.gaussian_filter(rng.standard_normal((size, size)), 24)
+    image = 0.55 + 0.12 * ridges + 0.12 * patches / np.abs(patches).max() + 0.05 * rng.standard_normal((size, size))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+
+def test_detect_stripes_measures_the_period_across_the_stripes(skimage_textures):
+    """A photo that repeats along one direction only has no 2D lattice, but its stripes are
+    found: the period across them to a fraction of a pixel, the second vector along them.
+    The peak the search starts from may lean (any a + t s shows the same stripes); the
+    period must not. (Straighter, cleaner stripes can show detect_lattice a second repeat
+    on a stripe: a known limit, docs/notes/model-history.md.)"""
+    image = _corrugation()
+    assert detect_lattice(image) is None
+    ax, ay, bx, by = detect_stripes(image)
+    assert abs(ax) < 0.05 and abs(abs(ay) - 8.8) < 0.15, (ax, ay)
+    assert (bx, by) == pytest.approx((-ay, ax))              # a quarter turn: along the stripes
+    ax, ay, _, _ = detect_stripes(image.transpose(1, 0, 2))  # ridges up-down: the period runs along x
+    assert abs(abs(ax) - 8.8) < 0.15 and abs(ay) < 0.05, (ax, ay)
+    for name in ("gravel", "grass", "brick"):               # stochastic, or grain without a period
+        assert detect_stripes(skimage_textures[name]) is None, name
+    assert detect_stripes(np.full((64, 64, 3), 0.5)) is None
+    # a brick wall's courses are stripes too; fit_exemplar asks for stripes only where
+    # detect_lattice finds no lattice, and it finds the bond
+    assert detect_lattice(_running_bond()) is not None
+
+
+def test_a_striped_photo_is_fitted_on_its_stripes(tmp_path, vgg):
+    """fit_exemplar with lattice="auto" falls back to the stripes when there is no 2D lattice
+    and reports them as its lattice, in world units."""
+    torch.manual_seed(0)
+    export_model(TextureSpace(ModelConfig()), tmp_path / "space")
+    image = tmp_path / "corrugated.png"
+    Image.fromarray((_corrugation() * 255).round().astype(np.uint8)).save(image)
+    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt",
+                          minutes=0.02, patch=32, lattice="auto", grain="auto")
+    stripes = np.array(detect_stripes(np.asarray(Image.open(image), np.float32) / 255)) / ModelConfig().pixels_per_unit
+    assert result["grain"] is None and result["lattice"] == pytest.approx(stripes.tolist())
+    unfitted = fit_exemplar(image, tmp_path / "plain", init_checkpoint=tmp_path / "space" / "space.pt",
+                            minutes=0.02, patch=32, lattice=None, grain="auto")
+    assert unfitted["lattice"] is None
 
 
 def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, vgg):
