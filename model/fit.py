@@ -149,8 +149,37 @@ def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | Non
         return None
     if min(value_a, value_b) < LATTICE_STRONG and detect_grain(image) is not None:
         return None
+    across = stripe_normal(image)
+    if across is not None and not _repeats_along_stripes(correlation, basis, across):
+        return None  # stripes: b was a point on one of their ridges (detect_stripes' case)
     (ax, ay), (bx, by) = basis
     return float(ax), float(ay), float(bx), float(by)
+
+
+def _repeats_along_stripes(correlation: np.ndarray, basis: np.ndarray, across: np.ndarray) -> bool:
+    """Whether a lattice found on a striped photo (``across``: ``stripe_normal``) is a true
+    lattice: its shortest vector along the stripes, where one is in view, is a peak of the
+    correlation along them. Stripes correlate along whole ridges, one per period, so any
+    point on a ridge can pass as a second repeat (8.8-px synthetic stripes gave b = (40.6,
+    52.9) px, and b - 6 a = (40, 0) lies on the ridge through the origin, where the
+    correlation only falls); a brick wall's courses are stripes too, and its bricks repeat
+    along them: (32, 0) px is a peak."""
+    height, width = correlation.shape
+    i, j = np.meshgrid(np.arange(-12, 13), np.arange(-12, 13), indexing="ij")
+    vectors = np.stack([i.ravel(), j.ravel()], axis=1) @ basis
+    length = np.hypot(*vectors.T)
+    along = (np.abs(vectors @ across) < 1.0) & (length > 0) & (np.abs(vectors[:, 0]) < width / 2) \
+        & (np.abs(vectors[:, 1]) < height / 2)
+    if not along.any():
+        return True  # no repeat along the stripes in view (cinder blocks: 128 px): nothing to judge
+    vector = vectors[along][np.argmin(length[along])]
+    step = np.array([-across[1], across[0]]) * max(2.0, 0.5 * float(np.min(np.abs(basis @ across)[np.abs(basis @ across) >= 1.0], initial=4.0)))
+
+    def at(point):
+        x, y = np.rint(point).astype(int)
+        return correlation[y % height, x % width]
+
+    return bool(at(vector) >= max(at(vector - step), at(vector + step)) + LATTICE_TIE)  # not a ridge's noise
 
 
 def _locate_peaks(correlation: np.ndarray, predicted: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -220,21 +249,19 @@ def detect_stripes(image: np.ndarray) -> tuple[float, float, float, float] | Non
     reach STRIPE_SUPPORT_PEAK), and a is their least-squares period. b carries no repeat of
     the photo: the fit's phase inputs along it start at zero weight, and the photo's mean
     cell, folded on a square cell of side |a|, is flat along it. Meant for photos where
-    ``detect_lattice`` finds no lattice: peaks in other directions are not looked at.
-
-    Stripes sharper and straighter than the packaged cardboards' can show
-    ``detect_lattice`` a second "repeat" on a stripe (docs/notes/model-history.md)."""
+    ``detect_lattice`` finds no lattice: peaks in other directions are not looked at."""
     measured, across = luminance_correlation(image), stripe_normal(image)
     if measured is None or not measured[1] or across is None:
         return None
     correlation, found = measured
-    value, length, ax, ay = _strongest(found)
     # Any repeat a + t s (s along the stripes) shows the same stripes, and the peak found can
     # be any of them (the validation cardboard's is (2, 9) px, not (0, 9)): the period is
-    # the repeat's part across the stripes. A repeat along the stripes (a brick wall's
-    # bricks along their courses) is no period across them.
-    if abs(ax * across[0] + ay * across[1]) < LATTICE_MIN_OFFSET:
+    # the repeat's part across the stripes. Peaks along the stripes (a brick wall's bricks
+    # along their courses; bumps on the ridge through the origin) are no period across them.
+    found = [c for c in found if abs(c[2] * across[0] + c[3] * across[1]) >= LATTICE_MIN_OFFSET]
+    if not found:
         return None
+    value, length, ax, ay = _strongest(found)
     height, width = correlation.shape
     reach = int(np.ceil(max(height, width) / length))
     steps = np.array([k for k in range(-reach, reach + 1) if k], np.float64)
