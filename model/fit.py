@@ -173,7 +173,9 @@ def _repeats_along_stripes(correlation: np.ndarray, basis: np.ndarray, across: n
     if not along.any():
         return True  # no repeat along the stripes in view (cinder blocks: 128 px): nothing to judge
     vector = vectors[along][np.argmin(length[along])]
-    step = np.array([-across[1], across[0]]) * max(2.0, 0.5 * float(np.min(np.abs(basis @ across)[np.abs(basis @ across) >= 1.0], initial=4.0)))
+    spacing = np.abs(basis @ across)  # the basis vectors' steps across the stripes (px)
+    spacing = float(spacing[spacing >= 1.0].min(initial=4.0))
+    step = np.array([-across[1], across[0]]) * max(2.0, 0.5 * spacing)  # half a period along the stripes
 
     def at(point):
         x, y = np.rint(point).astype(int)
