@@ -202,9 +202,13 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
     with session_scope(services.sessions) as session:
         current = session.get(Job, job.id)
         row = session.get(Texture, texture.id)
-        if current is None or current.state != "running" or current.attempt != job.attempt or row is None:
+        moved = row is not None and row.model_version != texture.model_version
+        if current is None or current.state != "running" or current.attempt != job.attempt or row is None or moved:
             services.storage.delete_prefix(folder)  # no row names it: leave no file behind
             local.unlink(missing_ok=True)
+            if moved:  # texspace reencode moved it on (and queued a refinement of its own)
+                raise Canceled(f"the texture moved from model {texture.model_version} to {row.model_version} "
+                               "while it was refined; the refinement of the old model was dropped")
             raise Canceled("the job was taken over or deleted before its refinement was applied")
         if row.encoder_code is None:  # the first refinement: keep what the encoder gave, for blends
             row.encoder_code, row.encoder_colour = list(row.code), row.colour

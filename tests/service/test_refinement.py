@@ -152,6 +152,33 @@ def test_texture_deleted_during_its_refinement_leaves_no_files(refining, photo, 
     assert list((services.cache_dir / "samplers").glob(f"{texture['id']}*")) == []
 
 
+def test_refinement_of_a_texture_moved_to_another_model_is_dropped(refining, photo, monkeypatch) -> None:
+    """texspace reencode may move a texture to a new model while its old model's refinement
+    runs: that refinement must not replace what the new model serves, nor leave files."""
+    client, services = refining
+    texture = upload_photo(client, photo)
+    module = sys.modules["model.fit"]
+    module_fit = module.fit_exemplar
+
+    @functools.wraps(module_fit)
+    def fit_then_move(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        written = module_fit(*args, **kwargs)
+        with services.sessions() as session, session.begin():  # what reencode writes
+            session.get(Texture, texture["id"]).model_version = "f" * 16
+        return written
+
+    monkeypatch.setattr(module, "fit_exemplar", fit_then_move)
+    run_fit_lane(services)
+    job = client.get(f"/v1/jobs/{texture['refinement']['job_id']}").json()
+    assert job["state"] == "canceled" and "moved from model" in job["error"]["detail"], job
+    with services.sessions() as session:
+        row = session.get(Texture, texture["id"])
+    assert row.model_version == "f" * 16 and row.sampler_key is None and row.code == texture["code"]
+    root = services.storage.root
+    assert [p for p in root.rglob("*") if p.is_file() and "/refined/" in str(p)] == []
+    assert list((services.cache_dir / "samplers").glob(f"{texture['id']}*")) == []
+
+
 def test_auto_fit_off_queues_nothing(refining, photo, fit_calls) -> None:
     client, services = refining
     services.settings.auto_fit = False
