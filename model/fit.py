@@ -90,7 +90,9 @@ STRIPE_MIN_REPEATS = 6  # multiples within a third of the image, both signs: |a|
 # gravel 2.17 -> 1.75, granite 0.445 -> 0.318, wood 0.041 -> 0.034, concrete 0.009 ->
 # 0.007, cardboard 0.066 -> 0.063, grass 0.011 -> 0.015, with a quarter of the steps (~100
 # instead of ~410): the Gram statistics of the deeper layers need the larger patch. Lattice
-# fits keep 64 (floor tiles 0.325 -> 0.492, grill 2.53 -> 3.63 at 128: they need the steps).
+# fits keep 64 (floor tiles 0.325 -> 0.492, grill 2.53 -> 3.63 at 128: they need the steps);
+# stripe fits do not (the validation cardboard, seeds 0-3, 64 -> 128 px: 0.054 -> 0.0048,
+# 0.021 -> 0.0049, 0.017 -> 0.012, 0.052 -> 0.0032).
 PATCH = 128
 LATTICE_PATCH = 64
 # A lattice fit trains one patch per step (and its lattice partner, model/train.py) instead
@@ -346,7 +348,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
     'lattice'}.
 
-    ``patch``: side of the training patches; None: ``PATCH``, ``LATTICE_PATCH`` for a lattice fit.
+    ``patch``: side of the training patches; None: ``PATCH``, ``LATTICE_PATCH`` for a 2D lattice fit.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"`` (``detect_grain`` on the
     photo; the manifest and the result say what was used).
     ``lattice``: ``"auto"`` (``detect_lattice``, else ``detect_stripes``; a photo with a
@@ -366,13 +368,14 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     photo = load_exemplar(image_path, space_cfg.exemplar_short_side)
     found = detect_lattice(photo) if lattice == "auto" else None
     found = fold_lattice(photo, found) if found else None
-    if lattice == "auto" and found is None:  # stripes: a lattice whose second vector carries no repeat
-        found = detect_stripes(photo)
+    stripes = lattice == "auto" and found is None and detect_stripes(photo)
+    if stripes:  # a lattice whose second vector carries no repeat
+        found = stripes
     # world units: one exemplar pixel is 1 / pixels_per_unit; image rows run along +y
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
     if grain == "auto":
         grain = None if lattice else detect_grain(photo)
-    patch = patch or (LATTICE_PATCH if lattice else PATCH)
+    patch = patch or (LATTICE_PATCH if lattice and not stripes else PATCH)
     with tempfile.TemporaryDirectory() as run_dir:
         cfg = TrainConfig(
             mode="single", exemplar=str(image_path), out=run_dir, init=str(init),
@@ -425,7 +428,7 @@ def main(argv=None):
     p.add_argument("--init", default=str(DEFAULT_INIT), help="space checkpoint to start from")
     p.add_argument("--minutes", type=float, default=DEFAULT_MINUTES)
     p.add_argument("--patch", type=int, default=None,
-                   help=f"training patch side in px (default {PATCH}; {LATTICE_PATCH} for a lattice fit)")
+                   help=f"training patch side in px (default {PATCH}; {LATTICE_PATCH} for a 2D lattice fit)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--grain", choices=["x", "y", "auto", "none"], default="auto",
                    help="anisotropic exemplar: its grain runs along image x or y; auto (default): detected from "
