@@ -103,12 +103,17 @@ LATTICE_PATCH = 64
 FOLD_REACH, FOLD_STEP = 3.0, 0.25
 
 
+def rec709_luminance(image: np.ndarray) -> np.ndarray:
+    """(H, W, 3) RGB -> (H, W) float64 Rec. 709 luminance, what every detector here reads."""
+    return np.asarray(image, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+
+
 def luminance_correlation(image: np.ndarray) -> tuple[np.ndarray, list[tuple]] | None:
     """The photo's luminance autocorrelation, normalised to 1 at the origin ([0, 0],
     wrapping), and its repeat peaks: local maxima of at least LATTICE_PEAK, at least
     LATTICE_MIN_OFFSET px from the origin and within a third of the image, as (value,
     length, dx, dy). None for a flat photo."""
-    luminance = np.asarray(image, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    luminance = rec709_luminance(image)
     luminance -= luminance.mean()
     spectrum = np.fft.fft2(luminance)
     correlation = np.fft.ifft2(spectrum * np.conj(spectrum)).real
@@ -292,7 +297,7 @@ def stripe_normal(image: np.ndarray) -> np.ndarray | None:
     its luminance gradients (the structure tensor's first eigenvector, after a 1-px blur),
     or None when the gradient energy along it is under STRIPE_ANISOTROPY times that along
     the stripes."""
-    luminance = ndimage.gaussian_filter(np.asarray(image, np.float64) @ np.array([0.2126, 0.7152, 0.0722]), 1.0)
+    luminance = ndimage.gaussian_filter(rec709_luminance(image), 1.0)
     gy, gx = np.gradient(luminance)
     tensor = np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])
     energy, vectors = np.linalg.eigh(tensor)  # ascending
@@ -329,7 +334,7 @@ def detect_grain(image: np.ndarray) -> str | None:
     """The axis the photo's grain runs along, ``"x"`` (left-right) or ``"y"`` (up-down),
     or None for an isotropic photo. ``image``: (H, W, 3) RGB in [0, 1] at the working
     resolution. Diagonal grain counts as none (a fit can stretch along x or y only)."""
-    luminance = np.asarray(image, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    luminance = rec709_luminance(image)
     log_ratios = []
     for sigma in GRAIN_SCALES:
         rows, cols = np.gradient(ndimage.gaussian_filter(luminance, sigma))
