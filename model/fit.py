@@ -373,14 +373,14 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     photo = load_exemplar(image_path, space_cfg.exemplar_short_side)
     found = detect_lattice(photo) if lattice == "auto" else None
     found = fold_lattice(photo, found) if found else None
-    stripes = lattice == "auto" and found is None and detect_stripes(photo)
-    if stripes:  # a lattice whose second vector carries no repeat
-        found = stripes
+    stripes = None
+    if lattice == "auto" and found is None:  # stripes: a lattice whose second vector carries no repeat
+        found = stripes = detect_stripes(photo)
     # world units: one exemplar pixel is 1 / pixels_per_unit; image rows run along +y
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
     if grain == "auto":
         grain = None if lattice else detect_grain(photo)
-    patch = patch or (LATTICE_PATCH if lattice and not stripes else PATCH)
+    patch = patch or (LATTICE_PATCH if lattice and stripes is None else PATCH)
     with tempfile.TemporaryDirectory() as run_dir:
         cfg = TrainConfig(
             mode="single", exemplar=str(image_path), out=run_dir, init=str(init),
