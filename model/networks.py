@@ -263,7 +263,7 @@ class Decoder(nn.Module):
                     nn.init.zeros_(layer.bias)
         nn.init.normal_(self.from_code.weight, std=1.0 / n_code**0.5)
         nn.init.normal_(self.out.weight, std=0.5 / hidden**0.5)
-        if self.from_phase is not None:  # zero: a fit starts exactly at the space's texture
+        if self.from_phase is not None:  # zero: the space's texture (a fit sets the mean cell's: start_on_mean_cell)
             nn.init.zeros_(self.from_phase.weight)
 
     def forward(self, noise, position, code, phase=None):

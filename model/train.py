@@ -42,7 +42,7 @@ from model.data import TextureDataset, load_exemplar, sample_batch
 from model.losses import gram_loss, gram_matrices, sliced_wasserstein_loss
 from model.networks import ModelConfig, TextureSpace, VARIANTS, load_checkpoint
 from model.colour import compressed_moments, transfer_colour_moments
-from model.slices import linear_to_srgb, random_planes, render_slices, srgb_to_linear
+from model.slices import linear_to_srgb, plane_points, random_planes, render_slices, srgb_to_linear
 from model.vgg import GATYS_LAYERS, shared_vgg
 
 
@@ -252,6 +252,54 @@ def lattice_mean_cell(image: np.ndarray, lattice_px: tuple[float, float, float, 
     return cell.reshape(*sizes, 3).astype(np.float32)
 
 
+def mean_cell_share(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> float:
+    """How much of the photo's spread its mean repeat cell explains (0..1): the spread of
+    each pixel's cell colour about the photo's mean, over the photo's own spread."""
+    cell, counts = fold_on_lattice(image, lattice_px, lattice_cell_sizes(lattice_px))
+    pixels = image.reshape(-1, 3)
+    explained = (counts[:, None] * np.square(cell - pixels.mean(axis=0))).sum() / counts.sum()
+    return float(np.sqrt(explained / max(pixels.var(axis=0).sum(), 1e-12)))
+
+
+def start_on_mean_cell(model: TextureSpace, code: torch.Tensor, share: float, rng: np.random.Generator,
+                       patch: int = 64, planes: int = 4) -> None:
+    """Start a fresh lattice fit drawing the photo's mean repeat cell: the decoder's output
+    weights are scaled by sqrt(1 - share^2), then its mean-cell weights (the last 3 columns
+    of ``from_phase``, zero until now) are set so that, to first order, its colour moves
+    along the standardised cell by ``share`` of the texture's former spread: the grout and
+    bond are drawn where the photo has them, dark where they are dark, from the first step,
+    and the space's own texture keeps the rest of the spread. From zero weights the sign was
+    left to the first noisy steps: half the 60-s fits of the validation floor tiles drew
+    light grout and grey blotches in every tile, and stayed there (4-minute fits too).
+    Adding the cell without making room for it gave the grill speckled metal.
+    ``share``: ``mean_cell_share`` of the photo. The map is the pseudo-inverse of the mean
+    Jacobian of colour with respect to the first hidden layer, on ``planes`` random
+    photo-plane patches."""
+    field = model.field
+    device = code.device
+    share = min(share, 0.99)  # (an exactly periodic photo: keep a little of the texture to steer)
+    origins, axes = random_planes(planes, rng, photo_plane=True)
+    points = plane_points(origins.to(device), axes.to(device), patch, field.cfg.pixels_per_unit)
+    seeds = torch.from_numpy(rng.integers(0, 2**31, size=planes)).to(device)
+    z = code.detach().expand(planes, -1)
+    with torch.no_grad():
+        spread = field(points, z, seeds).reshape(-1, 3).std(dim=0).mean()
+        field.decoder.out.weight.mul_(math.sqrt(max(1.0 - share**2, 0.0)))  # room for the cell's share
+    delta = torch.zeros(field.decoder.from_code.out_features, device=device, requires_grad=True)
+    hook = field.decoder.from_code.register_forward_hook(lambda module, inputs, output: output + delta)
+    try:
+        rgb = field(points, z, seeds)  # [B,P,3] linear
+        jacobian = torch.stack([torch.autograd.grad(rgb[..., k].mean(), delta, retain_graph=True)[0]
+                                [:field.decoder.hidden] for k in range(3)])  # [3,H]
+    finally:
+        hook.remove()
+    gram = jacobian @ jacobian.T
+    ridge = (1e-6 * gram.trace() + 1e-12) * torch.eye(3, device=device)
+    weight = (share * spread) * jacobian.T @ torch.linalg.inv(gram + ridge)
+    with torch.no_grad():
+        field.decoder.from_phase.weight[:, -3:] = weight
+
+
 def lattice_partners(origins: torch.Tensor, lattice: tuple[float, float, float, float],
                      rng: np.random.Generator) -> torch.Tensor:
     """Each origin moved by a random whole, nonzero combination of the lattice vectors
@@ -384,7 +432,7 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
         return model, None
     init, ckpt = load_checkpoint(cfg.init)
     # A grain fit starts from an isotropic space: the stretch is a fixed input transform;
-    # a lattice fit adds phase inputs (zero weights: it starts at the space's texture);
+    # a lattice fit adds phase inputs (zero weights; setup starts the mean cell's: start_on_mean_cell);
     # a colour-normalised run may start from a space whose encoder still read colour.
     if init.cfg.to_dict() | {"grain": model_cfg.grain, "colour_blind_encoder": model_cfg.colour_blind_encoder,
                              "isotropic_transforms": model_cfg.isotropic_transforms,
@@ -436,7 +484,7 @@ def make_optimizer(cfg: TrainConfig, model: TextureSpace, codes: torch.nn.Parame
     mode) the encoder; each group carries its ``base_lr`` for the schedule."""
     # Group order is part of the checkpoint format (resuming needs the same groups), so
     # the transform head gets its own group only when it has its own learning rate.
-    # (a lattice fit's phase weights start at zero and move as fast as the transforms)
+    # (a lattice fit's phase weights, new to it, move as fast as the transforms)
     phase = model.field.decoder.from_phase if model.field.decoder is not None else None
     head = [*model.field.translator.to_transform.parameters(),
             *(phase.parameters() if phase is not None else ())] if cfg.transform_lr else []
@@ -496,6 +544,9 @@ def setup(cfg: TrainConfig) -> Run:
     model, init_codes = build(cfg, mean_cell)
     model.to(device)
     codes = learned_codes(cfg, model, images, crop, rng, init_codes)
+    # a fit's cell weights are still zero (its space has no lattice): start them on the mean cell
+    if mean_cell is not None and cfg.mode == "single" and not model.field.decoder.from_phase.weight[:, -3:].any():
+        start_on_mean_cell(model, codes, mean_cell_share(images[0], lattice_pixels(cfg.lattice)), rng)
     # Position-input baselines (mlp, oursP) only work near the origin they saw in training;
     # noise-only models are trained everywhere, which is what makes them infinite.
     extent = POSITION_EXTENT if model.cfg.flags.position else 1000.0

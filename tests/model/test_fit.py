@@ -339,6 +339,40 @@ def test_a_lattice_field_starts_as_the_field_without_it() -> None:
         assert torch.equal(plain(points, z, torch.tensor(4)), cell(points, z, torch.tensor(4)))
 
 
+def test_a_lattice_fit_starts_drawing_the_mean_cell_dark_where_it_is_dark() -> None:
+    """start_on_mean_cell: from zero cell weights, the field's colour follows the mean cell's
+    colour at each point's phase (same sign, about ``share`` of the texture's spread), and
+    the rest of the texture makes room for it (the total spread stays about the same)."""
+    from model.train import mean_cell_share, start_on_mean_cell
+
+    torch.manual_seed(0)
+    lattice = (0.25, 0.0, 0.0, 0.25)
+    space = TextureSpace(ModelConfig(lattice=lattice, lattice_cell=(16, 16)))
+    grid = np.full((16, 16, 3), 0.8, np.float32)
+    grid[:2] = grid[:, :2] = (0.2, 0.25, 0.3)  # grout two cells wide
+    space.field.lattice_mean_cell.copy_(torch.from_numpy((grid - grid.mean((0, 1))) / grid.std()))
+    points = torch.from_numpy(np.random.default_rng(2).uniform(-5, 5, (1, 4000, 3)))
+    code, seed = torch.randn(1, 8), torch.tensor(4)
+    with torch.no_grad():
+        before = space.field(points, code, seed).reshape(-1, 3).numpy()
+    start_on_mean_cell(space, code, 0.6, np.random.default_rng(0))
+    with torch.no_grad():
+        after = space.field(points, code, seed).reshape(-1, 3).numpy()
+        cell = space.field.lattice_phases(points)[..., -3:].reshape(-1, 3).numpy()  # the cell's colour there
+    assert np.corrcoef(before[:, 0], cell[:, 0])[0, 1] ** 2 < 0.01  # (nothing of the cell before)
+    spread = before.std(axis=0).mean()
+    for channel in range(3):  # (the share is of the mean spread: a channel with more of its own follows less)
+        assert np.corrcoef(after[:, channel], cell[:, channel])[0, 1] > 0.25
+    slope = ((after - after.mean(0)) * cell).sum() / np.square(cell).sum()
+    assert 0.5 * 0.6 * spread < slope < 2 * 0.6 * spread
+    assert 0.7 < after.std(axis=0).mean() / spread < 1.4
+    # the share: a grid without marbling is all mean cell; noise on no lattice, almost none
+    tiled = np.tile(grid, (8, 8, 1))
+    assert mean_cell_share(tiled, (16.0, 0.0, 0.0, 16.0)) > 0.99
+    noise = np.random.default_rng(3).random((128, 128, 3))
+    assert mean_cell_share(noise, (16.0, 0.0, 0.0, 16.0)) < 0.3
+
+
 def test_patch_side_defaults_to_128_and_64_for_a_lattice(tmp_path, monkeypatch):
     """The measured defaults (model/fit.py: PATCH, LATTICE_PATCH); an explicit patch wins."""
     import model.fit as fit
