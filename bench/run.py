@@ -7,10 +7,11 @@ sampler through worker/runtime (best chunk size and threads), the same weights i
 PyTorch eager, cold and cached 256^2 tiles over HTTP on an embedded ``texspace serve``,
 a map viewport of 16 cold tiles (idle, beside 4 volume jobs, zoomed out; bench/viewport.py),
 the encode of a 1024^2 upload, a 256^3 volume (child process, peak RSS), a 2048^2
-bake of a ~100k-face mesh without UVs, and the shipped encoder on one 128^2 crop on one
-thread (``--only encode`` runs just that). Every target is a ratio against a reference
-measured in the same run, so the verdicts hold on a noisy shared machine. Prints a
-table and merges the numbers into bench/out/results.json (other keys are kept).
+bake of a ~100k-face mesh without UVs, the shipped encoder on one 128^2 crop on one
+thread (``--only encode`` runs just that), and one score of a fit's probe
+(bench/fit_probe.py). Every target is a ratio against a reference measured in the same
+run, so the verdicts hold on a noisy shared machine. Prints a table and merges the
+numbers into bench/out/results.json (other keys are kept).
 """
 from __future__ import annotations
 
@@ -22,9 +23,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from bench import common, jobs, kernels, serving, viewport
+from bench import common, fit_probe, jobs, kernels, serving, viewport
 
-SECTIONS = ("kernels", "http", "viewport", "volume", "bake", "encode")
+SECTIONS = ("kernels", "http", "viewport", "volume", "bake", "encode", "fit")
 
 
 def log(msg: str) -> None:
@@ -34,7 +35,7 @@ def log(msg: str) -> None:
 def measure(only: set[str], quick: bool) -> dict:
     results: dict = {"machine": common.machine(), "errors": {}}
     model_dir = config = None
-    if only - {"encode"}:  # the encode section times the shipped encoder: no re-export for it alone
+    if only - {"encode", "fit"}:  # these time the shipped model's files: no re-export for them alone
         model_dir, note = common.prepare_model(log)
         results["model"] = {"dir": str(model_dir.relative_to(common.ROOT)), "source": note}
         config = kernels.model_config(model_dir)
@@ -140,7 +141,11 @@ def measure(only: set[str], quick: bool) -> dict:
     section("viewport", run_viewport)
     section("volume", run_volume)
     section("bake", run_bake)
+    def run_fit():
+        results.update(fit_probe.bench_probe(common.SHIPPED_MODEL / "space.pt", log=log))
+
     section("encode", run_encode)
+    section("fit", run_fit)
     return results
 
 
@@ -193,6 +198,10 @@ def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
         ratio("encode_128_ms", ms, "< 100 ms", ms < 100, "encode one 128^2 crop (1 thread, median)", f"{ms:.1f} ms",
               f"{ms / ref:.2f} x GEMM-bound {ref:.1f} ms ({r['encoder_flops']['total'] / 1e6:.0f} MFLOP at "
               f"{r['encode_gemm_gflops_1_thread']:.1f} GFLOP/s)")
+    if "fit_probe_s" in r:
+        x = r["fit_probe_s"] / r["fit_probe_batched_s"]
+        ratio("fit_probe_vs_batched", x, "<= 1.0", x <= 1.0, "fit probe, 4 planes of 256 px (1 thread)",
+              f"{r['fit_probe_s']:.2f} s", f"{x:.2f} x the same in one batch {r['fit_probe_batched_s']:.2f} s")
     vp = r.get("viewport") or {}
     if "native_idle" in vp:
         last = vp["native_idle"]["last_s"]

@@ -124,6 +124,27 @@ def test_pair_contrast_charges_identical_repeats_and_frees_varied_ones(vgg):
     assert not Objective([photo], ("relu1_1",), "gram").pairs
 
 
+def test_scoring_without_gradients_goes_plane_by_plane_to_the_same_numbers(vgg):
+    # The probe renders and scores one plane / image at a time (faster on one thread); the
+    # numbers must be those of the batch: each plane keeps its own code, seed and place.
+    torch.manual_seed(0)
+    field = TextureSpace(ModelConfig()).field
+    origins, axes = random_planes(3, np.random.default_rng(0), extent=2.0)  # near the origin: float32 exact
+    codes, seeds = torch.randn(3, 8), torch.tensor([4, 5, 6])
+    with torch.no_grad():
+        one_by_one = render_slices(field, codes, seeds, origins, axes, 24)
+    batched = render_slices(field, codes, seeds, origins, axes, 24).detach()  # with gradients: one call
+    assert one_by_one.shape == (3, 3, 24, 24)
+    assert torch.allclose(one_by_one, batched, atol=1e-4)
+    assert not torch.allclose(one_by_one[0], one_by_one[1], atol=1e-2)  # not one plane three times
+    photo = np.random.default_rng(1).uniform(0.2, 0.8, (48, 48, 3)).astype(np.float32)
+    objective = Objective([photo, photo[::-1].copy()], ("relu1_1", "relu2_1"), "gram")
+    indices = np.array([0, 1, 0])
+    with torch.no_grad():
+        scored = float(objective(batched, indices))
+    assert scored == pytest.approx(float(objective(batched, indices)), rel=1e-5)
+
+
 @pytest.mark.parametrize("grain, axis, role", [("x", 0, 0), ("y", 1, 1)])
 def test_grain_planes_keep_the_grain_axis_in_the_exemplars_role(grain, axis, role):
     # A y-grain exemplar (stripes running up-down) must show its stripes up-down on the xy

@@ -1,0 +1,57 @@
+"""The fit's probe: how long one score of its fixed planes takes (model/train.py ``Probe``).
+
+A 60-s fit (the product's refinement) scores itself every 25 steps on 4 planes of 256 px
+(twice its training patch); each score is the field on 262,144 points and VGG16 on four
+256^2 images, without gradients. The figure: the probe as ``Probe.score`` computes it (one
+plane, one image at a time: ``render_slices`` and ``Objective`` chunk when gradients are
+off), against the reference of the same work in one batch, measured in the same run on one
+torch thread, as a fit runs.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import best_of
+
+PLANES, SIZE = 4, 256
+
+
+def bench_probe(space: Path, repeats: int = 2, log=print) -> dict:
+    import torch
+
+    from model.networks import load_checkpoint
+    from model.slices import linear_to_srgb, plane_points, random_planes, render_slices
+    from model.vgg import GATYS_LAYERS, shared_vgg
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        model, _ = load_checkpoint(space)
+        field, vgg = model.field, shared_vgg(GATYS_LAYERS)
+        origins, axes = random_planes(PLANES, np.random.default_rng(12345))
+        codes = torch.from_numpy(np.random.default_rng(0).normal(0, 0.5, (PLANES, model.cfg.code_size))).float()
+        seeds = torch.arange(PLANES, dtype=torch.int64) + 7
+        with torch.no_grad():
+            images = render_slices(field, codes, seeds, origins, axes, SIZE)
+
+            def field_batched():  # the reference: every plane's points in one call
+                points = plane_points(origins, axes, SIZE, field.cfg.pixels_per_unit)
+                linear_to_srgb(field(points, codes, seeds))
+
+            timings = {
+                "render_per_plane_s": best_of(lambda: render_slices(field, codes, seeds, origins, axes, SIZE), repeats),
+                "render_batched_s": best_of(field_batched, repeats),
+                "vgg_per_image_s": best_of(lambda: [vgg(image[None]) for image in images], repeats),
+                "vgg_batched_s": best_of(lambda: vgg(images), repeats),
+            }
+    finally:
+        torch.set_num_threads(threads)
+    timings["probe_s"] = timings["render_per_plane_s"] + timings["vgg_per_image_s"]
+    timings["probe_batched_s"] = timings["render_batched_s"] + timings["vgg_batched_s"]
+    log(f"  fit probe ({PLANES} planes of {SIZE} px, 1 thread): {timings['probe_s']:.2f} s "
+        f"(field {timings['render_per_plane_s']:.2f} + VGG {timings['vgg_per_image_s']:.2f}); reference, "
+        f"one batch: {timings['probe_batched_s']:.2f} s (field {timings['render_batched_s']:.2f} + VGG "
+        f"{timings['vgg_batched_s']:.2f})")
+    return {f"fit_{k}": v for k, v in timings.items()}
