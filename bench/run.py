@@ -136,14 +136,14 @@ def measure(only: set[str], quick: bool) -> dict:
             "encode_model": str(common.SHIPPED_MODEL.relative_to(common.ROOT)),
         })
 
+    def run_fit():
+        results.update(fit_probe.bench_probe(common.SHIPPED_MODEL / "space.pt", log=log))
+
     section("kernels", run_kernels)
     section("http", run_http)
     section("viewport", run_viewport)
     section("volume", run_volume)
     section("bake", run_bake)
-    def run_fit():
-        results.update(fit_probe.bench_probe(common.SHIPPED_MODEL / "space.pt", log=log))
-
     section("encode", run_encode)
     section("fit", run_fit)
     return results

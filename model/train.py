@@ -366,8 +366,8 @@ class Objective:
         contrast = self.pair_contrast(synth, indices) if pairs else 0.0
         if torch.is_grad_enabled():
             feats = self.vgg(synth)
-        else:  # scoring (the probe), one image at a time: 4 x 256 px on one thread beside another
-            # fit 4.3 s -> 2.9 s (idle, the same: 1.48 s -> 1.54 s; bench/run.py --only fit)
+        else:  # scoring (the probe), one image at a time: 4 x 256 px on one thread, with two other
+            # torch processes running, 4.3 s -> 2.9 s (idle, the same: 1.48 s -> 1.54 s; bench/run.py --only fit)
             parts = [self.vgg(image[None]) for image in synth]
             feats = {name: torch.cat([part[name] for part in parts]) for name in parts[0]}
         losses = []
