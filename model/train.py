@@ -99,6 +99,7 @@ class TrainConfig:
     isotropic_transforms: bool = False
     decay_start: int | None = None
     decay_end: int | None = None
+    decay_by_time: bool = False
     oblique: float = 0.5
     no_nearest: bool = False
     smooth: bool = False
@@ -163,6 +164,8 @@ def parse_args(argv=None) -> TrainConfig:
     p.add_argument("--decay-start", type=int,
                    help="step at which the learning rates start to fall linearly, to 10%% at --decay-end")
     p.add_argument("--decay-end", type=int, help="step at which the decay ends (default: --steps)")
+    p.add_argument("--decay-by-time", action="store_true",
+                   help="with --minutes: the rates fall linearly to 10%% over the run's wall time")
     p.add_argument("--oblique", type=float, help="fraction of oblique slice planes")
     p.add_argument("--no-nearest", action="store_true", help="decoder gets interpolated noise only")
     p.add_argument("--smooth", action="store_true", help="smoothstep noise interpolation")
@@ -583,19 +586,25 @@ def resume(run: Run, path: Path) -> None:
     print(f"resumed {path} at step {run.step}")
 
 
-def learning_rate(step: int, base: float, warmup: int, decay: tuple[int, int] | None = None) -> float:
+def learning_rate(step: int, base: float, warmup: int, decay: tuple[int, int] | None = None,
+                  time_done: float | None = None) -> float:
     """Linear warm-up over ``warmup`` steps; then, with ``decay = (start, end)``, a linear
-    fall to 10% between those steps (the GPU space's loss went flat at a constant rate)."""
+    fall to 10% between those steps (the GPU space's loss went flat at a constant rate).
+    ``time_done``, the share of a timed run's wall time spent, makes the same fall over the
+    whole run instead: a fit does not know how many steps its minutes will hold."""
     rate = base * min(1.0, (step + 1) / max(1, warmup))
     if decay is not None and step > decay[0]:
         rate *= 1.0 - 0.9 * min(1.0, (step - decay[0]) / max(1, decay[1] - decay[0]))
+    if time_done is not None:
+        rate *= 1.0 - 0.9 * min(1.0, max(0.0, time_done))
     return rate
 
 
-def train_step(run: Run) -> dict[str, float]:
+def train_step(run: Run, time_done: float | None = None) -> dict[str, float]:
     """One optimiser step on a fresh random batch. Returns its synthesis loss, the output
-    spread ``std`` (a collapse to flat colour shows as ~0), the encoder's loss and the
-    gradient norm before clipping.
+    spread ``std`` (a collapse to flat colour shows as ~0), the encoder's loss, the
+    gradient norm before clipping and the decoder's learning rate (``time_done``: see
+    learning_rate; --decay-by-time).
 
     Draws from ``run.rng`` in this order (a seed's losses depend on it): crops and their
     exemplars (single mode too, which uses only the indices), tone curves (space mode with
@@ -626,7 +635,7 @@ def train_step(run: Run) -> dict[str, float]:
 
     decay = (cfg.decay_start, cfg.decay_end or cfg.steps) if cfg.decay_start is not None else None
     for group in run.optimizer.param_groups:
-        group["lr"] = learning_rate(run.step, group["base_lr"], cfg.warmup, decay)
+        group["lr"] = learning_rate(run.step, group["base_lr"], cfg.warmup, decay, time_done)
     run.optimizer.zero_grad(set_to_none=True)
     (loss + encoder_loss).backward()
     # Clip the synthesis gradients only: the encoder's regression loss is separate.
@@ -637,14 +646,15 @@ def train_step(run: Run) -> dict[str, float]:
     run.wall += time.monotonic() - t0
     run.history.append(loss.item())
     spread = float(synth.detach().std(dim=(2, 3)).mean())
-    return {"loss": loss.item(), "std": spread, "encoder": encoder_loss.item(), "grad": float(grad_norm)}
+    return {"loss": loss.item(), "std": spread, "encoder": encoder_loss.item(), "grad": float(grad_norm),
+            "lr": run.optimizer.param_groups[0]["lr"]}
 
 
 def log_line(run: Run, stats: dict[str, float]) -> str:
     """A step's log.jsonl line."""
     return json.dumps({"step": run.step, "loss": round(stats["loss"], 5), "std": round(stats["std"], 4),
                        "encoder": round(stats["encoder"], 5), "grad": round(stats["grad"], 4),
-                       "wall": round(run.wall, 1)}) + "\n"
+                       "lr": float(f"{stats['lr']:.4g}"), "wall": round(run.wall, 1)}) + "\n"
 
 
 class Probe:
@@ -713,14 +723,17 @@ class Budget:
     def left(self, step: int) -> bool:
         return step < self.total and time.monotonic() < self.deadline
 
+    def time_done(self) -> float:
+        """The share of a timed run's wall time spent (0 for a run bounded by steps)."""
+        return min(1.0, (time.monotonic() - self.started) / (self.deadline - self.started)) if self.timed else 0.0
+
     def advance(self, run: Run, stats: dict[str, float]) -> float:
         """Show a step on the bar; returns the fraction of the run done (by steps or by time)."""
         elapsed = time.monotonic() - self.started
         self.bar.set_postfix(step=run.step, loss=f"{np.mean(run.history[-20:]):.3f}", std=f"{stats['std']:.3f}",
                              refresh=False)
         self.bar.update(min(self.bar.total, elapsed) - self.bar.n if self.timed else 1)
-        by_time = elapsed / (self.deadline - self.started) if self.timed else 0.0
-        return min(1.0, max(run.step / self.total, by_time))
+        return min(1.0, max(run.step / self.total, self.time_done()))
 
     def close(self) -> None:
         self.bar.close()
@@ -773,7 +786,7 @@ def train(cfg: TrainConfig, progress=None) -> Path:
     run.model.train()
     try:
         while budget.left(run.step) and not stop.is_set():
-            stats = train_step(run)
+            stats = train_step(run, budget.time_done() if cfg.decay_by_time else None)
             fraction = budget.advance(run, stats)
             run.log.write(log_line(run, stats))
             if progress is not None:

@@ -37,7 +37,7 @@ def test_fit_writes_a_contract_sampler_and_its_code(tmp_path, skimage_textures, 
                              "z": np.asarray([code], np.float32), "seed": np.asarray(1, np.int64)})[0]
     assert rgb.shape == (100, 3) and np.isfinite(rgb).all()
     manifest = json.loads((tmp_path / "fit" / "manifest.json").read_text())
-    assert manifest["kind"] == "fitted" and manifest["code"] == code
+    assert manifest["kind"] == "fitted" and manifest["code"] == code and manifest["rate"] == "falling"
     # the slim checkpoint beside it is what model.evaluate compares with the space's code
     (fit,) = load_candidates([tmp_path / "fit" / "fit.pt"])
     assert fit.label == "ours-fit" and fit.fitted_to == "gravel" and fit.code.reshape(-1).tolist() == code
@@ -214,7 +214,9 @@ def test_a_striped_photo_is_fitted_on_its_stripes(tmp_path, vgg):
 
 def test_stripe_fits_take_the_large_patch_and_lattice_fits_the_small_one(tmp_path, monkeypatch):
     """A 2D lattice fit trains on LATTICE_PATCH (its grid needs the steps), a stripe fit on
-    PATCH, as a fit without structure does (the validation cardboard: 0.054 -> 0.0048)."""
+    PATCH, as a fit without structure does (the validation cardboard: 0.054 -> 0.0048).
+    By default (rate "auto") a stripe fit's rates fall over its time, a 2D lattice's stay;
+    "falling" and "constant" say so for any fit."""
     import model.fit as fit
 
     torch.manual_seed(0)
@@ -225,7 +227,7 @@ def test_stripe_fits_take_the_large_patch_and_lattice_fits_the_small_one(tmp_pat
         pass
 
     def train(cfg, progress=None):  # noqa: ANN001, ANN202 - records the run's settings, trains nothing
-        seen[Path(cfg.exemplar).stem] = (cfg.patch, cfg.lattice is not None)
+        seen[Path(cfg.exemplar).stem] = (cfg.patch, cfg.lattice is not None, cfg.decay_by_time)
         raise Stop
 
     monkeypatch.setattr(fit, "train", train)
@@ -234,7 +236,15 @@ def test_stripe_fits_take_the_large_patch_and_lattice_fits_the_small_one(tmp_pat
         with pytest.raises(Stop):
             fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=tmp_path / "space" / "space.pt",
                          lattice="auto", grain="auto")
-    assert seen == {"corrugated": (fit.PATCH, True), "bricks": (fit.LATTICE_PATCH, True)}
+    assert seen == {"corrugated": (fit.PATCH, True, True), "bricks": (fit.LATTICE_PATCH, True, False)}
+    for rate, falling in (("falling", True), ("constant", False)):
+        with pytest.raises(Stop):
+            fit_exemplar(tmp_path / "bricks.png", tmp_path / "bricks", init_checkpoint=tmp_path / "space" / "space.pt",
+                         lattice="auto", rate=rate)
+        assert seen["bricks"][2] is falling
+    with pytest.raises(ValueError, match="rate"):
+        fit_exemplar(tmp_path / "bricks.png", tmp_path / "bricks", init_checkpoint=tmp_path / "space" / "space.pt",
+                     rate="fast")
 
 
 def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, vgg):

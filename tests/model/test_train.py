@@ -201,6 +201,21 @@ def test_colour_normalised_run_warm_starts_codes_and_decays(tmp_path, brick, vgg
     assert learning_rate(50, 1.0, 10, (100, 200)) == 1.0
     assert learning_rate(150, 1.0, 10, (100, 200)) == pytest.approx(0.55)
     assert learning_rate(500, 1.0, 10, (100, 200)) == pytest.approx(0.1)
+    # --decay-by-time: the same fall over a timed run's wall time, whatever its step
+    assert learning_rate(500, 1.0, 10, time_done=0.0) == 1.0
+    assert learning_rate(500, 1.0, 10, time_done=0.5) == pytest.approx(0.55)
+    assert learning_rate(5, 1.0, 10, time_done=1.0) == pytest.approx(0.06)  # still warming up, and at the floor
+
+
+def test_a_timed_run_decaying_by_time_ends_near_its_floor(tmp_path, brick, vgg):
+    image = tmp_path / "brick.png"
+    Image.fromarray((brick * 255).astype(np.uint8)).save(image)
+    train_main(["--mode", "single", "--exemplar", str(image), "--out", str(tmp_path / "fit"), "--minutes", "0.04",
+                "--patch", "32", "--batch", "1", "--short-side", "64", "--layers", "relu1_1", "--warmup", "1",
+                "--lr", "1e-3", "--decay-by-time", "--quiet"])
+    rates = [json.loads(line)["lr"] for line in (tmp_path / "fit" / "log.jsonl").read_text().splitlines()]
+    assert len(rates) >= 3 and rates == sorted(rates, reverse=True)
+    assert rates[0] > 0.8e-3 and rates[-1] < 0.5e-3  # the last step ran in the run's second half
 
 
 def test_parse_args_gives_the_train_config_of_the_flags(capsys):
