@@ -39,6 +39,7 @@ FIT_TRANSFORM_LR = 5e-3
 # falling / constant (geometric mean): wood 0.89, grass 0.90, gravel 0.94, cardboard
 # (stripes) 0.80; but 2D lattice fits, ~250 steps, mixed: concrete 0.82, floor tiles 0.86,
 # bricks 1.15, grill 1.26. So by default (``rate="auto"``) a 2D lattice keeps its rates.
+RATES = ("auto", "falling", "constant")
 # Every this many steps the fit scores itself on fixed planes and keeps its best state, so
 # a fit never ends worse (by its own objective) than the code it started from.
 PROBE_EVERY = 25
@@ -371,8 +372,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``rate``: ``"falling"`` (the learning rates fall to 10% over ``minutes``), ``"constant"``
     or ``"auto"``: falling, except for a 2D lattice fit (stripes fall). The manifest says which.
     """
-    if rate not in ("auto", "falling", "constant"):
-        raise ValueError(f"rate must be auto, falling or constant, got {rate!r}")
+    if rate not in RATES:
+        raise ValueError(f"rate must be one of {', '.join(RATES)}, got {rate!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     init = Path(init_checkpoint)
@@ -390,8 +391,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
     if grain == "auto":
         grain = None if lattice else detect_grain(photo)
-    patch = patch or (LATTICE_PATCH if lattice and stripes is None else PATCH)
-    falling = rate == "falling" or (rate == "auto" and (lattice is None or stripes is not None))
+    grid = lattice is not None and stripes is None  # a 2D lattice, not stripes
+    patch = patch or (LATTICE_PATCH if grid else PATCH)
+    falling = rate == "falling" or (rate == "auto" and not grid)
     with tempfile.TemporaryDirectory() as run_dir:
         cfg = TrainConfig(
             mode="single", exemplar=str(image_path), out=run_dir, init=str(init),
@@ -458,7 +460,7 @@ def main(argv=None):
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu",
                    help="where the fit's steps run (auto: cuda when available)")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    p.add_argument("--rate", choices=["auto", "falling", "constant"], default="auto",
+    p.add_argument("--rate", choices=RATES, default="auto",
                    help="learning rates: falling to 10%% over --minutes, or constant; auto (default): "
                         "constant for a 2D lattice fit, else falling")
     args = p.parse_args(argv)

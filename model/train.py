@@ -594,10 +594,15 @@ def learning_rate(step: int, base: float, warmup: int, decay: tuple[int, int] | 
     whole run instead: a fit does not know how many steps its minutes will hold."""
     rate = base * min(1.0, (step + 1) / max(1, warmup))
     if decay is not None and step > decay[0]:
-        rate *= 1.0 - 0.9 * min(1.0, (step - decay[0]) / max(1, decay[1] - decay[0]))
+        rate *= linear_fall((step - decay[0]) / max(1, decay[1] - decay[0]))
     if time_done is not None:
-        rate *= 1.0 - 0.9 * min(1.0, max(0.0, time_done))
+        rate *= linear_fall(time_done)
     return rate
+
+
+def linear_fall(done: float) -> float:
+    """The factor of a linear decay ``done`` (0..1, clamped) of the way from 1 to 0.1."""
+    return 1.0 - 0.9 * min(1.0, max(0.0, done))
 
 
 def train_step(run: Run, time_done: float | None = None) -> dict[str, float]:
