@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageOps
 
-from worker.decode import SUFFIXES, read_image
+from worker.decode import SUFFIXES, read_image, resize_short_side
 
 DEFAULT_DATA_DIR = Path("data/textures")
 DEFAULT_SHORT_SIDE = 256
@@ -204,30 +204,19 @@ def to_rgb_uint8(image: Image.Image) -> np.ndarray:
     return np.asarray(image.convert("RGB"), dtype=np.uint8).copy()
 
 
-def resize_short_side(rgb: np.ndarray, short_side: int) -> np.ndarray:
-    """(H, W, 3) uint8 -> uint8 resized (Lanczos, in sRGB) so min(H, W) == short_side."""
-    height, width = rgb.shape[:2]
-    scale = short_side / min(height, width)
-    size = (max(short_side, round(width * scale)), max(short_side, round(height * scale)))
-    if size == (width, height):
-        return rgb
-    return np.asarray(Image.fromarray(rgb).resize(size, Image.Resampling.LANCZOS))
-
-
 def load_exemplar(path: str | Path, short_side: int | None = DEFAULT_SHORT_SIDE) -> np.ndarray:
     """Read a texture photo for fitting, training or evaluation, with the upload's reader
-    (``worker.decode.read_image``: any upload format; alpha over mid grey), quantised to
-    8 bits as training always saw it (PNG/JPEG: the same values as the earlier Pillow
-    reader, tests/model/test_data.py).
+    and resize (``worker.decode``: any upload format, alpha over mid grey; Lanczos to the
+    working resolution), quantised to 8 bits as training always saw it (PNG/JPEG: within
+    about 1/255 of the earlier Pillow reader and 8-bit resize, tests/model/test_data.py).
 
     Returns (H, W, 3) float32 sRGB-encoded RGB in [0, 1], resized so the shorter side is
     ``short_side`` pixels (``None`` keeps the original size).
     """
     srgb = read_image(Path(path).read_bytes(), max_pixels=MAX_EXEMPLAR_PIXELS)
-    rgb = (srgb * np.float32(255) + np.float32(0.5)).astype(np.uint8)
-    del srgb
     if short_side is not None:
-        rgb = resize_short_side(rgb, short_side)
+        srgb = resize_short_side(srgb, short_side)
+    rgb = (srgb * np.float32(255) + np.float32(0.5)).astype(np.uint8)
     return rgb.astype(np.float32) / 255.0
 
 

@@ -31,12 +31,11 @@ from skimage.transform import resize
 from worker import decode
 from worker.colour import linear_to_srgb, linear_to_srgb8, srgb_to_linear
 from worker.colour_match import calibrate_texture
-from worker.decode import DECODE_BAND_PIXELS, MIN_SIDE, PixelBudget, sniff_format  # noqa: F401 (sniff_format: API)
+# resize_short_side: the working-resolution resize lives beside the reader, which training shares
+from worker.decode import MIN_SIDE, PixelBudget, resize_short_side, sniff_format  # noqa: F401 (sniff_format: API)
 from worker.errors import InvalidParameter, LimitExceeded
 from worker.runtime import ModelRuntime
 
-RESIZE_DIRECT_PIXELS = 1 << 22  # larger images are box-reduced in bands before resizing
-MAX_WORK_PIXELS = 1 << 24       # resize_short_side refuses to produce more pixels than this
 OUTPUT_FORMATS = ("png", "webp", "jpeg", "exr", "tiff")
 _budget: PixelBudget | None = None
 
@@ -56,38 +55,6 @@ def read_image(data: bytes, *, max_pixels: int, min_side: int = MIN_SIDE) -> np.
     """``worker.decode.read_image`` under this process's decode budget. Returns (H, W, 3)
     float32 sRGB-encoded 0..1; raises InvalidImage, LimitExceeded or Busy."""
     return decode.read_image(data, max_pixels=max_pixels, min_side=min_side, budget=_budget)
-
-
-def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
-    """Resize (H, W, 3) float32 so min(H, W) == short_side (antialiased when shrinking)."""
-    h, w = image.shape[:2]
-    scale = short_side / min(h, w)
-    shape = (max(short_side, round(h * scale)), max(short_side, round(w * scale)))
-    if shape == (h, w):
-        return image
-    if shape[0] * shape[1] > MAX_WORK_PIXELS:
-        raise LimitExceeded(f"resizing {w}x{h} to a short side of {short_side} gives "
-                            f"{shape[0] * shape[1]} pixels, limit is {MAX_WORK_PIXELS}")
-    factor = min(h, w) // short_side
-    if h * w > RESIZE_DIRECT_PIXELS and factor >= 2:
-        # scikit-image filters the whole image in float64: box-reduce a large one first,
-        # in bands (float32, bounded memory), to a short side in [short_side, 2 * short_side)
-        image = _box_reduce(image, factor)
-    out = resize(image, shape + (3,), order=1, anti_aliasing=scale < 1, preserve_range=True)
-    return out.astype(np.float32, copy=False)
-
-
-def _box_reduce(image: np.ndarray, factor: int) -> np.ndarray:
-    """Mean of factor x factor blocks of (H, W, 3) float32, a band of rows at a time
-    (trailing rows / columns that fill no whole block are dropped)."""
-    h, w = image.shape[0] // factor, image.shape[1] // factor
-    out = np.empty((h, w, 3), dtype=np.float32)
-    rows = max(1, DECODE_BAND_PIXELS // (w * factor * factor))
-    for r0 in range(0, h, rows):
-        r1 = min(h, r0 + rows)
-        band = image[r0 * factor:r1 * factor, :w * factor]
-        out[r0:r1] = band.reshape(r1 - r0, factor, w, factor, 3).mean(axis=(1, 3), dtype=np.float32)
-    return out
 
 
 def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: int = 3) -> np.ndarray:

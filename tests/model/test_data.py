@@ -18,7 +18,6 @@ from model.data import (
     TextureDataset,
     fetch_wheel,
     load_exemplar,
-    resize_short_side,
     sample_batch,
     to_rgb_uint8,
 )
@@ -57,16 +56,15 @@ def test_rgba_keeps_colour_and_drops_alpha():
     assert rgb[0, 0].tolist() == [200, 0, 0]
 
 
-def test_resize_and_load_exemplar(tmp_path):
+def test_load_exemplar_resizes_to_the_short_side(tmp_path):
     rgb = np.random.default_rng(0).integers(0, 256, (300, 500, 3), dtype=np.uint8)
-    assert resize_short_side(rgb, 256).shape == (256, 427, 3)
-    assert resize_short_side(rgb, 300) is rgb
     path = tmp_path / "photo.png"
     Image.fromarray(rgb[..., 0]).save(path)  # greyscale on disk
     exemplar = load_exemplar(path, short_side=128)
     assert exemplar.shape == (128, 213, 3) and exemplar.dtype == np.float32
     assert 0.0 <= exemplar.min() and exemplar.max() <= 1.0
     assert np.array_equal(load_exemplar(path, None), np.repeat(rgb[..., :1], 3, axis=2) / np.float32(255))
+    assert load_exemplar(path, 300).shape == (300, 500, 3)
 
 
 REPO = Path(__file__).resolve().parents[2]
@@ -76,11 +74,15 @@ REPO_IMAGES = ["tests/data/bad/png_named.jpg", "tests/data/bad/grey16.png", "tes
 
 
 def pillow_load_exemplar(path: Path, short_side: int | None) -> np.ndarray:
-    """load_exemplar as it was before the shared reader: Pillow decode, then the same resize."""
+    """load_exemplar as the shipped space was trained through: Pillow decode, then
+    Pillow's 8-bit Lanczos resize."""
     with Image.open(path) as image:
         rgb = to_rgb_uint8(image)
-    if short_side is not None:
-        rgb = resize_short_side(rgb, short_side)
+    height, width = rgb.shape[:2]
+    if short_side is not None and min(height, width) != short_side:
+        scale = short_side / min(height, width)
+        size = (max(short_side, round(width * scale)), max(short_side, round(height * scale)))
+        rgb = np.asarray(Image.fromarray(rgb).resize(size, Image.Resampling.LANCZOS))
     return rgb.astype(np.float32) / 255.0
 
 
@@ -101,12 +103,16 @@ def photos(tmp_path: Path) -> list[Path]:
 
 @pytest.mark.parametrize("short_side", [None, DEFAULT_SHORT_SIDE])
 def test_shared_reader_keeps_training_inputs_of_png_and_jpeg(tmp_path, short_side):
-    """load_exemplar now decodes with the upload's reader (worker.decode, OpenImageIO); on
-    PNG and JPEG it gives what the Pillow reader gave, within 1/255 (measured: identical)."""
+    """load_exemplar decodes and resizes as an upload is (worker.decode: OpenImageIO, a float
+    Lanczos); on PNG and JPEG it gives what Pillow's reader and 8-bit resize gave: unresized
+    within 1/255 (measured: identical), resized within 2/255 (rounding between the passes;
+    measured at most 1.2/255, 0.3/255 on average, on the validation photos)."""
     for path in photos(tmp_path):
         new, old = load_exemplar(path, short_side), pillow_load_exemplar(path, short_side)
         assert new.shape == old.shape and new.dtype == old.dtype == np.float32, path
-        assert np.abs(new - old).max() <= 1 / 255 + 1e-6, (path.name, np.abs(new - old).max() * 255)
+        difference = np.abs(new - old)
+        assert difference.max() <= (1 if short_side is None else 2) / 255 + 1e-6, (path.name, difference.max() * 255)
+        assert difference.mean() <= 0.5 / 255, (path.name, difference.mean() * 255)
 
 
 def test_exemplars_in_any_upload_format_are_read(tmp_path):

@@ -184,7 +184,7 @@ def test_banded_decode_matches_a_whole_decode(monkeypatch):
 def test_large_images_are_box_reduced_before_resizing(monkeypatch):
     smooth = np.linspace(0, 1, 1031 * 2063 * 3, dtype=np.float32).reshape(1031, 2063, 3)
     direct = resize_short_side(smooth, 256)
-    monkeypatch.setattr(images, "RESIZE_DIRECT_PIXELS", 1000)
+    monkeypatch.setattr(decode, "RESIZE_DIRECT_PIXELS", 1000)
     reduced = resize_short_side(smooth, 256)
     assert reduced.shape == direct.shape == (256, 512, 3)
     assert np.abs(reduced - direct).max() < 0.01
