@@ -34,12 +34,13 @@ DEFAULT_MINUTES = 4.0  # inside the 5-minute budget on 2 cores, with export
 # stayed flat.
 FIT_LR = 1e-3
 FIT_TRANSFORM_LR = 5e-3
-# A fit's rates fall linearly to 10% over its minutes (``rate="falling"``): most 60-s fits
-# kept a state from step 25 or 50 and drifted after it. Seeds 0-3, tile style error,
-# falling / constant (geometric mean): wood 0.89, grass 0.90, gravel 0.94, cardboard
-# (stripes) 0.80; but 2D lattice fits, ~250 steps, mixed: concrete 0.82, floor tiles 0.86,
-# bricks 1.15, grill 1.26. So by default (``rate="auto"``) a 2D lattice keeps its rates.
-RATES = ("auto", "falling", "constant")
+# A fit's rates fall linearly to 10% over its minutes (``rate="falling"``, the default):
+# most 60-s fits kept a state from step 25 or 50 and drifted after it. Seeds 0-3, tile
+# style error, falling / constant (geometric mean): wood 0.89, grass 0.90, gravel 0.94,
+# cardboard (stripes) 0.80. 2D lattice fits on 64-px patches were mixed (bricks 1.15, grill
+# 1.26); on 128-px patches (``PATCH``) they fall too: seeds 0-1, floor tiles 0.09/0.10 ->
+# 0.031/0.045, grill 1.15/0.87 -> 0.60/0.49, bricks 0.10/0.12 -> 0.12/0.13.
+RATES = ("falling", "constant")
 # Every this many steps the fit scores itself on fixed planes and keeps its best state, so
 # a fit never ends worse (by its own objective) than the code it started from.
 PROBE_EVERY = 25
@@ -96,11 +97,14 @@ STRIPE_MIN_REPEATS = 6  # multiples within a third of the image, both signs: |a|
 # gravel 2.17 -> 1.75, granite 0.445 -> 0.318, wood 0.041 -> 0.034, concrete 0.009 ->
 # 0.007, cardboard 0.066 -> 0.063, grass 0.011 -> 0.015, with a quarter of the steps (~100
 # instead of ~410): the Gram statistics of the deeper layers need the larger patch. Lattice
-# fits keep 64 (floor tiles 0.325 -> 0.492, grill 2.53 -> 3.63 at 128: they need the steps);
-# stripe fits do not (the validation cardboard, seeds 0-3, 64 -> 128 px: 0.054 -> 0.0048,
-# 0.021 -> 0.0049, 0.017 -> 0.012, 0.052 -> 0.0032).
+# fits too, since they start on the photo's mean cell (``start_on_mean_cell``): on 64 px
+# the floor tiles' fits never beat their first 100 steps on the probe (it scores 2x the
+# patch), and the tiles scored 0.28/0.45 (seeds 0/1, constant rates); on 128 px with
+# falling rates 0.031/0.045; grill 0.99/1.50 -> 0.60/0.49, bricks 0.15/0.15 -> 0.12/0.13
+# (tile set 1, against the Lanczos photo, 2026-11-27). Stripe fits: the validation
+# cardboard, seeds 0-3, 64 -> 128 px: 0.054 -> 0.0048, 0.021 -> 0.0049, 0.017 -> 0.012,
+# 0.052 -> 0.0032.
 PATCH = 128
-LATTICE_PATCH = 64
 # A lattice fit trains one patch per step (and its lattice partner, model/train.py) instead
 # of two: it needs the steps. Measured before the partners, the brick wall on one thread,
 # 60 s, best probe score (lower is better): batch 2 425 steps 0.28 (courses only), 90 s
@@ -356,11 +360,11 @@ def detect_grain(image: np.ndarray) -> str | None:
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
                  patch: int | None = None, grain: str | None = None, loss: str = "gram", progress=None,
                  quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None,
-                 rate: str = "auto") -> dict:
+                 rate: str = "falling") -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
     'lattice'}.
 
-    ``patch``: side of the training patches; None: ``PATCH``, ``LATTICE_PATCH`` for a 2D lattice fit.
+    ``patch``: side of the training patches; None: ``PATCH``.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"`` (``detect_grain`` on the
     photo; the manifest and the result say what was used).
     ``lattice``: ``"auto"`` (``detect_lattice``, else ``detect_stripes``; a photo with a
@@ -369,8 +373,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``threads``: torch threads (process-wide; 0 leaves torch's setting as it is).
     ``device``: where the steps run, ``cpu`` | ``cuda`` | ``auto`` (cuda when available);
     the export and the files written are the same either way.
-    ``rate``: ``"falling"`` (the learning rates fall to 10% over ``minutes``), ``"constant"``
-    or ``"auto"``: falling, except for a 2D lattice fit (stripes fall). The manifest says which.
+    ``rate``: ``"falling"`` (the learning rates fall to 10% over ``minutes``) or ``"constant"``;
+    the manifest says which.
     """
     if rate not in RATES:
         raise ValueError(f"rate must be one of {', '.join(RATES)}, got {rate!r}")
@@ -384,16 +388,13 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     photo = load_exemplar(image_path, space_cfg.exemplar_short_side)
     found = detect_lattice(photo) if lattice == "auto" else None
     found = fold_lattice(photo, found) if found else None
-    stripes = None
     if lattice == "auto" and found is None:  # stripes: a lattice whose second vector carries no repeat
-        found = stripes = detect_stripes(photo)
+        found = detect_stripes(photo)
     # world units: one exemplar pixel is 1 / pixels_per_unit; image rows run along +y
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
     if grain == "auto":
         grain = None if lattice else detect_grain(photo)
-    grid = lattice is not None and stripes is None  # a 2D lattice, not stripes
-    patch = patch or (LATTICE_PATCH if grid else PATCH)
-    falling = rate == "falling" or (rate == "auto" and not grid)
+    patch = patch or PATCH
     with tempfile.TemporaryDirectory() as run_dir:
         cfg = TrainConfig(
             mode="single", exemplar=str(image_path), out=run_dir, init=str(init),
@@ -403,7 +404,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             # a space trained for colour tables fits the same way: structure under the photo's colours
             colour_normalise=space_cfg.colour_blind_encoder, isotropic_transforms=space_cfg.isotropic_transforms,
             minutes=float(minutes), patch=patch, batch=1 if lattice else 2, lr=FIT_LR,
-            transform_lr=FIT_TRANSFORM_LR, warmup=20, decay_by_time=falling,
+            transform_lr=FIT_TRANSFORM_LR, warmup=20, decay_by_time=rate == "falling",
             seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
             grain=grain or None, lattice=lattice, lattice_cell=bool(lattice), threads=threads or 0)
         ckpt_path = train(cfg, progress=progress)
@@ -432,7 +433,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "output_colour": "linear",
         "grain": ckpt["config"].get("grain"),
         "lattice": list(lattice) if lattice else None,
-        "rate": "falling" if falling else "constant",
+        "rate": rate,
     }
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return {"code": code, "sampler": str(out_dir / "sampler.onnx"), "version": manifest["version"],
@@ -447,7 +448,7 @@ def main(argv=None):
     p.add_argument("--init", default=str(DEFAULT_INIT), help="space checkpoint to start from")
     p.add_argument("--minutes", type=float, default=DEFAULT_MINUTES)
     p.add_argument("--patch", type=int, default=None,
-                   help=f"training patch side in px (default {PATCH}; {LATTICE_PATCH} for a 2D lattice fit)")
+                   help=f"training patch side in px (default {PATCH})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--grain", choices=["x", "y", "auto", "none"], default="auto",
                    help="anisotropic exemplar: its grain runs along image x or y; auto (default): detected from "
@@ -460,9 +461,8 @@ def main(argv=None):
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu",
                    help="where the fit's steps run (auto: cuda when available)")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
-    p.add_argument("--rate", choices=RATES, default="auto",
-                   help="learning rates: falling to 10%% over --minutes, or constant; auto (default): "
-                        "constant for a 2D lattice fit, else falling")
+    p.add_argument("--rate", choices=RATES, default="falling",
+                   help="learning rates: falling to 10%% over --minutes (default), or constant")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,

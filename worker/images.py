@@ -33,7 +33,7 @@ from worker.colour import linear_to_srgb, linear_to_srgb8, srgb_to_linear
 from worker.colour_match import calibrate_texture
 # resize_short_side: the working-resolution resize lives beside the reader, which training shares
 from worker.decode import MIN_SIDE, PixelBudget, resize_short_side, sniff_format  # noqa: F401 (sniff_format: API)
-from worker.errors import InvalidParameter, LimitExceeded
+from worker.errors import InvalidParameter
 from worker.runtime import ModelRuntime
 
 OUTPUT_FORMATS = ("png", "webp", "jpeg", "exr", "tiff")
