@@ -87,8 +87,11 @@ def encode_image(runtime: ModelRuntime, image: np.ndarray, *, grid: int = 3) -> 
 def encode_texture(runtime: ModelRuntime, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """What a texture stores of an sRGB photo: its code (8,) float32 and its colour table
     for the model's sampler (worker/colour_match.py; empty if the sampler has no colour stage)."""
-    code = encode_image(runtime, image)
-    return code, calibrate_texture(runtime.sampler, code, resize_short_side(image, runtime.short_side))
+    working = resize_short_side(image, runtime.short_side)
+    # The crops are cut at max(short_side, input size): where the crop fits (every model so
+    # far), that is the working image itself, so the photo is resized once, not twice.
+    code = encode_image(runtime, working if runtime.short_side >= runtime.input_size else image)
+    return code, calibrate_texture(runtime.sampler, code, working)
 
 
 def write_image(rgb: np.ndarray, fmt: str, *, colour: str = "linear", quality: int = 90) -> bytes:
