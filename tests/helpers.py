@@ -5,9 +5,12 @@ import subprocess
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+import numpy as np
 import pytest
+from PIL import Image
 
 from service import spawn
+from worker.decode import working_shape
 
 
 def wait_ready(base_url: str, procs: Iterable[subprocess.Popen], timeout: float, *,
@@ -17,6 +20,15 @@ def wait_ready(base_url: str, procs: Iterable[subprocess.Popen], timeout: float,
         spawn.wait_ready(base_url, procs, timeout, output=output, name=name, path=path)
     except spawn.NotReady as exc:
         pytest.fail(str(exc))
+
+
+def pillow_lanczos(rgb8: np.ndarray, short_side: int) -> np.ndarray:
+    """Pillow's 8-bit Lanczos resize to the working resolution, the resize the shipped space
+    was trained through (the oracle ``worker.decode.resize_short_side`` is held to)."""
+    rows, cols = working_shape(*rgb8.shape[:2], short_side)
+    if (rows, cols) != rgb8.shape[:2]:
+        rgb8 = np.asarray(Image.fromarray(rgb8).resize((cols, rows), Image.Resampling.LANCZOS))
+    return rgb8.astype(np.float32) / 255
 
 
 def export_mask_noise_sampler(path) -> None:

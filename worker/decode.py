@@ -209,6 +209,13 @@ def _to_srgb_rgb(px: np.ndarray, is_float: bool, alpha_channel: int) -> np.ndarr
     return np.clip(rgb, 0.0, 1.0).astype(np.float32, copy=False)
 
 
+def working_shape(height: int, width: int, short_side: int) -> tuple[int, int]:
+    """(rows, cols) of an image of that size resized so its shorter side is ``short_side``
+    (the longer side rounded, never below the shorter)."""
+    scale = short_side / min(height, width)
+    return max(short_side, round(height * scale)), max(short_side, round(width * scale))
+
+
 def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
     """Resize (H, W, 3) float32 sRGB 0..1 so min(H, W) == short_side: the model's working
     resolution, for training, fitting, the upload's encoder crops and colour table, and
@@ -224,8 +231,7 @@ def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
     first box-reduced in bands (bounded memory) to a short side in [short_side,
     2 * short_side)."""
     h, w = image.shape[:2]
-    scale = short_side / min(h, w)
-    shape = (max(short_side, round(h * scale)), max(short_side, round(w * scale)))
+    shape = working_shape(h, w, short_side)
     if shape == (h, w):
         return image
     if shape[0] * shape[1] > MAX_WORK_PIXELS:

@@ -6,8 +6,8 @@
 
 Everything goes through the product path, never through torch models: the photo is
 decoded by ``worker.images.read_image`` (sRGB 0..1), its texture code comes from
-``encoder.onnx`` (``encode_image``) followed by the texture's colour table when the
-worker has one (``texture_code``, the only place that knows), and every pixel comes from
+``encoder.onnx`` with its colour table, as an upload gets them (``encode_texture``, via
+``texture_code``, the only place that knows), and every pixel comes from
 ``sampler.onnx`` through ``worker`` (ONNX Runtime). Torch only runs the VGG16 metric.
 
 Per photo and model, at native zoom (zoom 6: one tile pixel = one exemplar pixel at the
@@ -55,7 +55,7 @@ from model.slices import fixed_planes
 from model.vgg import GATYS_LAYERS, shared_vgg
 from worker.colour import linear_to_srgb
 from worker.colour_match import calibrate_texture, texture_vector
-from worker.images import encode_image, read_image, resize_short_side
+from worker.images import encode_texture, read_image, resize_short_side
 from worker.runtime import ModelRuntime, SamplerSession
 from worker.tiles import NATIVE_ZOOM, render_tile
 
@@ -73,8 +73,8 @@ def texture_code(runtime: ModelRuntime, image: np.ndarray) -> np.ndarray:
     """What the product stores for a photo: z (8,) plus its colour table when there is one
     (a ``FittedRuntime`` brings its fitted code instead of the encoder's)."""
     code = getattr(runtime, "fitted_code", None)
-    if code is None:
-        code = encode_image(runtime, image)
+    if code is None:  # an upload's own path (one resize for crops and colour table)
+        return texture_vector(*encode_texture(runtime, image))
     working = resize_short_side(image, runtime.short_side)
     return texture_vector(code, calibrate_texture(runtime.sampler, code, working))
 

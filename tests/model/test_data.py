@@ -21,6 +21,7 @@ from model.data import (
     sample_batch,
     to_rgb_uint8,
 )
+from tests.helpers import pillow_lanczos
 
 
 def test_catalogue_split_holds_out_one_photo_per_family():
@@ -78,12 +79,7 @@ def pillow_load_exemplar(path: Path, short_side: int | None) -> np.ndarray:
     Pillow's 8-bit Lanczos resize."""
     with Image.open(path) as image:
         rgb = to_rgb_uint8(image)
-    height, width = rgb.shape[:2]
-    if short_side is not None and min(height, width) != short_side:
-        scale = short_side / min(height, width)
-        size = (max(short_side, round(width * scale)), max(short_side, round(height * scale)))
-        rgb = np.asarray(Image.fromarray(rgb).resize(size, Image.Resampling.LANCZOS))
-    return rgb.astype(np.float32) / 255.0
+    return rgb.astype(np.float32) / 255.0 if short_side is None else pillow_lanczos(rgb, short_side)
 
 
 def photos(tmp_path: Path) -> list[Path]:

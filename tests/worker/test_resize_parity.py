@@ -13,6 +13,7 @@ import skimage.data
 from PIL import Image
 
 from model.data import DEFAULT_SHORT_SIDE, load_exemplar
+from tests.helpers import pillow_lanczos
 from worker.images import read_image, resize_short_side
 
 SHAPES = [(300, 500), (512, 512), (1000, 257)]  # (H, W): landscape, square, tall and odd
@@ -24,14 +25,6 @@ def texture(name: str, shape: tuple[int, int]) -> np.ndarray:
     grey = getattr(skimage.data, name)()
     rgb = np.stack([grey, (grey * 0.85).astype(np.uint8), (grey * 0.6).astype(np.uint8)], axis=-1)
     return np.asarray(Image.fromarray(rgb).resize(shape[::-1], Image.Resampling.BICUBIC))
-
-
-def pillow_lanczos(rgb8: np.ndarray, short_side: int) -> np.ndarray:
-    """The 8-bit resize the shipped space was trained through."""
-    height, width = rgb8.shape[:2]
-    scale = short_side / min(height, width)
-    size = (max(short_side, round(width * scale)), max(short_side, round(height * scale)))
-    return np.asarray(Image.fromarray(rgb8).resize(size, Image.Resampling.LANCZOS)).astype(np.float32) / 255
 
 
 @pytest.mark.parametrize("name", ["brick", "gravel"])
