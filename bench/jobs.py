@@ -93,7 +93,8 @@ def bench_mesh(target_faces: int = 100_000) -> tuple[bytes, int]:
 
 def bench_bake(model_dir: Path, resolution: int = 2048, log=print) -> dict:
     """bake_mesh (GLB) of the bench mesh at resolution^2 with xatlas UVs, twice with one
-    atlas cache (the second bake loads the atlas); stage timings of the first.
+    atlas cache (the second bake loads the atlas); stage timings of the first. Then once
+    with triplanar projection, against the repeated (solid) bake.
 
     The reference is the sampler itself on as many points as the bake has texels (surface
     points of the mesh, scaled as the bake scales them), timed in this run between the two bakes
@@ -114,11 +115,11 @@ def bench_bake(model_dir: Path, resolution: int = 2048, log=print) -> dict:
     runtime.sample(np.zeros((4096, 3)), code, 0)
     mesh, faces = bench_mesh()
     with tempfile.TemporaryDirectory(prefix="texspace-bench-bake-") as tmp:
-        def bake(name):
+        def bake(name, projection="solid"):
             t, cpu = time.perf_counter(), time.process_time()   # process time: xatlas's child excluded
             result = bake_mesh(runtime, code, 5, mesh_bytes=mesh, filename="bench.obj", resolution=resolution,
                                fmt="glb", out_path=Path(tmp) / name, limits=BakeLimits(atlas_timeout=600),
-                               atlas_cache_dir=Path(tmp) / "atlas-cache")
+                               atlas_cache_dir=Path(tmp) / "atlas-cache", projection=projection)
             cpu_seconds[name] = time.process_time() - cpu
             return result, time.perf_counter() - t
 
@@ -132,6 +133,8 @@ def bench_bake(model_dir: Path, resolution: int = 2048, log=print) -> dict:
         before, cpu_before = _sampler_seconds(runtime, code, points)
         again, again_seconds = bake("again.glb")
         after, cpu_after = _sampler_seconds(runtime, code, points)
+        triplanar, triplanar_seconds = bake("triplanar.glb", "triplanar")
+        cpu_seconds.pop("triplanar.glb")
         glb = trimesh.load(result.path, force="mesh", process=False)
         quality = atlas_quality(np.asarray(glb.vertices, np.float64), np.asarray(glb.faces, np.int64),
                                 np.asarray(glb.visual.uv, np.float64))
@@ -155,7 +158,11 @@ def bench_bake(model_dir: Path, resolution: int = 2048, log=print) -> dict:
         f"p5/p95 {quality['area_ratio_p5_p95'][0]:.2f}/{quality['area_ratio_p5_p95'][1]:.2f}; repeated bake "
         f"{again_seconds:.2f} s = {repeat_excl / sampler_s:.2f} x sampler excl. atlas, "
         f"atlas {again.timings['atlas']:.3f} s (cached)")
-    return {"bake_2048_s": seconds, "bake_2048_xatlas_s": result.timings["atlas"],
+    triplanar_excl = triplanar_seconds - triplanar.timings["atlas"]
+    log(f"  triplanar bake (a lattice fit's default; atlas cached): {triplanar_excl:.2f} s excl. atlas = "
+        f"{triplanar_excl / repeat_excl:.2f} x the repeated solid bake's {repeat_excl:.2f} s")
+    return {"bake_2048_triplanar_excl_xatlas_s": triplanar_excl,
+            "bake_2048_triplanar_vs_solid": triplanar_excl / repeat_excl,"bake_2048_s": seconds, "bake_2048_xatlas_s": result.timings["atlas"],
             "bake_2048_excl_xatlas_s": excl, "bake_2048_excl_xatlas_first_repeat_s": [first_excl, repeat_excl],
             "bake_2048_texels": texels,
             "bake_2048_faces": faces, "bake_2048_stages_s": stages, "bake_2048_uv_source": result.uv_source,

@@ -260,6 +260,9 @@ def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
             t = r["bake_2048_repeat_atlas_s"]
             ratio("bake_repeat_atlas_s", t, "< 1 s", t < 1.0, "repeated bake: atlas (cached)",
                   f"{t:.3f} s", f"bake {r['bake_2048_repeat_s']:.2f} s")
+        if "bake_2048_triplanar_vs_solid" in r:
+            rows.append(("triplanar bake excl. xatlas", f"{r['bake_2048_triplanar_excl_xatlas_s']:.2f} s",
+                         f"{r['bake_2048_triplanar_vs_solid']:.2f} x the solid bake", "-"))
     return ratios, rows
 
 

@@ -148,6 +148,7 @@ class TextureSource:
         self.z, self.code = np.asarray(texture.code, np.float32), texture.sampling_code()
         self.sampler, self.ppu = services.sampler_for(texture), services.pixels_per_unit(texture)
         self.model_version = texture.model_version
+        self.structure = texture.structure if texture.sampler_key else None  # what its sampler was fitted on
         self.tileable_sampler = lambda: services.tileable_sampler_for(texture)
 
     def _encode(self, settings: Settings, path: Path) -> None:
@@ -163,6 +164,7 @@ class TextureSource:
         self.z, colour = encode_texture(runtime, image)
         self.code, self.sampler, self.ppu = texture_vector(self.z, colour), runtime, runtime.pixels_per_unit
         self.model_version = runtime.version
+        self.structure = None
         self.tileable_sampler = runtime.tileable_sampler
 
 
@@ -303,6 +305,7 @@ def cmd_bake(args: argparse.Namespace, settings: Settings) -> None:
     from worker.bake import bake_mesh
 
     from .limits import bake_limits, check_mesh
+    from .schemas import bake_projection
 
     mesh = Path(args.mesh)
     if not mesh.is_file():
@@ -317,7 +320,8 @@ def cmd_bake(args: argparse.Namespace, settings: Settings) -> None:
     with bar:
         result = bake_mesh(source.sampler, source.code, args.seed, mesh_bytes=data, filename=mesh.name,
                            resolution=args.resolution, scale=args.scale, fmt=fmt, out_path=out,
-                           pixels_per_unit=source.ppu, limits=bake_limits(settings), progress=report)
+                           pixels_per_unit=source.ppu, limits=bake_limits(settings), progress=report,
+                           projection=bake_projection(args.projection, source.structure))
     print(result.path)
 
 
@@ -453,6 +457,9 @@ def build_parser() -> argparse.ArgumentParser:
                         f"({fields['max_bake_resolution'].default} unless set)")
     p.add_argument("--scale", type=ranged(float, 0, SCALE_MAX, above=True),
                    help="world units per mesh unit (default: the mesh spans 512 exemplar pixels)")
+    p.add_argument("--projection", choices=("auto", "solid", "triplanar"), default="auto",
+                   help="solid: the solid texture at each surface point; triplanar: its xy plane projected along "
+                        "x, y and z; auto (default): triplanar for a texture fitted on a repeat lattice")
 
     p = proc("tileable", cmd_tileable, "render a seamlessly tiling square image of an image file or stored "
                                        "texture id (one pixel per exemplar pixel)")

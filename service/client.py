@@ -151,7 +151,8 @@ class Client:
     def bake(self, texture_id: str, mesh: str | os.PathLike | bytes, *, filename: str | None = None,
              idempotency_key: str | None = None, **params: Any) -> Job:
         """Submit a bake of a mesh file (OBJ, PLY, STL, GLB; bytes need ``filename``):
-        ``resolution``, ``seed``, ``scale``, ``format`` (glb or obj)."""
+        ``resolution``, ``seed``, ``scale``, ``format`` (glb or obj), ``projection`` (auto,
+        solid or triplanar), and the other form fields of openapi.yaml."""
         if isinstance(mesh, bytes):
             data, filename = mesh, filename or "mesh.obj"
         else:

@@ -25,7 +25,7 @@ from . import keys
 from .container import Services
 from .db import session_scope
 from .limits import bake_limits
-from .schemas import BakeParams, FitParams, RegionIn, VolumeIn
+from .schemas import BakeParams, FitParams, RegionIn, VolumeIn, bake_projection
 from .tables import Job, Texture, utcnow
 
 Progress = Callable[[float], None]
@@ -76,6 +76,7 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
                        atlas_cache_dir=services.settings.resolved_atlas_cache_dir,
                        atlas_cache_bytes=services.settings.atlas_cache_bytes,
                        maps=tuple(p.maps), gpu_format=p.gpu_format, normal_strength=p.normal_strength,
+                       projection=bake_projection(p.projection, texture.structure if texture.sampler_key else None),
                        progress=progress, should_cancel=should_cancel)
     # a GLB with a height map or a GPU texture comes back as a zip
     return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip")

@@ -8,6 +8,7 @@ from pydantic import BaseModel, Field, field_validator, model_validator
 
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS
 from worker.bake import FORMATS as BAKE_FORMATS
+from worker.bake import PROJECTIONS
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.regions import FORMATS as REGION_FORMATS
 from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
@@ -161,6 +162,19 @@ class FitParams(FitIn):
     in_place: bool = False
 
 
+# auto: triplanar for a texture fitted on a 2D repeat lattice (its pattern lies in xy only;
+# worker/bake.py, Projection), the solid texture itself for every other
+BAKE_PROJECTIONS = ("auto", *PROJECTIONS)
+
+
+def bake_projection(requested: str, structure: dict | None) -> str:
+    """The projection a bake uses: ``requested``, or for "auto" what suits the texture's
+    ``structure`` (the served sampler's, as ``TextureOut.structure`` shows it)."""
+    if requested != "auto":
+        return requested
+    return "triplanar" if structure and structure.get("lattice") else "solid"
+
+
 class BakeParams(BaseModel):
     """A bake job's stored parameters (the multipart form's fields, validated by the route)."""
     model_config = {"extra": "forbid"}
@@ -172,6 +186,7 @@ class BakeParams(BaseModel):
     maps: list[Literal[MAP_NAMES]] = []
     gpu_format: Literal[GPU_FORMATS] | None = None
     normal_strength: float = DEFAULT_NORMAL_STRENGTH
+    projection: Literal[BAKE_PROJECTIONS] = "auto"
 
 
 RASTER_LIMIT = COORD_LIMIT * MAX_TILE_SIZE  # the raster window worker/tiles.py renders exactly

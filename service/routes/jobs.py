@@ -22,7 +22,7 @@ from ..deps import JobId, PageParams, SafeText, ServicesDep, TextureId, apply_cu
 from ..errors import Problem, not_found, problem_for, problem_responses
 from ..job_kinds import torch_available
 from ..limits import check_mesh, check_queue_room
-from ..schemas import BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
+from ..schemas import BAKE_PROJECTIONS, BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
 from ..tables import JOB_STATES, TERMINAL_STATES, Job, new_id
 from ..uploads import read_limited, safe_filename, sha256
 from .textures import NOSNIFF, load_texture
@@ -77,6 +77,10 @@ def submit_bake(
                     "becomes a zip of model.glb and the textures)")] = None,
     normal_strength: Annotated[float, Form(gt=0, le=100, description="normal map: height units per "
                                                                      "pixel step")] = DEFAULT_NORMAL_STRENGTH,
+    projection: Annotated[Literal[BAKE_PROJECTIONS], Form(
+        description="solid: the solid texture at each surface point; triplanar: the texture's xy plane "
+                    "projected along x, y and z, blended by the surface normal; auto: triplanar for a "
+                    "texture fitted on a repeat lattice (structure.lattice), else solid")] = "auto",
 ) -> JobOut:
     """UV-unwrap a mesh and bake the solid texture into its atlas (a job)."""
     load_texture(services, texture_id)
@@ -85,7 +89,8 @@ def submit_bake(
     data = read_limited(mesh, services.settings.max_mesh_bytes, "the mesh")
     filename = safe_filename(mesh.filename, "mesh.obj")
     params = BakeParams(resolution=resolution, seed=seed, scale=scale, format=format, filename=filename,
-                        maps=sorted(set(maps)), gpu_format=gpu_format, normal_strength=normal_strength).model_dump()
+                        maps=sorted(set(maps)), gpu_format=gpu_format, normal_strength=normal_strength,
+                        projection=projection).model_dump()
     fingerprint = jobs.request_hash("bake", texture_id, params, sha256(data).encode())
     if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:
         return accepted(response, jobs.same_request(existing, fingerprint), False)

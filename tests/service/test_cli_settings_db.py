@@ -31,7 +31,12 @@ def test_cli_encode_tile_volume_bake(cli_env: Path, capsys) -> None:
     assert np.load(cli_env / "v.npy").shape == (8, 8, 8, 3)
     main(["bake", str(MESHES / "cube.obj"), "--texture", "brick.png", "--resolution", "64", "-o", "c.glb"])
     scene = trimesh.load(cli_env / "c.glb")
-    assert next(iter(scene.geometry.values())).visual.material.baseColorTexture.size == (64, 64)
+    solid = next(iter(scene.geometry.values())).visual.material.baseColorTexture
+    assert solid.size == (64, 64)
+    main(["bake", str(MESHES / "cube.obj"), "--texture", "brick.png", "--resolution", "64", "-o", "tri.glb",
+          "--projection", "triplanar"])
+    triplanar = next(iter(trimesh.load(cli_env / "tri.glb").geometry.values())).visual.material.baseColorTexture
+    assert triplanar.size == (64, 64) and not np.array_equal(np.asarray(triplanar), np.asarray(solid))
 
 
 def test_cli_tile_of_stored_texture_matches_api(cli_env: Path, capsys) -> None:

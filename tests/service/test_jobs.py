@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import io
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from service import jobs
 from service.context import build_services
 from service.main import create_app
 from service.runner import Lease, run_job_attempt
+from service.schemas import bake_projection
 from service.tables import Job
 from worker.errors import InvalidParameter
 
@@ -97,8 +99,6 @@ def test_volume_vdb_and_exr_jobs(client, texture) -> None:
 
 
 def test_bake_with_maps_and_gpu_texture(client, texture) -> None:
-    import zipfile
-
     from PIL import Image
 
     mesh = (MESHES / "cube.obj").read_bytes()
@@ -121,6 +121,39 @@ def test_bake_with_maps_and_gpu_texture(client, texture) -> None:
     assert done["state"] == "succeeded" and done["result"]["media_type"] == "model/gltf-binary"
     bad = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)}, data={"maps": "gloss"})
     assert bad.status_code == 422
+
+
+def baked_atlas(client: TestClient, texture: dict, **form: str) -> tuple[dict, np.ndarray]:
+    from PIL import Image
+
+    res = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", (MESHES / "cube.obj").read_bytes())},
+                      data={"resolution": "64", "format": "obj", **form})
+    assert res.status_code == 202, res.text
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded", job
+    with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
+        return job, np.asarray(Image.open(io.BytesIO(z.read("texture.png"))))
+
+
+def test_bake_projection(client, texture) -> None:
+    auto_job, auto = baked_atlas(client, texture)
+    assert auto_job["params"]["projection"] == "auto"
+    _, solid = baked_atlas(client, texture, projection="solid")
+    triplanar_job, triplanar = baked_atlas(client, texture, projection="triplanar")
+    assert triplanar_job["params"]["projection"] == "triplanar"
+    # an encoder texture has no repeat lattice: auto is the solid texture itself
+    assert np.array_equal(auto, solid) and not np.array_equal(triplanar, solid)
+    bad = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", b"v 0 0 0\n")},
+                      data={"projection": "cubic"})
+    assert bad.status_code == 422 and "projection" in bad.text
+
+
+def test_auto_projection_is_triplanar_for_lattice_fits_only() -> None:
+    lattice = {"grain": None, "lattice": [0.1, 0.0, 0.05, 0.1]}
+    assert bake_projection("auto", lattice) == "triplanar"
+    assert bake_projection("auto", {"grain": "y", "lattice": None}) == "solid"  # wood: one log, a true solid
+    assert bake_projection("auto", None) == "solid"
+    assert bake_projection("solid", lattice) == "solid" and bake_projection("triplanar", None) == "triplanar"
 
 
 def test_bake_bad_mesh_is_refused_at_submission(client, texture) -> None:
@@ -293,8 +326,6 @@ def test_region_png_job(client, texture) -> None:
 
 
 def test_region_gpu_textures_and_maps(client, texture) -> None:
-    import zipfile
-
     from PIL import Image
 
     from tests.worker.gpu_readers import read_ktx2

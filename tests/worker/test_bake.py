@@ -17,9 +17,10 @@ from scipy import ndimage
 from skimage.draw import polygon
 
 from worker import atlas
-from worker.bake import BakeLimits, bake_mesh, bake_texture, load_mesh, read_mesh, read_plain_obj
+from worker.bake import (BakeLimits, bake_mesh, bake_texture, load_mesh, projected_points, read_mesh, read_plain_obj,
+                         sample_triplanar, triplanar_weights)
 from worker.colour import linear_to_srgb8
-from worker.errors import AtlasFailed, Canceled, InvalidMesh, LimitExceeded
+from worker.errors import AtlasFailed, Canceled, InvalidMesh, InvalidParameter, LimitExceeded
 from worker.raster import uv_to_texel
 
 RES = 128
@@ -415,3 +416,103 @@ def test_chunked_sampling_gives_the_same_atlas(waves, meshes):
     for other in outputs[1:]:
         assert all(np.array_equal(a, b) for a, b in zip(outputs[0], other))
     assert np.array_equal(srgb[covered], linear_to_srgb8(linear[covered]))
+
+
+class XStripes:
+    """A texture whose pattern lies in the xy plane along x only, as a lattice fit's rows
+    (of bricks seen from the side) do: colour = stripes of x; y and z are ignored."""
+
+    pixels_per_unit = 256.0
+
+    def sample(self, points, code, seed):
+        value = (0.5 + 0.5 * np.sin(points[:, 0] * 2.0)).astype(np.float32)
+        return np.repeat(value[:, None], 3, axis=1)
+
+
+def quad_facing(axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """Two triangles of a unit square in the plane normal to ``axis`` (at 0.5), UVs over [0, 1]^2."""
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
+    u, v = [a for a in range(3) if a != axis]
+    xyz = np.full((4, 3), 0.5)
+    xyz[:, u], xyz[:, v] = uv[:, 0], uv[:, 1]
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    return uv[faces], xyz[faces]
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_triplanar_shows_the_xy_pattern_on_faces_the_solid_leaves_plain(axis):
+    # Facing x, a surface of the solid sits at one x: the stripes vanish (a brick wall's side
+    # as one colour). Triplanar reads the xy plane at (z, y) or (x, z), where they show.
+    tri_uv, tri_xyz = quad_facing(axis)
+    bake = dict(resolution=64, padding=2, scale=10.0)
+    solid, covered, _ = bake_texture(XStripes(), None, 0, tri_uv, tri_xyz, **bake)
+    triplanar, _, _ = bake_texture(XStripes(), None, 0, tri_uv, tri_xyz, projection="triplanar", **bake)
+    if axis == 0:
+        assert np.ptp(solid[covered]) == 0
+    else:  # facing y the solid still varies with x: triplanar reads the same x
+        np.testing.assert_array_equal(triplanar[covered], solid[covered])
+    assert np.ptp(triplanar[covered]) > 200
+
+
+def test_triplanar_on_a_face_facing_z_is_the_solid_and_blends_at_45_degrees():
+    tri_uv, tri_xyz = quad_facing(2)
+    bake = dict(resolution=64, padding=2, scale=10.0)
+    solid, covered, _ = bake_texture(XStripes(), None, 0, tri_uv, tri_xyz, **bake)
+    triplanar, _, _ = bake_texture(XStripes(), None, 0, tri_uv, tri_xyz, projection="triplanar", **bake)
+    np.testing.assert_array_equal(triplanar[covered], solid[covered])
+    points = np.random.default_rng(0).uniform(-3, 3, (100, 3))
+    normals = np.tile([np.sqrt(0.5), 0.0, np.sqrt(0.5)], (100, 1))  # between x and z: half each
+    stripes = XStripes()
+    expected = 0.5 * stripes.sample(projected_points(points, 0), None, 0) + 0.5 * stripes.sample(points, None, 0)
+    np.testing.assert_allclose(sample_triplanar(stripes, points, normals, None, 0), expected, atol=1e-6)
+
+
+def test_triplanar_weights_and_projections():
+    normals = np.array([[1, 0, 0], [0, -1, 0], [0, 0, 1], [0, 0, 0], [0.6, 0.8, 0], [0.1, 0.0, 0.995]])
+    weights = triplanar_weights(normals)
+    np.testing.assert_allclose(weights.sum(axis=1), 1.0)
+    np.testing.assert_array_equal(weights[:4], [[1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 1]])
+    assert 0 < weights[4, 0] < weights[4, 1] < 1 and weights[5, 0] == 0  # |0.1|^4: below the cut
+    p = np.array([[1.0, 2.0, 3.0]])
+    assert projected_points(p, 0)[0, :2].tolist() == [3.0, 2.0]  # x-facing: (z, y), rows stay y
+    assert projected_points(p, 1)[0, :2].tolist() == [1.0, 3.0]
+    assert projected_points(p, 2)[0, :2].tolist() == [1.0, 2.0]
+    assert len({projected_points(p, a)[0, 2] for a in range(3)}) == 3  # each at its own depth
+
+
+def test_unknown_projection_is_refused(waves, meshes, tmp_path):
+    with pytest.raises(InvalidParameter, match="projection"):
+        bake_mesh(waves, None, 0, mesh_bytes=(meshes / "bunny_uv.obj").read_bytes(), filename="bunny_uv.obj",
+                  resolution=64, out_path=tmp_path / "x.glb", projection="cubic")
+
+
+def test_triplanar_blends_by_the_files_own_normals_when_given():
+    # An x-facing quad whose file normals say "facing z" (the artist's shading) reads the
+    # z-facing projection, (x, y): one x, so one colour; by its face normal it shows stripes.
+    tri_uv, tri_xyz = quad_facing(0)
+    bake = dict(resolution=64, padding=2, scale=10.0, projection="triplanar")
+    by_face, covered, _ = bake_texture(XStripes(), None, 0, tri_uv, tri_xyz, **bake)
+    by_file, _, _ = bake_texture(XStripes(), None, 0, tri_uv, tri_xyz, tri_normals=np.tile([0.0, 0.0, 2.0], (2, 3, 1)),
+                                 **bake)
+    assert np.ptp(by_face[covered]) > 200 and np.ptp(by_file[covered]) == 0
+
+
+def test_triplanar_cube_bake_shows_the_pattern_on_every_face(meshes, tmp_path):
+    # cube.obj has its own (per-face) normals; on all six faces the x stripes now vary.
+    data = (meshes / "cube.obj").read_bytes()
+    mesh = read_mesh(data, "cube.obj")
+    assert mesh.normals is not None
+    varying = {}
+    for projection in ("solid", "triplanar"):
+        result = bake_mesh(XStripes(), None, 0, mesh_bytes=data, filename="cube.obj", resolution=128, scale=6.0,
+                           out_path=tmp_path / f"{projection}.glb", projection=projection)
+        glb, image = glb_texture_and_mesh(result.path)
+        inside = ndimage.binary_erosion(result.covered, iterations=3)
+        spread = []  # of each face's texels, faces facing -x, +x, -y, +y, -z, +z
+        for axis in range(3):
+            for sign in (-1, 1):
+                on = glb.face_normals[:, axis] * sign > 0.99
+                spread.append(np.ptp(image[chart_mask(glb.visual.uv, glb.faces[on], 128) & inside][:, 0].astype(int)))
+        varying[projection] = spread
+    assert max(varying["solid"][:2]) <= 1 and min(varying["solid"][2:]) > 100  # facing x: one colour
+    assert min(varying["triplanar"]) > 100
