@@ -8,7 +8,7 @@ from pydantic import BaseModel, Field, field_validator, model_validator
 
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS
 from worker.bake import FORMATS as BAKE_FORMATS
-from worker.bake import PROJECTIONS
+from worker.triplanar import PROJECTIONS
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.regions import FORMATS as REGION_FORMATS
 from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES

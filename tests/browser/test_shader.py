@@ -22,6 +22,7 @@ from tests.browser.helpers import texture_photo_png
 from worker import shader
 from worker.colour_match import texture_vector
 from worker.runtime import SamplerSession
+from worker.triplanar import sample_triplanar, triplanar_weights
 
 pytestmark = pytest.mark.slow
 HERE = Path(__file__).resolve().parent
@@ -139,6 +140,28 @@ def test_shader_matches_the_sampler(gpu_page, base_url, uploaded, artifacts, lan
               "compiler_messages": result.get("messages", [])}
     (artifacts / f"shader_{language}.json").write_text(json.dumps(report, indent=2) + "\n")
     assert want.std() > 0.01  # a textured patch, not a flat one
+    assert diff.mean() <= LIMIT, report
+    assert diff.max() <= 8 * LIMIT, report
+
+
+@pytest.mark.parametrize("language", ["glsl", "wgsl"])
+def test_triplanar_helper_matches_the_bakes_projection(gpu_page, uploaded, artifacts, language):
+    """``<name>_triplanar`` blends the same three projections with the same weights as a
+    triplanar bake (worker/triplanar.py), here with a normal that blends all three."""
+    vector = texture_vector(uploaded["code"], uploaded["colour"])
+    name, normal = "texspace_walls", (0.62, 0.55, 0.56)
+    probe = (f"vec3 probe(vec3 p, uint seed) {{ return {name}_triplanar(p, vec3{normal}, seed); }}\n"
+             if language == "glsl" else
+             f"fn probe(p: vec3<f32>, seed: u32) -> vec3<f32> {{ return {name}_triplanar(p, vec3<f32>{normal}, seed); }}\n")
+    got, _ = render(gpu_page, shader.emit_shader(SAMPLER, vector, name, language) + probe, "probe", language)
+    session = SamplerSession(SAMPLER, threads=1)
+    want = sample_triplanar(session, points(), np.tile(normal, (SIZE * SIZE, 1)), vector, SEED)
+    assert triplanar_weights(np.array([normal])).min() > 0.2  # all three projections take part
+    diff = np.abs(got - want)
+    report = {"language": language, "mean_abs_255": float(diff.mean() * 255), "max_abs_255": float(diff.max() * 255),
+              "effect_255": float(np.abs(want - session.sample(points(), vector, SEED)).mean() * 255)}
+    (artifacts / f"shader_triplanar_{language}.json").write_text(json.dumps(report, indent=2) + "\n")
+    assert report["effect_255"] > 4, report
     assert diff.mean() <= LIMIT, report
     assert diff.max() <= 8 * LIMIT, report
 

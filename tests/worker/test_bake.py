@@ -17,11 +17,11 @@ from scipy import ndimage
 from skimage.draw import polygon
 
 from worker import atlas
-from worker.bake import (BakeLimits, bake_mesh, bake_texture, load_mesh, projected_points, read_mesh, read_plain_obj,
-                         sample_triplanar, triplanar_weights)
+from worker.bake import BakeLimits, bake_mesh, bake_texture, load_mesh, read_mesh, read_plain_obj
 from worker.colour import linear_to_srgb8
 from worker.errors import AtlasFailed, Canceled, InvalidMesh, InvalidParameter, LimitExceeded
 from worker.raster import uv_to_texel
+from worker.triplanar import projected_points, sample_triplanar, triplanar_weights
 
 RES = 128
 

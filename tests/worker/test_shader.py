@@ -52,6 +52,9 @@ def test_emitted_text_defines_the_function(language):
     text = shader.emit_shader(SAMPLER, vector, "texspace_abc", language)
     signature = "vec3 texspace_abc(vec3 p, uint seed)" if language == "glsl" else "fn texspace_abc(p: vec3<f32>, seed: u32)"
     assert signature in text and "0x7feb352du" in text and "__" not in text
+    helper = ("vec3 texspace_abc_triplanar(vec3 p, vec3 n, uint seed)" if language == "glsl"
+              else "fn texspace_abc_triplanar(p: vec3<f32>, n: vec3<f32>, seed: u32)")
+    assert helper in text and "37.25" in text and "74.5" in text  # worker/triplanar.py's depths
     assert text.count("{") == text.count("}")
 
 
