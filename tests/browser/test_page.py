@@ -104,6 +104,7 @@ def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> No
     blank = canvas_pixels(page, "#viewer canvas")
     assert spatial_std(blank) < 1, "before a bake the 3D view is empty"
     page.select_option("#bake-resolution", "256")
+    page.select_option("#bake-projection", "triplanar")
     with page.expect_request(lambda r: "/events" in r.url) as events:
         page.click("#bake-start")
     job_id = page.get_attribute("#jobs li[data-job-id]", "data-job-id")
@@ -117,6 +118,7 @@ def test_upload_browse_seed_and_bake(page, base_url: str, artifacts: Path) -> No
     lit = np.abs(baked.astype(int) - blank.astype(int)).sum(axis=-1) > 30
     assert lit.mean() > 0.05, "the mesh covers a visible part of the view"
     assert page.locator('#jobs li[data-state="succeeded"] a[download]').count() >= 1
+    assert page.request.get(f"{base_url}v1/jobs/{job_id}").json()["params"]["projection"] == "triplanar"
 
     # 6. A volume job: listed, followed to the end, downloadable.
     page.select_option("#volume-resolution", "32")

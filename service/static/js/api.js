@@ -298,10 +298,10 @@ async function submitJob(path, init) {
   return { ...job, id };
 }
 
-export function startBake(textureId, meshFile, { resolution, seed, scale, format }) {
+export function startBake(textureId, meshFile, { resolution, seed, scale, format, projection }) {
   const form = new FormData();
   form.append('mesh', meshFile, meshFile.name);
-  for (const [key, value] of Object.entries({ resolution, seed, scale, format })) {
+  for (const [key, value] of Object.entries({ resolution, seed, scale, format, projection })) {
     if (value !== undefined && value !== null) form.append(key, value);
   }
   return submitJob(`textures/${textureId}/bakes`, { body: form });

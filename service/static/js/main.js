@@ -349,6 +349,7 @@ $('bake-form').addEventListener('submit', async (event) => {
     // Empty = the server's default (the mesh spans 512 exemplar pixels).
     scale: Number($('bake-scale').value) || undefined,
     format,
+    projection: $('bake-projection').value,
   };
   try {
     const job = await api.startBake(state.current.id, mesh, params);
