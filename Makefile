@@ -13,7 +13,7 @@ TEXSPACE_DATA_DIR ?= data
 export TEXSPACE_PORT TEXSPACE_DATA_DIR
 PYTEST_ARGS ?=
 
-.PHONY: run test test-fast install install-test migrate serve bench readme-figure grain-figure clean-data
+.PHONY: run test test-fast install install-test migrate serve bench readme-figure grain-figure triplanar-figure clean-data
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -56,6 +56,10 @@ readme-figure: data
 grain-figure: data
 	$(PY) -m model.fit data/textures/val/miniworld_wood_1.png runs/fits-grain/miniworld_wood_1 --grain y
 	$(PY) docs/make_grain_figure.py
+
+triplanar-figure: data
+	$(PY) -m model.fit data/textures/val/miniworld_brick_wall_1.png runs/fits/miniworld_brick_wall_1 --minutes 1 --threads 1
+	$(PY) docs/make_triplanar_figure.py
 
 clean-data:
 	rm -rf $(TEXSPACE_DATA_DIR)
