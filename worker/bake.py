@@ -18,8 +18,8 @@ Steps, each reported through ``progress`` and preceded by a ``should_cancel`` ch
 3. Rasterise every triangle in UV space (``worker/raster.py``) to get the 3D surface
    point of each covered texel; evaluate the sampler at ``scale * point`` for those
    texels only (``projection="solid"``), or, with ``projection="triplanar"``, on the
-   texture's own xy plane at three projections of the point, blended by the face's
-   normal (``triplanar_weights``, ``projected_points``).
+   texture's own xy plane at three projections of the point, blended by the normal there
+   (``worker/triplanar.py``).
 4. Encode the covered texels to 8-bit sRGB (an exact table, ``raster.encode_srgb8``) and
    fill the gutter: uncovered texels within ``padding`` of a chart copy the nearest
    covered texel, so bilinear filtering and mipmaps near seams never read background.
@@ -32,12 +32,9 @@ Steps, each reported through ``progress`` and preceded by a ``should_cancel`` ch
 
 Projection: a solid texture is one 3D material, the right thing for isotropic ones (stone,
 gravel) and for grain (wood cut from one log). A texture fitted on a 2D repeat lattice
-(bricks, tiles) is its photo's pattern drawn through z: only faces facing z show it; a wall
-facing x shows horizontal stripes, a roof facing y smeared mortar. Triplanar projection
-reads that pattern where it was learnt, on the xy plane, for every face: a face facing x
-reads it at (z, y), one facing y at (x, z), one facing z at (x, y), so on a y-up mesh
-(glTF's convention) walls keep the rows horizontal; each projection at its own depth, so
-the three never show the same patch.
+(bricks, tiles) is its photo's pattern drawn through z: a wall facing x shows stripes.
+Triplanar projection (``worker/triplanar.py``) shows it on every face; the service picks it
+for lattice fits (``projection="auto"``, service/schemas.py ``bake_projection``).
 
 World scale: a mesh point p is textured with the solid texture at ``scale * p``
 (``scale`` = world units per mesh unit). Default (``scale=None``): fit to bounds, the
@@ -78,6 +75,7 @@ DEFAULT_SPAN_PIXELS = 512.0
 AREA_EPS = 1e-20           # squared-length scale below which a face counts as degenerate
 # |coordinate| limit: beyond it xatlas (float32) spins for minutes and extent ** 4 overflows
 MAX_COORDINATE = 1e9
+
 
 @dataclass(frozen=True)
 class BakeLimits:
