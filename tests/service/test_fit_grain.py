@@ -163,3 +163,32 @@ def test_fit_of_an_exr_exemplar_reads_it_with_the_service_reader(fit_client, fit
     texture_id = done.get("output_texture_id") or done["result"]["output_texture_id"]
     exemplar = fit_client.get(f"/v1/textures/{texture_id}/exemplar")
     assert exemplar.content == exr and exemplar.headers["content-type"] == "image/x-exr"
+
+
+def bake_atlas(client: TestClient, texture: dict, **form: str) -> np.ndarray:
+    import io
+    import zipfile
+
+    from PIL import Image
+
+    cube = (REPO / "tests" / "data" / "meshes" / "cube.obj").read_bytes()
+    res = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", cube)},
+                      data={"resolution": "64", "format": "obj", **form})
+    assert res.status_code == 202, res.text
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded", job
+    with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
+        return np.asarray(Image.open(io.BytesIO(z.read("texture.png"))))
+
+
+@pytest.mark.parametrize("lattice", ["auto", None])
+def test_a_lattice_fit_bakes_triplanar_by_default(fit_client, fit_texture, fit_calls, lattice) -> None:
+    """What the fit says it built decides ``projection=auto``: triplanar on a repeat lattice."""
+    job = fit_client.get(fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30, "lattice": lattice})
+                         .json()["links"]["self"]).json()
+    fitted = fit_client.get(job["links"]["output_texture"]).json()
+    assert (fitted["structure"]["lattice"] is not None) == (lattice == "auto")
+    auto = bake_atlas(fit_client, fitted)
+    triplanar, solid = (bake_atlas(fit_client, fitted, projection=p) for p in ("triplanar", "solid"))
+    assert not np.array_equal(triplanar, solid)
+    assert np.array_equal(auto, triplanar if lattice == "auto" else solid)
