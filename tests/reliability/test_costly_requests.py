@@ -191,7 +191,9 @@ def test_a_pause_between_kept_alive_requests_is_not_a_slow_request(cluster: Clus
         assert data == b"" and 1.0 < time.monotonic() - started < 4.5
 
 
-@pytest.mark.parametrize("wait, max_waiting, seconds", [(0.3, 4, (0.25, 5)), (30.0, 0, (0, 0.25))],
+# "at once" is told from the 30-s wait it skipped, not timed tightly: on a loaded 2-core CI
+# machine (PostgreSQL beside the app) answering took 0.40 s where a 0.25 s bound stood
+@pytest.mark.parametrize("wait, max_waiting, seconds", [(0.3, 4, (0.25, 5)), (30.0, 0, (0, 5))],
                          ids=["wait ran out", "too many waiting"])
 def test_upload_without_decode_room_is_503(database_url: str | None, tmp_path, wait: float, max_waiting: int,
                                            seconds: tuple[float, float]) -> None:
