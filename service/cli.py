@@ -30,6 +30,7 @@ from worker.volume_writers import FORMATS as VOLUME_FORMATS
 from . import auth, db, processes
 from .context import build_services
 from .logs import setup_logging
+from .schemas import BAKE_PROJECTIONS, bake_projection
 from .settings import Settings
 from .tables import Texture
 
@@ -148,7 +149,7 @@ class TextureSource:
         self.z, self.code = np.asarray(texture.code, np.float32), texture.sampling_code()
         self.sampler, self.ppu = services.sampler_for(texture), services.pixels_per_unit(texture)
         self.model_version = texture.model_version
-        self.structure = texture.structure if texture.sampler_key else None  # what its sampler was fitted on
+        self.structure = texture.served_structure()
         self.tileable_sampler = lambda: services.tileable_sampler_for(texture)
 
     def _encode(self, settings: Settings, path: Path) -> None:
@@ -305,7 +306,6 @@ def cmd_bake(args: argparse.Namespace, settings: Settings) -> None:
     from worker.bake import bake_mesh
 
     from .limits import bake_limits, check_mesh
-    from .schemas import bake_projection
 
     mesh = Path(args.mesh)
     if not mesh.is_file():
@@ -457,7 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"({fields['max_bake_resolution'].default} unless set)")
     p.add_argument("--scale", type=ranged(float, 0, SCALE_MAX, above=True),
                    help="world units per mesh unit (default: the mesh spans 512 exemplar pixels)")
-    p.add_argument("--projection", choices=("auto", "solid", "triplanar"), default="auto",
+    p.add_argument("--projection", choices=BAKE_PROJECTIONS, default="auto",
                    help="solid: the solid texture at each surface point; triplanar: its xy plane projected along "
                         "x, y and z; auto (default): triplanar for a texture fitted on a repeat lattice")
 

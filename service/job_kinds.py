@@ -76,7 +76,7 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
                        atlas_cache_dir=services.settings.resolved_atlas_cache_dir,
                        atlas_cache_bytes=services.settings.atlas_cache_bytes,
                        maps=tuple(p.maps), gpu_format=p.gpu_format, normal_strength=p.normal_strength,
-                       projection=bake_projection(p.projection, texture.structure if texture.sampler_key else None),
+                       projection=bake_projection(p.projection, texture.served_structure()),
                        progress=progress, should_cancel=should_cancel)
     # a GLB with a height map or a GPU texture comes back as a zip
     return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip")

@@ -86,7 +86,7 @@ class TextureOut(BaseModel):
                    sampler="fitted" if t.sampler_key else "encoder",
                    refinement=Refinement(job_id=refinement.id, state=refinement.state, progress=refinement.progress)
                    if refinement is not None else None,
-                   structure=Structure(**t.structure) if t.structure and t.sampler_key else None,
+                   structure=Structure(**t.served_structure()) if t.served_structure() else None,
                    created_at=t.created_at, updated_at=t.updated_at,
                    links=TextureLinks(self=base, exemplar=f"{base}/exemplar" if t.exemplar_key else None,
                                       tiles=f"{base}/tiles/{{z}}/{{x}}/{{y}}.png", tilejson=f"{base}/tilejson.json",
@@ -163,7 +163,7 @@ class FitParams(FitIn):
 
 
 # auto: triplanar for a texture fitted on a 2D repeat lattice (its pattern lies in xy only;
-# worker/bake.py, Projection), the solid texture itself for every other
+# worker/triplanar.py), the solid texture itself for every other
 BAKE_PROJECTIONS = ("auto", *PROJECTIONS)
 
 

@@ -101,6 +101,11 @@ class Texture(Base):
         """What this texture's sampler takes as its code: z, then the colour table if any."""
         return texture_vector(self.code, self.colour)
 
+    def served_structure(self) -> dict | None:
+        """What the sampler it serves was fitted with (grain, repeat lattice); None when it
+        serves its model's sampler (a re-encode keeps no stale structure either)."""
+        return self.structure if self.structure and self.sampler_key else None
+
     def model_space(self) -> tuple[list, list | None] | None:
         """The code and colour table for its model's own sampler, what blends mix: a refined
         upload's kept encoder values, any other texture's own; None for a fit's new texture,
