@@ -152,8 +152,11 @@ class FitIn(BaseModel):
         "auto", description="regular exemplar (bricks, tile grids, perforated metal): auto (default) detects the "
                             "2D lattice the photo repeats on (two independent autocorrelation peaks >= 0.3 "
                             "spanning a lattice whose other points show peaks too; a weak one gives way to "
-                            "grain) and the fitted sampler, its shader and its tileable twin also read each "
-                            "point's phase on it, so tiles show rows and grids. null: off")
+                            "grain), else stripes (corrugation), else on a photo with grain its boards (the "
+                            "luminance averaged along the grain repeating across it: plank floors, decking; "
+                            "they keep their grain), and the fitted sampler, its shader and its tileable twin "
+                            "also read each point's phase on it, so tiles show rows, grids and board joints. "
+                            "null: off")
 
 
 class FitParams(FitIn):

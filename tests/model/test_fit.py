@@ -13,7 +13,7 @@ torch = pytest.importorskip("torch")
 ort = pytest.importorskip("onnxruntime")
 
 from model.export import export_model  # noqa: E402
-from model.fit import detect_grain, detect_lattice, detect_stripes, fit_exemplar, fold_lattice  # noqa: E402
+from model.fit import detect_boards, detect_grain, detect_lattice, detect_stripes, fit_exemplar, fold_lattice  # noqa: E402
 from model.evaluate import load_candidates  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
 
@@ -210,6 +210,72 @@ def test_a_striped_photo_is_fitted_on_its_stripes(tmp_path, vgg):
     unfitted = fit_exemplar(image, tmp_path / "plain", init_checkpoint=tmp_path / "space" / "space.pt",
                             minutes=0.02, patch=32, lattice=None, grain="auto")
     assert unfitted["lattice"] is None
+
+
+def _boards(width: float = 25.6, size: int = 256, seed: int = 5) -> np.ndarray:
+    """Boards side by side, ``width`` px across, running up-down: each its own wavy grain
+    and tone, dark joints between them (a plank floor seen from above)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    board = np.floor((x + 0.5) / width).astype(int)
+    wander = 200 * ndimage.gaussian_filter(rng.standard_normal((size, size)), 16)
+    phase = rng.uniform(0, 2 * np.pi, (board.max() + 1, 6))[board]
+    grain = sum(np.sin((x + wander) * f + phase[..., i]) / f ** 0.5 for i, f in enumerate((0.25, 0.4, 0.6, 0.9, 1.3, 1.9)))
+    tone = rng.uniform(-0.06, 0.06, board.max() + 1)[board]
+    joint = np.abs(((x + 0.5) / width + 0.5) % 1 - 0.5) * width < 1.0
+    image = 0.55 + 0.03 * grain + tone - 0.3 * joint + 0.01 * rng.standard_normal((size, size))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+
+def test_detect_boards_measures_the_board_width_across_the_grain(skimage_textures):
+    """Boards repeat across their grain, which the photo's autocorrelation hides under the
+    grain's streaks (no lattice, no stripes); averaged along the grain the joints show. The
+    width comes to a fraction of a pixel, also where it falls between two pixels (whose
+    peaks split), and the board is the shortest repeat, not two boards."""
+    for width in (9.3, 12.5, 25.6):
+        image = _boards(width)
+        assert detect_grain(image) == "y" and detect_lattice(image) is None and detect_stripes(image) is None
+        ax, ay, bx, by = detect_boards(image, "y")
+        assert abs(ax - width) < 0.1 and ay == 0 and (bx, by) == pytest.approx((0.0, ax)), (width, ax)
+    ax, ay, bx, by = detect_boards(_boards().transpose(1, 0, 2), "x")  # boards left-right
+    assert ax == 0 and abs(ay - 25.6) < 0.1 and (bx, by) == pytest.approx((-ay, 0.0))
+    assert detect_boards(_boards(), "x") is None                     # along the grain: no joints
+    assert detect_boards(_streaks(), "y") is None                    # one piece of wood
+    assert detect_boards(skimage_textures["brick"], "y") is None     # grain without a period
+    assert detect_boards(np.full((64, 64, 3), 0.5), "y") is None
+    with pytest.raises(ValueError, match="grain"):
+        detect_boards(_boards(), None)
+
+
+def test_a_boards_photo_keeps_its_grain_and_reads_its_boards(tmp_path, vgg):
+    """With grain and lattice "auto", boards get both: noise stretched along the grain and
+    phases across it. The sampler, its tileable twin and its shader take the pair."""
+    from model.export import TILEABLE_SAMPLER
+    from worker.colour_match import identity_colour
+    from worker.runtime import PeriodicSampler, SamplerSession
+    from worker.shader import emit_shader
+
+    torch.manual_seed(0)
+    export_model(TextureSpace(ModelConfig()), tmp_path / "space")
+    image = tmp_path / "planks.png"
+    Image.fromarray((_boards() * 255).round().astype(np.uint8)).save(image)
+    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt",
+                          minutes=0.02, patch=32, lattice="auto", grain="auto")
+    boards = np.array(detect_boards(np.asarray(Image.open(image), np.float32) / 255, "y")) / ModelConfig().pixels_per_unit
+    assert result["grain"] == "y" and result["lattice"] == pytest.approx(boards.tolist())
+    vector = np.concatenate([np.asarray(result["code"], np.float32), identity_colour(216)])
+    tileable = PeriodicSampler(SamplerSession(tmp_path / "fit" / TILEABLE_SAMPLER, threads=1), period=0.9)
+    near = np.random.default_rng(3).uniform(0, 1, (200, 3))
+    base = tileable.sample(near, vector, 4)
+    for shift in ((0.9, 0.0, 0.0), (0.0, -1.8, 0.0)):
+        assert np.abs(tileable.sample(near + shift, vector, 4) - base).max() < 1e-4
+    for language in ("glsl", "wgsl"):
+        text = emit_shader(tmp_path / "fit" / "sampler.onnx", vector, "planks", language)
+        assert "repeat lattice" in text and text.count("{") == text.count("}")
+    # a fit asked for no lattice keeps the grain alone
+    plain = fit_exemplar(image, tmp_path / "plain", init_checkpoint=tmp_path / "space" / "space.pt",
+                         minutes=0.02, patch=32, lattice=None, grain="auto")
+    assert plain["grain"] == "y" and plain["lattice"] is None
 
 
 def test_every_fit_takes_the_large_patch_and_falling_rates_by_default(tmp_path, monkeypatch):
