@@ -132,6 +132,7 @@ function followRefinement(texture) {
 function structureNote(texture) {
   const structure = texture.structure;
   if (!structure) return '';
+  if (structure.lattice && structure.grain) return ` (boards, grain along ${structure.grain})`;
   if (structure.lattice) return ' (follows the photo\'s repeat lattice)';
   if (structure.grain) return ` (grain along ${structure.grain})`;
   return '';
