@@ -13,7 +13,8 @@ torch = pytest.importorskip("torch")
 ort = pytest.importorskip("onnxruntime")
 
 from model.export import export_model  # noqa: E402
-from model.fit import detect_boards, detect_grain, detect_lattice, detect_stripes, fit_exemplar, fold_lattice  # noqa: E402
+from model.fit import fit_exemplar  # noqa: E402
+from model.structure import detect_boards, detect_grain, detect_lattice, detect_stripes, fold_lattice  # noqa: E402
 from model.evaluate import load_candidates  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
 
@@ -141,7 +142,7 @@ def test_a_weak_lattice_gives_way_to_grain(monkeypatch):
     """A lattice with peaks under LATTICE_STRONG is kept for a photo without grain and
     dropped for one with grain (wood planks: their weak lattice drew blobs, their grain
     boards); a strong lattice stays either way."""
-    import model.fit as fit
+    import model.structure as structure
 
     rng = np.random.default_rng(5)
     size, tile = 256, 64
@@ -154,7 +155,7 @@ def test_a_weak_lattice_gives_way_to_grain(monkeypatch):
 
     weak, strong = grid(0.05), grid(0.01)            # autocorrelation peaks ~0.56 and ~0.95
     assert detect_lattice(weak) is not None and detect_lattice(strong) is not None
-    monkeypatch.setattr(fit, "detect_grain", lambda image: "y")
+    monkeypatch.setattr(structure, "detect_grain", lambda image: "y")
     assert detect_lattice(weak) is None and detect_lattice(strong) is not None
 
 

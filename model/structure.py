@@ -1,0 +1,385 @@
+"""What regular structure a photo has, for a fit to build in: grain, a repeat lattice,
+stripes, boards. Functions over (H, W, 3) RGB arrays in [0, 1] at the working resolution;
+lattices are two basis vectors (ax, ay, bx, by) in pixels, x right, y down.
+
+    grain, lattice_px = photo_structure(photo)   # what model.fit builds in by default
+
+* ``detect_lattice``: a 2D repeat (bricks, tile grids, perforated metal), refined by least
+  squares, then ``fold_lattice`` moves it to where the photo folds sharpest;
+* ``detect_stripes``: a repeat along one direction only (corrugated board);
+* ``detect_grain``: streaks along image x or y (wood, brushed metal);
+* ``detect_boards``: on a photo with grain, boards side by side (plank floors, decking).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from model.train import fold_on_lattice, lattice_cell_sizes
+
+# Grain detection (``grain="auto"``): a photo has grain when its luminance gradient energy
+# across one image axis is at least GRAIN_RATIO times that along the other, at every
+# blur in GRAIN_SCALES (px at the working resolution), so fine scratches alone or one
+# coarse band alone do not count. Measured on the 41 packaged photos (log2 of the ratio
+# at 1/2/4 px): the five wood photos (1.6-6.0), brushed metal (1.9-2.2), a striped rug
+# (1.8) and skimage's brick laid on end (1.6-1.8: long joints up-down) pass; the brick
+# wall (-0.06 at 4 px), cinder blocks (0.84), corrugated cardboard (0.19 at 4 px) do not.
+GRAIN_RATIO = 3.0
+GRAIN_SCALES = (1.0, 2.0, 4.0)
+
+
+# Lattice detection (``lattice="auto"``): the photo repeats on a 2D lattice when its
+# luminance autocorrelation has two independent peaks (not the origin, within a third of
+# the image, at least LATTICE_MIN_OFFSET px away) both at least LATTICE_PEAK of the
+# origin's value, and the lattice they span shows: of its points within a third of the
+# image, at least LATTICE_SUPPORT have a peak of LATTICE_SUPPORT_PEAK or more nearby (a
+# chance peak does not come back at 2a, a + b, ...; a lattice's does). Measured on the 41
+# packaged photos at 256 px (peaks; support): found in 10, the brick wall (0.88 / 0.67;
+# 1.00), cinder blocks, both metal grills, white and black-and-white floor tiles, ceiling
+# tiles (0.83-1.0, 64 px tiles: a window of a quarter of the image, as before, missed
+# them), concrete tiles (0.61 / 0.56), a woven cardboard (0.68 / 0.53) and a concrete photo
+# that is a CG texture repeated 4 x 4 (0.54 / 0.45), all supported 0.95-1.00. The wood
+# planks' (0.44 / 0.44; 1.00) gives way to their grain (LATTICE_STRONG); another cardboard
+# has peaks 0.41 / 0.37 but support 0.14; the other 29 have no two peaks >= 0.3.
+LATTICE_PEAK = 0.3
+# A lattice whose peaks are not all this strong loses to grain when the photo has grain:
+# the wood planks' lattice (0.44) made a 60-s fit draw diagonal blobs, their grain (y)
+# vertical boards.
+LATTICE_STRONG = 0.6
+LATTICE_SUPPORT = 0.6
+LATTICE_SUPPORT_PEAK = 0.25
+LATTICE_MIN_OFFSET = 4
+LATTICE_TIE = 0.05  # peaks this close to the strongest count as equally strong
+# Refinement: every lattice point within a third of the image whose correlation peak is at
+# least LATTICE_REFINE_PEAK, located to a fraction of a pixel, fits the basis by least
+# squares; a basis read off single integer peaks can be a pixel or two off (the validation
+# brick wall's was -14 px instead of about -16 px down, and its bond leaned).
+LATTICE_REFINE_PEAK = 0.3
+# Stripes (``detect_stripes``): a repeat along one direction only, seen at its multiples.
+# The validation corrugated cardboard: period 8.8 px down, peaks 0.44, 0.37, 0.30, 0.28,
+# 0.26, 0.25, 0.23, 0.20, 0.19 at 1..9 periods (its large tone patches decorrelate
+# slowly).
+STRIPE_SUPPORT_PEAK = 0.15
+# Gradient energy across the stripes over that along them (1-px blur): both corrugated
+# cardboards 4.0, the other packaged photos with one repeat direction are grain (wood,
+# brushed metal) or have a second repeat.
+STRIPE_ANISOTROPY = 2.0
+STRIPE_MIN_REPEATS = 6  # multiples within a third of the image, both signs: |a| <= 1/9 of it
+# Boards (``detect_boards``): a grain photo made of boards (plank floors, decking,
+# panelling) repeats across its grain at the boards' width, but its luminance
+# autocorrelation hides that under the grain's own streaks (the training wood planks: 0.21
+# at one board, 0.47 at five). Averaged along the grain first, the joints show: 0.60,
+# 0.64, 0.69 at one, two, three boards of 25.6 px.
+BOARD_PEAK = 0.4
+BOARD_MIN_REPEATS = 2  # multiples within a third of the image: boards at most 1/6 of it
+# fold_lattice: how far (px) it moves each coordinate of the detected lattice, in what steps
+FOLD_REACH, FOLD_STEP = 3.0, 0.25
+
+
+def rec709_luminance(image: np.ndarray) -> np.ndarray:
+    """(H, W, 3) RGB -> (H, W) float64 Rec. 709 luminance, what every detector here reads."""
+    return np.asarray(image, np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+
+
+def luminance_correlation(image: np.ndarray) -> tuple[np.ndarray, list[tuple]] | None:
+    """The photo's luminance autocorrelation, normalised to 1 at the origin ([0, 0],
+    wrapping), and its repeat peaks: local maxima of at least LATTICE_PEAK, at least
+    LATTICE_MIN_OFFSET px from the origin and within a third of the image, as (value,
+    length, dx, dy). None for a flat photo."""
+    luminance = rec709_luminance(image)
+    luminance -= luminance.mean()
+    spectrum = np.fft.fft2(luminance)
+    correlation = np.fft.ifft2(spectrum * np.conj(spectrum)).real
+    if not correlation[0, 0] > 0:
+        return None
+    correlation /= correlation[0, 0]
+    height, width = correlation.shape
+    dy = (np.arange(height) + height // 2) % height - height // 2  # signed offsets, origin at 0
+    dx = (np.arange(width) + width // 2) % width - width // 2
+    dy, dx = np.meshgrid(dy, dx, indexing="ij")
+    peaks = ((correlation == ndimage.maximum_filter(correlation, size=5, mode="wrap"))
+             & (correlation >= LATTICE_PEAK) & (np.hypot(dx, dy) >= LATTICE_MIN_OFFSET)
+             & (np.abs(dx) <= width // 3) & (np.abs(dy) <= height // 3))
+    return correlation, list(zip(correlation[peaks], np.hypot(dx[peaks], dy[peaks]), dx[peaks], dy[peaks]))
+
+
+def _strongest(candidates: list[tuple]) -> tuple:
+    """The shortest of the (near-)strongest peaks: not a multiple of it."""
+    top = max(value for value, *_ in candidates)
+    return min((c for c in candidates if c[0] >= top - LATTICE_TIE), key=lambda c: c[1])
+
+
+def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | None:
+    """The 2D lattice a regular photo repeats on, two basis vectors in pixels (ax, ay, bx,
+    by; x right, y down) at the image's resolution, or None. ``image``: (H, W, 3) RGB."""
+    measured = luminance_correlation(image)
+    if measured is None or not measured[1]:
+        return None
+    correlation, found = measured
+    # The strongest repeat first, then the strongest one at least 30 degrees from it: for a
+    # running bond, one brick along the row and a few courses down (the course height
+    # alone is not a repeat, the bricks shift by half a brick from one course to the next).
+    value_a, length_a, ax, ay = _strongest(found)
+    others = [c for c in found if abs(ax * c[3] - ay * c[2]) > 0.5 * length_a * c[1]]
+    if not others:
+        return None
+    value_b, _, bx, by = _strongest(others)
+    basis, support = refine_lattice(correlation, np.array([[ax, ay], [bx, by]], np.float64))
+    if support < LATTICE_SUPPORT:
+        return None
+    if min(value_a, value_b) < LATTICE_STRONG and detect_grain(image) is not None:
+        return None
+    across = stripe_normal(image)
+    if across is not None and not _repeats_along_stripes(correlation, basis, across):
+        return None  # stripes: b was a point on one of their ridges (detect_stripes' case)
+    (ax, ay), (bx, by) = basis
+    return float(ax), float(ay), float(bx), float(by)
+
+
+def _repeats_along_stripes(correlation: np.ndarray, basis: np.ndarray, across: np.ndarray) -> bool:
+    """Whether a lattice found on a striped photo (``across``: ``stripe_normal``) is a true
+    lattice: its shortest vector along the stripes, where one is in view, is a peak of the
+    correlation along them. Stripes correlate along whole ridges, one per period, so any
+    point on a ridge can pass as a second repeat (8.8-px synthetic stripes gave b = (40.6,
+    52.9) px, and b - 6 a = (40, 0) lies on the ridge through the origin, where the
+    correlation only falls); a brick wall's courses are stripes too, and its bricks repeat
+    along them: (32, 0) px is a peak."""
+    height, width = correlation.shape
+    i, j = np.meshgrid(np.arange(-12, 13), np.arange(-12, 13), indexing="ij")
+    vectors = np.stack([i.ravel(), j.ravel()], axis=1) @ basis
+    length = np.hypot(*vectors.T)
+    along = (np.abs(vectors @ across) < 1.0) & (length > 0) & (np.abs(vectors[:, 0]) < width / 2) \
+        & (np.abs(vectors[:, 1]) < height / 2)
+    if not along.any():
+        return True  # no repeat along the stripes in view (cinder blocks: 128 px): nothing to judge
+    vector = vectors[along][np.argmin(length[along])]
+    spacing = np.abs(basis @ across)  # the basis vectors' steps across the stripes (px)
+    spacing = float(spacing[spacing >= 1.0].min(initial=4.0))
+    step = np.array([-across[1], across[0]]) * max(2.0, 0.5 * spacing)  # half a period along the stripes
+
+    def at(point):
+        x, y = np.rint(point).astype(int)
+        return correlation[y % height, x % width]
+
+    return bool(at(vector) >= max(at(vector - step), at(vector + step)) + LATTICE_TIE)  # not a ridge's noise
+
+
+def parabola_top(before, at, after):
+    """Offset from the middle sample of the top of the parabola through three equally
+    spaced samples (arrays or numbers), 0 where they do not bend down."""
+    curve = np.asarray(before - 2 * at + after, np.float64)
+    return np.where(curve < 0, 0.5 * (before - after) / np.where(curve < 0, curve, -1.0), 0.0)
+
+
+def _locate_peaks(correlation: np.ndarray, predicted: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Near each predicted repeat (N, 2) (x, y px; rounded), the correlation's largest value
+    within ``radius``: its position to a fraction of a pixel (a parabola through it and its
+    neighbours along x and along y) (N, 2), its value (N,), and whether it is a true local
+    maximum, not the window's edge climbing towards a neighbouring peak (N,)."""
+    height, width = correlation.shape
+    window = np.arange(-radius, radius + 1)
+    ys = (predicted[:, 1, None, None] + window[None, :, None]) % height       # (N, K, 1)
+    xs = (predicted[:, 0, None, None] + window[None, None, :]) % width        # (N, 1, K)
+    values = correlation[ys, xs].reshape(len(predicted), -1)
+    best = values.argmax(axis=1)
+    peak_y, peak_x = predicted[:, 1] + window[best // len(window)], predicted[:, 0] + window[best % len(window)]
+    at = correlation[peak_y % height, peak_x % width]
+    dx = parabola_top(correlation[peak_y % height, (peak_x - 1) % width], at, correlation[peak_y % height, (peak_x + 1) % width])
+    dy = parabola_top(correlation[(peak_y - 1) % height, peak_x % width], at, correlation[(peak_y + 1) % height, peak_x % width])
+    interior = (np.abs(peak_x - predicted[:, 0]) < radius) & (np.abs(peak_y - predicted[:, 1]) < radius)
+    return np.stack([peak_x + dx, peak_y + dy], axis=1), values.max(axis=1), interior
+
+
+def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, float]:
+    """A least-squares basis (2, 2) (rows a, b as x, y) for the lattice points i a + j b
+    that ``correlation`` (normalised, origin at [0, 0], wrapping) shows, and the lattice's
+    support: the share of its points within a third of the image with a peak of at least
+    LATTICE_SUPPORT_PEAK nearby. The fit uses each point's local peak, if at least
+    LATTICE_REFINE_PEAK, to a fraction of a pixel (``_locate_peaks``). ``basis`` comes back
+    as it was when too few points agree or the fit moves a vector by more than a fifth of
+    its length."""
+    height, width = correlation.shape
+    shortest = float(np.hypot(*basis.T).min())
+    reach = int(np.ceil(max(height, width) / shortest))
+    i, j = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
+    steps = np.stack([i.ravel(), j.ravel()], axis=1)
+    steps = steps[(steps != 0).any(axis=1)]
+    predicted = steps @ basis
+    inside = (np.abs(predicted[:, 0]) < width / 3) & (np.abs(predicted[:, 1]) < height / 3)
+    steps, predicted = steps[inside], np.rint(predicted[inside]).astype(int)
+    if not len(steps):
+        return basis, 0.0
+    points, value, interior = _locate_peaks(correlation, predicted, max(1, int(0.2 * shortest)))
+    support = float(np.mean(value >= LATTICE_SUPPORT_PEAK))
+    use = (value >= LATTICE_REFINE_PEAK) & interior
+    if use.sum() < 4 or np.linalg.matrix_rank(steps[use]) < 2:
+        return basis, support
+    weight = np.sqrt(value[use])[:, None]
+    fitted, *_ = np.linalg.lstsq(steps[use] * weight, points[use] * weight, rcond=None)
+    moved = np.hypot(*(fitted - basis).T)
+    if (moved > 0.2 * np.hypot(*basis.T)).any():
+        return basis, support
+    return fitted, support
+
+
+def detect_stripes(image: np.ndarray) -> tuple[float, float, float, float] | None:
+    """A photo that repeats along one direction only (corrugated cardboard, ribbed or
+    fluted surfaces): its period vector a in pixels, as a lattice (ax, ay, bx, by) whose b
+    is a turned a quarter turn (along the stripes), or None. Where ``detect_lattice`` finds
+    no second repeat.
+
+    The repeat is the strongest autocorrelation peak; it counts when the peaks come back at
+    its multiples k a within a third of the image (a share of at least LATTICE_SUPPORT
+    reach STRIPE_SUPPORT_PEAK), and a is their least-squares period. b carries no repeat of
+    the photo: the fit's phase inputs along it start at zero weight, and the photo's mean
+    cell, folded on a square cell of side |a|, is flat along it. Meant for photos where
+    ``detect_lattice`` finds no lattice: peaks in other directions are not looked at."""
+    measured, across = luminance_correlation(image), stripe_normal(image)
+    if measured is None or not measured[1] or across is None:
+        return None
+    correlation, found = measured
+    # Any repeat a + t s (s along the stripes) shows the same stripes, and the peak found can
+    # be any of them (the validation cardboard's is (2, 9) px, not (0, 9)): the period is
+    # the repeat's part across the stripes. Peaks along the stripes (a brick wall's bricks
+    # along their courses; bumps on the ridge through the origin) are no period across them.
+    found = [c for c in found if abs(c[2] * across[0] + c[3] * across[1]) >= LATTICE_MIN_OFFSET]
+    if not found:
+        return None
+    value, length, ax, ay = _strongest(found)
+    height, width = correlation.shape
+    reach = int(np.ceil(max(height, width) / length))
+    steps = np.array([k for k in range(-reach, reach + 1) if k], np.float64)
+    predicted = steps[:, None] * np.array([ax, ay], np.float64)
+    inside = (np.abs(predicted[:, 0]) < width / 3) & (np.abs(predicted[:, 1]) < height / 3)
+    steps, predicted = steps[inside], np.rint(predicted[inside]).astype(int)
+    if len(steps) < STRIPE_MIN_REPEATS:
+        return None
+    points, values, interior = _locate_peaks(correlation, predicted, max(1, int(0.2 * length)))
+    if np.mean(values >= STRIPE_SUPPORT_PEAK) < LATTICE_SUPPORT:
+        return None
+    if value < LATTICE_STRONG and detect_grain(image) is not None:
+        return None
+    use = interior & (values >= STRIPE_SUPPORT_PEAK)
+    weight = np.sqrt(values[use])
+    # least squares of k a = p_k over the located peaks: a = sum w k p / sum w k^2
+    repeat = (weight[:, None] * steps[use, None] * points[use]).sum(axis=0) / (weight * steps[use] ** 2).sum()
+    ax, ay = float(repeat @ across) * across
+    return float(ax), float(ay), float(-ay), float(ax)
+
+
+def detect_boards(image: np.ndarray, grain: str) -> tuple[float, float, float, float] | None:
+    """The boards of a photo with grain along ``grain`` ("x" or "y"): their width as a
+    stripe lattice (ax, ay, bx, by) in pixels, a across the grain and b along it (a turned
+    a quarter turn, as ``detect_stripes``), or None.
+
+    The luminance is averaged along the grain (a profile across it, without its slow
+    trends); the profile's autocorrelation must peak at BOARD_PEAK or more near a share of
+    at least LATTICE_SUPPORT of the multiples of the width within a third of the image, at
+    least BOARD_MIN_REPEATS of them (a width between two pixels splits its peaks), and the
+    width is their least-squares period. The shortest such repeat is the board (two boards
+    are a repeat too)."""
+    if grain not in ("x", "y"):
+        raise ValueError(f"grain must be 'x' or 'y', got {grain!r}")
+    profile = rec709_luminance(image).mean(axis=0 if grain == "y" else 1)
+    # without what varies slower than boards (light falling off, wide grain bands)
+    profile -= ndimage.gaussian_filter1d(profile, len(profile) / 8, mode="wrap")
+    spectrum = np.fft.fft(profile)
+    correlation = np.fft.ifft(spectrum * np.conj(spectrum)).real
+    if not correlation[0] > 0:
+        return None
+    correlation /= correlation[0]
+    reach = len(correlation) // 3
+    for lag in range(LATTICE_MIN_OFFSET, reach // BOARD_MIN_REPEATS + 1):
+        if not (correlation[lag] >= BOARD_PEAK and correlation[lag] >= correlation[lag - 1]
+                and correlation[lag] >= correlation[lag + 1]):
+            continue
+        first = lag + float(parabola_top(*correlation[lag - 1 : lag + 2]))
+        steps = np.arange(1, reach // first + 1, dtype=np.float64)
+        radius = max(2, int(0.2 * lag))
+        # near each multiple: the largest value, a true local maximum, located by a parabola
+        windows = np.rint(steps * first).astype(int)[:, None] + np.arange(-radius, radius + 1)
+        values = correlation[windows % len(correlation)]
+        best = values.argmax(axis=1)
+        use = (values.max(axis=1) >= BOARD_PEAK) & (best > 0) & (best < 2 * radius)
+        if np.mean(use) < LATTICE_SUPPORT or use.sum() < BOARD_MIN_REPEATS:
+            continue
+        steps, at = steps[use], windows[use, best[use]]  # all within the first half: no wrapping
+        peaks = at + parabola_top(correlation[at - 1], correlation[at], correlation[at + 1])
+        width = float((steps * peaks).sum() / (steps ** 2).sum())
+        ax, ay = (width, 0.0) if grain == "y" else (0.0, width)
+        return ax, ay, -ay, ax
+    return None
+
+
+def stripe_normal(image: np.ndarray) -> np.ndarray | None:
+    """The unit vector (x, y) across a striped photo's stripes: the dominant direction of
+    its luminance gradients (the structure tensor's first eigenvector, after a 1-px blur),
+    or None when the gradient energy along it is under STRIPE_ANISOTROPY times that along
+    the stripes."""
+    luminance = ndimage.gaussian_filter(rec709_luminance(image), 1.0)
+    gy, gx = np.gradient(luminance)
+    tensor = np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])
+    energy, vectors = np.linalg.eigh(tensor)  # ascending
+    if not energy[1] >= STRIPE_ANISOTROPY * max(energy[0], 1e-12):
+        return None
+    return vectors[:, 1]
+
+
+def fold_lattice(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    """The lattice within ``FOLD_REACH`` px of ``lattice_px`` (each vector's x and y) on which
+    the photo folds sharpest: the largest spread of its mean repeat cell (``fold_on_lattice``,
+    bins fixed), by coordinate search in ``FOLD_STEP`` px, twice over. Autocorrelation peaks
+    put the validation brick wall's bond at -13.8 px per course, where its vertical joints
+    average out of the mean cell; folded, it comes out at -16 (half a brick), where they show."""
+    sizes = lattice_cell_sizes(lattice_px)
+
+    def spread(lattice: np.ndarray) -> float:
+        means, counts = fold_on_lattice(image, tuple(lattice), sizes)
+        return float(means[counts > 0].var(axis=0).sum())
+
+    best = np.array(lattice_px, np.float64)
+    offsets = np.arange(-FOLD_REACH, FOLD_REACH + FOLD_STEP / 2, FOLD_STEP)
+    for _ in range(2):
+        for k in range(4):
+            trials = np.repeat(best[None], len(offsets), axis=0)
+            trials[:, k] += offsets
+            if abs(np.linalg.det(trials.reshape(-1, 2, 2))).min() < 1.0:
+                continue  # (never near a degenerate basis)
+            best = trials[int(np.argmax([spread(t) for t in trials]))]
+    return tuple(float(v) for v in best)
+
+
+def detect_grain(image: np.ndarray) -> str | None:
+    """The axis the photo's grain runs along, ``"x"`` (left-right) or ``"y"`` (up-down),
+    or None for an isotropic photo. ``image``: (H, W, 3) RGB in [0, 1] at the working
+    resolution. Diagonal grain counts as none (a fit can stretch along x or y only)."""
+    luminance = rec709_luminance(image)
+    log_ratios = []
+    for sigma in GRAIN_SCALES:
+        rows, cols = np.gradient(ndimage.gaussian_filter(luminance, sigma))
+        log_ratios.append(np.log2(max(float(np.mean(cols ** 2)), 1e-20) / max(float(np.mean(rows ** 2)), 1e-20)))
+    threshold = np.log2(GRAIN_RATIO)
+    if min(log_ratios) >= threshold:
+        return "y"  # changes across columns, constant down them: streaks run up-down
+    if max(log_ratios) <= -threshold:
+        return "x"
+    return None
+
+
+def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str | None = "auto"
+                    ) -> tuple[str | None, tuple[float, float, float, float] | None]:
+    """What a fit builds in for ``photo``: (grain, lattice in pixels).
+
+    ``grain``: "x", "y", None or "auto" (``detect_grain``, where no lattice or stripes were
+    found). ``lattice``: "auto" (``detect_lattice``, folded, else ``detect_stripes``, else on a
+    photo with grain ``detect_boards``) or None. Boards keep their grain; a photo with a
+    lattice or stripes gets none."""
+    found = detect_lattice(photo) if lattice == "auto" else None
+    found = fold_lattice(photo, found) if found else None
+    if lattice == "auto" and found is None:  # stripes: a lattice whose second vector carries no repeat
+        found = detect_stripes(photo)
+    if grain == "auto":
+        grain = None if found else detect_grain(photo)
+    if lattice == "auto" and found is None and grain:  # boards: stripes that keep their grain
+        found = detect_boards(photo, grain)
+    return grain, found
