@@ -14,7 +14,8 @@ ort = pytest.importorskip("onnxruntime")
 
 from model.export import export_model  # noqa: E402
 from model.fit import fit_exemplar  # noqa: E402
-from model.structure import detect_boards, detect_grain, detect_lattice, detect_stripes, fold_lattice  # noqa: E402
+from model.structure import detect_boards, detect_stripes  # noqa: E402
+from tests.model.photos import boards, corrugation, running_bond  # noqa: E402
 from model.evaluate import load_candidates  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
 
@@ -44,166 +45,13 @@ def test_fit_writes_a_contract_sampler_and_its_code(tmp_path, skimage_textures, 
     assert fit.label == "ours-fit" and fit.fitted_to == "gravel" and fit.code.reshape(-1).tolist() == code
 
 
-def _streaks(size: int = 256, angle_degrees: float = 0.0) -> np.ndarray:
-    """Wood-like streaks: bands of many widths whose brightness changes across image x
-    (so they run up-down at angle 0), turned by ``angle_degrees``, with a little noise."""
-    rng = np.random.default_rng(0)
-    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
-    across = x * np.cos(np.radians(angle_degrees)) + y * np.sin(np.radians(angle_degrees))
-    value = sum(np.sin(across * f + rng.uniform(0, 6.3)) / f ** 0.5 for f in rng.uniform(0.03, 0.8, 12))
-    value = 0.5 + 0.1 * value + 0.01 * rng.standard_normal((size, size))
-    return np.repeat(np.clip(value, 0, 1)[..., None], 3, axis=2)
-
-
-def test_detect_grain_finds_axis_aligned_streaks_only(skimage_textures):
-    assert detect_grain(_streaks()) == "y"                     # bands across x: the grain runs up-down
-    assert detect_grain(_streaks().transpose(1, 0, 2)) == "x"
-    assert detect_grain(_streaks(angle_degrees=45)) is None    # a fit can stretch along x or y only
-    assert detect_grain(np.full((64, 64, 3), 0.5)) is None     # flat: no gradients at all
-    for name in ("grass", "gravel"):                           # isotropic photos
-        assert detect_grain(skimage_textures[name]) is None, name
-
-
-def _running_bond(size: int = 256, brick: int = 32, course: int = 11) -> np.ndarray:
-    """Bricks brick x course px in a running bond (every course shifted by half a brick),
-    1-px mortar, each brick its own shade: a regular photo with a known lattice."""
-    rng = np.random.default_rng(0)
-    y, x = np.mgrid[0:size, 0:size]
-    row = y // course
-    shifted = x + (row % 2) * (brick // 2)
-    shade = rng.uniform(0.35, 0.55, (size // course + 2, size // brick + 3))[row, shifted // brick]
-    mortar = (y % course == 0) | (shifted % brick == 0)
-    image = np.where(mortar, 0.85, shade) + 0.02 * rng.standard_normal((size, size))
-    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
-
-
-def test_detect_lattice_finds_a_running_bond_and_nothing_in_stochastic_photos(skimage_textures):
-    ax, ay, bx, by = detect_lattice(_running_bond())
-
-    def on_the_bond(x: float, y: float) -> bool:  # whole courses down, half a brick along per course
-        courses = round(y / 11)
-        along = x - courses * 16
-        return abs(y - 11 * courses) < 0.25 and abs(along - 32 * round(along / 32)) < 0.25
-
-    assert on_the_bond(ax, ay) and on_the_bond(bx, by), (ax, ay, bx, by)
-    assert abs(ax * by - ay * bx) == pytest.approx(32 * 11, rel=0.02)  # the bond's lattice, not a sublattice
-    for name in ("grass", "gravel"):
-        assert detect_lattice(skimage_textures[name]) is None, name
-    assert detect_lattice(np.full((64, 64, 3), 0.5)) is None
-
-
-def test_fold_lattice_moves_a_bond_that_is_off_onto_the_photos_own():
-    # the validation brick wall's peaks gave -13.8 px per course where the bond is -16: a
-    # lattice that far off averages the vertical joints out of the mean cell
-    image = _running_bond()
-    off = fold_lattice(image, (32.0, 0.0, -13.8, 11.0))
-    assert off[:2] == pytest.approx((32.0, 0.0), abs=0.3)
-    assert off[2] == pytest.approx(-16.0, abs=0.3) and off[3] == pytest.approx(11.0, abs=0.3)
-    assert fold_lattice(image, (32.0, 0.0, 16.0, 11.0)) == pytest.approx((32.0, 0.0, 16.0, 11.0), abs=0.3)
-
-
-def test_detect_lattice_measures_a_skewed_lattice_to_a_fraction_of_a_pixel():
-    """Blobs on a lattice with non-integer, skewed basis vectors: single integer peaks are
-    up to half a pixel off each; the least-squares refinement over every lattice point in
-    view must find the lattice within 0.15 px per basis vector."""
-    true = np.array([[23.4, 1.3], [9.3, 17.7]])
-    rng = np.random.default_rng(3)
-    y, x = np.mgrid[0:256, 0:256].astype(np.float64)
-    image = np.zeros((256, 256))
-    for i in range(-4, 20):
-        for j in range(-4, 20):
-            cx, cy = i * true[0] + j * true[1]
-            image += rng.uniform(0.7, 1.0) * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * 2.5 ** 2))
-    image = np.clip(0.2 + 0.6 * image + 0.03 * rng.standard_normal(image.shape), 0, 1)
-    found = np.array(detect_lattice(np.repeat(image[..., None], 3, axis=2))).reshape(2, 2)
-    # the same lattice: each true vector an integer combination of the found ones, and back
-    change = true @ np.linalg.inv(found)
-    assert abs(abs(np.linalg.det(np.rint(change))) - 1) < 1e-9, found
-    assert np.abs(np.rint(change) @ found - true).max() < 0.15, found
-
-
-def test_detect_lattice_finds_a_tile_grid_four_tiles_across():
-    """Square tiles of a quarter of the photo (the validation floor tiles: 4 x 4 tiles of
-    64 px at the working resolution), grey-veined with thin grout: the autocorrelation
-    peaks are only ~0.45 and sit at a quarter of the image, yet the grid is found."""
-    rng = np.random.default_rng(5)
-    size, tile = 256, 64
-    veins = ndimage.gaussian_filter(rng.standard_normal((size, size)), 6)
-    image = 0.85 + 0.5 * veins / np.abs(veins).max() * 0.2
-    y, x = np.mgrid[0:size, 0:size]
-    image[(y % tile == 0) | (x % tile == 0)] = 0.55                    # 1-px grout
-    found = detect_lattice(np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2))
-    assert found is not None
-    change = np.array([[tile, 0], [0, tile]]) @ np.linalg.inv(np.array(found).reshape(2, 2))
-    assert np.abs(change - np.rint(change)).max() < 0.02 and abs(abs(np.linalg.det(np.rint(change))) - 1) < 1e-9, found
-
-
-def test_a_weak_lattice_gives_way_to_grain(monkeypatch):
-    """A lattice with peaks under LATTICE_STRONG is kept for a photo without grain and
-    dropped for one with grain (wood planks: their weak lattice drew blobs, their grain
-    boards); a strong lattice stays either way."""
-    import model.structure as structure
-
-    rng = np.random.default_rng(5)
-    size, tile = 256, 64
-    y, x = np.mgrid[0:size, 0:size]
-
-    def grid(noise: float) -> np.ndarray:
-        image = 0.8 + noise * ndimage.gaussian_filter(rng.standard_normal((size, size)), 2) / 0.14
-        image[(y % tile < 2) | (x % tile < 2)] -= 0.25
-        return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
-
-    weak, strong = grid(0.05), grid(0.01)            # autocorrelation peaks ~0.56 and ~0.95
-    assert detect_lattice(weak) is not None and detect_lattice(strong) is not None
-    monkeypatch.setattr(structure, "detect_grain", lambda image: "y")
-    assert detect_lattice(weak) is None and detect_lattice(strong) is not None
-
-
-def _corrugation(period: float = 8.8, size: int = 256, wander_px: float = 1.5, patches: float = 0.12,
-                 noise: float = 0.05, seed: int = 7) -> np.ndarray:
-    """Corrugated board: sharp ridges every ``period`` px down the photo, running along x
-    and wandering by up to ``wander_px`` (as pressed board does), over large tone patches
-    (like the validation cardboard's) and fine noise."""
-    rng = np.random.default_rng(seed)
-    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
-    wander = ndimage.gaussian_filter(rng.standard_normal((size, size)), 12)
-    ridges = (0.5 + 0.5 * np.cos(2 * np.pi * (y + wander_px * wander / np.abs(wander).max()) / period)) ** 8
-    tone = ndimage.gaussian_filter(rng.standard_normal((size, size)), 24)
-    image = 0.55 + 0.12 * ridges + patches * tone / np.abs(tone).max() + noise * rng.standard_normal((size, size))
-    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
-
-
-def test_detect_stripes_measures_the_period_across_the_stripes(skimage_textures):
-    """A photo that repeats along one direction only has no 2D lattice, but its stripes are
-    found: the period across them to a fraction of a pixel, the second vector along them.
-    The peak the search starts from may lean (any a + t s shows the same stripes); the
-    period must not. Stripes correlate along whole ridges, where a bump can pass for a
-    second repeat: detect_lattice must not take one (the faint-patch board below gave it
-    b = (40.6, 52.9) px before it checked for a repeat along the stripes)."""
-    for board in (dict(), dict(wander_px=0.0), dict(patches=0.06, noise=0.02)):
-        image = _corrugation(**board)
-        assert detect_lattice(image) is None, board
-        ax, ay, bx, by = detect_stripes(image)
-        assert abs(ax) < 0.05 and abs(abs(ay) - 8.8) < 0.15, (board, ax, ay)
-        assert (bx, by) == pytest.approx((-ay, ax))              # a quarter turn: along the stripes
-    image = _corrugation()
-    ax, ay, _, _ = detect_stripes(image.transpose(1, 0, 2))  # ridges up-down: the period runs along x
-    assert abs(abs(ax) - 8.8) < 0.15 and abs(ay) < 0.05, (ax, ay)
-    for name in ("gravel", "grass", "brick"):               # stochastic, or grain without a period
-        assert detect_stripes(skimage_textures[name]) is None, name
-    assert detect_stripes(np.full((64, 64, 3), 0.5)) is None
-    # a brick wall's courses are stripes too; fit_exemplar asks for stripes only where
-    # detect_lattice finds no lattice, and it finds the bond
-    assert detect_lattice(_running_bond()) is not None
-
-
 def test_a_striped_photo_is_fitted_on_its_stripes(tmp_path, vgg):
     """fit_exemplar with lattice="auto" falls back to the stripes when there is no 2D lattice
     and reports them as its lattice, in world units."""
     torch.manual_seed(0)
     export_model(TextureSpace(ModelConfig()), tmp_path / "space")
     image = tmp_path / "corrugated.png"
-    Image.fromarray((_corrugation() * 255).round().astype(np.uint8)).save(image)
+    Image.fromarray((corrugation() * 255).round().astype(np.uint8)).save(image)
     result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt",
                           minutes=0.02, patch=32, lattice="auto", grain="auto")
     stripes = np.array(detect_stripes(np.asarray(Image.open(image), np.float32) / 255)) / ModelConfig().pixels_per_unit
@@ -211,41 +59,6 @@ def test_a_striped_photo_is_fitted_on_its_stripes(tmp_path, vgg):
     unfitted = fit_exemplar(image, tmp_path / "plain", init_checkpoint=tmp_path / "space" / "space.pt",
                             minutes=0.02, patch=32, lattice=None, grain="auto")
     assert unfitted["lattice"] is None
-
-
-def _boards(width: float = 25.6, size: int = 256, seed: int = 5) -> np.ndarray:
-    """Boards side by side, ``width`` px across, running up-down: each its own wavy grain
-    and tone, dark joints between them (a plank floor seen from above)."""
-    rng = np.random.default_rng(seed)
-    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
-    board = np.floor((x + 0.5) / width).astype(int)
-    wander = 200 * ndimage.gaussian_filter(rng.standard_normal((size, size)), 16)
-    phase = rng.uniform(0, 2 * np.pi, (board.max() + 1, 6))[board]
-    grain = sum(np.sin((x + wander) * f + phase[..., i]) / f ** 0.5 for i, f in enumerate((0.25, 0.4, 0.6, 0.9, 1.3, 1.9)))
-    tone = rng.uniform(-0.06, 0.06, board.max() + 1)[board]
-    joint = np.abs(((x + 0.5) / width + 0.5) % 1 - 0.5) * width < 1.0
-    image = 0.55 + 0.03 * grain + tone - 0.3 * joint + 0.01 * rng.standard_normal((size, size))
-    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
-
-
-def test_detect_boards_measures_the_board_width_across_the_grain(skimage_textures):
-    """Boards repeat across their grain, which the photo's autocorrelation hides under the
-    grain's streaks (no lattice, no stripes); averaged along the grain the joints show. The
-    width comes to a fraction of a pixel, also where it falls between two pixels (whose
-    peaks split), and the board is the shortest repeat, not two boards."""
-    for width in (9.3, 12.5, 25.6):
-        image = _boards(width)
-        assert detect_grain(image) == "y" and detect_lattice(image) is None and detect_stripes(image) is None
-        ax, ay, bx, by = detect_boards(image, "y")
-        assert abs(ax - width) < 0.1 and ay == 0 and (bx, by) == pytest.approx((0.0, ax)), (width, ax)
-    ax, ay, bx, by = detect_boards(_boards().transpose(1, 0, 2), "x")  # boards left-right
-    assert ax == 0 and abs(ay - 25.6) < 0.1 and (bx, by) == pytest.approx((-ay, 0.0))
-    assert detect_boards(_boards(), "x") is None                     # along the grain: no joints
-    assert detect_boards(_streaks(), "y") is None                    # one piece of wood
-    assert detect_boards(skimage_textures["brick"], "y") is None     # grain without a period
-    assert detect_boards(np.full((64, 64, 3), 0.5), "y") is None
-    with pytest.raises(ValueError, match="grain"):
-        detect_boards(_boards(), None)
 
 
 def test_a_boards_photo_keeps_its_grain_and_reads_its_boards(tmp_path, vgg):
@@ -259,11 +72,11 @@ def test_a_boards_photo_keeps_its_grain_and_reads_its_boards(tmp_path, vgg):
     torch.manual_seed(0)
     export_model(TextureSpace(ModelConfig()), tmp_path / "space")
     image = tmp_path / "planks.png"
-    Image.fromarray((_boards() * 255).round().astype(np.uint8)).save(image)
+    Image.fromarray((boards() * 255).round().astype(np.uint8)).save(image)
     result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt",
                           minutes=0.02, patch=32, lattice="auto", grain="auto")
-    boards = np.array(detect_boards(np.asarray(Image.open(image), np.float32) / 255, "y")) / ModelConfig().pixels_per_unit
-    assert result["grain"] == "y" and result["lattice"] == pytest.approx(boards.tolist())
+    found = np.array(detect_boards(np.asarray(Image.open(image), np.float32) / 255, "y")) / ModelConfig().pixels_per_unit
+    assert result["grain"] == "y" and result["lattice"] == pytest.approx(found.tolist())
     vector = np.concatenate([np.asarray(result["code"], np.float32), identity_colour(216)])
     tileable = PeriodicSampler(SamplerSession(tmp_path / "fit" / TILEABLE_SAMPLER, threads=1), period=0.9)
     near = np.random.default_rng(3).uniform(0, 1, (200, 3))
@@ -298,7 +111,7 @@ def test_every_fit_takes_the_large_patch_and_falling_rates_by_default(tmp_path, 
         raise Stop
 
     monkeypatch.setattr(fit, "train", train)
-    for name, image in (("corrugated", _corrugation()), ("bricks", _running_bond())):
+    for name, image in (("corrugated", corrugation()), ("bricks", running_bond())):
         Image.fromarray((image * 255).round().astype(np.uint8)).save(tmp_path / f"{name}.png")
         with pytest.raises(Stop):
             fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=tmp_path / "space" / "space.pt",
@@ -324,7 +137,7 @@ def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, 
     torch.manual_seed(0)
     export_model(TextureSpace(ModelConfig()), tmp_path / "space")
     image = tmp_path / "bricks.png"
-    Image.fromarray((_running_bond() * 255).astype(np.uint8)).save(image)
+    Image.fromarray((running_bond() * 255).astype(np.uint8)).save(image)
     result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt",
                           minutes=0.05, patch=32, lattice="auto", grain="auto")
     ppu = ModelConfig().pixels_per_unit
@@ -467,7 +280,7 @@ def test_patch_side_defaults_to_128_with_or_without_a_lattice(tmp_path, monkeypa
     torch.manual_seed(0)
     export_model(TextureSpace(ModelConfig()), tmp_path / "space")
     bricks, plain = tmp_path / "bricks.png", tmp_path / "plain.png"
-    Image.fromarray((_running_bond() * 255).astype(np.uint8)).save(bricks)
+    Image.fromarray((running_bond() * 255).astype(np.uint8)).save(bricks)
     noise = ndimage.gaussian_filter(np.random.default_rng(2).random((256, 256)), 3)
     Image.fromarray((np.repeat(noise[..., None], 3, axis=2) * 255).astype(np.uint8)).save(plain)
     for image, patch in ((plain, None), (bricks, None), (plain, 48)):

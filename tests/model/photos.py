@@ -1,0 +1,59 @@
+"""Synthetic photos with known structure, for the structure detectors and the fit's tests:
+(H, W, 3) float arrays in [0, 1], grey, x right, y down."""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+
+def streaks(size: int = 256, angle_degrees: float = 0.0) -> np.ndarray:
+    """Wood-like streaks: bands of many widths whose brightness changes across image x
+    (so they run up-down at angle 0), turned by ``angle_degrees``, with a little noise."""
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    across = x * np.cos(np.radians(angle_degrees)) + y * np.sin(np.radians(angle_degrees))
+    value = sum(np.sin(across * f + rng.uniform(0, 6.3)) / f ** 0.5 for f in rng.uniform(0.03, 0.8, 12))
+    value = 0.5 + 0.1 * value + 0.01 * rng.standard_normal((size, size))
+    return np.repeat(np.clip(value, 0, 1)[..., None], 3, axis=2)
+
+
+def running_bond(size: int = 256, brick: int = 32, course: int = 11) -> np.ndarray:
+    """Bricks brick x course px in a running bond (every course shifted by half a brick),
+    1-px mortar, each brick its own shade: a regular photo with a known lattice."""
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:size, 0:size]
+    row = y // course
+    shifted = x + (row % 2) * (brick // 2)
+    shade = rng.uniform(0.35, 0.55, (size // course + 2, size // brick + 3))[row, shifted // brick]
+    mortar = (y % course == 0) | (shifted % brick == 0)
+    image = np.where(mortar, 0.85, shade) + 0.02 * rng.standard_normal((size, size))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+
+def corrugation(period: float = 8.8, size: int = 256, wander_px: float = 1.5, patches: float = 0.12,
+                 noise: float = 0.05, seed: int = 7) -> np.ndarray:
+    """Corrugated board: sharp ridges every ``period`` px down the photo, running along x
+    and wandering by up to ``wander_px`` (as pressed board does), over large tone patches
+    (like the validation cardboard's) and fine noise."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    wander = ndimage.gaussian_filter(rng.standard_normal((size, size)), 12)
+    ridges = (0.5 + 0.5 * np.cos(2 * np.pi * (y + wander_px * wander / np.abs(wander).max()) / period)) ** 8
+    tone = ndimage.gaussian_filter(rng.standard_normal((size, size)), 24)
+    image = 0.55 + 0.12 * ridges + patches * tone / np.abs(tone).max() + noise * rng.standard_normal((size, size))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+
+def boards(width: float = 25.6, size: int = 256, seed: int = 5) -> np.ndarray:
+    """Boards side by side, ``width`` px across, running up-down: each its own wavy grain
+    and tone, dark joints between them (a plank floor seen from above)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    board = np.floor((x + 0.5) / width).astype(int)
+    wander = 200 * ndimage.gaussian_filter(rng.standard_normal((size, size)), 16)
+    phase = rng.uniform(0, 2 * np.pi, (board.max() + 1, 6))[board]
+    grain = sum(np.sin((x + wander) * f + phase[..., i]) / f ** 0.5 for i, f in enumerate((0.25, 0.4, 0.6, 0.9, 1.3, 1.9)))
+    tone = rng.uniform(-0.06, 0.06, board.max() + 1)[board]
+    joint = np.abs(((x + 0.5) / width + 0.5) % 1 - 0.5) * width < 1.0
+    image = 0.55 + 0.03 * grain + tone - 0.3 * joint + 0.01 * rng.standard_normal((size, size))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)

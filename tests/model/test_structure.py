@@ -1,0 +1,164 @@
+"""model/structure.py: what regular structure a photo has (grain, a repeat lattice,
+stripes, boards), measured on synthetic photos of known structure and on packaged ones."""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+import pytest
+
+pytest.importorskip("torch")  # model/structure.py folds lattices with model/train.py's helpers
+
+from model.structure import (detect_boards, detect_grain, detect_lattice, detect_stripes,  # noqa: E402
+                             fold_lattice, photo_structure)
+from tests.model.photos import boards, corrugation, running_bond, streaks  # noqa: E402
+
+
+def test_detect_grain_finds_axis_aligned_streaks_only(skimage_textures):
+    assert detect_grain(streaks()) == "y"                     # bands across x: the grain runs up-down
+    assert detect_grain(streaks().transpose(1, 0, 2)) == "x"
+    assert detect_grain(streaks(angle_degrees=45)) is None    # a fit can stretch along x or y only
+    assert detect_grain(np.full((64, 64, 3), 0.5)) is None     # flat: no gradients at all
+    for name in ("grass", "gravel"):                           # isotropic photos
+        assert detect_grain(skimage_textures[name]) is None, name
+
+
+def test_detect_lattice_finds_a_running_bond_and_nothing_in_stochastic_photos(skimage_textures):
+    ax, ay, bx, by = detect_lattice(running_bond())
+
+    def on_the_bond(x: float, y: float) -> bool:  # whole courses down, half a brick along per course
+        courses = round(y / 11)
+        along = x - courses * 16
+        return abs(y - 11 * courses) < 0.25 and abs(along - 32 * round(along / 32)) < 0.25
+
+    assert on_the_bond(ax, ay) and on_the_bond(bx, by), (ax, ay, bx, by)
+    assert abs(ax * by - ay * bx) == pytest.approx(32 * 11, rel=0.02)  # the bond's lattice, not a sublattice
+    for name in ("grass", "gravel"):
+        assert detect_lattice(skimage_textures[name]) is None, name
+    assert detect_lattice(np.full((64, 64, 3), 0.5)) is None
+
+
+def test_fold_lattice_moves_a_bond_that_is_off_onto_the_photos_own():
+    # the validation brick wall's peaks gave -13.8 px per course where the bond is -16: a
+    # lattice that far off averages the vertical joints out of the mean cell
+    image = running_bond()
+    off = fold_lattice(image, (32.0, 0.0, -13.8, 11.0))
+    assert off[:2] == pytest.approx((32.0, 0.0), abs=0.3)
+    assert off[2] == pytest.approx(-16.0, abs=0.3) and off[3] == pytest.approx(11.0, abs=0.3)
+    assert fold_lattice(image, (32.0, 0.0, 16.0, 11.0)) == pytest.approx((32.0, 0.0, 16.0, 11.0), abs=0.3)
+
+
+def test_detect_lattice_measures_a_skewed_lattice_to_a_fraction_of_a_pixel():
+    """Blobs on a lattice with non-integer, skewed basis vectors: single integer peaks are
+    up to half a pixel off each; the least-squares refinement over every lattice point in
+    view must find the lattice within 0.15 px per basis vector."""
+    true = np.array([[23.4, 1.3], [9.3, 17.7]])
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:256, 0:256].astype(np.float64)
+    image = np.zeros((256, 256))
+    for i in range(-4, 20):
+        for j in range(-4, 20):
+            cx, cy = i * true[0] + j * true[1]
+            image += rng.uniform(0.7, 1.0) * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * 2.5 ** 2))
+    image = np.clip(0.2 + 0.6 * image + 0.03 * rng.standard_normal(image.shape), 0, 1)
+    found = np.array(detect_lattice(np.repeat(image[..., None], 3, axis=2))).reshape(2, 2)
+    # the same lattice: each true vector an integer combination of the found ones, and back
+    change = true @ np.linalg.inv(found)
+    assert abs(abs(np.linalg.det(np.rint(change))) - 1) < 1e-9, found
+    assert np.abs(np.rint(change) @ found - true).max() < 0.15, found
+
+
+def test_detect_lattice_finds_a_tile_grid_four_tiles_across():
+    """Square tiles of a quarter of the photo (the validation floor tiles: 4 x 4 tiles of
+    64 px at the working resolution), grey-veined with thin grout: the autocorrelation
+    peaks are only ~0.45 and sit at a quarter of the image, yet the grid is found."""
+    rng = np.random.default_rng(5)
+    size, tile = 256, 64
+    veins = ndimage.gaussian_filter(rng.standard_normal((size, size)), 6)
+    image = 0.85 + 0.5 * veins / np.abs(veins).max() * 0.2
+    y, x = np.mgrid[0:size, 0:size]
+    image[(y % tile == 0) | (x % tile == 0)] = 0.55                    # 1-px grout
+    found = detect_lattice(np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2))
+    assert found is not None
+    change = np.array([[tile, 0], [0, tile]]) @ np.linalg.inv(np.array(found).reshape(2, 2))
+    assert np.abs(change - np.rint(change)).max() < 0.02 and abs(abs(np.linalg.det(np.rint(change))) - 1) < 1e-9, found
+
+
+def test_a_weak_lattice_gives_way_to_grain(monkeypatch):
+    """A lattice with peaks under LATTICE_STRONG is kept for a photo without grain and
+    dropped for one with grain (wood planks: their weak lattice drew blobs, their grain
+    boards); a strong lattice stays either way."""
+    import model.structure as structure
+
+    rng = np.random.default_rng(5)
+    size, tile = 256, 64
+    y, x = np.mgrid[0:size, 0:size]
+
+    def grid(noise: float) -> np.ndarray:
+        image = 0.8 + noise * ndimage.gaussian_filter(rng.standard_normal((size, size)), 2) / 0.14
+        image[(y % tile < 2) | (x % tile < 2)] -= 0.25
+        return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+    weak, strong = grid(0.05), grid(0.01)            # autocorrelation peaks ~0.56 and ~0.95
+    assert detect_lattice(weak) is not None and detect_lattice(strong) is not None
+    monkeypatch.setattr(structure, "detect_grain", lambda image: "y")
+    assert detect_lattice(weak) is None and detect_lattice(strong) is not None
+
+
+def test_detect_stripes_measures_the_period_across_the_stripes(skimage_textures):
+    """A photo that repeats along one direction only has no 2D lattice, but its stripes are
+    found: the period across them to a fraction of a pixel, the second vector along them.
+    The peak the search starts from may lean (any a + t s shows the same stripes); the
+    period must not. Stripes correlate along whole ridges, where a bump can pass for a
+    second repeat: detect_lattice must not take one (the faint-patch board below gave it
+    b = (40.6, 52.9) px before it checked for a repeat along the stripes)."""
+    for board in (dict(), dict(wander_px=0.0), dict(patches=0.06, noise=0.02)):
+        image = corrugation(**board)
+        assert detect_lattice(image) is None, board
+        ax, ay, bx, by = detect_stripes(image)
+        assert abs(ax) < 0.05 and abs(abs(ay) - 8.8) < 0.15, (board, ax, ay)
+        assert (bx, by) == pytest.approx((-ay, ax))              # a quarter turn: along the stripes
+    image = corrugation()
+    ax, ay, _, _ = detect_stripes(image.transpose(1, 0, 2))  # ridges up-down: the period runs along x
+    assert abs(abs(ax) - 8.8) < 0.15 and abs(ay) < 0.05, (ax, ay)
+    for name in ("gravel", "grass", "brick"):               # stochastic, or grain without a period
+        assert detect_stripes(skimage_textures[name]) is None, name
+    assert detect_stripes(np.full((64, 64, 3), 0.5)) is None
+    # a brick wall's courses are stripes too; fit_exemplar asks for stripes only where
+    # detect_lattice finds no lattice, and it finds the bond
+    assert detect_lattice(running_bond()) is not None
+
+
+def test_detect_boards_measures_the_board_width_across_the_grain(skimage_textures):
+    """Boards repeat across their grain, which the photo's autocorrelation hides under the
+    grain's streaks (no lattice, no stripes); averaged along the grain the joints show. The
+    width comes to a fraction of a pixel, also where it falls between two pixels (whose
+    peaks split), and the board is the shortest repeat, not two boards."""
+    for width in (9.3, 12.5, 25.6):
+        image = boards(width)
+        assert detect_grain(image) == "y" and detect_lattice(image) is None and detect_stripes(image) is None
+        ax, ay, bx, by = detect_boards(image, "y")
+        assert abs(ax - width) < 0.1 and ay == 0 and (bx, by) == pytest.approx((0.0, ax)), (width, ax)
+    ax, ay, bx, by = detect_boards(boards().transpose(1, 0, 2), "x")  # boards left-right
+    assert ax == 0 and abs(ay - 25.6) < 0.1 and (bx, by) == pytest.approx((-ay, 0.0))
+    assert detect_boards(boards(), "x") is None                     # along the grain: no joints
+    assert detect_boards(streaks(), "y") is None                    # one piece of wood
+    assert detect_boards(skimage_textures["brick"], "y") is None     # grain without a period
+    assert detect_boards(np.full((64, 64, 3), 0.5), "y") is None
+    with pytest.raises(ValueError, match="grain"):
+        detect_boards(boards(), None)
+
+
+def test_photo_structure_decides_what_a_fit_builds_in(skimage_textures):
+    """Lattice first, then stripes, then grain; boards only on a photo with grain, and they
+    keep it; "auto" detects, None turns a part off, an explicit grain is kept as given."""
+    bond, board, plain = running_bond(), corrugation(), boards()
+    grain, lattice = photo_structure(bond)
+    assert grain is None and lattice == pytest.approx(fold_lattice(bond, detect_lattice(bond)))
+    assert photo_structure(board) == (None, pytest.approx(detect_stripes(board)))
+    assert photo_structure(plain) == ("y", pytest.approx(detect_boards(plain, "y")))
+    assert photo_structure(streaks()) == ("y", None)                       # one piece of wood
+    assert photo_structure(skimage_textures["gravel"]) == (None, None)
+    assert photo_structure(plain, lattice=None) == ("y", None)             # grain alone
+    assert photo_structure(plain, grain=None) == (None, None)              # no grain: no boards
+    assert photo_structure(bond, grain="x")[0] == "x"                      # asked for: kept
+    assert photo_structure(board, grain=None, lattice=None) == (None, None)
