@@ -58,28 +58,39 @@ def uploaded(base_url) -> dict:
         return json.load(response)
 
 
-@pytest.fixture(scope="module")
-def lattice_sampler(tmp_path_factory) -> Path:
-    """A sampler fitted on a repeat lattice, as a fit of a brick wall makes one: the shipped
-    space's weights, a running-bond lattice (world units), a mean repeat cell and phase
-    weights drawn at random (a fit measures and learns them; any values take the same path
-    through the shader)."""
+def structured_sampler(folder: Path, **structure) -> Path:
+    """A sampler as a fit with ``structure`` (ModelConfig's lattice, lattice_cell, grain)
+    makes one: the shipped space's weights, a mean repeat cell and phase weights drawn at
+    random (a fit measures and learns them; any values take the same path through the
+    shader)."""
     torch = pytest.importorskip("torch", reason="exporting a sampler needs the train extra")
     from model.export import export_sampler
     from model.networks import ModelConfig, TextureSpace
 
     checkpoint = torch.load(SAMPLER.parent / "space.pt", map_location="cpu", weights_only=False)
-    field = TextureSpace(ModelConfig(**{**checkpoint["config"], "lattice": (0.125, 0.0, -0.054, 0.0417),
-                                        "lattice_cell": (32, 13)})).field
+    field = TextureSpace(ModelConfig(**{**checkpoint["config"], **structure})).field
     state = {k[len("field."):]: v for k, v in checkpoint["model"].items() if k.startswith("field.")}
     missing, _ = field.load_state_dict(state, strict=False)
     assert sorted(missing) == ["decoder.from_phase.weight", "lattice_mean_cell"], missing
     torch.manual_seed(0)
     torch.nn.init.normal_(field.decoder.from_phase.weight, std=0.5)
     field.lattice_mean_cell.normal_()
-    path = tmp_path_factory.mktemp("lattice-sampler") / "sampler.onnx"
-    export_sampler(field.eval(), path)
-    return path
+    export_sampler(field.eval(), folder / "sampler.onnx")
+    return folder / "sampler.onnx"
+
+
+@pytest.fixture(scope="module")
+def lattice_sampler(tmp_path_factory) -> Path:
+    """Fitted on a running bond (world units), as a fit of a brick wall is."""
+    return structured_sampler(tmp_path_factory.mktemp("lattice-sampler"), lattice=(0.125, 0.0, -0.054, 0.0417),
+                              lattice_cell=(32, 13))
+
+
+@pytest.fixture(scope="module")
+def boards_sampler(tmp_path_factory) -> Path:
+    """Fitted on boards, as a fit of a plank floor is: grain along y and stripes across it."""
+    return structured_sampler(tmp_path_factory.mktemp("boards-sampler"), lattice=(0.1, 0.0, 0.0, 0.1),
+                              lattice_cell=(26, 26), grain="y")
 
 
 @pytest.fixture(scope="module")
@@ -173,6 +184,14 @@ def test_lattice_shader_matches_its_sampler(gpu_page, lattice_sampler, uploaded,
     does (model/networks.py lattice_phases); the phases change the texture."""
     vector = texture_vector(uploaded["code"], uploaded["colour"])
     check_emitted(gpu_page, lattice_sampler, vector, "texspace_bricks", language, artifacts, "lattice")
+
+
+@pytest.mark.parametrize("language", ["glsl", "wgsl"])
+def test_boards_shader_matches_its_sampler(gpu_page, boards_sampler, uploaded, artifacts, language):
+    """Boards (a plank floor's fit): noise stretched along the grain and phases across it,
+    both in one shader, as in the sampler."""
+    vector = texture_vector(uploaded["code"], uploaded["colour"])
+    check_emitted(gpu_page, boards_sampler, vector, "texspace_planks", language, artifacts, "boards")
 
 
 @pytest.mark.parametrize("language", ["glsl", "wgsl"])
