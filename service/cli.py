@@ -22,6 +22,7 @@ import numpy as np
 
 from worker.bake import FORMATS as BAKE_FORMATS
 from worker.files import extensions
+from worker.images import LIGHTING
 from worker.regions import FORMATS as REGION_FORMATS
 from worker.shader import LANGUAGES
 from worker.tiles import COORD_LIMIT, PLANES, TILE_FORMATS
@@ -129,10 +130,10 @@ class TextureSource:
     """A texture named on the command line: an image file (encoded now) or a stored id.
     Looking an id up never creates a database: a mistyped path is refused instead."""
 
-    def __init__(self, settings: Settings, ref: str) -> None:
+    def __init__(self, settings: Settings, ref: str, lighting: str = "as-is") -> None:
         path = Path(ref)
         if path.is_file():
-            self._encode(settings, path)
+            self._encode(settings, path, lighting)
             return
         url = settings.resolved_database_url
         database = _sqlite_file(url)
@@ -152,7 +153,7 @@ class TextureSource:
         self.structure = texture.served_structure()
         self.tileable_sampler = lambda: services.tileable_sampler_for(texture)
 
-    def _encode(self, settings: Settings, path: Path) -> None:
+    def _encode(self, settings: Settings, path: Path, lighting: str) -> None:
         from worker.colour_match import texture_vector
         from worker.images import encode_texture, read_image
 
@@ -162,7 +163,7 @@ class TextureSource:
         with _quiet_native_stderr():  # libpng prints its own line before the error we report
             image = read_image(path.read_bytes(), max_pixels=settings.max_image_pixels)
         runtime = _registry(settings).get(settings.default_model_version)
-        self.z, colour = encode_texture(runtime, image)
+        self.z, colour = encode_texture(runtime, image, lighting)
         self.code, self.sampler, self.ppu = texture_vector(self.z, colour), runtime, runtime.pixels_per_unit
         self.model_version = runtime.version
         self.structure = None
@@ -266,7 +267,7 @@ def cmd_reencode(args: argparse.Namespace, settings: Settings) -> None:
 
 
 def cmd_encode(args: argparse.Namespace, settings: Settings) -> None:
-    source = TextureSource(settings, args.image)
+    source = TextureSource(settings, args.image, args.lighting)
     print(json.dumps({"code": [round(float(c), 7) for c in source.z], "model_version": source.model_version}))
 
 
@@ -279,7 +280,7 @@ def cmd_tile(args: argparse.Namespace, settings: Settings) -> None:
     out, fmt = output(args, TILE_EXTENSIONS, f"tile-{args.z}-{args.x}-{args.y}")
     _at_most(args.size, settings.max_tile_size, "tile size", "TEXSPACE_MAX_TILE_SIZE")
     check_tile_work(settings, args.z, args.size)
-    source = TextureSource(settings, args.texture)
+    source = TextureSource(settings, args.texture, args.lighting)
     rgb = render_tile(source.sampler, source.code, args.seed, args.z, args.x, args.y, args.size,
                       pixels_per_unit=source.ppu, plane=args.plane, offset=args.offset)
     out.write_bytes(write_image(rgb, fmt))
@@ -294,7 +295,7 @@ def cmd_volume(args: argparse.Namespace, settings: Settings) -> None:
     bounds = np.asarray(args.bounds, np.float64).reshape(2, 3)
     if (np.abs(bounds) >= OFFSET_LIMIT).any() or not (bounds[1] > bounds[0]).all():
         raise CliError("--bounds: coordinates below 1e9 in magnitude, and X1 > X0, Y1 > Y0, Z1 > Z0")
-    source = TextureSource(settings, args.texture)
+    source = TextureSource(settings, args.texture, args.lighting)
     bar, report = _progress_bar("volume")
     with bar:
         path = render_volume(source.sampler, source.code, args.seed, resolution=args.resolution,
@@ -315,7 +316,7 @@ def cmd_bake(args: argparse.Namespace, settings: Settings) -> None:
     _at_most(mesh.stat().st_size, settings.max_mesh_bytes, f"{mesh}: size in bytes", "TEXSPACE_MAX_MESH_BYTES")
     data = mesh.read_bytes()
     check_mesh(settings, data, mesh.name)  # as the API does at submission, before any work
-    source = TextureSource(settings, args.texture)
+    source = TextureSource(settings, args.texture, args.lighting)
     bar, report = _progress_bar("bake")
     with bar:
         result = bake_mesh(source.sampler, source.code, args.seed, mesh_bytes=data, filename=mesh.name,
@@ -332,7 +333,7 @@ def cmd_tileable(args: argparse.Namespace, settings: Settings) -> None:
 
     out, fmt = output(args, TILEABLE_EXTENSIONS, f"tileable-{args.size}")
     _at_most(args.size * args.size, settings.max_region_pixels, "pixels", "TEXSPACE_MAX_REGION_PIXELS")
-    source = TextureSource(settings, args.texture)
+    source = TextureSource(settings, args.texture, args.lighting)
     bar, report = _progress_bar("tileable")
     with bar:
         path = render_region(source.tileable_sampler(), source.code, args.seed, z=NATIVE_ZOOM, x0=0, y0=0,
@@ -347,7 +348,7 @@ def cmd_shader(args: argparse.Namespace, settings: Settings) -> None:
     from worker.shader import emit_shader, shader_name
 
     out, fmt = output(args, SHADER_EXTENSIONS, "shader")
-    source = TextureSource(settings, args.texture)
+    source = TextureSource(settings, args.texture, args.lighting)
     sampler = getattr(source.sampler, "sampler", source.sampler)  # a model's runtime, or a fitted sampler
     ref = Path(args.texture)
     name = shader_name(ref.stem if ref.is_file() else args.texture)
@@ -410,8 +411,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the model to move them to (default: TEXSPACE_DEFAULT_MODEL_VERSION, else the newest)")
     p.add_argument("--dry-run", action="store_true", help="report what would move; change nothing (default: move them)")
 
+    def lighting_arg(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--lighting", choices=LIGHTING, default="as-is",
+                       help="an image file's lighting: even divides out its smooth shading (light falling off, a "
+                            "vignette) before it is encoded (a stored texture keeps its own)")
+
     p = proc("encode", cmd_encode, "print the texture code of an image file or stored texture id")
     p.add_argument("image", help="IMAGE file or TEXTURE_ID (required)")
+    lighting_arg(p)
 
     def texture_args(p: argparse.ArgumentParser, what: str, formats: dict[str, tuple[str, ...]], name: str) -> None:
         p.add_argument("--seed", type=ranged(int, 0, SEED_MAX), default=0,
@@ -423,6 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
                             f"must exist (default: {name}{formats[first][0]} here)")
         p.add_argument("--format", choices=list(formats),
                        help=f"must agree with -o's extension (default: from -o's extension, else {first})")
+        lighting_arg(p)
 
     p = proc("tile", cmd_tile, "render one tile of an image file or stored texture id")
     p.add_argument("texture", help="IMAGE file or TEXTURE_ID (required)")
@@ -477,6 +485,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="where to write it; .glsl or .wgsl picks the language (default: shader.glsl here)")
     p.add_argument("--format", choices=list(SHADER_EXTENSIONS),
                    help="must agree with -o's extension (default: from -o's extension, else glsl)")
+    lighting_arg(p)
 
     p = proc("keys", cmd_keys, "API keys: create, list, revoke")
     actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")

@@ -85,13 +85,14 @@ class Client:
 
     # --- textures -------------------------------------------------------------------
     def upload(self, image: str | os.PathLike | bytes, *, name: str | None = None,
-               filename: str | None = None) -> dict[str, Any]:
-        """Upload a photo (a path, or bytes with ``filename``); returns the texture."""
+               filename: str | None = None, lighting: str = "as-is") -> dict[str, Any]:
+        """Upload a photo (a path, or bytes with ``filename``); returns the texture.
+        ``lighting="even"``: its smooth shading is divided out before it is encoded and fitted."""
         if isinstance(image, bytes):
             data, filename = image, filename or "image.png"
         else:
             data, filename = Path(image).read_bytes(), filename or Path(image).name
-        form = {"name": name} if name is not None else {}
+        form = {"lighting": lighting} | ({"name": name} if name is not None else {})
         return self._call("POST", "/v1/textures", files={"image": (filename, data)}, data=form).json()
 
     def texture(self, texture_id: str) -> dict[str, Any]:

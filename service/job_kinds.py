@@ -19,7 +19,7 @@ import numpy as np
 from worker.colour_match import calibrate_texture
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
 from worker.files import extension, media_type
-from worker.images import read_image, resize_short_side
+from worker.images import read_image, resize_short_side, working_photo, write_image
 
 from . import keys
 from .container import Services
@@ -140,8 +140,14 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     # reader, worker.decode, as this process)
     original = services.storage.get_file(texture.exemplar_key, workdir / Path(texture.exemplar_key).name)
     image = read_image(original.read_bytes(), max_pixels=services.settings.max_image_pixels)
+    photo = original
+    if texture.lighting == "even":  # the fit and its colour table see the photo as its encoding did
+        short_side = services.registry.get(texture.model_version).manifest.get("exemplar_short_side")
+        image = working_photo(image, short_side, texture.lighting)
+        photo = workdir / "evened.tiff"  # 16-bit sRGB: what model.fit reads, at its own resolution
+        photo.write_bytes(write_image(image, "tiff", colour="srgb"))
     out_dir = workdir / "fit"
-    fitted = _fit_exemplar(services, texture, p, original, out_dir, progress, should_cancel)
+    fitted = _fit_exemplar(services, texture, p, photo, out_dir, progress, should_cancel)
     structure = {"grain": fitted.get("grain"), "lattice": fitted.get("lattice")}
     code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
     values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
@@ -164,7 +170,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
                                 exemplar_key=exemplar_key,
                                 exemplar_media_type=texture.exemplar_media_type,
                                 width=texture.width, height=texture.height, sampler_key=sampler_key,
-                                structure=structure))
+                                structure=structure, lighting=texture.lighting))
     return {**values, "output_texture_id": new_id}
 
 

@@ -51,7 +51,7 @@ def stale_textures(services, versions: set[str] | None = None) -> list[Texture]:
     loaded = set(services.registry.models)
     query = (select(Texture).order_by(Texture.created_at, Texture.id)
              .options(load_only(Texture.id, Texture.model_version, Texture.source, Texture.parents,
-                                Texture.exemplar_key, Texture.sampler_key, Texture.created_at)))
+                                Texture.exemplar_key, Texture.sampler_key, Texture.lighting, Texture.created_at)))
     query = query.where(Texture.model_version.in_(versions) if versions is not None
                         else Texture.model_version.not_in(loaded))
     with session_scope(services.sessions) as session:
@@ -100,7 +100,7 @@ def _encode_again(services, runtime, texture: Texture, refine: dict | None) -> b
     the texture was deleted meanwhile."""
     pixels = read_image(services.storage.get_bytes(texture.exemplar_key),
                         max_pixels=services.settings.max_image_pixels)
-    code, colour = encode_texture(runtime, pixels)
+    code, colour = encode_texture(runtime, pixels, texture.lighting)
     with session_scope(services.sessions) as session:
         row = session.get(Texture, texture.id)
         if row is None:

@@ -73,6 +73,9 @@ class TextureOut(BaseModel):
     refinement: Refinement | None = Field(None, description="the upload's automatic refinement, if one was queued")
     structure: Structure | None = Field(
         None, description="what the fitted sampler was built with (grain, repeat lattice); null from the encoder")
+    lighting: Literal["as-is", "even"] = Field(
+        "as-is", description="how its photo is encoded and fitted: as it is, or with its smooth shading (light "
+                             "falling off, a vignette) divided out first; the stored photo is unchanged")
     created_at: dt.datetime
     updated_at: dt.datetime
     links: TextureLinks
@@ -87,6 +90,7 @@ class TextureOut(BaseModel):
                    refinement=Refinement(job_id=refinement.id, state=refinement.state, progress=refinement.progress)
                    if refinement is not None else None,
                    structure=Structure(**t.served_structure()) if t.served_structure() else None,
+                   lighting=t.lighting or "as-is",
                    created_at=t.created_at, updated_at=t.updated_at,
                    links=TextureLinks(self=base, exemplar=f"{base}/exemplar" if t.exemplar_key else None,
                                       tiles=f"{base}/tiles/{{z}}/{{x}}/{{y}}.png", tilejson=f"{base}/tilejson.json",

@@ -94,6 +94,9 @@ class Texture(Base):
     # What the fitted sampler was built with (model.fit): {"grain": "x" | "y" | None,
     # "lattice": [ax, ay, bx, by] world units | None}. None for the encoder's code.
     structure: Mapped[dict | None] = mapped_column(JSON, nullable=True)
+    # How its photo is taken when encoded or fitted (worker.images.LIGHTING): "as-is", or
+    # "even" (its smooth shading divided out). The stored photo itself is never changed.
+    lighting: Mapped[str] = mapped_column(String(8), default="as-is", server_default="as-is")
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
     updated_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
 

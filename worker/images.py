@@ -37,6 +37,11 @@ from worker.errors import InvalidParameter
 from worker.runtime import ModelRuntime
 
 OUTPUT_FORMATS = ("png", "webp", "jpeg", "exr", "tiff")
+# How an upload's photo is lit: "as-is" (taken as it is) or "even" (its smooth shading divided
+# out first: ``even_lighting``). Photo-sourced textures often carry a light falloff; without
+# evening, a shaded photo's tiles show its light and dark sides as blotches (docs/notes).
+LIGHTING = ("as-is", "even")
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # Rec. 709, of linear RGB
 _budget: PixelBudget | None = None
 
 
@@ -84,13 +89,50 @@ def encode_image(runtime: ModelRuntime, image: np.ndarray, *, grid: int = 3) -> 
     return runtime.encode(crops).mean(axis=0).astype(np.float32)
 
 
-def encode_texture(runtime: ModelRuntime, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def even_lighting(image: np.ndarray) -> np.ndarray:
+    """The photo with its smooth shading divided out: light falling off across it, a
+    vignette. A quadratic in x and y fitted to log luminance (least squares, linear light),
+    taken out relative to its mean, so the photo keeps its mean log luminance and every
+    detail smaller than the photo itself; the texture's own large patches partly go too
+    where they happen to look like shading (the validation granite's).
+
+    image : (H, W, 3) float32 sRGB 0..1. Returns the same shape, float32 sRGB 0..1 (a pixel
+    brightened past white clips)."""
+    linear = srgb_to_linear(image)
+    height, width = linear.shape[:2]
+    y, x = np.linspace(-1, 1, height)[:, None], np.linspace(-1, 1, width)[None, :]
+    step = max(1, int(np.sqrt(height * width / 65536)))  # the fit needs no more samples than this
+    sample = np.s_[::step, ::step]
+    log_luminance = np.log(np.maximum(linear[sample] @ LUMINANCE, 1e-4), dtype=np.float64)
+    xs, ys = np.broadcast_arrays(x[sample], y[sample])
+    terms = np.stack([np.ones_like(xs), xs, ys, xs * xs, xs * ys, ys * ys], axis=-1).reshape(-1, 6)
+    _, cx, cy, cxx, cxy, cyy = np.linalg.lstsq(terms, log_luminance.ravel(), rcond=None)[0]
+    shading = (cx * x + cxx * x * x) + (cy * y + cyy * y * y) + cxy * x * y     # (H, W) by broadcasting
+    shading -= shading.mean()
+    return linear_to_srgb(linear * np.exp(-shading)[..., None].astype(np.float32))
+
+
+def working_photo(image: np.ndarray, short_side: int, lighting: str = "as-is") -> np.ndarray:
+    """The photo as a texture is encoded and fitted from: at the model's working resolution
+    (``resize_short_side``), its shading evened out where ``lighting`` is "even" (evening
+    after the resize is the same, shading being smooth, and far cheaper)."""
+    if lighting not in LIGHTING:
+        raise InvalidParameter(f"lighting must be one of {', '.join(LIGHTING)}, got {lighting!r}")
+    working = resize_short_side(image, short_side)
+    return even_lighting(working) if lighting == "even" else working
+
+
+def encode_texture(runtime: ModelRuntime, image: np.ndarray, lighting: str = "as-is") -> tuple[np.ndarray, np.ndarray]:
     """What a texture stores of an sRGB photo: its code (8,) float32 and its colour table
-    for the model's sampler (worker/colour_match.py; empty if the sampler has no colour stage)."""
-    working = resize_short_side(image, runtime.short_side)
+    for the model's sampler (worker/colour_match.py; empty if the sampler has no colour stage),
+    from the photo as ``working_photo`` gives it."""
+    working = working_photo(image, runtime.short_side, lighting)
     # The crops are cut at max(short_side, input size): where the crop fits (every model so
     # far), that is the working image itself, so the photo is resized once, not twice.
-    code = encode_image(runtime, working if runtime.short_side >= runtime.input_size else image)
+    if runtime.short_side >= runtime.input_size:
+        code = encode_image(runtime, working)
+    else:  # crops larger than the working image: cut from the photo (evened as a whole)
+        code = encode_image(runtime, even_lighting(image) if lighting == "even" else image)
     return code, calibrate_texture(runtime.sampler, code, working)
 
 
@@ -111,14 +153,14 @@ def write_image(rgb: np.ndarray, fmt: str, *, colour: str = "linear", quality: i
     if fmt == "exr":
         linear = rgb if colour == "linear" else srgb_to_linear(rgb)
         return _write_oiio(linear, "exr", "half", {"compression": "zip"})
+    if fmt == "tiff":
+        srgb = linear_to_srgb(rgb) if colour == "linear" else np.clip(rgb, 0, 1)
+        srgb16 = (srgb * 65535 + 0.5).astype(np.uint16)
+        return _write_oiio(srgb16, "tif", "uint16", {"compression": "zip", "oiio:ColorSpace": "sRGB"})
     if colour == "linear":
         srgb8 = linear_to_srgb8(rgb)
     else:
         srgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
-    if fmt == "tiff":
-        srgb16 = srgb8.astype(np.uint16) * 257 if colour == "srgb" else \
-            (linear_to_srgb(rgb) * 65535 + 0.5).astype(np.uint16)
-        return _write_oiio(srgb16, "tif", "uint16", {"compression": "zip", "oiio:ColorSpace": "sRGB"})
     if fmt == "png":
         return png_bytes(srgb8)
     buf = io.BytesIO()

@@ -55,19 +55,23 @@ def create_texture(
     response: Response,
     image: Annotated[UploadFile, File(description="PNG, JPEG, TIFF, EXR or WebP; 8/16-bit, float, grey, RGBA")],
     name: Annotated[SafeText | None, Form(max_length=NAME_LENGTH)] = None,
+    lighting: Annotated[Literal["as-is", "even"], Form(
+        description="as-is (default), or even: the photo's smooth shading (light falling off, a vignette) "
+                    "divided out before it is encoded and fitted; the stored photo is unchanged")] = "as-is",
 ) -> TextureOut:
     """Encode an exemplar photo into a texture code and store it.
 
-    The image is resized so its shorter side is the model's working resolution, then a
-    3 x 3 grid of 128 x 128 crops is encoded and the codes averaged. Where fitting is
-    available (TEXSPACE_AUTO_FIT), a fit job then refines the texture in place.
+    The image is resized so its shorter side is the model's working resolution (its
+    shading evened out with ``lighting=even``), then a 3 x 3 grid of 128 x 128 crops is
+    encoded and the codes averaged. Where fitting is available (TEXSPACE_AUTO_FIT), a fit
+    job then refines the texture in place.
     """
     checked_text(image.filename or "", "image filename")
     data = read_limited(image, services.settings.max_upload_bytes, "the image")
     pixels = read_image(data, max_pixels=services.settings.max_image_pixels)
     ext = sniff_format(data)
     runtime = services.registry.get(services.settings.default_model_version)
-    code, colour = encode_texture(runtime, pixels)
+    code, colour = encode_texture(runtime, pixels, lighting)
     texture_id = new_id()
     refine = auto_fit_params(services, runtime.version)
     key = keys.exemplar_key(texture_id, f"exemplar.{ext}")
@@ -75,7 +79,7 @@ def create_texture(
     colour = [float(c) for c in colour] or None
     texture = Texture(id=texture_id, name=(name or image.filename or "")[:NAME_LENGTH], code=[float(c) for c in code],
                       colour=colour, model_version=runtime.version, source="upload", exemplar_key=key,
-                      exemplar_media_type=media_type_of_extension(ext),
+                      exemplar_media_type=media_type_of_extension(ext), lighting=lighting,
                       width=int(pixels.shape[1]), height=int(pixels.shape[0]), owner_id=auth.current_owner(),
                       refinement_job_id=new_id() if refine else None)
     try:

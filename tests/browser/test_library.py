@@ -3,6 +3,7 @@ by their texture, delete (with its jobs), a fit started from the page with its p
 and the whole page usable at a phone's width."""
 from __future__ import annotations
 
+import json
 import os
 import urllib.error
 import urllib.request
@@ -38,7 +39,11 @@ def test_search_label_and_delete(page, base_url: str, artifacts: Path) -> None:
     page.fill("#upload-name", "library brick")
     brick = upload(page, "brick", texture_photo_png())
     page.fill("#upload-name", "library gravel")
+    page.check("#upload-even-lighting")                   # the page sends the lighting asked for
     gravel = upload(page, "gravel", texture_photo_png("gravel", (0.6, 0.7, 1.0)))
+    lighting = {t: json.load(urllib.request.urlopen(f"{base_url}v1/textures/{t}", timeout=30))["lighting"]
+                for t in (brick, gravel)}
+    assert lighting == {brick: "as-is", gravel: "even"}
 
     # search: by name, any case; no match says so
     page.fill("#texture-search", "GRAV")

@@ -25,7 +25,8 @@ def ts(embedded):
 
 def test_upload_tiles_jobs_and_downloads(ts: Client, tmp_path: Path) -> None:
     texture = ts.upload(brick_png(128), filename="brick.png", name="client brick")
-    assert texture["name"] == "client brick" and len(texture["code"]) == 8
+    assert texture["name"] == "client brick" and len(texture["code"]) == 8 and texture["lighting"] == "as-is"
+    assert ts.upload(brick_png(128), filename="brick.png", lighting="even")["lighting"] == "even"
     assert ts.texture(texture["id"])["id"] == texture["id"]
     assert texture["id"] in {t["id"] for t in ts.textures(page_size=1)}
 
@@ -58,6 +59,9 @@ def test_upload_tiles_jobs_and_downloads(ts: Client, tmp_path: Path) -> None:
 
 def test_errors_are_exceptions(ts: Client) -> None:
     texture = ts.upload(brick_png(96), filename="b.png")
+    with pytest.raises(ApiError) as bad_lighting:
+        ts.upload(brick_png(96), filename="b.png", lighting="flat")
+    assert bad_lighting.value.status == 422 and "lighting" in bad_lighting.value.problem["detail"]
     with pytest.raises(ApiError) as bad_zoom:
         ts.tile(texture["id"], 99, 0, 0)
     assert bad_zoom.value.status == 422 and bad_zoom.value.problem["status"] == 422

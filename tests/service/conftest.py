@@ -30,6 +30,17 @@ def brick_png(size: int = 96, rgba: bool = False) -> bytes:
     return buf.getvalue()
 
 
+def shaded_png() -> bytes:
+    """The brick photo under a light falling off to the right (0.4x at the far side)."""
+    from worker.colour import linear_to_srgb8, srgb_to_linear
+
+    rgb = np.asarray(Image.open(io.BytesIO(brick_png(128))).convert("RGB"), np.float32) / 255
+    shade = np.linspace(1.0, 0.4, rgb.shape[1], dtype=np.float32)[None, :, None]
+    buf = io.BytesIO()
+    Image.fromarray(linear_to_srgb8(srgb_to_linear(rgb) * shade)).save(buf, "PNG")
+    return buf.getvalue()
+
+
 @pytest.fixture(scope="session")
 def photo() -> bytes:
     return brick_png()

@@ -16,7 +16,7 @@ from service.cli import main
 from service.db import migrate
 from service.settings import PACKAGED_MODEL_DIR, Settings
 from service.tables import Base
-from tests.service.conftest import brick_png
+from tests.service.conftest import brick_png, shaded_png
 
 MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"
 
@@ -27,6 +27,15 @@ def test_cli_encode_tile_volume_bake(cli_env: Path, capsys) -> None:
     assert len(out["code"]) == 8 and len(out["model_version"]) == 16
     main(["tile", "brick.png", "6", "-2", "5", "--size", "64", "-o", "t.png"])
     assert Image.open(cli_env / "t.png").size == (64, 64)
+    # --lighting even: the photo's shading divided out first, as an upload with lighting=even
+    (cli_env / "shaded.png").write_bytes(shaded_png())
+    capsys.readouterr()
+    main(["encode", "shaded.png", "--lighting", "even"])
+    evened = json.loads(capsys.readouterr().out)["code"]
+    main(["encode", "shaded.png"])
+    assert not np.allclose(evened, json.loads(capsys.readouterr().out)["code"], atol=1e-3)
+    main(["tile", "shaded.png", "6", "0", "0", "--size", "64", "--lighting", "even", "-o", "e.png"])
+    assert Image.open(cli_env / "e.png").size == (64, 64)
     main(["volume", "brick.png", "--resolution", "8", "-o", "v.npy"])
     assert np.load(cli_env / "v.npy").shape == (8, 8, 8, 3)
     main(["bake", str(MESHES / "cube.obj"), "--texture", "brick.png", "--resolution", "64", "-o", "c.glb"])

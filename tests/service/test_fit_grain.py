@@ -192,3 +192,26 @@ def test_a_lattice_fit_bakes_triplanar_by_default(fit_client, fit_texture, fit_c
     triplanar, solid = (bake_atlas(fit_client, fitted, projection=p) for p in ("triplanar", "solid"))
     assert not np.array_equal(triplanar, solid)
     assert np.array_equal(auto, triplanar if lattice == "auto" else solid)
+
+
+def test_fit_of_an_evened_texture_sees_the_photo_as_its_encoding_did(fit_client, fit_calls) -> None:
+    """A texture uploaded with lighting=even is fitted from its evened photo at the working
+    resolution (16-bit TIFF; model.fit reads it with the service's reader), its colour table
+    made from the same; the texture keeps the photo that was sent."""
+    from worker.images import read_image, working_photo
+    from tests.service.conftest import shaded_png
+
+    shaded = shaded_png()
+    created = fit_client.post("/v1/textures", files={"image": ("shaded.png", shaded, "image/png")},
+                              data={"lighting": "even"}).json()
+    job = fit_client.post(f"/v1/textures/{created['id']}/fit", json={}).json()
+    done = fit_client.get(f"/v1/jobs/{job['id']}").json()
+    assert done["state"] == "succeeded", done
+    (call,) = fit_calls
+    short_side = json.loads((MODEL_DIR / "manifest.json").read_text())["exemplar_short_side"]
+    want = working_photo(read_image(shaded, max_pixels=1 << 20), short_side, "even")
+    got = read_image(call["image_bytes"], max_pixels=1 << 20)
+    assert got.shape == want.shape and np.abs(got - want).max() < 1.5 / 65535
+    fitted = fit_client.get(f"/v1/textures/{done['output_texture_id']}").json()
+    assert fitted["lighting"] == "even"
+    assert fit_client.get(fitted["links"]["exemplar"]).content == shaded

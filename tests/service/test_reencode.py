@@ -45,16 +45,18 @@ def settings_for(tmp_path: Path, database: dict):
 
 @pytest.fixture
 def old_world(tmp_path: Path, settings_for) -> dict:
-    """Under the old model: two uploads, a blend of them, a blend of a deleted texture, and
-    the first upload refined (its sampler file in storage)."""
+    """Under the old model: two uploads (the second with its lighting evened), a blend of
+    them, a blend of a deleted texture, and the first upload refined (its sampler file in
+    storage)."""
     old_dir = tmp_path / "models" / "old"
     shutil.copytree(PACKAGED_MODEL_DIR, old_dir)
     services = build_services(settings_for(old_dir), immediate=True)
     with TestClient(create_app(services=services)) as client:
-        def upload(photo: bytes, name: str) -> dict:
-            return client.post("/v1/textures", files={"image": (f"{name}.png", photo)}, data={"name": name}).json()
+        def upload(photo: bytes, name: str, **form: str) -> dict:
+            return client.post("/v1/textures", files={"image": (f"{name}.png", photo)},
+                               data={"name": name, **form}).json()
 
-        a, b = upload(brick_png(), "a"), upload(brick_png(64), "b")
+        a, b = upload(brick_png(), "a"), upload(brick_png(64), "b", lighting="even")
         gone = upload(brick_png(80), "gone")
         blend = client.post("/v1/textures/interpolate", json={"a": a["id"], "b": b["id"], "t": 0.3}).json()
         orphan = client.post("/v1/textures/interpolate", json={"a": a["id"], "b": gone["id"], "t": 0.5}).json()
@@ -109,6 +111,10 @@ def test_reencode_moves_retired_textures_onto_the_loaded_model(old_world: dict, 
     np.testing.assert_allclose(rows[a["id"]].code, code, atol=1e-6)
     np.testing.assert_allclose(rows[a["id"]].colour, colour, atol=1e-6)
     assert rows[a["id"]].sampler_key is rows[a["id"]].encoder_code is rows[a["id"]].structure is None
+    # a photo uploaded to be evened is evened again
+    code, colour = encode_texture(new, read_image(brick_png(64), max_pixels=10**7), "even")
+    assert rows[b["id"]].lighting == "even"
+    np.testing.assert_allclose(rows[b["id"]].code, code, atol=1e-6)
     assert not services.storage.exists(old_world["refined"])
     photo, *samplers = old_world["own"]  # the fit's own texture keeps its photo, not its old samplers
     assert services.storage.exists(photo) and not any(services.storage.exists(k) for k in samplers)

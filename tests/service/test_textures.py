@@ -8,7 +8,7 @@ import OpenImageIO as oiio
 import pytest
 from PIL import Image
 
-from tests.service.conftest import brick_png
+from tests.service.conftest import brick_png, shaded_png, upload_photo
 
 PROBLEM = "application/problem+json"
 
@@ -24,6 +24,31 @@ def test_upload_encodes_and_stores(client, texture, photo) -> None:
     exemplar = client.get(texture["links"]["exemplar"])
     assert exemplar.status_code == 200 and exemplar.content == photo
     assert exemplar.headers["content-type"] == "image/png"
+
+
+def test_upload_with_even_lighting_encodes_the_evened_photo(client, services) -> None:
+    """lighting=even: the texture says so, its code and colour table are those of the photo
+    with its shading divided out (as worker.images.encode_texture makes them), and the
+    photo kept is the one sent. as-is is the default."""
+    from worker.images import encode_texture, read_image
+
+    shaded = shaded_png()
+    runtime = services.registry.get(services.settings.default_model_version)
+    as_is, even = upload_photo(client, shaded), upload_photo(client, shaded, lighting="even")
+    assert as_is["lighting"] == "as-is" and even["lighting"] == "even"
+    code, colour = encode_texture(runtime, read_image(shaded, max_pixels=1 << 20), "even")
+    np.testing.assert_allclose(even["code"], code, atol=1e-6)
+    np.testing.assert_allclose(even["colour"], colour, atol=1e-6)
+    assert not np.allclose(even["colour"], as_is["colour"], atol=1e-3)
+    assert client.get(even["links"]["exemplar"]).content == shaded
+    assert client.get(f"/v1/textures/{even['id']}").json()["lighting"] == "even"
+
+
+def test_upload_with_unknown_lighting_is_a_422_problem(client, photo) -> None:
+    res = client.post("/v1/textures", files={"image": ("brick.png", photo, "image/png")}, data={"lighting": "flat"})
+    assert res.status_code == 422 and res.headers["content-type"] == PROBLEM
+    assert "lighting" in res.json()["detail"] and "'as-is' or 'even'" in res.json()["detail"]
+    assert client.get("/v1/textures").json()["items"] == []  # nothing stored
 
 
 def test_upload_location_header(client, photo) -> None:

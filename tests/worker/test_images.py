@@ -235,3 +235,49 @@ def test_png_bytes_writes_16_bit_grey_and_refuses_what_png_cannot_hold():
     for bad in (np.zeros((4, 4, 4), np.uint8), np.zeros((4, 4), np.float32), np.zeros(4, np.uint8)):
         with pytest.raises(InvalidParameter):
             png_bytes(bad)
+
+
+def _shaded_texture(size=(192, 256), strength=0.6):
+    """A grainy texture (linear light) and the same under a light falling off across it and
+    a vignette (about 2.6x between its brightest and darkest corners)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(4)
+    detail = ndimage.gaussian_filter(rng.standard_normal(size + (3,)), (2, 2, 0))
+    clean = np.clip(0.25 * np.exp(2.0 * detail), 0, 1)
+    y, x = np.mgrid[0:size[0], 0:size[1]] / max(size)
+    shade = (1 - strength * (x - 0.3)) * (1 - strength * ((x - 0.5) ** 2 + (y - 0.6) ** 2))
+    return clean, clean * shade[..., None]
+
+
+def _block_luminance(linear, blocks=4):
+    """Mean luminance of a blocks x blocks grid of the image: how its light varies across it."""
+    h, w = linear.shape[0] // blocks * blocks, linear.shape[1] // blocks * blocks
+    lum = linear[:h, :w] @ images.LUMINANCE
+    return lum.reshape(blocks, h // blocks, blocks, w // blocks).mean(axis=(1, 3))
+
+
+def test_even_lighting_divides_out_a_smooth_shading_and_keeps_the_detail():
+    clean, shaded = _shaded_texture()
+    evened = srgb_to_linear(images.even_lighting(linear_to_srgb(shaded)))
+    assert evened.shape == shaded.shape and evened.dtype == np.float32
+    spread = lambda lum: lum.max() / lum.min()  # noqa: E731
+    assert spread(_block_luminance(shaded)) > 1.8                        # the light across the photo
+    assert spread(_block_luminance(evened)) < 1.15 * spread(_block_luminance(clean))
+    # what is left is the texture itself, times one brightness: its grains are all still there
+    ratio = np.log(np.maximum(evened, 1e-3) / np.maximum(clean, 1e-3)).mean(axis=-1)
+    assert ratio.std() < 0.05
+    # an evenly lit photo is left nearly as it is
+    kept = srgb_to_linear(images.even_lighting(linear_to_srgb(clean)))
+    assert np.abs(kept - clean).mean() < 0.01
+
+
+def test_working_photo_evens_only_when_asked():
+    _, shaded = _shaded_texture((300, 400))
+    photo = linear_to_srgb(shaded)
+    as_is = images.working_photo(photo, 96)
+    assert as_is.shape == (96, 128, 3) and np.array_equal(as_is, resize_short_side(photo, 96))
+    evened = images.working_photo(photo, 96, "even")
+    assert np.array_equal(evened, images.even_lighting(as_is))
+    with pytest.raises(InvalidParameter, match="lighting must be one of as-is, even"):
+        images.working_photo(photo, 96, "flat")

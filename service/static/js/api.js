@@ -245,10 +245,11 @@ export async function listTextures(cursor, limit = 50) {
   };
 }
 
-export async function uploadTexture(file, name) {
+export async function uploadTexture(file, name, lighting = 'as-is') {
   const form = new FormData();
   form.append('image', file);
   if (name) form.append('name', name);
+  form.append('lighting', lighting);
   return (await request('textures', { method: 'POST', body: form })).body;
 }
 

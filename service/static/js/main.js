@@ -268,7 +268,7 @@ async function upload(file) {
   const name = $('upload-name').value.trim() || file.name.replace(/\.[^.]+$/, '');
   say(`Encoding ${file.name}...`);
   try {
-    const texture = await api.uploadTexture(file, name);
+    const texture = await api.uploadTexture(file, name, $('upload-even-lighting').checked ? 'even' : 'as-is');
     state.textures = [texture, ...state.textures.filter((t) => t.id !== texture.id)];
     renderLibrary();
     say(`Uploaded ${texture.name || texture.id}.`);
