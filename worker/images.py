@@ -8,6 +8,10 @@ concurrent decodes hold at most that many pixels together; a decode waits for ro
 most ``wait_seconds`` behind at most ``max_waiting`` others, else it raises ``Busy``
 (503 + Retry-After): a waiting upload holds a threadpool thread and its bytes.
 
+Preparing: ``working_photo`` is the photo as a texture is encoded and fitted from (the
+working resolution; with ``lighting="even"``, its smooth shading divided out by
+``even_lighting``); ``encode_texture`` turns it into a code and a colour table.
+
 Writing (``write_image``) takes *linear* float RGB (the sampler's output) and returns
 bytes: PNG / WebP / JPEG are 8-bit sRGB (PNG: ``png_bytes``, Up filter + fast deflate;
 WebP / JPEG: Pillow; in memory, no metadata), EXR is half
