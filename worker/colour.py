@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
+# Rec. 709 luminance weights of linear RGB: Y = LUMA_709 . (R, G, B).
+LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
 # Break points of the sRGB curve on each side.
 _SRGB_KNEE = 0.04045
 _LINEAR_KNEE = 0.0031308

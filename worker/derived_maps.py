@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from worker.colour import LUMA_709
 from worker.errors import InvalidParameter
 from worker.images import png_bytes
 
-LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 DEFAULT_NORMAL_STRENGTH = 4.0
 MAX_WHOLE_PIXELS = 4096 * 4096   # images held whole in memory (maps, mip chains): 192 MB float32 RGB
 MAP_NAMES = ("height", "normal")

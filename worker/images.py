@@ -33,7 +33,7 @@ from PIL import Image
 from skimage.transform import resize
 
 from worker import decode
-from worker.colour import linear_to_srgb, linear_to_srgb8, srgb_to_linear
+from worker.colour import LUMA_709, linear_to_srgb, linear_to_srgb8, srgb_to_linear
 from worker.colour_match import calibrate_texture
 # resize_short_side: the working-resolution resize lives beside the reader, which training shares
 from worker.decode import MIN_SIDE, PixelBudget, resize_short_side, sniff_format  # noqa: F401 (sniff_format: API)
@@ -45,7 +45,6 @@ OUTPUT_FORMATS = ("png", "webp", "jpeg", "exr", "tiff")
 # out first: ``even_lighting``). Photo-sourced textures often carry a light falloff; without
 # evening, a shaded photo's tiles show its light and dark sides as blotches (docs/notes).
 LIGHTING = ("as-is", "even")
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # Rec. 709, of linear RGB
 _budget: PixelBudget | None = None
 
 
@@ -107,7 +106,7 @@ def even_lighting(image: np.ndarray) -> np.ndarray:
     y, x = np.linspace(-1, 1, height)[:, None], np.linspace(-1, 1, width)[None, :]
     step = max(1, int(np.sqrt(height * width / 65536)))  # the fit needs no more samples than this
     sample = np.s_[::step, ::step]
-    log_luminance = np.log(np.maximum(linear[sample] @ LUMINANCE, 1e-4), dtype=np.float64)
+    log_luminance = np.log(np.maximum(linear[sample] @ LUMA_709, 1e-4), dtype=np.float64)
     xs, ys = np.broadcast_arrays(x[sample], y[sample])
     terms = np.stack([np.ones_like(xs), xs, ys, xs * xs, xs * ys, ys * ys], axis=-1).reshape(-1, 6)
     _, cx, cy, cxx, cxy, cyy = np.linalg.lstsq(terms, log_luminance.ravel(), rcond=None)[0]

@@ -9,7 +9,7 @@ import OpenImageIO as oiio
 import pytest
 from PIL import Image
 
-from worker.colour import linear_to_srgb, srgb_to_linear
+from worker.colour import LUMA_709, linear_to_srgb, srgb_to_linear
 from worker import decode, images
 from worker.errors import InvalidImage, InvalidParameter, LimitExceeded
 from worker.images import (encode_image, encoder_crops, png_bytes, read_image, resize_short_side, sniff_format,
@@ -253,7 +253,7 @@ def _shaded_texture(size=(192, 256), strength=0.6):
 def _block_luminance(linear, blocks=4):
     """Mean luminance of a blocks x blocks grid of the image: how its light varies across it."""
     h, w = linear.shape[0] // blocks * blocks, linear.shape[1] // blocks * blocks
-    lum = linear[:h, :w] @ images.LUMINANCE
+    lum = linear[:h, :w] @ LUMA_709
     return lum.reshape(blocks, h // blocks, blocks, w // blocks).mean(axis=(1, 3))
 
 
