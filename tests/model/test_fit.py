@@ -20,13 +20,25 @@ from model.evaluate import load_candidates  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
 
 
-def test_fit_writes_a_contract_sampler_and_its_code(tmp_path, skimage_textures, vgg):
+def space_checkpoint(tmp_path: Path) -> Path:
+    """A fresh space (torch seed 0) exported under ``tmp_path``: what these fits start from."""
     torch.manual_seed(0)
     export_model(TextureSpace(ModelConfig()), tmp_path / "space")
+    return tmp_path / "space" / "space.pt"
+
+
+def saved_png(path: Path, photo: np.ndarray) -> np.ndarray:
+    """Write ``photo`` (0..1) as an 8-bit PNG at ``path``; the pixels as a fit reads them back."""
+    Image.fromarray((photo * 255).round().astype(np.uint8)).save(path)
+    return np.asarray(Image.open(path), np.float32) / 255
+
+
+def test_fit_writes_a_contract_sampler_and_its_code(tmp_path, skimage_textures, vgg):
+    space = space_checkpoint(tmp_path)
     image = tmp_path / "gravel.png"
     Image.fromarray((skimage_textures["gravel"] * 255).astype(np.uint8)).save(image)
     seen = []
-    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt",
+    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=space,
                           minutes=0.05, patch=32, progress=seen.append, grain="auto")
     assert result["steps"] >= 1 and seen and 0 < seen[-1] <= 1
     assert result["grain"] is None  # gravel: detected as isotropic
@@ -48,15 +60,14 @@ def test_fit_writes_a_contract_sampler_and_its_code(tmp_path, skimage_textures, 
 def test_a_striped_photo_is_fitted_on_its_stripes(tmp_path, vgg):
     """fit_exemplar with lattice="auto" falls back to the stripes when there is no 2D lattice
     and reports them as its lattice, in world units."""
-    torch.manual_seed(0)
-    export_model(TextureSpace(ModelConfig()), tmp_path / "space")
+    space = space_checkpoint(tmp_path)
     image = tmp_path / "corrugated.png"
-    Image.fromarray((corrugation() * 255).round().astype(np.uint8)).save(image)
-    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt",
+    photo = saved_png(image, corrugation())
+    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=space,
                           minutes=0.02, patch=32, lattice="auto", grain="auto")
-    stripes = np.array(detect_stripes(np.asarray(Image.open(image), np.float32) / 255)) / ModelConfig().pixels_per_unit
+    stripes = np.array(detect_stripes(photo)) / ModelConfig().pixels_per_unit
     assert result["grain"] is None and result["lattice"] == pytest.approx(stripes.tolist())
-    unfitted = fit_exemplar(image, tmp_path / "plain", init_checkpoint=tmp_path / "space" / "space.pt",
+    unfitted = fit_exemplar(image, tmp_path / "plain", init_checkpoint=space,
                             minutes=0.02, patch=32, lattice=None, grain="auto")
     assert unfitted["lattice"] is None
 
@@ -69,13 +80,12 @@ def test_a_boards_photo_keeps_its_grain_and_reads_its_boards(tmp_path, vgg):
     from worker.runtime import PeriodicSampler, SamplerSession
     from worker.shader import emit_shader
 
-    torch.manual_seed(0)
-    export_model(TextureSpace(ModelConfig()), tmp_path / "space")
+    space = space_checkpoint(tmp_path)
     image = tmp_path / "planks.png"
-    Image.fromarray((boards() * 255).round().astype(np.uint8)).save(image)
-    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt",
+    photo = saved_png(image, boards())
+    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=space,
                           minutes=0.02, patch=32, lattice="auto", grain="auto")
-    found = np.array(detect_boards(np.asarray(Image.open(image), np.float32) / 255, "y")) / ModelConfig().pixels_per_unit
+    found = np.array(detect_boards(photo, "y")) / ModelConfig().pixels_per_unit
     assert result["grain"] == "y" and result["lattice"] == pytest.approx(found.tolist())
     vector = np.concatenate([np.asarray(result["code"], np.float32), identity_colour(216)])
     tileable = PeriodicSampler(SamplerSession(tmp_path / "fit" / TILEABLE_SAMPLER, threads=1), period=0.9)
@@ -87,7 +97,7 @@ def test_a_boards_photo_keeps_its_grain_and_reads_its_boards(tmp_path, vgg):
         text = emit_shader(tmp_path / "fit" / "sampler.onnx", vector, "planks", language)
         assert "repeat lattice" in text and text.count("{") == text.count("}")
     # a fit asked for no lattice keeps the grain alone
-    plain = fit_exemplar(image, tmp_path / "plain", init_checkpoint=tmp_path / "space" / "space.pt",
+    plain = fit_exemplar(image, tmp_path / "plain", init_checkpoint=space,
                          minutes=0.02, patch=32, lattice=None, grain="auto")
     assert plain["grain"] == "y" and plain["lattice"] is None
 
@@ -99,8 +109,7 @@ def test_every_fit_takes_the_large_patch_and_falling_rates_by_default(tmp_path, 
     trains one patch a step (and its partner)."""
     import model.fit as fit
 
-    torch.manual_seed(0)
-    export_model(TextureSpace(ModelConfig()), tmp_path / "space")
+    space = space_checkpoint(tmp_path)
     seen = {}
 
     class Stop(Exception):
@@ -114,16 +123,16 @@ def test_every_fit_takes_the_large_patch_and_falling_rates_by_default(tmp_path, 
     for name, image in (("corrugated", corrugation()), ("bricks", running_bond())):
         Image.fromarray((image * 255).round().astype(np.uint8)).save(tmp_path / f"{name}.png")
         with pytest.raises(Stop):
-            fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=tmp_path / "space" / "space.pt",
+            fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space,
                          lattice="auto", grain="auto")
     assert seen == {"corrugated": (fit.PATCH, True, True, 1), "bricks": (fit.PATCH, True, True, 1)}
     for rate, falling in (("falling", True), ("constant", False)):
         with pytest.raises(Stop):
-            fit_exemplar(tmp_path / "bricks.png", tmp_path / "bricks", init_checkpoint=tmp_path / "space" / "space.pt",
+            fit_exemplar(tmp_path / "bricks.png", tmp_path / "bricks", init_checkpoint=space,
                          lattice="auto", rate=rate)
         assert seen["bricks"][2] is falling
     with pytest.raises(ValueError, match="rate"):
-        fit_exemplar(tmp_path / "bricks.png", tmp_path / "bricks", init_checkpoint=tmp_path / "space" / "space.pt",
+        fit_exemplar(tmp_path / "bricks.png", tmp_path / "bricks", init_checkpoint=space,
                      rate="auto")
 
 
@@ -134,11 +143,10 @@ def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, 
     from model.networks import load_checkpoint
     from worker.shader import emit_shader, texture_constants
 
-    torch.manual_seed(0)
-    export_model(TextureSpace(ModelConfig()), tmp_path / "space")
+    space = space_checkpoint(tmp_path)
     image = tmp_path / "bricks.png"
     Image.fromarray((running_bond() * 255).astype(np.uint8)).save(image)
-    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt",
+    result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=space,
                           minutes=0.05, patch=32, lattice="auto", grain="auto")
     ppu = ModelConfig().pixels_per_unit
     assert result["grain"] is None and result["lattice"] is not None
@@ -277,14 +285,13 @@ def test_patch_side_defaults_to_128_with_or_without_a_lattice(tmp_path, monkeypa
         raise Stop
 
     monkeypatch.setattr(fit, "train", fake_train)
-    torch.manual_seed(0)
-    export_model(TextureSpace(ModelConfig()), tmp_path / "space")
+    space = space_checkpoint(tmp_path)
     bricks, plain = tmp_path / "bricks.png", tmp_path / "plain.png"
     Image.fromarray((running_bond() * 255).astype(np.uint8)).save(bricks)
     noise = ndimage.gaussian_filter(np.random.default_rng(2).random((256, 256)), 3)
     Image.fromarray((np.repeat(noise[..., None], 3, axis=2) * 255).astype(np.uint8)).save(plain)
     for image, patch in ((plain, None), (bricks, None), (plain, 48)):
         with pytest.raises(Stop):
-            fit_exemplar(image, tmp_path / "fit", init_checkpoint=tmp_path / "space" / "space.pt", patch=patch,
+            fit_exemplar(image, tmp_path / "fit", init_checkpoint=space, patch=patch,
                          lattice="auto", grain="auto")
     assert seen == [fit.PATCH, fit.PATCH, 48] and fit.PATCH == 128
