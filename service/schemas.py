@@ -10,6 +10,7 @@ from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PI
 from worker.bake import FORMATS as BAKE_FORMATS
 from worker.triplanar import PROJECTIONS
 from worker.gpu_textures import FORMATS as GPU_FORMATS
+from worker.images import LIGHTING
 from worker.regions import FORMATS as REGION_FORMATS
 from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
 from worker.volume_writers import FORMATS as VOLUME_FORMATS
@@ -73,7 +74,7 @@ class TextureOut(BaseModel):
     refinement: Refinement | None = Field(None, description="the upload's automatic refinement, if one was queued")
     structure: Structure | None = Field(
         None, description="what the fitted sampler was built with (grain, repeat lattice); null from the encoder")
-    lighting: Literal["as-is", "even"] = Field(
+    lighting: Literal[LIGHTING] = Field(
         "as-is", description="how its photo is encoded and fitted: as it is, or with its smooth shading (light "
                              "falling off, a vignette) divided out first; the stored photo is unchanged")
     created_at: dt.datetime

@@ -11,7 +11,7 @@ from sqlalchemy import select
 
 from worker.colour_match import blend_textures
 from worker.files import media_type, media_type_of_extension
-from worker.images import encode_texture, read_image, sniff_format
+from worker.images import LIGHTING, encode_texture, read_image, sniff_format
 from worker.shader import LANGUAGES, emit_shader, shader_name
 
 from .. import auth, jobs, keys
@@ -55,7 +55,7 @@ def create_texture(
     response: Response,
     image: Annotated[UploadFile, File(description="PNG, JPEG, TIFF, EXR or WebP; 8/16-bit, float, grey, RGBA")],
     name: Annotated[SafeText | None, Form(max_length=NAME_LENGTH)] = None,
-    lighting: Annotated[Literal["as-is", "even"], Form(
+    lighting: Annotated[Literal[LIGHTING], Form(
         description="as-is (default), or even: the photo's smooth shading (light falling off, a vignette) "
                     "divided out before it is encoded and fitted; the stored photo is unchanged")] = "as-is",
 ) -> TextureOut:
