@@ -19,7 +19,7 @@ import numpy as np
 from worker.colour_match import calibrate_texture
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
 from worker.files import extension, media_type
-from worker.images import read_image, resize_short_side, working_photo, write_image
+from worker.images import read_image, working_photo, write_image
 
 from . import keys
 from .container import Services
@@ -139,11 +139,11 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     # keep the extension: the reader picks the decoder by it (model.fit reads with the same
     # reader, worker.decode, as this process)
     original = services.storage.get_file(texture.exemplar_key, workdir / Path(texture.exemplar_key).name)
-    image = read_image(original.read_bytes(), max_pixels=services.settings.max_image_pixels)
+    # the fit and its colour table see the photo as its encoding did (lighting included)
+    image = working_photo(read_image(original.read_bytes(), max_pixels=services.settings.max_image_pixels),
+                          services.registry.get(texture.model_version).short_side, texture.lighting)
     photo = original
-    if texture.lighting == "even":  # the fit and its colour table see the photo as its encoding did
-        short_side = services.registry.get(texture.model_version).manifest.get("exemplar_short_side")
-        image = working_photo(image, short_side, texture.lighting)
+    if texture.lighting == "even":
         photo = workdir / "evened.tiff"  # 16-bit sRGB: what model.fit reads, at its own resolution
         photo.write_bytes(write_image(image, "tiff", colour="srgb"))
     out_dir = workdir / "fit"
@@ -158,7 +158,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     sampler_key = keys.sampler_key(new_id)
     services.storage.put_file(sampler_key, out_dir / "sampler.onnx")
     _store_tileable(services, sampler_key, out_dir)
-    colour = _fitted_colour(services, texture, out_dir / "sampler.onnx", code, image)
+    colour = _fitted_colour(services, out_dir / "sampler.onnx", code, image)
     exemplar_key = keys.exemplar_key(new_id, Path(texture.exemplar_key).name)  # own copy: outlives the parent
     services.storage.put_file(exemplar_key, original)
     with session_scope(services.sessions) as session:
@@ -205,7 +205,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
     local = services.sampler_path(texture.id, sampler_key)  # where sampler_for looks: no second download
     local.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(sampler_path, local)
-    colour = _fitted_colour(services, texture, local, code, image)
+    colour = _fitted_colour(services, local, code, image)
     with session_scope(services.sessions) as session:
         current = session.get(Job, job.id)
         row = session.get(Texture, texture.id)
@@ -233,14 +233,12 @@ def _store_tileable(services: Services, sampler_key: str, fit_dir: Path) -> None
         services.storage.put_file(keys.tileable_key(sampler_key), path)
 
 
-def _fitted_colour(services: Services, texture: Texture, sampler_path: Path, code: list[float],
-                   image: np.ndarray) -> list[float] | None:
+def _fitted_colour(services: Services, sampler_path: Path, code: list[float], image: np.ndarray) -> list[float] | None:
     """The texture's colour table for its fitted sampler (the table matches the photo to a
     sampler's own raw output, so a new sampler needs a new table); None if it has no colour stage.
-    ``image``: the exemplar, (H, W, 3) float32 sRGB as read_image decoded it."""
-    short_side = services.registry.get(texture.model_version).manifest.get("exemplar_short_side")
-    colour = calibrate_texture(services.registry.fitted_sampler(sampler_path), np.asarray(code, np.float32),
-                               resize_short_side(image, short_side))
+    ``image``: the exemplar as its encoding saw it (``working_photo``: float32 sRGB at the
+    model's working resolution)."""
+    colour = calibrate_texture(services.registry.fitted_sampler(sampler_path), np.asarray(code, np.float32), image)
     return [float(v) for v in colour] or None
 
 
