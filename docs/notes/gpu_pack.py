@@ -69,8 +69,18 @@ def _pillow_reader() -> None:
         with Image.open(io.BytesIO(data)) as image:
             return np.asarray(image.convert("RGB"), dtype=np.float32) / 255
 
+    def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
+        # the packed photos are at the working resolution already; others: Pillow's Lanczos
+        h, w = image.shape[:2]
+        if min(h, w) == short_side:
+            return image
+        scale = short_side / min(h, w)
+        pil = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
+        pil = pil.resize((round(w * scale), round(h * scale)), Image.LANCZOS)
+        return np.asarray(pil, dtype=np.float32) / 255
+
     module = types.ModuleType("worker.decode")
-    module.SUFFIXES, module.read_image = (".png",), read_image
+    module.SUFFIXES, module.read_image, module.resize_short_side = (".png",), read_image, resize_short_side
     sys.modules["worker.decode"] = module
 
 
