@@ -311,3 +311,52 @@ def noise_features(
     nearest = _pick(fields, frac >= 0.5) * _FIELD_SCALE
     last = interpolated.dim() - 1
     return nearest.movedim(0, last), interpolated.movedim(0, last)
+
+
+# ----------------------------------------------------------------------------- cells
+
+# Cellular (Worley) features: one feature point per lattice cell, jittered inside it by the
+# cell's hash. Value noise has no edges, so a decoder fed only value noise drew gravel as
+# speckle and soft blobs; the distance to the nearest feature point and the gap to the
+# second nearest draw round stones with borders between them, and the nearest cell's own
+# random value gives each stone one tone.
+_CELL_SALT = _int32(0x3C6EF372)  # cell hashes differ from the value noise of the same octave
+_CELL_TONE_MULTS = (_int32(0xBB67AE85), _int32(0x9B05688C))  # two tones per cell, read as channel_fields reads colours
+N_CELL_FEATURES = 4  # F1, F2 - F1, tone 1, tone 2
+
+
+def cell_features(lattice_points: torch.Tensor, seeds: torch.Tensor, wrap: torch.Tensor | None = None) -> torch.Tensor:
+    """Worley features at points already mapped into each cell octave's lattice.
+
+    lattice_points : float64 [..., K, D]  (as for ``noise_features``)
+    seeds          : int32 broadcastable to [..., K]
+    wrap           : as for ``noise_features``: the lattice repeats in its first two axes
+    returns float32 [..., K, 4]: F1 and F2 - F1 (distances, in cells, to the nearest feature
+    point and from it to the second nearest) and the nearest cell's two tones in [0, 1].
+
+    Each cell's feature point sits at the cell's corner plus its three hash fractions
+    (``channel_fields``), anywhere inside the cell; the search covers the 3**D cells
+    around the point's own, which hold the nearest two for almost every point.
+    """
+    q = lattice_points.movedim(lattice_points.dim() - 1, 0)  # [D, ..., K]
+    dims = q.shape[0]
+    base = torch.floor(q)
+    frac = (q - base).to(torch.float32)  # keeps the gradient w.r.t. transforms
+    rest = [1] * (q.dim() - 1)
+    steps = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64, device=q.device)
+    grid = torch.stack(torch.meshgrid(*([steps] * dims), indexing="ij")).reshape(dims, -1)  # [D, 3**D]
+    offsets = grid.reshape([dims, grid.shape[1]] + rest)  # [D, N, 1...]
+    cells = base.unsqueeze(1) + offsets  # [D, N, ..., K]
+    i, j = (cells[0], cells[1]) if wrap is None else wrap_cells(cells[0], cells[1], wrap)
+    salt = torch.tensor(_CELL_SALT, dtype=torch.int32, device=seeds.device)  # (a python int exports as int64)
+    h = torch.bitwise_xor(seeds, salt) + _cell_term(i, 0) + _cell_term(j, 1)
+    if dims == 3:
+        h = h + _cell_term(cells[2], 2)
+    h = cell_mix(h)  # [N, ..., K]
+    jitter = channel_fields(h, axis=0) * _FIELD_SCALE  # [3, N, ..., K]
+    delta = offsets.to(torch.float32) + jitter[:dims] - frac.unsqueeze(1)  # [D, N, ..., K]
+    distance2, nearest = torch.topk((delta * delta).sum(dim=0), 2, dim=0, largest=False)  # [2, ..., K] each
+    f1, f2 = torch.sqrt(distance2 + 1e-9).unbind(0)
+    owner = torch.gather(h, 0, nearest[:1])[0]  # the nearest cell's hash
+    tones = [_UnsignedToFloat.apply(owner * mult) * _FIELD_SCALE for mult in _CELL_TONE_MULTS]
+    return torch.stack([f1, f2 - f1, *tones], dim=-1)
