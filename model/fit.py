@@ -66,7 +66,7 @@ PATCH = 128
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
                  patch: int | None = None, grain: str | None = None, loss: str = "gram", progress=None,
                  quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None,
-                 rate: str = "falling", cells: tuple[int, ...] = ()) -> dict:
+                 rate: str = "falling") -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
     'lattice'}.
 
@@ -79,7 +79,6 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     the export and the files written are the same either way.
     ``rate``: ``"falling"`` (the learning rates fall to 10% over ``minutes``) or ``"constant"``;
     the manifest says which.
-    ``cells``: octaves that also feed Worley cell features to the decoder (``ModelConfig.cell_octaves``).
     """
     if rate not in RATES:
         raise ValueError(f"rate must be one of {', '.join(RATES)}, got {rate!r}")
@@ -106,7 +105,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             minutes=float(minutes), patch=patch, batch=1 if lattice else 2, lr=FIT_LR,
             transform_lr=FIT_TRANSFORM_LR, warmup=20, decay_by_time=rate == "falling",
             seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
-            grain=grain or None, lattice=lattice, lattice_cell=bool(lattice), cells=tuple(cells), threads=threads or 0)
+            grain=grain or None, lattice=lattice, lattice_cell=bool(lattice), threads=threads or 0)
         ckpt_path = train(cfg, progress=progress)
         model, ckpt = load_checkpoint(ckpt_path)
     # Weights, config and code without the optimiser: what model.evaluate needs to compare
@@ -134,7 +133,6 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "grain": ckpt["config"].get("grain"),
         "lattice": list(lattice) if lattice else None,
         "rate": rate,
-        "cells": list(cells),
     }
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return {"code": code, "sampler": str(out_dir / "sampler.onnx"), "version": manifest["version"],
@@ -164,14 +162,12 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.add_argument("--rate", choices=RATES, default="falling",
                    help="learning rates: falling to 10%% over --minutes (default), or constant")
-    p.add_argument("--cells", type=lambda text: tuple(int(v) for v in text.split(",") if v), default=(),
-                   help="octaves that also feed Worley cell features to the decoder, e.g. 3,4 (stones, gravel)")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
                           patch=args.patch, grain=None if args.grain == "none" else args.grain, loss=args.loss,
                           quiet=False, seed=args.seed, device=args.device, threads=args.threads,
-                          lattice=None if args.lattice == "none" else args.lattice, rate=args.rate, cells=args.cells)
+                          lattice=None if args.lattice == "none" else args.lattice, rate=args.rate)
     print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "lattice", "sampler")}))
 
 

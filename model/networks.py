@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from model.noise import N_CELL_FEATURES, cell_features, noise_features, octave_seeds
+from model.noise import noise_features, octave_seeds
 
 
 @dataclass(frozen=True)
@@ -84,11 +84,6 @@ class ModelConfig:
     # colour at the point's phase: grout lines and bonds drawn exactly where the photo has
     # them, while what differs from one repeat to the next averages away and is left to noise.
     lattice_cell: tuple[int, int] | None = None
-    # Cellular textures (gravel, pebbles, cobbles): the octaves whose lattice also carries
-    # Worley features (``cell_features`` in model/noise.py: distances to the nearest feature
-    # points and the nearest cell's tones), read by the decoder through zero-initialised
-    # weights, so a space or fit without them is unchanged until it learns to use them.
-    cell_octaves: tuple[int, ...] = ()
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -106,9 +101,6 @@ class ModelConfig:
             self.lattice_cell = tuple(int(v) for v in self.lattice_cell)
             if self.lattice is None or len(self.lattice_cell) != 2 or min(self.lattice_cell) < 2:
                 raise ValueError(f"lattice_cell needs a lattice and two sizes >= 2, got {self.lattice_cell!r}")
-        self.cell_octaves = tuple(int(k) for k in self.cell_octaves)
-        if any(not 0 <= k < self.n_octaves for k in self.cell_octaves) or len(set(self.cell_octaves)) != len(self.cell_octaves):
-            raise ValueError(f"cell_octaves must be distinct octaves in 0..{self.n_octaves - 1}, got {self.cell_octaves!r}")
 
     @property
     def flags(self) -> Variant:
@@ -253,13 +245,12 @@ class Decoder(nn.Module):
     """
 
     def __init__(self, n_noise: int, n_position: int, n_code: int, hidden: int, n_hidden_layers: int,
-                 n_phase: int = 0, n_cells: int = 0):
+                 n_phase: int = 0):
         super().__init__()
         self.hidden, self.n_hidden_layers = hidden, n_hidden_layers
         self.from_noise = nn.Linear(n_noise, hidden, bias=False) if n_noise else None
         self.from_position = nn.Linear(n_position, hidden, bias=False) if n_position else None
         self.from_phase = nn.Linear(n_phase, hidden, bias=False) if n_phase else None
-        self.from_cells = nn.Linear(n_cells, hidden, bias=False) if n_cells else None
         self.from_code = nn.Linear(n_code, hidden * n_hidden_layers + 3)
         self.layers = nn.ModuleList(nn.Linear(hidden, hidden, bias=False) for _ in range(n_hidden_layers - 1))
         self.out = nn.Linear(hidden, 3, bias=False)
@@ -274,13 +265,11 @@ class Decoder(nn.Module):
         nn.init.normal_(self.out.weight, std=0.5 / hidden**0.5)
         if self.from_phase is not None:  # zero: the space's texture (a fit sets the mean cell's: start_on_mean_cell)
             nn.init.zeros_(self.from_phase.weight)
-        if self.from_cells is not None:  # zero: the texture without cells, until training moves them
-            nn.init.zeros_(self.from_cells.weight)
 
-    def forward(self, noise, position, code, phase=None, cells=None):
+    def forward(self, noise, position, code, phase=None):
         points = noise if noise is not None else position  # [B,P,*]
         if code.shape[0] == 1 or points.shape[1] == 1:
-            return self._forward_rows(noise, position, code, phase, cells)
+            return self._forward_rows(noise, position, code, phase)
         biases = self.from_code(code).unsqueeze(1)  # [B,1,H*L+3]
         h = biases[..., : self.hidden]
         if self.from_noise is not None:
@@ -289,14 +278,12 @@ class Decoder(nn.Module):
             h = h + self.from_position(position)
         if self.from_phase is not None:
             h = h + self.from_phase(phase)
-        if self.from_cells is not None:
-            h = h + self.from_cells(cells)
         h = F.relu(h)
         for i, layer in enumerate(self.layers, start=1):
             h = F.relu(layer(h) + biases[..., i * self.hidden : (i + 1) * self.hidden])
         return self.out(h) + biases[..., -3:]
 
-    def _forward_rows(self, noise, position, code, phase=None, cells=None):
+    def _forward_rows(self, noise, position, code, phase=None):
         """``forward`` where one code serves all points (B = 1) or each code one point
         (P = 1), the two shapes the exported sampler sees: then the points flatten to
         rows and each layer is one ``addmm`` with its code bias (an ONNX Gemm, which
@@ -310,8 +297,6 @@ class Decoder(nn.Module):
             h = h + self.from_position(position.reshape(-1, position.shape[-1]))
         if self.from_phase is not None:  # (addmm: the graph keeps the weight's name, which worker/shader.py reads)
             h = torch.addmm(h, phase.reshape(-1, phase.shape[-1]), self.from_phase.weight.t())
-        if self.from_cells is not None:
-            h = torch.addmm(h, cells.reshape(-1, cells.shape[-1]), self.from_cells.weight.t())
         h = F.relu(h)
         for i, layer in enumerate(self.layers, start=1):
             h = F.relu(torch.addmm(biases[:, i * hidden : (i + 1) * hidden], h, layer.weight.t()))
@@ -336,8 +321,7 @@ class TextureField(nn.Module):
         n_noise = k * 3 * (2 if cfg.nearest_input else 1) if flags.noise else 0
         n_phase = (4 * cfg.lattice_harmonics if cfg.lattice else 0) + (3 if cfg.lattice_cell else 0)
         self.decoder = (
-            Decoder(n_noise, d if flags.position else 0, cfg.extended_size, cfg.hidden, cfg.n_hidden_layers, n_phase,
-                    N_CELL_FEATURES * len(cfg.cell_octaves))
+            Decoder(n_noise, d if flags.position else 0, cfg.extended_size, cfg.hidden, cfg.n_hidden_layers, n_phase)
             if flags.decoder
             else None
         )
@@ -487,10 +471,6 @@ class TextureField(nn.Module):
                 lattice, wrap = self.periodic_lattice(points, transforms, period)
             nearest, interpolated = noise_features(lattice, seeds, cfg.smooth, wrap)
             noise = interpolated  # [B,P,K,3]
-            if cfg.cell_octaves:
-                picked = list(cfg.cell_octaves)
-                cells = cell_features(lattice[..., picked, :], seeds[..., picked],
-                                      wrap[..., picked] if wrap is not None else None)  # [B,P,C,4]
 
         if self.decoder is None:  # perlin / perlinT: octaves mixed by RGB weights, plus a bias
             logits = mix[:, :1, :] + ((noise - 0.5) * mix[:, 1:, :].unsqueeze(1)).sum(dim=2)
@@ -502,11 +482,7 @@ class TextureField(nn.Module):
                 features = (torch.cat(parts, dim=-1).reshape(b, p, -1) - 0.5) * 2.0
             position = points.to(torch.float32) if flags.position else None
             phase = self.lattice_phases(points, period) if cfg.lattice else None
-            if cfg.cell_octaves:  # centred like the noise: distances and tones mostly in [0, 1]
-                cells = (cells.reshape(b, p, -1) - 0.5) * 2.0
-            else:
-                cells = None
-            logits = self.decoder(features, position, extended, phase, cells)
+            logits = self.decoder(features, position, extended, phase)
         return torch.sigmoid(2.0 * logits)  # = (tanh + 1) / 2, the authors' output range
 
 

@@ -107,7 +107,6 @@ class TrainConfig:
     grain: Grain | None = None
     lattice: tuple[float, float, float, float] | None = None
     lattice_cell: bool = False
-    cells: tuple[int, ...] = ()
     seed: int = 0
     probe_every: int = 0
     ckpt_every: int = 200
@@ -183,9 +182,6 @@ def parse_args(argv=None) -> TrainConfig:
     p.add_argument("--lattice-cell", action="store_true",
                    help="with --lattice: the decoder also reads the exemplar's mean repeat cell at each point's "
                         "phase (lattice_mean_cell; model.fit turns it on for every lattice fit)")
-    p.add_argument("--cells", type=lambda text: tuple(int(v) for v in text.split(",") if v),
-                   help="octaves that also feed Worley cell features to the decoder, e.g. '3,4' (stones, "
-                        "gravel); their weights start at zero, so --init may hold a model without them")
     p.add_argument("--seed", type=int)
     p.add_argument("--probe-every", type=int,
                    help="single mode: every N steps (and at the start and end) score the exemplar on fixed "
@@ -436,8 +432,7 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
     model_cfg = ModelConfig(variant=cfg.variant, dims=cfg.dims, nearest_input=not cfg.no_nearest,
                             smooth=cfg.smooth, exemplar_short_side=cfg.short_side, grain=cfg.grain,
                             colour_blind_encoder=cfg.colour_normalise, isotropic_transforms=cfg.isotropic_transforms,
-                            lattice=cfg.lattice, lattice_cell=mean_cell.shape[:2] if mean_cell is not None else None,
-                            cell_octaves=cfg.cells)
+                            lattice=cfg.lattice, lattice_cell=mean_cell.shape[:2] if mean_cell is not None else None)
     model = TextureSpace(model_cfg)
     if mean_cell is not None:
         model.field.lattice_mean_cell.copy_(torch.from_numpy(mean_cell))
@@ -449,13 +444,11 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
     # a colour-normalised run may start from a space whose encoder still read colour.
     if init.cfg.to_dict() | {"grain": model_cfg.grain, "colour_blind_encoder": model_cfg.colour_blind_encoder,
                              "isotropic_transforms": model_cfg.isotropic_transforms,
-                             "lattice": model_cfg.lattice, "lattice_cell": model_cfg.lattice_cell,
-                             "cell_octaves": model_cfg.cell_octaves} != model_cfg.to_dict():
+                             "lattice": model_cfg.lattice, "lattice_cell": model_cfg.lattice_cell} != model_cfg.to_dict():
         raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {model_cfg.to_dict()}")
     missing, unexpected = model.load_state_dict(init.state_dict(), strict=False)
     new = {"field.decoder.from_phase.weight"} if model_cfg.lattice and not init.cfg.lattice else set()
     new |= {"field.lattice_mean_cell"} if model_cfg.lattice_cell and not init.cfg.lattice_cell else set()
-    new |= {"field.decoder.from_cells.weight"} if model_cfg.cell_octaves and not init.cfg.cell_octaves else set()
     if unexpected or set(missing) != new:
         raise SystemExit(f"--init weights do not fit this model: missing {missing}, unexpected {unexpected}")
     return model, ckpt.get("codes")  # a space's learned code table, if it has one
