@@ -1,0 +1,68 @@
+"""docs/notes/gpu_pack.py's stand-in for worker.decode, used on a GPU machine without
+OpenImageIO: it must give model.data every name it imports, and the same pixels.
+
+A missing name there costs a lent GPU machine's start (a call once died on
+``resize_short_side``), so it is checked here, where it is cheap."""
+from __future__ import annotations
+
+import ast
+import importlib.util
+import io
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pytest.importorskip("torch", reason="docs/notes/gpu_pack.py imports torch (the train extra)")
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def real():
+    import worker.decode
+
+    return worker.decode
+
+
+@pytest.fixture
+def stand_in(monkeypatch, real):
+    """worker.decode as the GPU machine sees it; the real module comes back afterwards."""
+    monkeypatch.setitem(sys.modules, "worker.decode", real)
+    spec = importlib.util.spec_from_file_location("gpu_pack", ROOT / "docs" / "notes" / "gpu_pack.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module._pillow_reader()
+    assert sys.modules["worker.decode"] is not real
+    return sys.modules["worker.decode"]
+
+
+def _png(rgb8: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(rgb8).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def test_stand_in_has_every_name_model_data_imports(stand_in):
+    tree = ast.parse((ROOT / "model" / "data.py").read_text())
+    names = {alias.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
+             and node.module == "worker.decode" for alias in node.names}
+    assert names, "model/data.py no longer imports worker.decode: update this test"
+    assert not [name for name in names if not hasattr(stand_in, name)]
+
+
+def test_stand_in_reads_and_resizes_as_worker_decode(stand_in, real):
+    rng = np.random.default_rng(0)
+    packed = rng.integers(0, 256, (256, 320, 3), dtype=np.uint8)  # a packed photo: short side 256
+    read = stand_in.read_image(_png(packed))
+    np.testing.assert_array_equal(read, packed.astype(np.float32) / 255)
+    assert stand_in.resize_short_side(read, 256) is read  # already at the working resolution
+
+    smooth = (np.stack(np.meshgrid(np.linspace(0, 1, 640), np.linspace(0, 1, 512)), -1) * 200 + 20).astype(np.uint8)
+    photo = np.concatenate([smooth, smooth[..., :1]], axis=-1)  # 512 x 640, not yet resized
+    ours = stand_in.resize_short_side(stand_in.read_image(_png(photo)), 256)
+    theirs = real.resize_short_side(photo.astype(np.float32) / 255, 256)
+    assert ours.shape == theirs.shape == (256, 320, 3)
+    assert np.abs(ours - theirs).max() <= 2 / 255
