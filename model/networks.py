@@ -221,14 +221,25 @@ class Translator(nn.Module):
         nn.init.zeros_(self.to_transform.bias)
 
     def forward(self, z: torch.Tensor):
+        """z float32 [B,8] -> e float32 [B,64], transforms float64 [B,K,D,D], mix float32 [B,K+1,3].
+
+        The transforms run in float64 from the code on. They scale lattice coordinates that
+        reach the millions far from the origin (128 cells per unit at the finest octave), so
+        one float32 rounding step in them moved a far tile's finest octaves by whole cells:
+        a code changed by one part in 10^7 changed torch's own colours by up to 0.05 at
+        5,000 units, as much as torch and ONNX Runtime then differed there (whose GEMMs
+        round differently, as CPUs' kernels may). In float64 such steps are 10^-16."""
         k, d = self.cfg.n_octaves, self.cfg.dims
-        h = self.body(z)
-        eye = torch.eye(d, dtype=z.dtype, device=z.device)
-        transforms = eye + self.to_transform(h).reshape(-1, k, d, d)
+        h = z.to(torch.float64)
+        for layer in self.body:  # Linear, ReLU, Linear, ReLU
+            h = F.linear(h, layer.weight.double(), layer.bias.double()) if isinstance(layer, nn.Linear) else layer(h)
+        eye = torch.eye(d, dtype=torch.float64, device=z.device)
+        weight, bias = self.to_transform.weight.double(), self.to_transform.bias.double()
+        transforms = eye + F.linear(h, weight, bias).reshape(-1, k, d, d)
         if self.cfg.isotropic_transforms:
-            # float64: the scale multiplies lattice coordinates in the thousands at the finest octave
-            scale = _determinant(transforms.to(torch.float64)).abs().clamp_min(1e-12) ** (1.0 / d)
-            transforms = scale[..., None, None] * eye.to(torch.float64)
+            scale = _determinant(transforms).abs().clamp_min(1e-12) ** (1.0 / d)
+            transforms = scale[..., None, None] * eye
+        h = h.to(z.dtype)
         mix = self.to_mix(h).reshape(-1, k + 1, 3)
         return self.to_extended(h), transforms, mix
 

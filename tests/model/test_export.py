@@ -141,6 +141,27 @@ def test_far_from_origin_has_the_same_statistics(exported):
     assert not np.allclose(near, far)  # a different place, not a copy
 
 
+def test_exported_sampler_matches_torch_far_from_the_origin(tmp_path):
+    # The per-octave transforms scale lattice coordinates of millions of cells far out; in
+    # float32 one rounding step between torch's and ONNX Runtime's GEMMs moved the finest
+    # octaves by whole cells (the shipped space: 0.045 apart at 5,000 units, 0.4 at 1e6).
+    # Computed in float64 from the code (Translator.forward), they agree everywhere.
+    from model.export import export_sampler
+
+    torch.manual_seed(7)
+    model = TextureSpace(ModelConfig(variant="ours", nearest_input=False, smooth=True, isotropic_transforms=True))
+    torch.nn.init.normal_(model.field.translator.to_transform.weight, std=0.3)  # scales far from 1
+    export_sampler(model.field, tmp_path / "sampler.onnx")
+    session = ort.InferenceSession(str(tmp_path / "sampler.onnx"), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(8)
+    z = rng.standard_normal((1, 8)).astype(np.float32)
+    for offset in (0.0, 5e3, 1e6, -3e7):
+        points = rng.random((3000, 3)) * 4 + offset
+        with torch.no_grad():
+            ref = model.field(torch.from_numpy(points)[None], torch.from_numpy(z), torch.tensor(4))[0].numpy()
+        assert np.abs(run(session, points, z, 4) - ref).max() < 1e-5, offset
+
+
 def test_exported_noise_matches_torch_past_2_32_cells(tmp_path):
     # ONNX Runtime 1.31 runs Cast(float64 -> int64) -> Cast(int64 -> uint32) as one direct
     # conversion that is wrong past 2**32: the graph's noise once differed from torch there
