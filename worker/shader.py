@@ -252,7 +252,15 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
     if first.shape[1] % 4 or noise.shape[1] % 4 or len(cells) != (mean_cell is not None):
         raise ModelInvalid(f"{Path(path).name}: decoder inputs ({noise.shape[1]} noise, {first.shape[1]} in all, "
                            f"{len(cells)} mean cells) are not whole vec4s this shader emitter knows")
-    z = weight("translator.body.0.weight")
+    # The code's width: the weight of the translator's first Gemm, which reads z (samplers
+    # exported since 2026-11-27 read it through a Cast to float64, and their folded weight
+    # has no name of its own).
+    casts = {o[0]: i[0] for op, i, o, _ in g.nodes if op == "Cast"}
+    firsts = [init[i[1]] for op, i, o, _ in g.nodes
+              if op == "Gemm" and len(i) > 1 and casts.get(i[0], i[0]) == "z" and i[1] in init]
+    if len(firsts) != 1:
+        raise ModelInvalid(f"{Path(path).name}: expected one Gemm reading the code z, found {len(firsts)}")
+    z = firsts[0]
     held = _held_uint32(g)
     if CHANNEL_MULTS[1] in held and CHANNEL_MULTS[2] in held:
         fields = "multiply"

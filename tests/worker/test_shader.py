@@ -34,6 +34,33 @@ def test_noise_kind_is_read_from_each_graph(tmp_path):
     assert "h & 0x7feu" in old_text and "0xa54ff53bu" not in old_text
 
 
+def test_code_width_is_read_with_either_translator(tmp_path, monkeypatch):
+    # Samplers exported since 2026-11-27 run the translator in float64: their graph casts z
+    # and folds the first weight into a nameless float64 initializer. Stored ones read z in
+    # float32 through "translator.body.0.weight". Both must give the emitter the code width.
+    torch = pytest.importorskip("torch", reason="exporting a sampler needs the train extra")
+    from model.export import export_sampler
+    from model.networks import ModelConfig, TextureSpace, Translator, _determinant
+
+    def float32_forward(self, z):  # Translator.forward as exported before 2026-11-27
+        k, d = self.cfg.n_octaves, self.cfg.dims
+        h = self.body(z)
+        transforms = torch.eye(d) + self.to_transform(h).reshape(-1, k, d, d)
+        scale = _determinant(transforms.to(torch.float64)).abs().clamp_min(1e-12) ** (1.0 / d)
+        return self.to_extended(h), scale[..., None, None] * torch.eye(d, dtype=torch.float64), None
+
+    torch.manual_seed(2)
+    field = TextureSpace(ModelConfig(nearest_input=False, smooth=True, isotropic_transforms=True)).field
+    export_sampler(field, tmp_path / "new.onnx")
+    monkeypatch.setattr(Translator, "forward", float32_forward)
+    export_sampler(field, tmp_path / "stored.onnx")
+    named = [any(k.endswith("translator.body.0.weight") for k in shader._read_graph(p.read_bytes()).initializers)
+             for p in (tmp_path / "new.onnx", tmp_path / "stored.onnx")]
+    assert named == [False, True]  # each way of reading the width is exercised
+    for name in ("new.onnx", "stored.onnx"):
+        assert shader.sampler_weights(tmp_path / name).code_size == 8
+
+
 def test_lattice_maps_are_affine_and_isotropic():
     z = np.random.default_rng(1).normal(size=8).astype(np.float32)
     c = shader.texture_constants(SAMPLER, np.concatenate([z, identity_colour(216)]))
