@@ -105,8 +105,9 @@ train-gpu:
 	$(PY) -m model.export runs/space-gpu/checkpoint.pt $(GPU_EXPORT)
 
 # make gpu-pack: for a lent GPU machine that takes 64 MiB of files and has no network (the
-# device tool): writes gpu/ (ignored by git, ~13 MiB: int8 VGG16, the training photos at
-# the working resolution, docs/notes/gpu_pack.py). Carry gpu/ there and run, in one call:
+# device tool): writes gpu/ (ignored by git, ~14 MiB: int8 VGG16, the training and validation
+# photos at the working resolution, docs/notes/gpu_pack.py). A fit there: python3 gpu/gpu_pack.py
+# fit gpu/val/PHOTO.png $$OUT/fit -- --device cuda --minutes 4. Carry gpu/ there and run, in one call:
 #   mkdir -p $$OUT/run && cp model/checkpoints/space-train.pt $$OUT/run/checkpoint.pt &&
 #   python3 gpu/gpu_pack.py train model/checkpoints/space-train.pt -- --out $$OUT/run \
 #     --device cuda --minutes 7.5 GPU_ARGS...

@@ -1,19 +1,22 @@
 """Training on a lent GPU machine that takes at most 64 MiB of files and has no network.
 
-    python docs/notes/gpu_pack.py pack gpu                   # here (make gpu-pack): writes gpu/, ~13 MiB
+    python docs/notes/gpu_pack.py pack gpu                   # here (make gpu-pack): writes gpu/, ~14 MiB
     python3 gpu/gpu_pack.py train CHECKPOINT -- TRAIN_ARGS   # there: model.train with the packed files
+    python3 gpu/gpu_pack.py fit PHOTO OUTDIR -- FIT_ARGS      # there: model.fit (add --device cuda)
 
 ``pack`` writes into its folder: the VGG16 convs conv1_1..conv5_1 quantised to int8 per
 output channel (the verified fp32 cache is 59 MB; the int8 features at relu1_1..relu5_1 are
 within 0.2-3% of the exact ones), the training photos resized to the working resolution
-(short side 256, as training loads them), and a copy of this script. ``train`` restores the
+(short side 256, as training loads them) in ``data/``, the validation photos so in ``val/``
+(for ``fit``), and a copy of this script. ``train`` restores the
 VGG weights to fp32, hands them to model.vgg in place of its cache, and runs ``model.train``
 with ``--data gpu/data --init CHECKPOINT`` (its weights and code table; ``--init`` leaves
 its Adam state unread). CHECKPOINT is a file in the tree that travels (``model/checkpoints/space-train.pt``:
 the repository's 50 MB and the pack fit the limit, a second checkpoint does not).
 ``model.train`` resumes a run folder that holds a ``checkpoint.pt`` instead: copy
 CHECKPOINT there first to keep its Adam state. Where OpenImageIO is missing, Pillow reads the
-packed PNGs. The shipped space's two calls: docs/notes/model-history.md, "Isotropic
+packed PNGs. ``fit`` runs ``model.fit`` (its CLI) with the same VGG weights; a fit writes
+``fit.pt`` before its ONNX export. The shipped space's two calls: docs/notes/model-history.md, "Isotropic
 transforms trained".
 """
 from __future__ import annotations
@@ -31,7 +34,7 @@ VGG_CONVS = ("conv1_1", "conv1_2", "conv2_1", "conv2_2", "conv3_1", "conv3_2", "
 HERE = Path(__file__).resolve().parent
 
 
-def pack(out: str, data: str = "data/textures/train", short_side: int = 256) -> None:
+def pack(out: str, data: str = "data/textures/train", short_side: int = 256, val: str = "data/textures/val") -> None:
     from PIL import Image
 
     from model.vgg import fetch_vgg16_weights
@@ -47,12 +50,13 @@ def pack(out: str, data: str = "data/textures/train", short_side: int = 256) -> 
         packed[f"{name}.weight.scale"] = scale
         packed[f"{name}.bias"] = state[f"{name}.bias"]
     torch.save(packed, out_dir / "vgg16_int8.pt")
-    for photo in sorted(Path(data).glob("*.png")):
+    (out_dir / "val").mkdir(exist_ok=True)
+    for photo in sorted(Path(data).glob("*.png")) + sorted(Path(val).glob("*.png")):
         image = Image.open(photo).convert("RGB")
         scale = short_side / min(image.size)
         if scale < 1:
             image = image.resize((round(image.width * scale), round(image.height * scale)), Image.LANCZOS)
-        image.save(out_dir / "data" / photo.name, optimize=True)
+        image.save(out_dir / ("val" if photo.parent == Path(val) else "data") / photo.name, optimize=True)
     shutil.copy(__file__, out_dir / "gpu_pack.py")
 
 
@@ -84,7 +88,9 @@ def _pillow_reader() -> None:
     sys.modules["worker.decode"] = module
 
 
-def train(checkpoint: str, argv: list[str]) -> None:
+def _use_packed_files() -> None:
+    """The repository on the path, Pillow for worker.decode where needed, and the packed
+    VGG weights (restored to fp32) in place of model.vgg's cache."""
     sys.path.insert(0, str(HERE.parent))  # the repository root, OUT's parent
     if importlib.util.find_spec("OpenImageIO") is None:
         _pillow_reader()
@@ -94,9 +100,20 @@ def train(checkpoint: str, argv: list[str]) -> None:
     state = {f"{n}.weight": packed[f"{n}.weight.q"].float() * packed[f"{n}.weight.scale"] for n in VGG_CONVS}
     state.update({f"{n}.bias": packed[f"{n}.bias"] for n in VGG_CONVS})
     vgg._cached_state = lambda: state  # the forward pass never reaches conv5_2 for relu5_1
+
+
+def train(checkpoint: str, argv: list[str]) -> None:
+    _use_packed_files()
     from model.train import main
 
     main(["--data", str(HERE / "data"), "--init", checkpoint, *argv])
+
+
+def fit(photo: str, out: str, argv: list[str]) -> None:
+    _use_packed_files()
+    from model.fit import main
+
+    main([photo, out, *argv])
 
 
 if __name__ == "__main__":
@@ -104,5 +121,7 @@ if __name__ == "__main__":
         pack(*sys.argv[2:])
     elif len(sys.argv) >= 3 and sys.argv[1] == "train":
         train(sys.argv[2], [a for a in sys.argv[3:] if a != "--"])
+    elif len(sys.argv) >= 4 and sys.argv[1] == "fit":
+        fit(sys.argv[2], sys.argv[3], [a for a in sys.argv[4:] if a != "--"])
     else:
         sys.exit(__doc__)
