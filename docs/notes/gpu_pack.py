@@ -40,7 +40,7 @@ def pack(out: str, data: str = "data/textures/train", short_side: int = 256, val
     from model.vgg import fetch_vgg16_weights
 
     out_dir = Path(out)
-    (out_dir / "data").mkdir(parents=True, exist_ok=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
     state = torch.load(fetch_vgg16_weights(), weights_only=True)
     packed = {}
     for name in VGG_CONVS:
@@ -50,14 +50,22 @@ def pack(out: str, data: str = "data/textures/train", short_side: int = 256, val
         packed[f"{name}.weight.scale"] = scale
         packed[f"{name}.bias"] = state[f"{name}.bias"]
     torch.save(packed, out_dir / "vgg16_int8.pt")
-    (out_dir / "val").mkdir(exist_ok=True)
-    for photo in sorted(Path(data).glob("*.png")) + sorted(Path(val).glob("*.png")):
-        image = Image.open(photo).convert("RGB")
-        scale = short_side / min(image.size)
-        if scale < 1:
-            image = image.resize((round(image.width * scale), round(image.height * scale)), Image.LANCZOS)
-        image.save(out_dir / ("val" if photo.parent == Path(val) else "data") / photo.name, optimize=True)
+    for folder, source in (("data", data), ("val", val)):
+        (out_dir / folder).mkdir(exist_ok=True)
+        for photo in sorted(Path(source).glob("*.png")):
+            image = Image.open(photo).convert("RGB")
+            if min(image.size) > short_side:  # shrunk only, as training loads them
+                image = _lanczos_short_side(image, short_side)
+            image.save(out_dir / folder / photo.name, optimize=True)
     shutil.copy(__file__, out_dir / "gpu_pack.py")
+
+
+def _lanczos_short_side(image, short_side: int):
+    """A Pillow image resized (Lanczos) so its shorter side is ``short_side``."""
+    from PIL import Image
+
+    scale = short_side / min(image.size)
+    return image.resize((round(image.width * scale), round(image.height * scale)), Image.LANCZOS)
 
 
 def _pillow_reader() -> None:
@@ -75,13 +83,10 @@ def _pillow_reader() -> None:
 
     def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
         # the packed photos are at the working resolution already; others: Pillow's Lanczos
-        h, w = image.shape[:2]
-        if min(h, w) == short_side:
+        if min(image.shape[:2]) == short_side:
             return image
-        scale = short_side / min(h, w)
         pil = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
-        pil = pil.resize((round(w * scale), round(h * scale)), Image.LANCZOS)
-        return np.asarray(pil, dtype=np.float32) / 255
+        return np.asarray(_lanczos_short_side(pil, short_side), dtype=np.float32) / 255
 
     module = types.ModuleType("worker.decode")
     module.SUFFIXES, module.read_image, module.resize_short_side = (".png",), read_image, resize_short_side
