@@ -18,12 +18,14 @@ import json
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import torch
+from PIL import Image
 
 from model.data import load_exemplar
 from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
 from model.networks import load_checkpoint
-from model.structure import photo_structure
+from model.structure import GRAIN_TILT_MAX, GRAIN_TILT_MIN, grain_tilt, photo_structure, straighten
 from model.train import TrainConfig, train
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
@@ -68,12 +70,15 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                  quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None,
                  rate: str = "falling") -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
-    'lattice'}.
+    'straightened', 'lattice'}.
 
     ``patch``: side of the training patches; None: ``PATCH``.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"``; ``lattice``: ``"auto"`` or
-    None: what ``model.structure.photo_structure`` detects on the photo. The manifest and the
-    result say what was used (the lattice in world units).
+    None: what ``model.structure.photo_structure`` detects on the photo. A grain leaning
+    ``GRAIN_TILT_MIN``..``GRAIN_TILT_MAX`` degrees off its axis is straightened first: the
+    fit learns from the turned photo, and its tiles show the grain straight (``straightened``:
+    the degrees turned, 0 when not). The manifest and the result say what was used (the
+    lattice in world units).
     ``threads``: torch threads (process-wide; 0 leaves torch's setting as it is).
     ``device``: where the steps run, ``cpu`` | ``cuda`` | ``auto`` (cuda when available);
     the export and the files written are the same either way.
@@ -91,12 +96,24 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     space_cfg = space.cfg
     photo = load_exemplar(image_path, space_cfg.exemplar_short_side)
     grain, found = photo_structure(photo, grain, lattice)
+    # A grain that leans: the photo turned so it runs along its axis (the noise stretches
+    # along x or y only), and its boards looked for again on the turned photo.
+    turned = grain_tilt(photo, grain) if grain else 0.0
+    if not GRAIN_TILT_MIN <= abs(turned) <= GRAIN_TILT_MAX:
+        turned = 0.0
+    if turned:
+        photo = straighten(photo, turned)
+        grain, found = photo_structure(photo, grain, lattice)
     # world units: one exemplar pixel is 1 / pixels_per_unit; image rows run along +y
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
     patch = patch or PATCH
     with tempfile.TemporaryDirectory() as run_dir:
+        exemplar = Path(image_path)
+        if turned:  # training reads the turned photo as it is (it is smaller than the working size)
+            exemplar = Path(run_dir) / f"{Path(image_path).stem}.png"
+            Image.fromarray((photo * 255 + 0.5).astype(np.uint8)).save(exemplar)
         cfg = TrainConfig(
-            mode="single", exemplar=str(image_path), out=run_dir, init=str(init),
+            mode="single", exemplar=str(exemplar), exemplar_as_is=bool(turned), out=run_dir, init=str(init),
             # the space's architecture, which --init requires
             variant=space_cfg.variant, dims=space_cfg.dims, short_side=space_cfg.exemplar_short_side,
             no_nearest=not space_cfg.nearest_input, smooth=space_cfg.smooth,
@@ -131,12 +148,14 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "probe": ckpt.get("probe"),
         "output_colour": "linear",
         "grain": ckpt["config"].get("grain"),
+        "straightened": round(turned, 2),
         "lattice": list(lattice) if lattice else None,
         "rate": rate,
     }
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return {"code": code, "sampler": str(out_dir / "sampler.onnx"), "version": manifest["version"],
-            "steps": ckpt["step"], "grain": manifest["grain"], "lattice": manifest["lattice"]}
+            "steps": ckpt["step"], "grain": manifest["grain"], "straightened": manifest["straightened"],
+            "lattice": manifest["lattice"]}
 
 
 def main(argv=None):
@@ -168,7 +187,7 @@ def main(argv=None):
                           patch=args.patch, grain=None if args.grain == "none" else args.grain, loss=args.loss,
                           quiet=False, seed=args.seed, device=args.device, threads=args.threads,
                           lattice=None if args.lattice == "none" else args.lattice, rate=args.rate)
-    print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "lattice", "sampler")}))
+    print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "straightened", "lattice", "sampler")}))
 
 
 if __name__ == "__main__":

@@ -78,6 +78,7 @@ class TrainConfig:
     dims: int = 3
     data: str = "data/textures/train"
     exemplar: str | None = None
+    exemplar_as_is: bool = False
     exclude: str = "miniworld_metal_grill_2"
     out: str
     init: str | None = None
@@ -132,6 +133,8 @@ def parse_args(argv=None) -> TrainConfig:
     p.add_argument("--dims", type=int, choices=[2, 3])
     p.add_argument("--data", help="folder of exemplar PNGs (space mode)")
     p.add_argument("--exemplar", help="image file (single mode)")
+    p.add_argument("--exemplar-as-is", action="store_true",
+                   help="read --exemplar at its own size, already at the working resolution (a fit's straightened photo)")
     p.add_argument("--exclude",
                    help="comma-separated exemplar names left out of space training (the default's "
                         "regular dot grid has ~30x the Gram loss of any other photo and steers a shared decoder)")
@@ -418,7 +421,7 @@ def load_exemplars(cfg: TrainConfig) -> tuple[list[str], list[np.ndarray]]:
     if cfg.mode == "single":
         if not cfg.exemplar:
             raise SystemExit("--mode single needs --exemplar IMAGE")
-        return [Path(cfg.exemplar).stem], [load_exemplar(cfg.exemplar, cfg.short_side)]
+        return [Path(cfg.exemplar).stem], [load_exemplar(cfg.exemplar, None if cfg.exemplar_as_is else cfg.short_side)]
     dataset = TextureDataset(cfg.data, short_side=cfg.short_side)
     excluded = set(filter(None, cfg.exclude.split(",")))
     kept = [k for k, name in enumerate(dataset.names) if name not in excluded]

@@ -148,7 +148,8 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
         photo.write_bytes(write_image(image, "tiff", colour="srgb"))
     out_dir = workdir / "fit"
     fitted = _fit_exemplar(services, texture, p, photo, out_dir, progress, should_cancel)
-    structure = {"grain": fitted.get("grain"), "lattice": fitted.get("lattice")}
+    structure = {"grain": fitted.get("grain"), "straightened": fitted.get("straightened", 0.0),
+                 "lattice": fitted.get("lattice")}
     code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
     values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
     if p.in_place:

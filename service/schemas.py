@@ -49,6 +49,9 @@ class Structure(BaseModel):
     grain: Literal["x", "y"] | None = Field(
         description="the axis the noise is stretched along (the photo's grain: x left-right, y up-down); "
                     "null: isotropic")
+    straightened: float = Field(
+        0.0, description="degrees the photo was turned before fitting so that its grain, leaning 3 to 20 degrees "
+                         "off the axis, runs along it (the tiles show it straight); 0: not turned")
     lattice: list[float] | None = Field(
         None, min_length=4, max_length=4,
         description="the photo's repeat lattice the sampler follows, two basis vectors (ax, ay, bx, by) in "

@@ -47,9 +47,10 @@ def test_upload_shows_refinement_progress_then_fitted_tiles(page, refining_serve
     texture = page.evaluate("window.texspace.state.current")
     assert texture["sampler"] == "fitted" and texture["refinement"]["state"] == "succeeded"
     structure = texture["structure"]              # what the fit built in, said on the status line
-    note = (f" (boards, grain along {structure['grain']})" if structure["lattice"] and structure["grain"] else
+    turned = f", straightened by {abs(structure['straightened']):.1f}°" if structure.get("straightened") else ""
+    note = (f" (boards, grain along {structure['grain']}{turned})" if structure["lattice"] and structure["grain"] else
             " (follows the photo's repeat lattice)" if structure["lattice"] else
-            f" (grain along {structure['grain']})" if structure["grain"] else "")
+            f" (grain along {structure['grain']}{turned})" if structure["grain"] else "")
     assert page.text_content("#refinement") == "refined: tiles from the fitted sampler" + note
     # opened again later, the texture still says what its tiles come from
     page.reload()

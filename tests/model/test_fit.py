@@ -102,6 +102,45 @@ def test_a_boards_photo_keeps_its_grain_and_reads_its_boards(tmp_path, vgg):
     assert plain["grain"] == "y" and plain["lattice"] is None
 
 
+def test_a_leaning_grain_is_fitted_straightened(tmp_path, monkeypatch):
+    """A grain 8 degrees off the photo's y axis: the fit learns from the photo turned
+    upright (read as it is, not resized back up), and says by how much; an upright grain
+    and a lean under GRAIN_TILT_MIN are fitted as they are."""
+    import model.fit as fit
+    from model.structure import GRAIN_TILT_MIN, grain_tilt
+    from model.train import load_exemplars
+    from tests.model.photos import streaks
+
+    space = space_checkpoint(tmp_path)
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - records the photo the run reads, trains nothing
+        seen[Path(cfg.exemplar).stem] = (cfg.grain, load_exemplars(cfg)[1][0])
+        raise Stop
+
+    monkeypatch.setattr(fit, "train", train)
+    for name, lean in (("leaning", 8.0), ("upright", 0.0), ("slight", GRAIN_TILT_MIN / 2)):
+        saved_png(tmp_path / f"{name}.png", streaks(angle_degrees=lean))
+        with pytest.raises(Stop):
+            fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space, grain="auto")
+    grain, photo = seen["leaning"]
+    assert grain == "y" and grain_tilt(photo, "y") == pytest.approx(0.0, abs=0.3)
+    side = 256 / (np.cos(np.radians(8)) + np.sin(np.radians(8)))  # 226.7 px: read at the working pixel size
+    assert photo.shape[0] == photo.shape[1] and abs(photo.shape[0] - side) <= 1
+    for name in ("upright", "slight"):
+        assert seen[name][0] == "y" and seen[name][1].shape[:2] == (256, 256)
+    # the whole fit: its result and manifest say the turn
+    monkeypatch.undo()
+    result = fit_exemplar(tmp_path / "leaning.png", tmp_path / "fit", init_checkpoint=space, minutes=0.02, patch=32,
+                          grain="auto")
+    assert result["straightened"] == pytest.approx(8.0, abs=0.3) and result["grain"] == "y"
+    manifest = json.loads((tmp_path / "fit" / "manifest.json").read_text())
+    assert manifest["straightened"] == result["straightened"]
+
+
 def test_every_fit_takes_the_large_patch_and_falling_rates_by_default(tmp_path, monkeypatch):
     """Stripe and 2D lattice fits train on PATCH, as a fit without structure does (the
     validation cardboard: 0.054 -> 0.0048; floor tiles 0.28 -> 0.031 with falling rates),

@@ -24,6 +24,7 @@ MODEL_DIR = REPO / "model" / "weights"
 
 
 FAKE_LATTICE = [0.5, 0.0, -0.21875, 0.166875]
+FAKE_TURN = -6.86  # degrees a leaning grain was turned (vpython_wood_old's lean)
 
 
 def fake_fit_module(calls: list[dict]) -> types.ModuleType:
@@ -39,9 +40,11 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
         (out_dir / "code.json").write_text(json.dumps({"code": [0.0] * 8}))
         if progress:
             progress(1.0)
-        # what model.fit reports it used: the grain asked for, a lattice when asked to detect one
+        # what model.fit reports it used: the grain asked for (straightened by FAKE_TURN), a
+        # lattice when asked to detect one
         return {"code": [0.0] * 8, "sampler": str(out_dir / "sampler.onnx"), "version": "fake", "steps": 1,
-                "grain": grain if grain in ("x", "y") else None, "lattice": FAKE_LATTICE if lattice == "auto" else None}
+                "grain": grain if grain in ("x", "y") else None, "straightened": FAKE_TURN if grain in ("x", "y") else 0.0,
+                "lattice": FAKE_LATTICE if lattice == "auto" else None}
 
     module = types.ModuleType("model.fit")
     module.fit_exemplar = fit_exemplar
@@ -104,7 +107,7 @@ def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_call
     assert fit_calls[0]["init_checkpoint"].name == "space.pt"
     fitted = fit_client.get(job["links"]["output_texture"]).json()
     assert fitted["source"] == "fit" and fitted["parents"]["job"] == job["id"]
-    assert fitted["structure"] == {"grain": "y", "lattice": FAKE_LATTICE}   # what the fit says it built
+    assert fitted["structure"] == {"grain": "y", "straightened": FAKE_TURN, "lattice": FAKE_LATTICE}  # as the fit says
     assert fit_client.get(f"/v1/textures/{fit_texture['id']}").json()["structure"] is None   # the encoder's
 
 

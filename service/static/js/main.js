@@ -132,9 +132,10 @@ function followRefinement(texture) {
 function structureNote(texture) {
   const structure = texture.structure;
   if (!structure) return '';
-  if (structure.lattice && structure.grain) return ` (boards, grain along ${structure.grain})`;
+  const turned = structure.straightened ? `, straightened by ${Math.abs(structure.straightened).toFixed(1)}°` : '';
+  if (structure.lattice && structure.grain) return ` (boards, grain along ${structure.grain}${turned})`;
   if (structure.lattice) return ' (follows the photo\'s repeat lattice)';
-  if (structure.grain) return ` (grain along ${structure.grain})`;
+  if (structure.grain) return ` (grain along ${structure.grain}${turned})`;
   return '';
 }
 
