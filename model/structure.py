@@ -28,9 +28,9 @@ GRAIN_RATIO = 3.0
 GRAIN_SCALES = (1.0, 2.0, 4.0)
 # Grain off its image axis (``grain_tilt``, ``straighten``): the noise can be stretched
 # along world x or y only, so a fit of a photo whose grain leans draws it along the axis
-# as blobs with pale streaks (vpython_wood_old, about 7 degrees). Measured at a 2-px blur
-# on the packaged photos with grain: that wood -7.4 degrees, brushed metal 2.1, the other
-# five within 0.3. A fit turns a photo whose grain leans at least GRAIN_TILT_MIN degrees
+# as blobs with pale streaks (vpython_wood_old, about 7 degrees). Measured on the packaged
+# photos with grain: that wood -6.9 degrees, brushed metal 2.5, the other six within 0.4
+# (the striped rug 0.34). A fit turns a photo whose grain leans at least GRAIN_TILT_MIN degrees
 # so that it runs along the axis, and learns from the largest centred rectangle of the
 # photo's shape inside the turned photo (at 20 degrees, 0.73 of each side).
 GRAIN_TILT_MIN = 3.0
@@ -379,9 +379,9 @@ def detect_grain(image: np.ndarray) -> str | None:
 def grain_tilt(image: np.ndarray, grain: str) -> float:
     """Degrees from the image axis ``grain`` (``"x"`` or ``"y"``) to the direction the
     photo's grain runs, measured from +x towards +y (x right, y down: clockwise as shown),
-    in (-90, 90]. The grain runs where the luminance changes least: the second eigenvector
-    of the structure tensor (mean outer product of the gradient, after a GRAIN_TILT_BLUR px
-    blur)."""
+    in (-90, 90]. The grain runs where the luminance changes least: across the main axis of
+    the structure tensor (the mean outer product of the luminance gradient, taken as
+    derivatives of a GRAIN_TILT_BLUR px Gaussian)."""
     luminance = rec709_luminance(image)
     margin = int(4 * GRAIN_TILT_BLUR)  # the blur's mirrored border bends leaning streaks
     # derivatives of the Gaussian: central differences damp the steeper component of a
