@@ -25,7 +25,7 @@ from PIL import Image
 from model.data import load_exemplar
 from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
 from model.networks import load_checkpoint
-from model.structure import GRAIN_TILT_MAX, GRAIN_TILT_MIN, grain_tilt, photo_structure, straighten
+from model.structure import grain_turn, photo_structure, straighten
 from model.train import TrainConfig, train
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
@@ -75,7 +75,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``patch``: side of the training patches; None: ``PATCH``.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"``; ``lattice``: ``"auto"`` or
     None: what ``model.structure.photo_structure`` detects on the photo. A grain leaning
-    ``GRAIN_TILT_MIN``..``GRAIN_TILT_MAX`` degrees off its axis is straightened first: the
+    3-20 degrees off its axis (``model.structure.grain_turn``) is straightened first: the
     fit learns from the turned photo, and its tiles show the grain straight (``straightened``:
     the degrees turned, 0 when not). The manifest and the result say what was used (the
     lattice in world units).
@@ -98,9 +98,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     grain, found = photo_structure(photo, grain, lattice)
     # A grain that leans: the photo turned so it runs along its axis (the noise stretches
     # along x or y only), and its boards looked for again on the turned photo.
-    turned = grain_tilt(photo, grain) if grain else 0.0
-    if not GRAIN_TILT_MIN <= abs(turned) <= GRAIN_TILT_MAX:
-        turned = 0.0
+    turned = grain_turn(photo, grain)
     if turned:
         photo = straighten(photo, turned)
         grain, found = photo_structure(photo, grain, lattice)

@@ -393,20 +393,27 @@ def grain_tilt(image: np.ndarray, grain: str) -> float:
     return float(-((axis - across) % 180.0 - 90.0))
 
 
+def grain_turn(image: np.ndarray, grain: str | None) -> float:
+    """The degrees a fit turns the photo by so its grain runs along ``grain``'s axis: its
+    ``grain_tilt`` where that leans GRAIN_TILT_MIN..GRAIN_TILT_MAX degrees, else 0 (no
+    grain, one close enough to the axis, or one too far off it to call along it)."""
+    tilt = grain_tilt(image, grain) if grain else 0.0
+    return tilt if GRAIN_TILT_MIN <= abs(tilt) <= GRAIN_TILT_MAX else 0.0
+
+
 def straighten(image: np.ndarray, degrees: float) -> np.ndarray:
     """``image`` turned by ``-degrees`` (a grain at ``degrees``, as ``grain_tilt`` measures,
     comes to lie along its axis): the largest centred rectangle of the image's own aspect
     that the turned image covers, at the same pixel size. Cubic interpolation, clipped to
     [0, 1]; (h, w, 3) -> (h', w', 3) with h' / h = w' / w <= 1."""
     height, width = image.shape[:2]
-    c, s = np.cos(np.radians(abs(degrees))), np.sin(np.radians(abs(degrees)))
-    # a w' x h' rectangle fits inside the turned w x h one when w'c + h's <= w and w's + h'c <= h
-    shrink = min(width / (width * c + height * s), height / (width * s + height * c))
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    # a w' x h' rectangle fits inside the turned w x h one when w'c + h'|s| <= w and w'|s| + h'c <= h
+    shrink = min(width / (width * c + height * abs(s)), height / (width * abs(s) + height * c))
     out_h, out_w = int(height * shrink), int(width * shrink)
     rows, cols = np.mgrid[0:out_h, 0:out_w].astype(np.float64)
     y, x = rows - (out_h - 1) / 2, cols - (out_w - 1) / 2
     # output pixel (x, y) shows the photo at (x, y) turned by +degrees (x right, y down)
-    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
     src_x, src_y = x * c - y * s + (width - 1) / 2, x * s + y * c + (height - 1) / 2
     turned = [ndimage.map_coordinates(np.asarray(image[..., k], np.float64), [src_y, src_x], order=3, mode="nearest")
               for k in range(image.shape[2])]
