@@ -68,7 +68,7 @@ PATCH = 128
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
                  patch: int | None = None, grain: str | None = None, loss: str = "gram", progress=None,
                  quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None,
-                 rate: str = "falling") -> dict:
+                 rate: str = "falling", spectrum: float = 0.0) -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
     'straightened', 'lattice'}.
 
@@ -84,6 +84,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     the export and the files written are the same either way.
     ``rate``: ``"falling"`` (the learning rates fall to 10% over ``minutes``) or ``"constant"``;
     the manifest says which.
+    ``spectrum``: weight of the spectrum loss (``TrainConfig.spectrum``; 0: off, the default).
     """
     if rate not in RATES:
         raise ValueError(f"rate must be one of {', '.join(RATES)}, got {rate!r}")
@@ -120,7 +121,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             minutes=float(minutes), patch=patch, batch=1 if lattice else 2, lr=FIT_LR,
             transform_lr=FIT_TRANSFORM_LR, warmup=20, decay_by_time=rate == "falling",
             seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
-            grain=grain or None, lattice=lattice, lattice_cell=bool(lattice), threads=threads or 0)
+            grain=grain or None, lattice=lattice, lattice_cell=bool(lattice), threads=threads or 0,
+            spectrum=spectrum)
         ckpt_path = train(cfg, progress=progress)
         model, ckpt = load_checkpoint(ckpt_path)
     # Weights, config and code without the optimiser: what model.evaluate needs to compare
@@ -149,6 +151,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "straightened": round(turned, 2),
         "lattice": list(lattice) if lattice else None,
         "rate": rate,
+        "spectrum": spectrum,
     }
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return {"code": code, "sampler": str(out_dir / "sampler.onnx"), "version": manifest["version"],
@@ -179,12 +182,16 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.add_argument("--rate", choices=RATES, default="falling",
                    help="learning rates: falling to 10%% over --minutes (default), or constant")
+    p.add_argument("--spectrum", type=float, default=0.0,
+                   help="weight of the luminance spectrum loss, times the photo's Gram magnitude (0: off; "
+                        "docs/notes/model-history.md, 2026-11-27 evening)")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
                           patch=args.patch, grain=None if args.grain == "none" else args.grain, loss=args.loss,
                           quiet=False, seed=args.seed, device=args.device, threads=args.threads,
-                          lattice=None if args.lattice == "none" else args.lattice, rate=args.rate)
+                          lattice=None if args.lattice == "none" else args.lattice, rate=args.rate,
+                          spectrum=args.spectrum)
     print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "straightened", "lattice", "sampler")}))
 
 

@@ -39,7 +39,8 @@ import torch
 from tqdm import tqdm
 
 from model.data import TextureDataset, load_exemplar, sample_batch
-from model.losses import gram_loss, gram_matrices, sliced_wasserstein_loss
+from model.losses import (gram_energy, gram_loss, gram_matrices, log_power_spectrum, sliced_wasserstein_loss,
+                          spectrum_target)
 from model.networks import ModelConfig, TextureSpace, VARIANTS, load_checkpoint
 from model.colour import compressed_moments, transfer_colour_moments
 from model.slices import linear_to_srgb, plane_points, random_planes, render_slices, srgb_to_linear
@@ -110,6 +111,7 @@ class TrainConfig:
     lattice_cell: bool = False
     seed: int = 0
     probe_every: int = 0
+    spectrum: float = 0.0
     ckpt_every: int = 200
     threads: int = 0
     device: Device = "cpu"
@@ -189,6 +191,9 @@ def parse_args(argv=None) -> TrainConfig:
     p.add_argument("--probe-every", type=int,
                    help="single mode: every N steps (and at the start and end) score the exemplar on fixed "
                         "planes and seeds; the run ends on the best-scoring weights and code (0: off)")
+    p.add_argument("--spectrum", type=float,
+                   help="weight of the radial log power spectrum loss on each patch's luminance, times the "
+                        "exemplar's Gram magnitude (model.losses.gram_energy; 0: off)")
     p.add_argument("--ckpt-every", type=int)
     p.add_argument("--threads", type=int, help="torch threads (0: torch default)")
     p.add_argument("--device", choices=get_args(Device),
@@ -339,12 +344,18 @@ class Objective:
     half are the first half's lattice partners, and their mean squared difference short of
     the photo's ``lattice_contrast`` adds ``LATTICE_CONTRAST_WEIGHT * (1 - ratio)^2``.
     ``self.pairs`` says whether training should use pairs (``LATTICE_PAIRS_MIN``).
+
+    ``spectrum_weight`` (``--spectrum``) adds, per patch, that weight times the exemplar's Gram
+    magnitude (``gram_energy``) times its ``spectrum_loss``: the radially averaged luminance
+    spectrum against the photo's (docs/notes/model-history.md, 2026-11-27 evening; off by default).
     """
 
     def __init__(self, images: list[np.ndarray], layers: tuple[str, ...], kind: str, colour_weight: float = 0.0,
                  colour_normalise: bool = False, device: torch.device | str = "cpu",
-                 lattice_px: tuple[float, float, float, float] | None = None):
+                 lattice_px: tuple[float, float, float, float] | None = None, spectrum_weight: float = 0.0):
+        self.images, self.spectra = images, {}  # spectra: (k, size) -> band powers
         self.vgg = shared_vgg(layers, device)  # one per device: moving the shared one would move it for all
+        self.device = device
         self.contrasts = [lattice_contrast(image, lattice_px) for image in images] if lattice_px else None
         # whether a lattice fit trains on pairs: every photo's repeats differ enough to charge
         self.pairs = self.contrasts is not None and all(
@@ -363,6 +374,10 @@ class Objective:
                 self.targets.append(gram_matrices(feats) if kind == "gram" else feats)
                 self.colours.append(colour_moments(tensor))
                 self.compressed.append(compressed_moments(srgb_to_linear(tensor)))
+        # the spectrum term in proportion to each photo's Gram magnitude (``gram_energy``): it
+        # weighs as much against the Gram loss on a bland concrete (energy 0.17) as on gravel (35)
+        self.spectrum_weights = [spectrum_weight * gram_energy(image, self.vgg) if spectrum_weight else 0.0
+                                 for image in images]
 
     def __call__(self, synth: torch.Tensor, indices: np.ndarray, pairs: bool = False) -> torch.Tensor:
         if self.colour_normalise:
@@ -378,17 +393,27 @@ class Objective:
             feats = {name: torch.cat([part[name] for part in parts]) for name in parts[0]}
         losses = []
         means, covariances = colour_moments(synth)
+        spectra = log_power_spectrum(synth) if any(self.spectrum_weights[k] for k in indices) else None
         for b, k in enumerate(indices):
             one = {name: value[b : b + 1] for name, value in feats.items()}
             if self.kind == "gram":
                 losses.append(gram_loss(one, self.targets[k]))
             else:
                 losses.append(sliced_wasserstein_loss(one, self.targets[k]))
+            if self.spectrum_weights[k]:  # (model.losses.spectrum_loss, the batch's spectra taken at once)
+                difference = spectra[b] - self.spectrum(k, synth.shape[-1])
+                losses[-1] = losses[-1] + self.spectrum_weights[k] * difference.square().mean()
             if self.colour_weight:
                 mean, covariance = self.colours[k]
                 colour = (means[b] - mean[0]).square().sum() + (covariances[b] - covariance[0]).square().sum()
                 losses[-1] = losses[-1] + self.colour_weight * colour
         return torch.stack(losses).mean() + contrast
+
+    def spectrum(self, k: int, size: int) -> torch.Tensor:
+        """Exemplar k's band powers for patches of ``size`` (computed once per size)."""
+        if (k, size) not in self.spectra:
+            self.spectra[k, size] = spectrum_target(self.images[k], size).to(self.device)
+        return self.spectra[k, size]
 
     def pair_contrast(self, synth: torch.Tensor, indices: np.ndarray) -> torch.Tensor:
         """The hinge on lattice partners (first half of the batch against the second)."""
@@ -784,7 +809,8 @@ def train(cfg: TrainConfig, progress=None) -> Path:
         resume(run, run.ckpt_path)
     # After the resume: the VGG's first construction in a process draws from torch's RNG.
     run.objective = Objective(run.images, tuple(cfg.layers.split(",")), cfg.loss, cfg.colour_weight,
-                              cfg.colour_normalise, run.device, lattice_px=lattice_pixels(cfg.lattice))
+                              cfg.colour_normalise, run.device, lattice_px=lattice_pixels(cfg.lattice),
+                              spectrum_weight=cfg.spectrum)
     run.log = (run.out / "log.jsonl").open("a")
     probe = Probe(run) if cfg.probe_every and cfg.mode == "single" else None  # a fit keeps its best state
     stop = threading.Event()

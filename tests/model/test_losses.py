@@ -142,3 +142,34 @@ def test_metrics_style_error_and_vgg_distance(vgg, skimage_textures):
     assert torch.allclose(distance, vgg_distance(torch.cat([brick[1:], brick[1:]]), images, vgg))
     with pytest.raises(ValueError, match="shapes differ"):
         vgg_distance(images, brick[:1, :, :32, :32], vgg)
+
+
+def test_log_power_spectrum_finds_a_stripe_period_and_is_flat_for_white_noise():
+    from model.losses import SPECTRUM_BINS, _radial_bins, log_power_spectrum
+
+    size = 64
+    rows = torch.arange(size, dtype=torch.float32)
+    stripes = (0.5 + 0.4 * torch.sin(2 * np.pi * rows / 8))[None, None, :, None].expand(1, 3, size, size)
+    spectrum = log_power_spectrum(stripes)[0]
+    fy = torch.fft.fftfreq(size)[:, None].expand(size, size // 2 + 1)
+    fx = torch.fft.rfftfreq(size)[None, :].expand(size, size // 2 + 1)
+    index, counts = _radial_bins(size, SPECTRUM_BINS, "cpu")
+    band = index[(fy == 1 / 8) & (fx == 0)][0]  # the band of 1/8 cycles per pixel, among the non-empty ones
+    assert len(spectrum) == int((counts > 0).sum()) and spectrum.argmax() == (counts[:band] > 0).sum()
+    noise = torch.rand(16, 1, size, size, generator=torch.Generator().manual_seed(0)).expand(-1, 3, -1, -1)
+    flat = torch.log10((10 ** log_power_spectrum(noise)).mean(dim=0))
+    assert flat[2:].max() - flat[2:].min() < 0.3  # white: the same power in every band (the lowest few hold few terms)
+
+
+def test_spectrum_loss_tells_a_blurred_photo_from_its_own_crops(skimage_textures):
+    from model.losses import spectrum_loss, spectrum_target
+
+    image = skimage_textures["gravel"]
+    target = spectrum_target(image, 64)
+    crops = torch.from_numpy(sample_batch([image], 8, 64, np.random.default_rng(1)))
+    blurred = torch.nn.functional.avg_pool2d(crops, 3, stride=1, padding=1, count_include_pad=False)
+    own, smooth = spectrum_loss(crops, target).mean(), spectrum_loss(blurred, target).mean()
+    assert own < 0.2 and smooth > 4 * own  # (one 64-px crop's periodogram is noisy: ~0.1)
+    blurred.requires_grad_(True)
+    spectrum_loss(blurred, target).sum().backward()
+    assert torch.isfinite(blurred.grad).all() and blurred.grad.abs().sum() > 0

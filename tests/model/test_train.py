@@ -13,6 +13,7 @@ torch = pytest.importorskip("torch")
 
 from model.networks import VARIANTS, ModelConfig, TextureSpace, load_checkpoint  # noqa: E402
 from model.slices import random_planes, render_slices  # noqa: E402
+from model.vgg import shared_vgg  # noqa: E402
 from model.train import (LATTICE_CONTRAST_WEIGHT, Objective, TrainConfig, lattice_contrast,  # noqa: E402
                          lattice_partners, main as train_main, parse_args, train)
 
@@ -122,6 +123,35 @@ def test_pair_contrast_charges_identical_repeats_and_frees_varied_ones(vgg):
     repeated = np.tile(photo[:16, :16], (4, 4, 1))
     assert not Objective([repeated], ("relu1_1",), "gram", lattice_px=(16.0, 0.0, 0.0, 16.0)).pairs
     assert not Objective([photo], ("relu1_1",), "gram").pairs
+
+
+def test_objective_adds_the_spectrum_weighed_by_the_photos_gram_magnitude(vgg, brick):
+    from model.losses import gram_energy, spectrum_loss, spectrum_target
+
+    photo = np.ascontiguousarray(brick if brick.ndim == 3 else np.repeat(brick[..., None], 3, axis=2))
+    layers = ("relu1_1",)
+    plain = Objective([photo], layers, "gram")
+    weighted = Objective([photo], layers, "gram", spectrum_weight=2.0)
+    torch.manual_seed(0)
+    patch, indices = torch.rand(1, 3, 32, 32) * 0.5, np.zeros(1, np.int64)
+    extra = float(weighted(patch, indices)) - float(plain(patch, indices))
+    expect = 2.0 * gram_energy(photo, shared_vgg(layers)) * float(spectrum_loss(patch, spectrum_target(photo, 32))[0])
+    assert extra == pytest.approx(expect, rel=1e-4)  # weighed by the photo's Gram magnitude
+
+
+def test_a_fit_with_the_spectrum_charges_it_in_steps_and_probes(tmp_path, brick, vgg):
+    image = tmp_path / "brick.png"
+    Image.fromarray((brick * 255).astype(np.uint8)).save(image)
+
+    def run(name: str, spectrum: str) -> list[dict]:
+        train_main(["--mode", "single", "--exemplar", str(image), "--out", str(tmp_path / name), "--patch", "32",
+                    "--batch", "2", "--short-side", "128", "--crop", "64", "--quiet", "--layers", "relu1_1,relu2_1",
+                    "--steps", "1", "--colour-normalise", "--spectrum", spectrum, "--probe-every", "1"])
+        return [json.loads(line) for line in (tmp_path / name / "log.jsonl").read_text().splitlines()]
+
+    plain, charged = run("plain", "0"), run("charged", "1")
+    # the same seed draws the same patches: the first step and the first probe cost more with it
+    assert charged[0]["probe"] > plain[0]["probe"] and charged[1]["loss"] > plain[1]["loss"]
 
 
 def test_scoring_without_gradients_goes_plane_by_plane_to_the_same_numbers(vgg):
