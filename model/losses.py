@@ -163,14 +163,11 @@ def sliced_wasserstein_loss(
     return _reduce(total, reduction)
 
 
-def gram_energy(image: np.ndarray, vgg: VGG16Features | None = None) -> float:
+def gram_energy(grams: Mapping[str, torch.Tensor]) -> float:
     """An exemplar's Gram magnitude under the default layer weights, ``sum_l w_l mean(G_l^2)``
-    (the Gram loss of all-zero Grams against it; image H, W, 3 float32 sRGB).
-    About 1 for a typical training photo; 0.17 for the validation concrete, 35 for the gravel."""
-    vgg = vgg or shared_vgg()
-    tensor = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))[None].to(vgg.mean_bgr.device)
-    with torch.no_grad():
-        grams = gram_matrices(vgg(tensor))
+    (the Gram loss of all-zero Grams against it), from its Grams ``{layer: (1, C, C)}``
+    (``target_grams``). About 1 for a typical training photo; 0.17 for the validation
+    concrete, 35 for the gravel."""
     weights = default_layer_weights(tuple(grams))
     return float(sum(weights[name] * gram.square().mean() for name, gram in grams.items()))
 
@@ -289,6 +286,6 @@ def spectrum_target(image: np.ndarray, size: int, crops: int = 64, seed: int = 0
 
 
 def spectrum_loss(images: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Mean squared log10 band-power difference between each image and ``target`` (bands,) of
-    the same image size (``spectrum_target``): (N,)."""
+    """Mean squared log10 band-power difference between each image and ``target`` (bands,) or
+    one per image (N, bands), of the same image size (``spectrum_target``): (N,)."""
     return (log_power_spectrum(images) - target.to(images)).square().mean(dim=1)

@@ -39,7 +39,7 @@ import torch
 from tqdm import tqdm
 
 from model.data import TextureDataset, load_exemplar, sample_batch
-from model.losses import (gram_energy, gram_loss, gram_matrices, log_power_spectrum, sliced_wasserstein_loss,
+from model.losses import (gram_energy, gram_loss, gram_matrices, sliced_wasserstein_loss, spectrum_loss,
                           spectrum_target)
 from model.networks import ModelConfig, TextureSpace, VARIANTS, load_checkpoint
 from model.colour import compressed_moments, transfer_colour_moments
@@ -367,17 +367,18 @@ class Objective:
         self.targets = []  # per exemplar: Grams (gram) or features (swd)
         self.colours = []  # per exemplar: (mean [1,3], covariance [1,3,3])
         self.compressed = []  # per exemplar: compressed-colour (mean [1,3], covariance [1,3,3])
+        # the spectrum term in proportion to each photo's Gram magnitude (``gram_energy``): it
+        # weighs as much against the Gram loss on a bland concrete (energy 0.17) as on gravel (35)
+        self.spectrum_weights = []
         with torch.no_grad():
             for image in images:
                 tensor = torch.from_numpy(image.transpose(2, 0, 1).copy())[None].to(device)
                 feats = self.vgg(tensor)
-                self.targets.append(gram_matrices(feats) if kind == "gram" else feats)
+                grams = gram_matrices(feats)
+                self.targets.append(grams if kind == "gram" else feats)
+                self.spectrum_weights.append(spectrum_weight * gram_energy(grams) if spectrum_weight else 0.0)
                 self.colours.append(colour_moments(tensor))
                 self.compressed.append(compressed_moments(srgb_to_linear(tensor)))
-        # the spectrum term in proportion to each photo's Gram magnitude (``gram_energy``): it
-        # weighs as much against the Gram loss on a bland concrete (energy 0.17) as on gravel (35)
-        self.spectrum_weights = [spectrum_weight * gram_energy(image, self.vgg) if spectrum_weight else 0.0
-                                 for image in images]
 
     def __call__(self, synth: torch.Tensor, indices: np.ndarray, pairs: bool = False) -> torch.Tensor:
         if self.colour_normalise:
@@ -393,16 +394,17 @@ class Objective:
             feats = {name: torch.cat([part[name] for part in parts]) for name in parts[0]}
         losses = []
         means, covariances = colour_moments(synth)
-        spectra = log_power_spectrum(synth) if any(self.spectrum_weights[k] for k in indices) else None
+        spectral = None  # each patch against its own photo's spectrum, the batch at once
+        if any(self.spectrum_weights[k] for k in indices):
+            spectral = spectrum_loss(synth, torch.stack([self.spectrum(k, synth.shape[-1]) for k in indices]))
         for b, k in enumerate(indices):
             one = {name: value[b : b + 1] for name, value in feats.items()}
             if self.kind == "gram":
                 losses.append(gram_loss(one, self.targets[k]))
             else:
                 losses.append(sliced_wasserstein_loss(one, self.targets[k]))
-            if self.spectrum_weights[k]:  # (model.losses.spectrum_loss, the batch's spectra taken at once)
-                difference = spectra[b] - self.spectrum(k, synth.shape[-1])
-                losses[-1] = losses[-1] + self.spectrum_weights[k] * difference.square().mean()
+            if self.spectrum_weights[k]:
+                losses[-1] = losses[-1] + self.spectrum_weights[k] * spectral[b]
             if self.colour_weight:
                 mean, covariance = self.colours[k]
                 colour = (means[b] - mean[0]).square().sum() + (covariances[b] - covariance[0]).square().sum()

@@ -126,7 +126,7 @@ def test_pair_contrast_charges_identical_repeats_and_frees_varied_ones(vgg):
 
 
 def test_objective_adds_the_spectrum_weighed_by_the_photos_gram_magnitude(vgg, brick):
-    from model.losses import gram_energy, spectrum_loss, spectrum_target
+    from model.losses import gram_energy, spectrum_loss, spectrum_target, target_grams
 
     photo = np.ascontiguousarray(brick if brick.ndim == 3 else np.repeat(brick[..., None], 3, axis=2))
     layers = ("relu1_1",)
@@ -135,7 +135,8 @@ def test_objective_adds_the_spectrum_weighed_by_the_photos_gram_magnitude(vgg, b
     torch.manual_seed(0)
     patch, indices = torch.rand(1, 3, 32, 32) * 0.5, np.zeros(1, np.int64)
     extra = float(weighted(patch, indices)) - float(plain(patch, indices))
-    expect = 2.0 * gram_energy(photo, shared_vgg(layers)) * float(spectrum_loss(patch, spectrum_target(photo, 32))[0])
+    energy = gram_energy(target_grams(torch.from_numpy(photo.transpose(2, 0, 1).copy())[None], shared_vgg(layers)))
+    expect = 2.0 * energy * float(spectrum_loss(patch, spectrum_target(photo, 32))[0])
     assert extra == pytest.approx(expect, rel=1e-4)  # weighed by the photo's Gram magnitude
 
 
