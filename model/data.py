@@ -204,11 +204,15 @@ def to_rgb_uint8(image: Image.Image) -> np.ndarray:
     return np.asarray(image.convert("RGB"), dtype=np.uint8).copy()
 
 
-def load_exemplar(path: str | Path, short_side: int | None = DEFAULT_SHORT_SIDE) -> np.ndarray:
+def load_exemplar(path: str | Path, short_side: int | None = DEFAULT_SHORT_SIDE, *,
+                  quantise: bool = True) -> np.ndarray:
     """Read a texture photo for fitting, training or evaluation, with the upload's reader
     and resize (``worker.decode``: any upload format, alpha over mid grey; Lanczos to the
     working resolution), quantised to 8 bits as training always saw it (PNG/JPEG: within
     about 1/255 of the earlier Pillow reader and 8-bit resize, tests/model/test_data.py).
+    ``quantise=False`` keeps the resize's floats, as an upload's encoding does: a fit reads
+    its photo so, and its first code is then the upload's (the 8-bit rounding alone moved
+    the validation grass's code by 0.011).
 
     Returns (H, W, 3) float32 sRGB-encoded RGB in [0, 1], resized so the shorter side is
     ``short_side`` pixels (``None`` keeps the original size).
@@ -216,6 +220,8 @@ def load_exemplar(path: str | Path, short_side: int | None = DEFAULT_SHORT_SIDE)
     srgb = read_image(Path(path).read_bytes(), max_pixels=MAX_EXEMPLAR_PIXELS)
     if short_side is not None:
         srgb = resize_short_side(srgb, short_side)
+    if not quantise:
+        return srgb
     rgb = (srgb * np.float32(255) + np.float32(0.5)).astype(np.uint8)
     return rgb.astype(np.float32) / 255.0
 

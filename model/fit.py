@@ -95,7 +95,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         raise FileNotFoundError(f"no space checkpoint at {init}; train one (make train) or pass --init")
     space, _ = load_checkpoint(init)
     space_cfg = space.cfg
-    photo = load_exemplar(image_path, space_cfg.exemplar_short_side)
+    photo = load_exemplar(image_path, space_cfg.exemplar_short_side, quantise=False)  # as training reads it
     grain, found = photo_structure(photo, grain, lattice)
     # A grain that leans: the photo turned so it runs along its axis (the noise stretches
     # along x or y only), and its boards looked for again on the turned photo.

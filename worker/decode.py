@@ -1,5 +1,6 @@
 """The one image reader: upload, fit, training and evaluation all decode through ``read_image``,
-and bring a photo to the model's working resolution through ``resize_short_side``.
+bring a photo to the model's working resolution through ``resize_short_side`` and cut the
+encoder's crops from it with ``encoder_crops`` (an upload's code and a fit's first code alike).
 
 A leaf module: numpy, OpenImageIO, Pillow and the standard library, plus the two other leaves
 ``worker.errors`` and ``worker.colour`` (neither imports anything of the project), so
@@ -247,6 +248,27 @@ def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
         down = Image.fromarray(across).resize((shape[1], shape[0]), Image.Resampling.LANCZOS)
         out[..., c] = np.clip(np.asarray(down), 0, 1)
     return out
+
+
+def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: int = 3) -> np.ndarray:
+    """Crops of an sRGB image for the encoder.
+
+    The image is resized so its shorter side is ``max(short_side, size)`` (the model's
+    working resolution: features keep the scale seen in training), then a regular
+    ``grid x grid`` lattice of ``size`` crops is taken, first and last flush with the
+    borders, evenly spaced between (a side with room for only one crop gives one
+    position; duplicates are dropped). Values map 0..1 -> -1..1 (``2x - 1``).
+
+    image : (H, W, 3) float32 sRGB 0..1. Returns (N, 3, size, size) float32, N <= grid^2.
+    """
+    work = resize_short_side(image, max(short_side, size))
+    h, w = work.shape[:2]
+    rows = np.unique(np.round(np.linspace(0, h - size, grid)).astype(int))
+    cols = np.unique(np.round(np.linspace(0, w - size, grid)).astype(int))
+    windows = np.lib.stride_tricks.sliding_window_view(work, (size, size), axis=(0, 1))
+    crops = windows[rows[:, None], cols[None, :]]          # (R, C, 3, size, size)
+    crops = crops.reshape(-1, 3, size, size)
+    return (crops * np.float32(2) - np.float32(1)).astype(np.float32)
 
 
 def _box_reduce(image: np.ndarray, factor: int) -> np.ndarray:

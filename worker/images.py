@@ -35,8 +35,9 @@ from skimage.transform import resize
 from worker import decode
 from worker.colour import LUMA_709, linear_to_srgb, linear_to_srgb8, srgb_to_linear
 from worker.colour_match import calibrate_texture
-# resize_short_side: the working-resolution resize lives beside the reader, which training shares
-from worker.decode import MIN_SIDE, PixelBudget, resize_short_side, sniff_format  # noqa: F401 (sniff_format: API)
+# resize_short_side and encoder_crops live beside the reader, which training and fits share
+from worker.decode import (MIN_SIDE, PixelBudget, encoder_crops, resize_short_side,  # noqa: F401 (sniff_format: API)
+                           sniff_format)
 from worker.errors import InvalidParameter
 from worker.runtime import ModelRuntime
 
@@ -63,27 +64,6 @@ def read_image(data: bytes, *, max_pixels: int, min_side: int = MIN_SIDE) -> np.
     """``worker.decode.read_image`` under this process's decode budget. Returns (H, W, 3)
     float32 sRGB-encoded 0..1; raises InvalidImage, LimitExceeded or Busy."""
     return decode.read_image(data, max_pixels=max_pixels, min_side=min_side, budget=_budget)
-
-
-def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: int = 3) -> np.ndarray:
-    """Crops of an sRGB image for the encoder.
-
-    The image is resized so its shorter side is ``max(short_side, size)`` (the model's
-    working resolution: features keep the scale seen in training), then a regular
-    ``grid x grid`` lattice of ``size`` crops is taken, first and last flush with the
-    borders, evenly spaced between (a side with room for only one crop gives one
-    position; duplicates are dropped). Values map 0..1 -> -1..1 (``2x - 1``).
-
-    image : (H, W, 3) float32 sRGB 0..1. Returns (N, 3, size, size) float32, N <= grid^2.
-    """
-    work = resize_short_side(image, max(short_side, size))
-    h, w = work.shape[:2]
-    rows = np.unique(np.round(np.linspace(0, h - size, grid)).astype(int))
-    cols = np.unique(np.round(np.linspace(0, w - size, grid)).astype(int))
-    windows = np.lib.stride_tricks.sliding_window_view(work, (size, size), axis=(0, 1))
-    crops = windows[rows[:, None], cols[None, :]]          # (R, C, 3, size, size)
-    crops = crops.reshape(-1, 3, size, size)
-    return (crops * np.float32(2) - np.float32(1)).astype(np.float32)
 
 
 def encode_image(runtime: ModelRuntime, image: np.ndarray, *, grid: int = 3) -> np.ndarray:

@@ -334,3 +334,19 @@ def test_patch_side_defaults_to_128_with_or_without_a_lattice(tmp_path, monkeypa
             fit_exemplar(image, tmp_path / "fit", init_checkpoint=space, patch=patch,
                          lattice="auto", grain="auto")
     assert seen == [fit.PATCH, fit.PATCH, 48] and fit.PATCH == 128
+
+
+def test_a_fit_starts_from_the_code_an_upload_gets(tmp_path, skimage_textures):
+    """The fit's first code is the served one (same crops, the torch encoder against the
+    exported ONNX one), so a fit that keeps its start serves what the upload served."""
+    from model.networks import load_checkpoint
+    from model.train import initial_code
+    from worker.images import encode_image, resize_short_side
+    from worker.runtime import ModelRuntime
+
+    model, _ = load_checkpoint(space_checkpoint(tmp_path))
+    photo = resize_short_side(skimage_textures["gravel"], model.cfg.exemplar_short_side)
+    served = encode_image(ModelRuntime(tmp_path / "space"), photo)
+    start = initial_code(model, photo, 128)[0].numpy()
+    assert np.abs(served).max() > 0.01  # a code, not zeros
+    np.testing.assert_allclose(start, served, atol=1e-4)
