@@ -25,7 +25,7 @@ from PIL import Image
 from model.data import load_exemplar
 from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
 from model.networks import load_checkpoint
-from model.structure import grain_turn, photo_structure, straighten
+from model.structure import EVEN_BLOCK, detect_even, grain_turn, photo_structure, straighten
 from model.train import TrainConfig, train
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
@@ -68,9 +68,9 @@ PATCH = 128
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
                  patch: int | None = None, grain: str | None = None, loss: str = "gram", progress=None,
                  quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None,
-                 rate: str = "falling", spectrum: float = 0.0) -> dict:
+                 rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto") -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
-    'straightened', 'lattice'}.
+    'straightened', 'lattice', 'muted_octaves'}.
 
     ``patch``: side of the training patches; None: ``PATCH``.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"``; ``lattice``: ``"auto"`` or
@@ -85,6 +85,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``rate``: ``"falling"`` (the learning rates fall to 10% over ``minutes``) or ``"constant"``;
     the manifest says which.
     ``spectrum``: weight of the spectrum loss (``TrainConfig.spectrum``; 0: off, the default).
+    ``even``: ``"auto"``: a photo with no grain or lattice that is even at large scales
+    (``model.structure.detect_even``) is fitted with its coarse octaves muted (``coarse_octaves``;
+    the probe still compares with the unmuted start); None: never.
     """
     if rate not in RATES:
         raise ValueError(f"rate must be one of {', '.join(RATES)}, got {rate!r}")
@@ -105,6 +108,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         grain, found = photo_structure(photo, grain, lattice)
     # world units: one exemplar pixel is 1 / pixels_per_unit; image rows run along +y
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
+    muted = (coarse_octaves(space_cfg.pixels_per_unit, space_cfg.n_octaves)
+             if even == "auto" and not grain and not lattice and detect_even(photo) else 0)
     patch = patch or PATCH
     with tempfile.TemporaryDirectory() as run_dir:
         exemplar = Path(image_path)
@@ -122,7 +127,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             transform_lr=FIT_TRANSFORM_LR, warmup=20, decay_by_time=rate == "falling",
             seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
             grain=grain or None, lattice=lattice, lattice_cell=bool(lattice), threads=threads or 0,
-            spectrum=spectrum)
+            spectrum=spectrum, mute_octaves=muted)
         ckpt_path = train(cfg, progress=progress)
         model, ckpt = load_checkpoint(ckpt_path)
     # Weights, config and code without the optimiser: what model.evaluate needs to compare
@@ -152,11 +157,18 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "lattice": list(lattice) if lattice else None,
         "rate": rate,
         "spectrum": spectrum,
+        "muted_octaves": muted,
     }
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return {"code": code, "sampler": str(out_dir / "sampler.onnx"), "version": manifest["version"],
             "steps": ckpt["step"], "grain": manifest["grain"], "straightened": manifest["straightened"],
-            "lattice": manifest["lattice"]}
+            "lattice": manifest["lattice"], "muted_octaves": muted}
+
+
+def coarse_octaves(pixels_per_unit: float, n_octaves: int, block: float = EVEN_BLOCK) -> int:
+    """How many of the coarsest octaves have cells of ``block`` px or more (octave k:
+    ``pixels_per_unit / 2^k`` px a cell, before its learned scale): 4 of 8 at 256 px a unit."""
+    return sum(pixels_per_unit / 2**k >= block for k in range(n_octaves))
 
 
 def main(argv=None):
@@ -185,14 +197,18 @@ def main(argv=None):
     p.add_argument("--spectrum", type=float, default=0.0,
                    help="weight of the luminance spectrum loss, times the photo's Gram magnitude (0: off; "
                         "docs/notes/model-history.md, 2026-11-27 evening)")
+    p.add_argument("--even", choices=["auto", "none"], default="auto",
+                   help="auto (default): a photo even at large scales (model.structure.detect_even, no grain "
+                        "or lattice) is fitted with its coarse noise octaves muted; none: never")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
                           patch=args.patch, grain=None if args.grain == "none" else args.grain, loss=args.loss,
                           quiet=False, seed=args.seed, device=args.device, threads=args.threads,
                           lattice=None if args.lattice == "none" else args.lattice, rate=args.rate,
-                          spectrum=args.spectrum)
-    print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "straightened", "lattice", "sampler")}))
+                          spectrum=args.spectrum, even=None if args.even == "none" else args.even)
+    print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "straightened", "lattice", "muted_octaves",
+                                             "sampler")}))
 
 
 if __name__ == "__main__":

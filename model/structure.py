@@ -8,7 +8,8 @@ lattices are two basis vectors (ax, ay, bx, by) in pixels, x right, y down.
   squares, then ``fold_lattice`` moves it to where the photo folds sharpest;
 * ``detect_stripes``: a repeat along one direction only (corrugated board);
 * ``detect_grain``: streaks along image x or y (wood, brushed metal);
-* ``detect_boards``: on a photo with grain, boards side by side (plank floors, decking).
+* ``detect_boards``: on a photo with grain, boards side by side (plank floors, decking);
+* ``detect_even``: a photo with none of these that is even at large scales (gravel, asphalt).
 """
 from __future__ import annotations
 
@@ -84,6 +85,18 @@ BOARD_PEAK = 0.4
 BOARD_MIN_REPEATS = 2  # multiples within a third of the image: boards at most 1/6 of it
 # fold_lattice: how far (px) it moves each coordinate of the detected lattice, in what steps
 FOLD_REACH, FOLD_STEP = 3.0, 0.25
+
+# Evenness (``detect_even``): the means of a photo's EVEN_BLOCK-px blocks vary by less than
+# EVEN_SHARE of its luminance variance: nothing in it is larger than a few blocks. Measured on
+# the 41 packaged photos at 256 px (share at 32 px): the metal grills 0.000 / 0.004, a
+# ceiling tile and stucco 0.001, the skimage and validation gravel 0.015 / 0.016, asphalt
+# 0.016, skimage grass 0.017, a grass 0.025, drywall 0.026; then concrete 0.033, the brick
+# wall 0.041, the validation grass 0.073, granite 0.061, wood 0.15-0.44. A fit of an even
+# photo mutes the noise octaves whose cells are EVEN_BLOCK px or larger (model.fit): the
+# validation gravel's tiles otherwise keep blotches of 35-100 px with 3-6x the photo's
+# power there (docs/notes/model-history.md, 2026-11-27 evening).
+EVEN_BLOCK = 32
+EVEN_SHARE = 0.03
 
 
 def rec709_luminance(image: np.ndarray) -> np.ndarray:
@@ -418,6 +431,18 @@ def straighten(image: np.ndarray, degrees: float) -> np.ndarray:
     turned = [ndimage.map_coordinates(np.asarray(image[..., k], np.float64), [src_y, src_x], order=3, mode="nearest")
               for k in range(image.shape[2])]
     return np.clip(np.stack(turned, axis=-1), 0.0, 1.0).astype(image.dtype)
+
+
+def detect_even(image: np.ndarray) -> bool:
+    """Whether the photo's luminance is even at large scales: the variance of its
+    ``EVEN_BLOCK``-px block means is below ``EVEN_SHARE`` of the pixels' variance (a flat
+    photo, with no variance, is not called even: there is nothing to mute for)."""
+    lum = rec709_luminance(image)
+    rows, cols = lum.shape[0] // EVEN_BLOCK, lum.shape[1] // EVEN_BLOCK
+    if rows * cols < 4 or lum.var() <= 1e-8:
+        return False
+    blocks = lum[:rows * EVEN_BLOCK, :cols * EVEN_BLOCK].reshape(rows, EVEN_BLOCK, cols, EVEN_BLOCK).mean(axis=(1, 3))
+    return bool(blocks.var() < EVEN_SHARE * lum.var())
 
 
 def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str | None = "auto"

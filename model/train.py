@@ -113,6 +113,7 @@ class TrainConfig:
     seed: int = 0
     probe_every: int = 0
     spectrum: float = 0.0
+    mute_octaves: int = 0
     ckpt_every: int = 200
     threads: int = 0
     device: Device = "cpu"
@@ -185,6 +186,9 @@ def parse_args(argv=None) -> TrainConfig:
                         "'ax,ay,bx,by' in the xy plane (model.fit detects it); the decoder also reads each "
                         "point's phase on it, and every slice is an xy plane in the photo's orientation; single "
                         "mode: patches come in pairs whole lattice steps apart (Objective's pair contrast)")
+    p.add_argument("--mute-octaves", type=int,
+                   help="silence the N coarsest noise octaves (mute_coarse_octaves; model.fit sets it for photos "
+                        "even at large scales)")
     p.add_argument("--lattice-cell", action="store_true",
                    help="with --lattice: the decoder also reads the exemplar's mean repeat cell at each point's "
                         "phase (lattice_mean_cell; model.fit turns it on for every lattice fit)")
@@ -812,6 +816,23 @@ def save(run: Run) -> None:
     tmp.replace(run.ckpt_path)
 
 
+def mute_coarse_octaves(model: TextureSpace, count: int) -> None:
+    """Silence the ``count`` coarsest noise octaves: their columns of the decoder's noise
+    weights are zeroed and a gradient hook keeps them zero (Adam then never moves them), so
+    the field varies only at the finer octaves' scales. The sampler graph is unchanged: a
+    muted octave is still computed and multiplied by zeros. For photos even at large scales
+    (``model.structure.detect_even``), whose fits otherwise keep the space's blotches."""
+    if count <= 0 or model.field.decoder is None or model.field.decoder.from_noise is None:
+        return
+    weight = model.field.decoder.from_noise.weight  # [hidden, K * per-octave channels], octave-major
+    columns = count * (weight.shape[1] // model.cfg.n_octaves)
+    keep = torch.ones_like(weight)
+    keep[:, :columns] = 0
+    with torch.no_grad():
+        weight.mul_(keep)
+    weight.register_hook(lambda grad: grad * keep)
+
+
 def train(cfg: TrainConfig, progress=None) -> Path:
     """Run (or resume) training; ``progress(fraction)`` is called after every step."""
     run = setup(cfg)
@@ -823,6 +844,8 @@ def train(cfg: TrainConfig, progress=None) -> Path:
                               spectrum_weight=cfg.spectrum)
     run.log = (run.out / "log.jsonl").open("a")
     probe = Probe(run) if cfg.probe_every and cfg.mode == "single" else None  # a fit keeps its best state
+    # after the probe's first score: a fit whose muted steps never beat its start ends on the start
+    mute_coarse_octaves(run.model, cfg.mute_octaves)
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():  # a job thread cannot own signals
         signal.signal(signal.SIGTERM, lambda *_: stop.set())

@@ -350,3 +350,31 @@ def test_a_fit_starts_from_the_code_an_upload_gets(tmp_path, skimage_textures):
     start = initial_code(model, photo, 128)[0].numpy()
     assert np.abs(served).max() > 0.01  # a code, not zeros
     np.testing.assert_allclose(start, served, atol=1e-4)
+
+
+def test_an_even_photo_is_fitted_with_its_coarse_octaves_muted(tmp_path, monkeypatch, skimage_textures):
+    """Gravel (even at large scales, no structure) mutes the octaves with cells of 32 px or
+    more: 4 of 8 at 256 px a unit; a lattice photo, or even=None, mutes none."""
+    import model.fit as fit
+
+    space = space_checkpoint(tmp_path)
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - records the setting, trains nothing
+        seen[Path(cfg.exemplar).stem] = cfg.mute_octaves
+        raise Stop
+
+    monkeypatch.setattr(fit, "train", train)
+    saved_png(tmp_path / "gravel.png", skimage_textures["gravel"])
+    saved_png(tmp_path / "bricks.png", running_bond())
+    for name, even in (("gravel", "auto"), ("bricks", "auto")):
+        with pytest.raises(Stop):
+            fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space, even=even)
+    assert seen == {"gravel": 4, "bricks": 0}
+    with pytest.raises(Stop):
+        fit_exemplar(tmp_path / "gravel.png", tmp_path / "gravel", init_checkpoint=space, even=None)
+    assert seen["gravel"] == 0
+    assert fit.coarse_octaves(256.0, 8) == 4 and fit.coarse_octaves(128.0, 8) == 3

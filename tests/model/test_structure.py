@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("torch")  # model/structure.py folds lattices with model/train.py's helpers
 
-from model.structure import (detect_boards, detect_grain, detect_lattice, detect_stripes,  # noqa: E402
+from model.structure import (detect_boards, detect_even, detect_grain, detect_lattice, detect_stripes,  # noqa: E402
                              fold_lattice, grain_tilt, photo_structure, straighten)
 from tests.model.photos import boards, corrugation, running_bond, streaks  # noqa: E402
 
@@ -192,3 +192,17 @@ def test_straighten_keeps_the_pixel_size(lean):
 
     assert match(1.0) > 0.95
     assert match(1.05) < 0.8 and match(0.95) < 0.8
+
+
+def test_detect_even_tells_gravel_from_a_photo_with_large_patches(skimage_textures):
+    """Gravel at the working resolution is even at 32 px and larger (its 512-px original,
+    pebbles twice the size, is not); the same gravel under a slow light-dark wave is not,
+    nor is a flat photo (nothing varies)."""
+    from worker.decode import resize_short_side
+
+    assert not detect_even(skimage_textures["gravel"])
+    gravel = resize_short_side(skimage_textures["gravel"], 256)
+    assert detect_even(gravel)
+    y = np.linspace(0, 2 * np.pi, gravel.shape[0])[:, None, None]
+    assert not detect_even(np.clip(gravel * (0.7 + 0.3 * np.sin(y)), 0, 1))
+    assert not detect_even(np.full((256, 256, 3), 0.5))

@@ -267,3 +267,40 @@ def test_parse_args_gives_the_train_config_of_the_flags(capsys):
 def test_train_reads_as_one_short_story():
     # issue 16.6: setup, resume, steps, probe and save are named pieces; train() only tells the run
     assert len(inspect.getsource(train).splitlines()) < 60
+
+
+def test_muted_octaves_stay_silent_through_training_and_the_start_stays_on_offer(tmp_path, brick, vgg):
+    """--mute-octaves N zeroes the N coarsest octaves' decoder columns and Adam never moves
+    them (the others do move); the probe scored the unmuted start first, so a run whose
+    muted states all score worse can still end on it."""
+    from model.networks import ModelConfig
+
+    image = tmp_path / "brick.png"
+    Image.fromarray((brick * 255).astype(np.uint8)).save(image)
+    out = tmp_path / "run"
+    train_main(["--mode", "single", "--exemplar", str(image), "--out", str(out), "--patch", "32", "--batch", "1",
+                "--short-side", "128", "--crop", "64", "--quiet", "--layers", "relu1_1,relu2_1", "--steps", "3",
+                "--mute-octaves", "3", "--probe-every", "1", "--no-nearest", "--warmup", "1"])
+    per_octave = 3  # --no-nearest: the interpolated RGB of each octave
+    _, ckpt = load_checkpoint(out / "checkpoint.pt")
+    steps = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    weight = ckpt["model"]["field.decoder.from_noise.weight"]
+    assert weight.shape[1] == ModelConfig().n_octaves * per_octave
+    if ckpt["probe"]["step"] > 0:  # a muted state won: the coarse columns are exactly zero
+        assert not weight[:, : 3 * per_octave].any() and weight[:, 3 * per_octave:].abs().sum() > 0
+    assert [s["step"] for s in steps if "probe" in s][0] == 0  # the start was scored before muting
+
+    torch.manual_seed(0)
+    model = TextureSpace(ModelConfig(nearest_input=False))
+    from model.train import mute_coarse_octaves
+
+    mute_coarse_octaves(model, 3)
+    weight = model.field.decoder.from_noise.weight
+    before = weight.detach().clone()
+    optimiser = torch.optim.Adam(model.parameters(), lr=1e-2)
+    for _ in range(3):
+        points = torch.rand(1, 64, 3, dtype=torch.float64)
+        model.sample(points, torch.randn(1, 8), 1).sum().backward()
+        optimiser.step()
+        optimiser.zero_grad()
+    assert not weight[:, :9].any() and not torch.equal(weight[:, 9:], before[:, 9:])
