@@ -30,7 +30,7 @@ FAKE_TURN = -6.86  # degrees a leaning grain was turned (vpython_wood_old's lean
 def fake_fit_module(calls: list[dict]) -> types.ModuleType:
     def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain=None,  # noqa: ANN001, ANN202
                      loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu", lattice=None,
-                     rate="falling", spectrum=0.0):
+                     rate="falling", spectrum=0.0, even="auto"):
         calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),
                       "init_checkpoint": Path(init_checkpoint),
                       "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice})
@@ -44,7 +44,7 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
         # lattice when asked to detect one
         return {"code": [0.0] * 8, "sampler": str(out_dir / "sampler.onnx"), "version": "fake", "steps": 1,
                 "grain": grain if grain in ("x", "y") else None, "straightened": FAKE_TURN if grain in ("x", "y") else 0.0,
-                "lattice": FAKE_LATTICE if lattice == "auto" else None}
+                "lattice": FAKE_LATTICE if lattice == "auto" else None, "muted_octaves": 0}
 
     module = types.ModuleType("model.fit")
     module.fit_exemplar = fit_exemplar
