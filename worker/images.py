@@ -36,8 +36,8 @@ from worker import decode
 from worker.colour import LUMA_709, linear_to_srgb, linear_to_srgb8, srgb_to_linear
 from worker.colour_match import calibrate_texture
 # resize_short_side and encoder_crops live beside the reader, which training and fits share
-from worker.decode import (MIN_SIDE, PixelBudget, encoder_crops, resize_short_side,  # noqa: F401 (sniff_format: API)
-                           sniff_format)
+from worker.decode import (MIN_SIDE, PixelBudget, encoder_crops, resize_short_side,
+                           sniff_format)  # noqa: F401 (sniff_format: API)
 from worker.errors import InvalidParameter
 from worker.runtime import ModelRuntime
 
