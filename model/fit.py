@@ -87,7 +87,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``spectrum``: weight of the spectrum loss (``TrainConfig.spectrum``; 0: off, the default).
     ``even``: ``"auto"``: a photo with no grain or lattice that is even at large scales
     (``model.structure.detect_even``) is fitted with its coarse octaves muted (``coarse_octaves``;
-    the probe still compares with the unmuted start); None: never.
+    the probe still compares with the unmuted start); None: never. ``muted_octaves`` in the
+    result: how many the served sampler has muted (0 when the fit kept its unmuted start).
     """
     if rate not in RATES:
         raise ValueError(f"rate must be one of {', '.join(RATES)}, got {rate!r}")
@@ -130,6 +131,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             spectrum=spectrum, mute_octaves=muted)
         ckpt_path = train(cfg, progress=progress)
         model, ckpt = load_checkpoint(ckpt_path)
+    # The probe scores the unmuted start first; a fit that kept it serves no muted octave.
+    if (ckpt.get("probe") or {}).get("step", 1) == 0:
+        muted = 0
     # Weights, config and code without the optimiser: what model.evaluate needs to compare
     # the fit with the space's encoder code on the same exemplar.
     torch.save({key: ckpt.get(key) for key in ("config", "model", "code", "step", "wall_seconds", "mode", "data",

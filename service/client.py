@@ -163,12 +163,13 @@ class Client:
                           data=form, headers=self._key(idempotency_key)).json()
 
     def fit(self, texture_id: str, *, seconds: float = 60.0, grain: str | None = "auto",
-            lattice: str | None = "auto", idempotency_key: str | None = None) -> Job:
+            lattice: str | None = "auto", even: str | None = "auto", idempotency_key: str | None = None) -> Job:
         """Submit a fit (needs the train extra on the workers): refines the texture's sampler.
         ``grain``: "x", "y", "auto" (detected from the photo) or None (isotropic);
-        ``lattice``: "auto" (a repeat lattice detected from the photo) or None."""
+        ``lattice``: "auto" (a repeat lattice detected from the photo) or None;
+        ``even``: "auto" (an even photo's coarse octaves muted) or None."""
         return self._call("POST", f"/v1/textures/{texture_id}/fit",
-                          json={"seconds": seconds, "grain": grain, "lattice": lattice},
+                          json={"seconds": seconds, "grain": grain, "lattice": lattice, "even": even},
                           headers=self._key(idempotency_key)).json()
 
     def job(self, job: Job | str) -> Job:

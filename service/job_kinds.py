@@ -123,7 +123,7 @@ def auto_fit_params(services: Services, model_version: str) -> dict[str, Any] | 
     if not (services.registry.get(model_version).model_dir / "space.pt").is_file():
         return None
     return {"seconds": min(settings.fit_seconds, settings.max_fit_seconds), "grain": "auto", "lattice": "auto",
-            "in_place": True}
+            "even": "auto", "in_place": True}
 
 
 def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -149,7 +149,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     out_dir = workdir / "fit"
     fitted = _fit_exemplar(services, texture, p, photo, out_dir, progress, should_cancel)
     structure = {"grain": fitted.get("grain"), "straightened": fitted.get("straightened", 0.0),
-                 "lattice": fitted.get("lattice")}
+                 "lattice": fitted.get("lattice"), "muted_octaves": fitted.get("muted_octaves", 0)}
     code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
     values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
     if p.in_place:
@@ -191,7 +191,8 @@ def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path
         raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
     # TEXSPACE_FIT_THREADS: a fit must not take the cores tiles need
     return fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0,
-                        progress=report, grain=p.grain, lattice=p.lattice, threads=services.settings.fit_threads)
+                        progress=report, grain=p.grain, lattice=p.lattice, even=p.even,
+                        threads=services.settings.fit_threads)
 
 
 def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],

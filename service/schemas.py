@@ -56,6 +56,9 @@ class Structure(BaseModel):
         None, min_length=4, max_length=4,
         description="the photo's repeat lattice the sampler follows, two basis vectors (ax, ay, bx, by) in "
                     "world units (x right, y down the photo); null: none")
+    muted_octaves: int = Field(
+        0, ge=0, description="how many of the coarsest noise octaves the sampler has muted (an even photo, the "
+                             "fit's even option); 0: none")
 
 
 class TextureOut(BaseModel):
@@ -165,6 +168,12 @@ class FitIn(BaseModel):
                             "they keep their grain), and the fitted sampler, its shader and its tileable twin "
                             "also read each point's phase on it, so tiles show rows, grids and board joints. "
                             "null: off")
+    even: Literal["auto"] | None = Field(
+        "auto", description="auto (default): a photo with no grain or lattice that is even at large scales (its "
+                            "32-px block means vary by under 3% of its luminance variance: gravel, asphalt, "
+                            "fine grass) is fitted with the noise octaves of 32 px cells and coarser muted, so "
+                            "its tiles keep no blotches the photo lacks; the fit still ends on its unmuted start "
+                            "when none of its muted states scores better. null: never muted")
 
 
 class FitParams(FitIn):

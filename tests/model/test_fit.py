@@ -378,3 +378,27 @@ def test_an_even_photo_is_fitted_with_its_coarse_octaves_muted(tmp_path, monkeyp
         fit_exemplar(tmp_path / "gravel.png", tmp_path / "gravel", init_checkpoint=space, even=None)
     assert seen["gravel"] == 0
     assert fit.coarse_octaves(256.0, 8) == 4 and fit.coarse_octaves(128.0, 8) == 3
+
+
+@pytest.mark.parametrize("kept_step, reported", [(0, 0), (25, 4)])
+def test_a_fit_that_keeps_its_unmuted_start_reports_no_muted_octaves(tmp_path, monkeypatch, skimage_textures,
+                                                                       kept_step, reported):
+    """The probe's first score is of the unmuted start: when the fit ends on it (step 0),
+    the served sampler mutes nothing, and the result and manifest say so."""
+    import model.fit as fit
+
+    space = space_checkpoint(tmp_path)
+
+    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - the space itself, kept at kept_step
+        ckpt = torch.load(space, weights_only=False)
+        path = Path(cfg.out) / "kept.pt"
+        torch.save({**ckpt, "code": torch.zeros(1, 8), "step": kept_step, "wall_seconds": 1.0,
+                    "probe": {"score": 1.0, "step": kept_step}}, path)
+        assert cfg.mute_octaves == 4  # gravel: the fit trains muted
+        return path
+
+    monkeypatch.setattr(fit, "train", train)
+    saved_png(tmp_path / "gravel.png", skimage_textures["gravel"])
+    result = fit_exemplar(tmp_path / "gravel.png", tmp_path / "fit", init_checkpoint=space)
+    manifest = json.loads((tmp_path / "fit" / "manifest.json").read_text())
+    assert result["muted_octaves"] == manifest["muted_octaves"] == reported

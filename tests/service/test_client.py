@@ -93,3 +93,22 @@ def test_the_client_imports_no_numpy_onnx_or_fastapi() -> None:
             "print(sorted(heavy & set(sys.modules)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_fit_sends_every_option_the_server_takes() -> None:
+    """The client's fit body is a valid FitIn (extra fields forbidden) carrying each option."""
+    from service.schemas import FitIn
+
+    bodies: list[dict] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        assert request.url.path == "/v1/textures/t1/fit"
+        bodies.append(json.loads(request.content))
+        return httpx.Response(202, json=JOB)
+
+    with client_for(handler) as ts:
+        ts.fit("t1", seconds=30, grain=None, lattice=None, even=None)
+        ts.fit("t1")
+    sent = [FitIn.model_validate(body) for body in bodies]
+    assert (sent[0].grain, sent[0].lattice, sent[0].even, sent[0].seconds) == (None, None, None, 30)
+    assert sent[1].model_dump() == FitIn().model_dump()  # the defaults are the server's

@@ -25,6 +25,7 @@ MODEL_DIR = REPO / "model" / "weights"
 
 FAKE_LATTICE = [0.5, 0.0, -0.21875, 0.166875]
 FAKE_TURN = -6.86  # degrees a leaning grain was turned (vpython_wood_old's lean)
+FAKE_MUTED = 4  # coarse octaves an even photo's fit mutes at 256 px a unit
 
 
 def fake_fit_module(calls: list[dict]) -> types.ModuleType:
@@ -33,7 +34,7 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
                      rate="falling", spectrum=0.0, even="auto"):
         calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),
                       "init_checkpoint": Path(init_checkpoint),
-                      "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice})
+                      "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice, "even": even})
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
@@ -44,7 +45,8 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
         # lattice when asked to detect one
         return {"code": [0.0] * 8, "sampler": str(out_dir / "sampler.onnx"), "version": "fake", "steps": 1,
                 "grain": grain if grain in ("x", "y") else None, "straightened": FAKE_TURN if grain in ("x", "y") else 0.0,
-                "lattice": FAKE_LATTICE if lattice == "auto" else None, "muted_octaves": 0}
+                "lattice": FAKE_LATTICE if lattice == "auto" else None,
+                "muted_octaves": FAKE_MUTED if even == "auto" and not grain and not lattice else 0}
 
     module = types.ModuleType("model.fit")
     module.fit_exemplar = fit_exemplar
@@ -98,7 +100,7 @@ def test_the_stand_in_has_the_real_fit_exemplar_signature() -> None:
 def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_calls) -> None:
     res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30, "grain": "y"})
     assert res.status_code == 202, res.text
-    assert res.json()["params"] == {"seconds": 30, "grain": "y", "lattice": "auto"}
+    assert res.json()["params"] == {"seconds": 30, "grain": "y", "lattice": "auto", "even": "auto"}
     job = fit_client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     assert job["params"]["grain"] == "y"                      # recorded on the job
@@ -107,7 +109,8 @@ def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_call
     assert fit_calls[0]["init_checkpoint"].name == "space.pt"
     fitted = fit_client.get(job["links"]["output_texture"]).json()
     assert fitted["source"] == "fit" and fitted["parents"]["job"] == job["id"]
-    assert fitted["structure"] == {"grain": "y", "straightened": FAKE_TURN, "lattice": FAKE_LATTICE}  # as the fit says
+    assert fitted["structure"] == {"grain": "y", "straightened": FAKE_TURN, "lattice": FAKE_LATTICE,
+                                   "muted_octaves": 0}  # as the fit says
     assert fit_client.get(f"/v1/textures/{fit_texture['id']}").json()["structure"] is None   # the encoder's
 
 
@@ -127,6 +130,24 @@ def test_fit_lattice_is_detected_by_default_and_null_turns_it_off(fit_client, fi
     assert [call["lattice"] for call in fit_calls] == ["auto", None]
     res = fit_client.post(fit_texture["links"]["fit"], json={"lattice": [32, 0, 16, 11]})  # not a value it takes
     assert res.status_code == 422 and "lattice" in res.json()["detail"]
+
+
+def test_fit_even_reaches_fit_exemplar_and_the_muted_octaves_show_in_the_structure(
+        fit_client, fit_texture, fit_calls) -> None:
+    """even=auto (default) lets model.fit mute an even photo's coarse octaves; null never;
+    the fitted texture's structure says how many its sampler has muted."""
+    structures = []
+    for body in ({"seconds": 30, "grain": None, "lattice": None}, {"seconds": 30, "grain": None, "lattice": None,
+                                                                   "even": None}):
+        res = fit_client.post(fit_texture["links"]["fit"], json=body)
+        assert res.status_code == 202, res.text
+        job = fit_client.get(res.json()["links"]["self"]).json()
+        structures.append(fit_client.get(job["links"]["output_texture"]).json()["structure"])
+    assert [call["even"] for call in fit_calls] == ["auto", None]
+    assert [s["muted_octaves"] for s in structures] == [FAKE_MUTED, 0]
+    res = fit_client.post(fit_texture["links"]["fit"], json={"even": "yes"})
+    assert res.status_code == 422 and "even" in res.json()["detail"]
+    assert len(fit_calls) == 2
 
 
 @pytest.mark.parametrize("grain", ["z", "Y", "", 1])

@@ -136,6 +136,7 @@ function structureNote(texture) {
   if (structure.lattice && structure.grain) return ` (boards, grain along ${structure.grain}${turned})`;
   if (structure.lattice) return ' (follows the photo\'s repeat lattice)';
   if (structure.grain) return ` (grain along ${structure.grain}${turned})`;
+  if (structure.muted_octaves) return ' (even: its coarsest noise octaves muted)';
   return '';
 }
 
