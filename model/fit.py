@@ -25,7 +25,8 @@ from PIL import Image
 from model.data import load_exemplar
 from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
 from model.networks import load_checkpoint
-from model.structure import EVEN_BLOCK, detect_even, grain_turn, photo_structure, straighten
+from model.structure import (EVEN_BLOCK, GRAIN_STRETCH, detect_even, grain_stretch, grain_turn, photo_structure,
+                             straighten)
 from model.train import TrainConfig, train
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
@@ -70,7 +71,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                  quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None,
                  rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto") -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
-    'straightened', 'lattice', 'muted_octaves'}.
+    'straightened', 'grain_stretch', 'lattice', 'muted_octaves'}.
 
     ``patch``: side of the training patches; None: ``PATCH``.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"``; ``lattice``: ``"auto"`` or
@@ -109,6 +110,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         grain, found = photo_structure(photo, grain, lattice)
     # world units: one exemplar pixel is 1 / pixels_per_unit; image rows run along +y
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
+    stretch = grain_stretch(photo, grain) if grain else GRAIN_STRETCH  # (of the turned photo)
     muted = (coarse_octaves(space_cfg.pixels_per_unit, space_cfg.n_octaves)
              if even == "auto" and not grain and not lattice and detect_even(photo) else 0)
     patch = patch or PATCH
@@ -127,7 +129,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             minutes=float(minutes), patch=patch, batch=1 if lattice else 2, lr=FIT_LR,
             transform_lr=FIT_TRANSFORM_LR, warmup=20, decay_by_time=rate == "falling",
             seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
-            grain=grain or None, lattice=lattice, lattice_cell=bool(lattice), threads=threads or 0,
+            grain=grain or None, grain_stretch=stretch, lattice=lattice, lattice_cell=bool(lattice),
+            threads=threads or 0,
             spectrum=spectrum, mute_octaves=muted)
         ckpt_path = train(cfg, progress=progress)
         model, ckpt = load_checkpoint(ckpt_path)
@@ -143,6 +146,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     export_tileable_sampler(model.field, out_dir / TILEABLE_SAMPLER)
     code = ckpt["code"].reshape(-1).tolist()
     (out_dir / "code.json").write_text(json.dumps({"code": code}) + "\n")
+    manifest_grain = ckpt["config"].get("grain")
     manifest = {
         "version": model_version(out_dir / "sampler.onnx"),
         "kind": "fitted",
@@ -156,8 +160,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "final_loss": ckpt.get("final_loss"),
         "probe": ckpt.get("probe"),
         "output_colour": "linear",
-        "grain": ckpt["config"].get("grain"),
+        "grain": manifest_grain,
         "straightened": round(turned, 2),
+        "grain_stretch": stretch if manifest_grain else None,
         "lattice": list(lattice) if lattice else None,
         "rate": rate,
         "spectrum": spectrum,
@@ -166,7 +171,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return {"code": code, "sampler": str(out_dir / "sampler.onnx"), "version": manifest["version"],
             "steps": ckpt["step"], "grain": manifest["grain"], "straightened": manifest["straightened"],
-            "lattice": manifest["lattice"], "muted_octaves": muted}
+            "grain_stretch": manifest["grain_stretch"], "lattice": manifest["lattice"], "muted_octaves": muted}
 
 
 def coarse_octaves(pixels_per_unit: float, n_octaves: int, block: float = EVEN_BLOCK) -> int:
@@ -211,8 +216,8 @@ def main(argv=None):
                           quiet=False, seed=args.seed, device=args.device, threads=args.threads,
                           lattice=None if args.lattice == "none" else args.lattice, rate=args.rate,
                           spectrum=args.spectrum, even=None if args.even == "none" else args.even)
-    print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "straightened", "lattice", "muted_octaves",
-                                             "sampler")}))
+    print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "straightened", "grain_stretch", "lattice",
+                                             "muted_octaves", "sampler")}))
 
 
 if __name__ == "__main__":

@@ -27,6 +27,17 @@ from model.train import fold_on_lattice, lattice_cell_sizes
 # wall (-0.06 at 4 px), cinder blocks (0.84), corrugated cardboard (0.19 at 4 px) do not.
 GRAIN_RATIO = 3.0
 GRAIN_SCALES = (1.0, 2.0, 4.0)
+# How much longer a fit's noise cells are along the grain (``ModelConfig.grain_stretch``):
+# STRONG_GRAIN_STRETCH where the gradient ratio is at least GRAIN_RATIO^2 at every blur
+# (planed wood, planks: lines that run across the whole photo), else GRAIN_STRETCH. 60-s
+# fits, seeds 0 / 1, quality-protocol tile style error, stretch 8 -> 16: ratio 11-63 (the
+# validation wood, two training woods, planks) 0.038 / 0.039 -> 0.035 / 0.035, 0.035 / 0.030
+# -> 0.009 / 0.008, 0.056 / 0.045 -> 0.044 / 0.033, 0.152 / 0.116 -> 0.097 / 0.098, and the
+# lines run on instead of breaking into waves; ratio 3-5 (an old wood, the rug, brushed
+# metal, skimage's brick) 0.457 / 0.331 -> 0.581 / 0.365, 10.5 / 10.3 -> 13.1 / 12.5,
+# 0.029 / 0.051 -> 0.030 / 0.036, 0.337 / 0.367 -> 0.336 / 0.329.
+GRAIN_STRETCH = 8.0
+STRONG_GRAIN_STRETCH = 16.0
 # Grain off its image axis (``grain_tilt``, ``straighten``): the noise can be stretched
 # along world x or y only, so a fit of a photo whose grain leans draws it along the axis
 # as blobs with pale streaks (vpython_wood_old, about 7 degrees). Measured on the packaged
@@ -376,17 +387,31 @@ def detect_grain(image: np.ndarray) -> str | None:
     """The axis the photo's grain runs along, ``"x"`` (left-right) or ``"y"`` (up-down),
     or None for an isotropic photo. ``image``: (H, W, 3) RGB in [0, 1] at the working
     resolution. Diagonal grain counts as none (a fit can stretch along x or y only)."""
-    luminance = rec709_luminance(image)
-    log_ratios = []
-    for sigma in GRAIN_SCALES:
-        rows, cols = np.gradient(ndimage.gaussian_filter(luminance, sigma))
-        log_ratios.append(np.log2(max(float(np.mean(cols ** 2)), 1e-20) / max(float(np.mean(rows ** 2)), 1e-20)))
+    log_ratios = _gradient_log_ratios(image)
     threshold = np.log2(GRAIN_RATIO)
     if min(log_ratios) >= threshold:
         return "y"  # changes across columns, constant down them: streaks run up-down
     if max(log_ratios) <= -threshold:
         return "x"
     return None
+
+
+def _gradient_log_ratios(image: np.ndarray) -> list[float]:
+    """log2 of the luminance gradient energy across columns over that across rows, at each
+    blur in GRAIN_SCALES: positive where streaks run up-down (y), negative left-right (x)."""
+    luminance = rec709_luminance(image)
+    log_ratios = []
+    for sigma in GRAIN_SCALES:
+        rows, cols = np.gradient(ndimage.gaussian_filter(luminance, sigma))
+        log_ratios.append(np.log2(max(float(np.mean(cols ** 2)), 1e-20) / max(float(np.mean(rows ** 2)), 1e-20)))
+    return log_ratios
+
+
+def grain_stretch(image: np.ndarray, grain: str) -> float:
+    """How much longer the fit's noise cells are along ``grain`` ("x" or "y"): the strong
+    stretch where the photo's gradient ratio is at least GRAIN_RATIO^2 at every blur."""
+    log_ratios = np.asarray(_gradient_log_ratios(image)) * (1.0 if grain == "y" else -1.0)
+    return STRONG_GRAIN_STRETCH if log_ratios.min() >= 2 * np.log2(GRAIN_RATIO) else GRAIN_STRETCH
 
 
 def grain_tilt(image: np.ndarray, grain: str) -> float:

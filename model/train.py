@@ -108,6 +108,7 @@ class TrainConfig:
     smooth: bool = False
     no_rotations: bool = False
     grain: Grain | None = None
+    grain_stretch: float = 8.0  # ModelConfig.grain_stretch of a grain fit (model.structure.grain_stretch)
     lattice: tuple[float, float, float, float] | None = None
     lattice_cell: bool = False
     seed: int = 0
@@ -181,6 +182,9 @@ def parse_args(argv=None) -> TrainConfig:
                    help="anisotropic exemplar whose grain runs along the image's x (left-right) or y (up-down): "
                         "crops keep their orientation and every slice plane contains that world axis in the same "
                         "role, so tiles on the xy plane show the grain as the exemplar does")
+    p.add_argument("--grain-stretch", type=float,
+                   help="with --grain: how much longer every noise cell is along the grain (model.fit picks 8 or "
+                        "16 from the photo: model.structure.grain_stretch)")
     p.add_argument("--lattice", type=lambda text: tuple(float(v) for v in text.split(",")),
                    help="regular exemplar (bricks, tiles): its repeat lattice, two vectors in world units "
                         "'ax,ay,bx,by' in the xy plane (model.fit detects it); the decoder also reads each "
@@ -468,6 +472,7 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
     ``mean_cell``: a lattice fit's ``lattice_mean_cell`` of its photo."""
     model_cfg = ModelConfig(variant=cfg.variant, dims=cfg.dims, nearest_input=not cfg.no_nearest,
                             smooth=cfg.smooth, exemplar_short_side=cfg.short_side, grain=cfg.grain,
+                            grain_stretch=cfg.grain_stretch,
                             colour_blind_encoder=cfg.colour_normalise, isotropic_transforms=cfg.isotropic_transforms,
                             lattice=cfg.lattice, lattice_cell=mean_cell.shape[:2] if mean_cell is not None else None)
     model = TextureSpace(model_cfg)
@@ -479,7 +484,8 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
     # A grain fit starts from an isotropic space: the stretch is a fixed input transform;
     # a lattice fit adds phase inputs (zero weights; setup starts the mean cell's: start_on_mean_cell);
     # a colour-normalised run may start from a space whose encoder still read colour.
-    if init.cfg.to_dict() | {"grain": model_cfg.grain, "colour_blind_encoder": model_cfg.colour_blind_encoder,
+    if init.cfg.to_dict() | {"grain": model_cfg.grain, "grain_stretch": model_cfg.grain_stretch,
+                             "colour_blind_encoder": model_cfg.colour_blind_encoder,
                              "isotropic_transforms": model_cfg.isotropic_transforms,
                              "lattice": model_cfg.lattice, "lattice_cell": model_cfg.lattice_cell} != model_cfg.to_dict():
         raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {model_cfg.to_dict()}")

@@ -149,6 +149,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     out_dir = workdir / "fit"
     fitted = _fit_exemplar(services, texture, p, photo, out_dir, progress, should_cancel)
     structure = {"grain": fitted.get("grain"), "straightened": fitted.get("straightened", 0.0),
+                 "grain_stretch": fitted.get("grain_stretch"),
                  "lattice": fitted.get("lattice"), "muted_octaves": fitted.get("muted_octaves", 0)}
     code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
     values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")

@@ -52,6 +52,9 @@ class Structure(BaseModel):
     straightened: float = Field(
         0.0, description="degrees the photo was turned before fitting so that its grain, leaning 3 to 20 degrees "
                          "off the axis, runs along it (the tiles show it straight); 0: not turned")
+    grain_stretch: float | None = Field(
+        None, description="how many times longer the sampler's noise cells are along the grain: 16 for a strong "
+                          "grain (gradients across it at least 9x those along it), else 8; null: no grain")
     lattice: list[float] | None = Field(
         None, min_length=4, max_length=4,
         description="the photo's repeat lattice the sampler follows, two basis vectors (ax, ay, bx, by) in "
@@ -59,6 +62,13 @@ class Structure(BaseModel):
     muted_octaves: int = Field(
         0, ge=0, description="how many of the coarsest noise octaves the sampler has muted (an even photo, the "
                              "fit's even option); 0: none")
+
+    @model_validator(mode="after")
+    def _stretch_of_earlier_rows(self) -> "Structure":
+        # rows stored before the stretch was chosen per photo: every grain fit was stretched 8x
+        if self.grain and self.grain_stretch is None:
+            self.grain_stretch = 8.0
+        return self
 
 
 class TextureOut(BaseModel):
@@ -156,7 +166,8 @@ class FitIn(BaseModel):
     grain: Literal["x", "y", "auto"] | None = Field(
         "auto", description="anisotropic exemplar (wood, brushed metal): the direction its grain runs in the photo, "
                             "x = left-right, y = up-down; the fitted solid's noise cells are stretched 8x along "
-                            "that axis so tiles keep the grain in the photo's orientation. auto (default): "
+                            "that axis (16x for a strong grain: gradients >= 9x) so tiles keep the grain in the "
+                            "photo's orientation. auto (default): "
                             "detected from the photo (luminance gradients >= 3x stronger across one axis than "
                             "along it at 1, 2 and 4 px); null: isotropic")
     lattice: Literal["auto"] | None = Field(

@@ -88,9 +88,10 @@ def lattice_sampler(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def boards_sampler(tmp_path_factory) -> Path:
-    """Fitted on boards, as a fit of a plank floor is: grain along y and stripes across it."""
+    """Fitted on boards, as a fit of a plank floor is: grain along y (a strong one: cells 16x
+    longer along it) and stripes across it."""
     return structured_sampler(tmp_path_factory.mktemp("boards-sampler"), lattice=(0.1, 0.0, 0.0, 0.1),
-                              lattice_cell=(26, 26), grain="y")
+                              lattice_cell=(26, 26), grain="y", grain_stretch=16.0)
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,15 @@ def streaks(size: int = 256, angle_degrees: float = 0.0) -> np.ndarray:
     return np.repeat(np.clip(value, 0, 1)[..., None], 3, axis=2)
 
 
+def fibres(along: float, across: float, size: int = 256, seed: int = 0) -> np.ndarray:
+    """Noise blurred ``along`` px up-down and ``across`` px left-right (Gaussian sigmas): a
+    grain along y whose strength the ratio sets (40 / 4: long fibres, 12 / 4: a weak grain)."""
+    noise = ndimage.gaussian_filter(np.random.default_rng(seed).standard_normal((size, size)), (along, across),
+                                    mode="wrap")
+    value = np.clip(0.5 + 0.15 * noise / noise.std(), 0, 1)
+    return np.repeat(value[..., None], 3, axis=2)
+
+
 def running_bond(size: int = 256, brick: int = 32, course: int = 11) -> np.ndarray:
     """Bricks brick x course px in a running bond (every course shifted by half a brick),
     1-px mortar, each brick its own shade: a regular photo with a known lattice."""

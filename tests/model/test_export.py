@@ -185,13 +185,14 @@ def test_exported_noise_matches_torch_past_2_32_cells(tmp_path):
     assert np.abs(got - want).max() < 1e-5
 
 
-def test_grain_model_is_fibres_along_its_axis_and_exports(tmp_path):
+@pytest.mark.parametrize("stretch", [8.0, 16.0])
+def test_grain_model_is_fibres_along_its_axis_and_exports(tmp_path, stretch):
     # A y-grain solid changes slowly along world y and quickly across it, and the stretch
     # survives export (torch and ONNX Runtime agree).
     from model.export import export_sampler
 
     torch.manual_seed(5)
-    model = TextureSpace(ModelConfig(variant="ours", grain="y"))
+    model = TextureSpace(ModelConfig(variant="ours", grain="y", grain_stretch=stretch))
     export_sampler(model.field, tmp_path / "sampler.onnx")
     session = ort.InferenceSession(str(tmp_path / "sampler.onnx"), providers=["CPUExecutionProvider"])
     steps = np.arange(512) / 256.0

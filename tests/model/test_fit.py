@@ -380,6 +380,41 @@ def test_an_even_photo_is_fitted_with_its_coarse_octaves_muted(tmp_path, monkeyp
     assert fit.coarse_octaves(256.0, 8) == 4 and fit.coarse_octaves(128.0, 8) == 3
 
 
+def test_a_strong_grain_is_fitted_with_longer_noise_cells(tmp_path, monkeypatch):
+    """model.structure.grain_stretch picks the stretch the fit trains and exports: 16 for long
+    fibres, 8 for a weak grain; the result and manifest say which (null without grain)."""
+    import model.fit as fit
+    from model.networks import load_checkpoint
+    from tests.model.photos import fibres
+
+    space = space_checkpoint(tmp_path)
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - records the setting, trains nothing
+        seen[Path(cfg.exemplar).stem] = (cfg.grain, cfg.grain_stretch)
+        raise Stop
+
+    monkeypatch.setattr(fit, "train", train)
+    for name, photo in (("strong", fibres(40, 4)), ("weak", fibres(12, 4))):
+        saved_png(tmp_path / f"{name}.png", photo)
+        with pytest.raises(Stop):
+            fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space, grain="auto")
+    assert seen == {"strong": ("y", 16.0), "weak": ("y", 8.0)}
+    monkeypatch.undo()
+    result = fit_exemplar(tmp_path / "strong.png", tmp_path / "fit", init_checkpoint=space, minutes=0.02, patch=32,
+                          grain="auto")
+    manifest = json.loads((tmp_path / "fit" / "manifest.json").read_text())
+    assert result["grain_stretch"] == manifest["grain_stretch"] == 16.0
+    fitted, _ = load_checkpoint(tmp_path / "fit" / "fit.pt")
+    assert fitted.cfg.grain_stretch == 16.0 and fitted.field.world_scale[1].item() == pytest.approx(1 / 16)
+    plain = fit_exemplar(tmp_path / "strong.png", tmp_path / "plain", init_checkpoint=space, minutes=0.02, patch=32,
+                         grain=None)
+    assert plain["grain"] is None and plain["grain_stretch"] is None
+
+
 @pytest.mark.parametrize("kept_step, reported", [(0, 0), (25, 4)])
 def test_a_fit_that_keeps_its_unmuted_start_reports_no_muted_octaves(tmp_path, monkeypatch, skimage_textures,
                                                                        kept_step, reported):

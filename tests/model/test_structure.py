@@ -8,9 +8,10 @@ import pytest
 
 pytest.importorskip("torch")  # model/structure.py folds lattices with model/train.py's helpers
 
-from model.structure import (detect_boards, detect_even, detect_grain, detect_lattice, detect_stripes,  # noqa: E402
-                             fold_lattice, grain_tilt, photo_structure, straighten)
-from tests.model.photos import boards, corrugation, running_bond, streaks  # noqa: E402
+from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, detect_boards, detect_even,  # noqa: E402
+                             detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
+                             photo_structure, straighten)
+from tests.model.photos import boards, corrugation, fibres, running_bond, streaks  # noqa: E402
 
 
 def test_detect_grain_finds_axis_aligned_streaks_only(skimage_textures):
@@ -20,6 +21,18 @@ def test_detect_grain_finds_axis_aligned_streaks_only(skimage_textures):
     assert detect_grain(np.full((64, 64, 3), 0.5)) is None     # flat: no gradients at all
     for name in ("grass", "gravel"):                           # isotropic photos
         assert detect_grain(skimage_textures[name]) is None, name
+
+
+def test_a_strong_grain_gets_the_long_stretch_a_weak_one_the_usual():
+    """Gradients across the grain at least GRAIN_RATIO^2 those along it at every blur: the
+    fit's noise cells are STRONG_GRAIN_STRETCH long, a weaker grain GRAIN_STRETCH; either axis."""
+    strong, weak = fibres(40, 4), fibres(12, 4)
+    assert detect_grain(strong) == detect_grain(weak) == "y"
+    assert grain_stretch(strong, "y") == grain_stretch(streaks(), "y") == STRONG_GRAIN_STRETCH == 16.0
+    assert grain_stretch(weak, "y") == GRAIN_STRETCH == 8.0
+    assert grain_stretch(strong.transpose(1, 0, 2), "x") == STRONG_GRAIN_STRETCH
+    assert grain_stretch(weak.transpose(1, 0, 2), "x") == GRAIN_STRETCH
+    assert grain_stretch(strong, "x") == GRAIN_STRETCH  # measured along the grain it is given
 
 
 def test_detect_lattice_finds_a_running_bond_and_nothing_in_stochastic_photos(skimage_textures):

@@ -45,6 +45,7 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
         # lattice when asked to detect one
         return {"code": [0.0] * 8, "sampler": str(out_dir / "sampler.onnx"), "version": "fake", "steps": 1,
                 "grain": grain if grain in ("x", "y") else None, "straightened": FAKE_TURN if grain in ("x", "y") else 0.0,
+                "grain_stretch": 16.0 if grain in ("x", "y") else None,
                 "lattice": FAKE_LATTICE if lattice == "auto" else None,
                 "muted_octaves": FAKE_MUTED if even == "auto" and not grain and not lattice else 0}
 
@@ -109,8 +110,8 @@ def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_call
     assert fit_calls[0]["init_checkpoint"].name == "space.pt"
     fitted = fit_client.get(job["links"]["output_texture"]).json()
     assert fitted["source"] == "fit" and fitted["parents"]["job"] == job["id"]
-    assert fitted["structure"] == {"grain": "y", "straightened": FAKE_TURN, "lattice": FAKE_LATTICE,
-                                   "muted_octaves": 0}  # as the fit says
+    assert fitted["structure"] == {"grain": "y", "straightened": FAKE_TURN, "grain_stretch": 16.0,
+                                   "lattice": FAKE_LATTICE, "muted_octaves": 0}  # as the fit says
     assert fit_client.get(f"/v1/textures/{fit_texture['id']}").json()["structure"] is None   # the encoder's
 
 
@@ -239,3 +240,12 @@ def test_fit_of_an_evened_texture_sees_the_photo_as_its_encoding_did(fit_client,
     fitted = fit_client.get(f"/v1/textures/{done['output_texture_id']}").json()
     assert fitted["lighting"] == "even"
     assert fit_client.get(fitted["links"]["exemplar"]).content == shaded
+
+
+def test_a_grain_fit_stored_before_the_stretch_was_recorded_reads_as_8x() -> None:
+    """Rows from before structure.grain_stretch: every grain fit then stretched its cells 8x."""
+    from service.schemas import Structure
+
+    assert Structure(grain="y", straightened=0.0, lattice=None).grain_stretch == 8.0
+    assert Structure(grain=None, lattice=None).grain_stretch is None
+    assert Structure(grain="x", grain_stretch=16.0).grain_stretch == 16.0

@@ -89,8 +89,8 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     assert refined["sampler"] == "fitted" and refined["has_own_sampler"]
     assert refined["refinement"] == {"job_id": job["id"], "state": "succeeded", "progress": 1.0}
     assert refined["code"] == [0.0] * 8                         # the fit's code (the stand-in's)
-    assert refined["structure"] == {"grain": None, "straightened": 0.0, "lattice": FAKE_LATTICE,
-                                   "muted_octaves": 0}   # what the fit detected
+    assert refined["structure"] == {"grain": None, "straightened": 0.0, "grain_stretch": None,
+                                   "lattice": FAKE_LATTICE, "muted_octaves": 0}   # what the fit detected
     assert refined["source"] == "upload" and refined["links"]["tiles"] == texture["links"]["tiles"]
     assert client.get("/v1/textures").json()["items"][0]["sampler"] == "fitted"
 
