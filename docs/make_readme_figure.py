@@ -41,7 +41,8 @@ def fitted_tile(fit_dir: Path, image: np.ndarray, short_side: int, pixels_per_un
 
     session = SamplerSession(fit_dir / "sampler.onnx")
     code = np.asarray(json.loads((fit_dir / "code.json").read_text())["code"], np.float32)
-    vector = texture_vector(code, calibrate_texture(session, code, resize_short_side(image, short_side)))
+    vector = texture_vector(code, calibrate_texture(session, code, resize_short_side(image, short_side),
+                                                   curves="linear"))
     return render_tile(session, vector, 1, NATIVE_ZOOM, 0, 0, 256, pixels_per_unit=pixels_per_unit)
 
 

@@ -45,7 +45,8 @@ def main(fit_dir: str = "runs/fits/miniworld_brick_wall_1", image: str = "data/t
     code = np.asarray(json.loads((fit / "code.json").read_text())["code"], np.float32)
     short_side = ModelRuntime(Path("model/weights")).short_side  # the space the fit started from
     photo = read_image(Path(image).read_bytes(), max_pixels=1 << 26)
-    vector = texture_vector(code, calibrate_texture(sampler, code, resize_short_side(photo, short_side)))
+    vector = texture_vector(code, calibrate_texture(sampler, code, resize_short_side(photo, short_side),
+                                                   curves="linear"))
     inside, view, normals = sphere_view(SIZE, TILT)
     points, shade = normals * RADIUS, np.clip(view @ LIGHT, 0.2, 1.0)[:, None]
     panels = []

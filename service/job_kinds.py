@@ -241,7 +241,8 @@ def _fitted_colour(services: Services, sampler_path: Path, code: list[float], im
     sampler's own raw output, so a new sampler needs a new table); None if it has no colour stage.
     ``image``: the exemplar as its encoding saw it (``working_photo``: float32 sRGB at the
     model's working resolution)."""
-    colour = calibrate_texture(services.registry.fitted_sampler(sampler_path), np.asarray(code, np.float32), image)
+    colour = calibrate_texture(services.registry.fitted_sampler(sampler_path), np.asarray(code, np.float32), image,
+                               curves="linear")  # the transfer the fit was optimised under
     return [float(v) for v in colour] or None
 
 

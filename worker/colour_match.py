@@ -8,16 +8,21 @@ Statistics are taken in compressed colour, ``(rgb + FLOOR) ** (1/4)``, a log-lik
 1. The photo's principal colour axes ``B`` (eigenvectors of its compressed-colour
    covariance, largest first).
 2. The texture's *raw* synthesis (the same sampler with the identity table) at many
-   random 3D points and a few seeds, projected on the same axes and whitened there
-   (symmetric whitening: the channels stay as aligned with the axes as they can) by ``A``.
-3. Per channel, the curve ``photo quantile(raw CDF(u))``, sampled on an even grid of
-   ``u`` from the raw sample's smallest to its largest value.
+   random 3D points and a few seeds, whitened by ``A`` so that, were its channels matched
+   linearly, the table would be exactly the moment transfer training judges patches
+   under (``model.colour.transfer_colour_moments``: Cholesky whitening of the raw colours,
+   colouring by the photo's Cholesky factor), read on the photo's axes. (A symmetric
+   whitening on the photo's axes mixed the raw output's near-silent colour directions into
+   the photo's lightness axis: fits drew speckle they were never judged by.)
+3. Per channel, a curve sampled on an even grid of ``u`` from the raw sample's smallest to
+   its largest value: ``curves="quantile"``: ``photo quantile(raw CDF(u))``, so the tiles
+   have the photo's colour histogram per decorrelated channel (an upload's encoder code);
+   ``"linear"``: the straight line that gives the photo's mean and spread, the moment
+   transfer itself (a fit, which was optimised under it: quantile curves stretched the
+   flat metal of a grill fit into speckle).
 
-The curves map each raw channel's distribution onto the photo's, so the tiles have the
-photo's colour histogram per decorrelated channel (and so its mean and covariance)
-whatever colours the encoder predicted. They are increasing, so structure (which pixels
-are darker than which) comes from the network unchanged. Deterministic: the same
-sampler, code and photo give the same table.
+The curves are increasing, so structure (which pixels are darker than which) comes from
+the network unchanged. Deterministic: the same sampler, code and photo give the same table.
 """
 from __future__ import annotations
 
@@ -36,7 +41,10 @@ CALIBRATION_SEEDS = (0, 1, 2, 3)
 MAX_PHOTO_PIXELS = 1 << 16  # photo pixels used for its statistics (a fixed-stride subset)
 FLOOR = 1.0 / 256.0  # as model/colour.py (the sampler graph applies the same)
 MIN_STEP = 1e-6  # the smallest raw range a curve spans (a flat raw channel)
-_WHITEN_FLOOR = 1e-8  # variance floor of the raw channels (a flat raw channel stays finite)
+# Ridge added to both covariances before their Cholesky factors, as training's moment
+# transfer adds it (model.colour.transfer_colour_moments): a flat raw channel stays finite.
+RIDGE = 1e-6
+CURVES = ("quantile", "linear")  # an encoder code's table, a fit's (the module docstring)
 
 
 def knots_of(colour_size: int) -> int:
@@ -76,36 +84,52 @@ def compressed_colour(rgb: np.ndarray) -> np.ndarray:
     return np.sqrt(np.sqrt(np.clip(np.asarray(rgb, np.float64), 0.0, 1.0) + FLOOR))
 
 
-def colour_table(photo_linear: np.ndarray, raw: np.ndarray, knots: int) -> np.ndarray:
+def colour_table(photo_linear: np.ndarray, raw: np.ndarray, knots: int, curves: str = "quantile") -> np.ndarray:
     """Colour table that maps raw synthesis onto the photo's colour distribution.
 
     photo_linear : (N, 3) float, the photo's linear-RGB pixels.
     raw : (M, 3) float32, raw sampler output (identity table) at random points.
+    curves : "quantile" (histograms) or "linear" (mean and covariance), see the module docstring.
     Returns (24 + 3 * knots,) float32 (layout in model/colour.py).
     """
+    if curves not in CURVES:
+        raise ValueError(f"curves must be one of {CURVES}, got {curves!r}")
     photo = compressed_colour(photo_linear).reshape(-1, 3)
     raw = compressed_colour(raw).reshape(-1, 3)
     if len(photo) < 2 or len(raw) < 2:
         raise InvalidParameter("colour statistics need at least two photo pixels and two samples")
     axes = photo_axes(photo)  # B: d -> rgb is axes @ d; rgb -> d is axes.T @ rgb
-    projected = raw @ axes
-    variance, vectors = np.linalg.eigh(np.cov(projected, rowvar=False))
-    whiten = vectors @ np.diag(1.0 / np.sqrt(np.maximum(variance, _WHITEN_FLOOR))) @ vectors.T
-    a = whiten @ axes.T  # u = A rgb
+    a = moment_whitening(photo, raw, axes)  # u = A rgb
     u = np.sort(raw @ a.T, axis=0)  # (M, 3)
     d = np.sort(photo @ axes, axis=0)  # (N, 3)
     start, stop = u[0], u[-1]
     step = np.maximum(stop - start, MIN_STEP) / (knots - 1)
     grid = start + np.arange(knots)[:, None] * step  # (knots, 3)
-    values = np.empty((3, knots))
-    for c in range(3):  # three channels: the work inside is vectorised
-        # the raw CDF at each grid value (mid-rank of ties), then the photo's quantile there
-        below = np.searchsorted(u[:, c], grid[:, c], side="left")
-        at_or_below = np.searchsorted(u[:, c], grid[:, c], side="right")
-        level = np.clip((below + at_or_below) / (2.0 * len(u)), 0.0, 1.0)
-        values[c] = np.quantile(d[:, c], level)
-    values[:, 0], values[:, -1] = d[0], d[-1]  # the grid's ends are the raw extremes
+    if curves == "linear":
+        values = (d.mean(0) + d.std(0) * (grid - u.mean(0))).T  # u as whitened: the transfer exactly
+    else:
+        values = np.empty((3, knots))
+        for c in range(3):  # three channels: the work inside is vectorised
+            # the raw CDF at each grid value (mid-rank of ties), then the photo's quantile there
+            below = np.searchsorted(u[:, c], grid[:, c], side="left")
+            at_or_below = np.searchsorted(u[:, c], grid[:, c], side="right")
+            level = np.clip((below + at_or_below) / (2.0 * len(u)), 0.0, 1.0)
+            values[c] = np.quantile(d[:, c], level)
+        values[:, 0], values[:, -1] = d[0], d[-1]  # the grid's ends are the raw extremes
     return np.concatenate([a.ravel(), start, step, values.ravel(), axes.ravel()]).astype(np.float32)
+
+
+def moment_whitening(photo: np.ndarray, raw: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """``A`` (3, 3): compressed raw colour -> white channels, one per photo axis, such that
+    ``axes @ diag(photo std on the axes) @ A`` is training's moment transfer ``Lp Lr^-1``
+    (Cholesky factors of the photo's and the raw colours' covariances). ``axes.T @ Lp`` is
+    ``diag(std) Q`` with Q orthogonal (its rows are orthogonal: ``axes`` diagonalise the
+    photo's covariance), so ``A = Q Lr^-1``; Q is taken as the orthogonal polar factor."""
+    eye = np.eye(3)
+    raw_factor = np.linalg.cholesky(np.cov(raw, rowvar=False) + RIDGE * eye)
+    photo_factor = np.linalg.cholesky(np.cov(photo, rowvar=False) + RIDGE * eye)
+    left, _, right = np.linalg.svd(axes.T @ photo_factor)
+    return (left @ right) @ np.linalg.inv(raw_factor)
 
 
 def photo_pixels(image: np.ndarray) -> np.ndarray:
@@ -120,8 +144,9 @@ def calibration_points() -> np.ndarray:
     return np.random.default_rng(20200614).random((CALIBRATION_POINTS, 3)) * CALIBRATION_EXTENT
 
 
-def calibrate_texture(sampler, code: np.ndarray, image: np.ndarray) -> np.ndarray:
-    """The colour table of a texture: ``code`` (8,) synthesised by ``sampler``, photo ``image``.
+def calibrate_texture(sampler, code: np.ndarray, image: np.ndarray, curves: str = "quantile") -> np.ndarray:
+    """The colour table of a texture: ``code`` (8,) synthesised by ``sampler``, photo ``image``;
+    ``curves``: "quantile" for an encoder code, "linear" for a fitted sampler (``colour_table``).
 
     sampler : a SamplerSession (worker/runtime.py) whose graph has a colour input.
     image : (H, W, 3) float32 sRGB 0..1, the texture's exemplar at the model's working
@@ -135,7 +160,7 @@ def calibrate_texture(sampler, code: np.ndarray, image: np.ndarray) -> np.ndarra
     vector = np.concatenate([code, identity_colour(size)])
     points = calibration_points()
     raw = np.concatenate([sampler.sample(points, vector, seed) for seed in CALIBRATION_SEEDS])
-    return colour_table(photo_pixels(image), raw, knots_of(size))
+    return colour_table(photo_pixels(image), raw, knots_of(size), curves)
 
 
 def texture_vector(code, colour) -> np.ndarray:

@@ -76,7 +76,7 @@ def texture_code(runtime: ModelRuntime, image: np.ndarray) -> np.ndarray:
     if code is None:  # an upload's own path (one resize for crops and colour table)
         return texture_vector(*encode_texture(runtime, image))
     working = resize_short_side(image, runtime.short_side)
-    return texture_vector(code, calibrate_texture(runtime.sampler, code, working))
+    return texture_vector(code, calibrate_texture(runtime.sampler, code, working, curves="linear"))  # as a fit serves
 
 
 class FittedRuntime:

@@ -220,9 +220,9 @@ def test_refinement_recomputes_the_colour_with_the_fitted_sampler(refining, phot
     client, services = refining
     calls = []
 
-    def calibrate(sampler, code, image):  # noqa: ANN001, ANN202
-        calls.append((sampler, np.asarray(code).tolist(), image.shape))
-        return real(sampler, code, image)
+    def calibrate(sampler, code, image, curves="quantile"):  # noqa: ANN001, ANN202
+        calls.append((sampler, np.asarray(code).tolist(), image.shape, curves))
+        return real(sampler, code, image, curves)
 
     monkeypatch.setattr(job_kinds, "calibrate_texture", calibrate)
     texture = upload_photo(client, photo)
@@ -230,7 +230,8 @@ def test_refinement_recomputes_the_colour_with_the_fitted_sampler(refining, phot
     run_fit_lane(services)
     with services.sessions() as session:
         row = session.get(Texture, texture["id"])
-    sampler, code, shape = calls[-1]
+    sampler, code, shape, curves = calls[-1]
+    assert curves == "linear"  # the fit's table is the moment transfer it was optimised under
     assert sampler is services.registry.fitted_sampler(services.sampler_path(row.id, row.sampler_key))
     assert code == [0.0] * 8 and shape[2] == 3
     # the photo at the model's working resolution (its shorter side), as at upload
