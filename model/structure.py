@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from model.networks import ModelConfig
 from model.train import fold_on_lattice, lattice_cell_sizes
 
 # Grain detection (``grain="auto"``): a photo has grain when its luminance gradient energy
@@ -36,8 +37,8 @@ GRAIN_SCALES = (1.0, 2.0, 4.0)
 # lines run on instead of breaking into waves; ratio 3-5 (an old wood, the rug, brushed
 # metal, skimage's brick) 0.457 / 0.331 -> 0.581 / 0.365, 10.5 / 10.3 -> 13.1 / 12.5,
 # 0.029 / 0.051 -> 0.030 / 0.036, 0.337 / 0.367 -> 0.336 / 0.329.
-GRAIN_STRETCH = 8.0
-STRONG_GRAIN_STRETCH = 16.0
+GRAIN_STRETCH = ModelConfig.grain_stretch  # the model's default, 8
+STRONG_GRAIN_STRETCH = 2 * GRAIN_STRETCH
 # Grain off its image axis (``grain_tilt``, ``straighten``): the noise can be stretched
 # along world x or y only, so a fit of a photo whose grain leans draws it along the axis
 # as blobs with pale streaks (vpython_wood_old, about 7 degrees). Measured on the packaged

@@ -108,7 +108,7 @@ class TrainConfig:
     smooth: bool = False
     no_rotations: bool = False
     grain: Grain | None = None
-    grain_stretch: float = 8.0  # ModelConfig.grain_stretch of a grain fit (model.structure.grain_stretch)
+    grain_stretch: float = ModelConfig.grain_stretch  # of a grain fit (model.fit picks it: model.structure)
     lattice: tuple[float, float, float, float] | None = None
     lattice_cell: bool = False
     seed: int = 0
