@@ -266,6 +266,21 @@ def cmd_reencode(args: argparse.Namespace, settings: Settings) -> None:
         raise CliError(f"{len(report.skipped)} textures were not moved (listed above)", code=1)
 
 
+def cmd_recolour(args: argparse.Namespace, settings: Settings) -> None:
+    """``texspace recolour [--dry-run]``: compute stale colour tables again with today's
+    recipe (:mod:`service.recolour`); codes and samplers stay."""
+    from .recolour import recolour_textures
+
+    report = recolour_textures(build_services(settings), dry_run=args.dry_run)
+    verb = "would recolour" if args.dry_run else "recoloured"
+    print(f"{verb} {len(report.recoloured)} textures (from their photos) and {len(report.blended)} blends "
+          f"with colour calibration {report.calibration}")
+    for texture_id, why in report.skipped.items():
+        print(f"skipped {texture_id}: {why}")
+    if report.skipped and not args.dry_run:
+        raise CliError(f"{len(report.skipped)} textures were not recoloured (listed above)", code=1)
+
+
 def cmd_encode(args: argparse.Namespace, settings: Settings) -> None:
     source = TextureSource(settings, args.image, args.lighting)
     print(json.dumps({"code": [round(float(c), 7) for c in source.z], "model_version": source.model_version}))
@@ -380,7 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     fields = Settings.model_fields
     parser = Parser(prog="texspace", formatter_class=HelpFormatter,
-                    description="processes (api, worker, serve, migrate, reencode) and offline tools (encode, tile, "
+                    description="processes (api, worker, serve, migrate, reencode, recolour) and offline tools (encode, tile, "
                                 "volume, bake, tileable, shader) that work without a server",
                     epilog="An error is one line on stderr; exit status 2: bad input, 1: the work failed.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -410,6 +425,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--to", metavar="VERSION",
                    help="the model to move them to (default: TEXSPACE_DEFAULT_MODEL_VERSION, else the newest)")
     p.add_argument("--dry-run", action="store_true", help="report what would move; change nothing (default: move them)")
+    p = proc("recolour", cmd_recolour, "compute colour tables made by an older recipe again, from the textures' "
+                                       "photos (after an upgrade that says so)")
+    p.add_argument("--dry-run", action="store_true", help="report what would change; change nothing (default: recolour them)")
 
     def lighting_arg(p: argparse.ArgumentParser) -> None:
         p.add_argument("--lighting", choices=LIGHTING, default="as-is",

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from worker.colour_match import calibrate_texture
+from worker.colour_match import COLOUR_CALIBRATION, calibrate_texture
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
 from worker.files import extension, media_type
 from worker.images import read_image, working_photo, write_image
@@ -166,7 +166,8 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     with session_scope(services.sessions) as session:
         if session.get(Texture, new_id) is None:
             session.add(Texture(id=new_id, name=f"{texture.name or texture.id} (fitted)",
-                                code=code, colour=colour, model_version=texture.model_version,
+                                code=code, colour=colour, colour_calibration=COLOUR_CALIBRATION,
+                                model_version=texture.model_version,
                                 source="fit", parents={"texture": texture.id, "job": job.id},
                                 owner_id=texture.owner_id,
                                 exemplar_key=exemplar_key,

@@ -22,13 +22,13 @@ from dataclasses import dataclass, field
 from sqlalchemy import select
 from sqlalchemy.orm import load_only
 
-from worker.colour_match import blend_textures
+from worker.colour_match import COLOUR_CALIBRATION, blend_textures
 from worker.images import encode_texture, read_image
 
 from . import jobs, keys
 from .db import session_scope
 from .job_kinds import auto_fit_params
-from .tables import Texture, new_id, utcnow
+from .tables import Texture, blend_calibration, new_id, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +106,7 @@ def _encode_again(services, runtime, texture: Texture, refine: dict | None) -> b
         if row is None:
             return False
         row.code, row.colour = [float(c) for c in code], [float(c) for c in colour] or None
+        row.colour_calibration = COLOUR_CALIBRATION
         row.encoder_code = row.encoder_colour = row.structure = row.sampler_key = None
         row.model_version, row.updated_at = runtime.version, utcnow()
         row.refinement_job_id = new_id() if refine else None
@@ -151,4 +152,5 @@ def _blend_again(services, runtime, texture: Texture) -> None:  # noqa: ANN001
         row = session.get(Texture, texture.id)
         row.code, row.colour = blend_textures(a.model_space(), b.model_space(), float(parents["t"]),
                                               runtime.sampler.colour_size)
+        row.colour_calibration = blend_calibration(a, b)
         row.model_version, row.updated_at = runtime.version, utcnow()

@@ -91,6 +91,9 @@ class Texture(Base):
     # table of encoder_code with the model's sampler, kept with it when a refinement replaces both.
     colour: Mapped[list | None] = mapped_column(JSON, nullable=True)
     encoder_colour: Mapped[list | None] = mapped_column(JSON, nullable=True)
+    # The recipe both tables were made by (worker.colour_match.COLOUR_CALIBRATION); None:
+    # an older one, from before it was recorded. ``texspace recolour`` updates stale rows.
+    colour_calibration: Mapped[int | None] = mapped_column(Integer, nullable=True)
     # What the fitted sampler was built with (model.fit): {"grain": "x" | "y" | None,
     # "straightened": degrees the photo was turned (absent in rows from before),
     # "grain_stretch": 8 | 16 | None (absent in rows from before: 8 with a grain),
@@ -121,6 +124,12 @@ class Texture(Base):
         if self.sampler_key:
             return None
         return self.code, self.colour
+
+
+def blend_calibration(*parents: Texture) -> int | None:
+    """The colour recipe of a blend's tables: its parents' oldest (None if any is unknown)."""
+    recipes = [p.colour_calibration for p in parents]
+    return None if None in recipes else min(recipes)
 
 
 class Job(Base):

@@ -319,12 +319,14 @@ LINEAR = TileCache(0)
 
 def tile_etag(texture: Texture, *, z: int, x: int, y: int, size: int, seed: int, plane: str,
               offset: float, fmt: str, zoom_out: str = "supersample") -> str:
-    """Strong ETag: every input that changes the bytes, including the model version and,
+    """Strong ETag: every input that changes the bytes, including the model version, the
+    texture's code and colour table (``texspace recolour`` changes a table in place) and,
     below native zoom, how zoomed-out tiles are rendered."""
     mode = zoom_out if z < NATIVE_ZOOM and zoom_out != "supersample" else ""
     parts = (TILE_RENDER_VERSION, texture.model_version, texture.id, texture.sampler_key or "",
              seed, z, x, y, size, plane, repr(float(offset)), fmt) + ((mode,) if mode else ())
-    return '"' + hashlib.sha256("|".join(map(str, parts)).encode()).hexdigest()[:32] + '"'
+    digest = hashlib.sha256("|".join(map(str, parts)).encode() + texture.sampling_code().tobytes())
+    return '"' + digest.hexdigest()[:32] + '"'
 
 
 def tiles_final(services: Services, texture: Texture) -> bool:

@@ -45,6 +45,12 @@ MIN_STEP = 1e-6  # the smallest raw range a curve spans (a flat raw channel)
 # transfer adds it (model.colour.transfer_colour_moments): a flat raw channel stays finite.
 RIDGE = 1e-6
 CURVES = ("quantile", "linear")  # an encoder code's table, a fit's (the module docstring)
+# The recipe a stored table was made by, kept with it (service: Texture.colour_calibration).
+# 1: the symmetric whitening on the photo's axes and quantile curves for every sampler;
+# 2: the moment whitening above, quantile curves for an encoder code, linear for a fit.
+# Bump it whenever calibrate_texture makes different tables for the same inputs:
+# ``texspace recolour`` then brings the stored ones up to date.
+COLOUR_CALIBRATION = 2
 
 
 def knots_of(colour_size: int) -> int:

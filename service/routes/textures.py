@@ -9,7 +9,7 @@ from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFil
 from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
-from worker.colour_match import blend_textures
+from worker.colour_match import COLOUR_CALIBRATION, blend_textures
 from worker.files import media_type, media_type_of_extension
 from worker.images import LIGHTING, encode_texture, read_image, sniff_format
 from worker.shader import LANGUAGES, emit_shader, shader_name
@@ -21,7 +21,7 @@ from ..errors import Problem, not_found, problem_responses
 from ..job_kinds import auto_fit_params
 from ..purge import purge_texture
 from ..schemas import InterpolateIn, TextureOut, TexturePage, TexturePatch
-from ..tables import Job, Texture, new_id, utcnow
+from ..tables import Job, Texture, blend_calibration, new_id, utcnow
 from ..tiles import etag_matches
 from ..uploads import read_limited
 
@@ -78,7 +78,8 @@ def create_texture(
     services.storage.put_bytes(key, data)
     colour = [float(c) for c in colour] or None
     texture = Texture(id=texture_id, name=(name or image.filename or "")[:NAME_LENGTH], code=[float(c) for c in code],
-                      colour=colour, model_version=runtime.version, source="upload", exemplar_key=key,
+                      colour=colour, colour_calibration=COLOUR_CALIBRATION, model_version=runtime.version,
+                      source="upload", exemplar_key=key,
                       exemplar_media_type=media_type_of_extension(ext), lighting=lighting,
                       width=int(pixels.shape[1]), height=int(pixels.shape[0]), owner_id=auth.current_owner(),
                       refinement_job_id=new_id() if refine else None)
@@ -132,7 +133,7 @@ def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) 
                            "interpolate the textures they were fitted from", slug="fitted-texture")
     code, colour = blend_textures(*ends, body.t, services.registry.get(a.model_version).sampler.colour_size)
     texture = Texture(id=new_id(), name=body.name or blend_name(a.name or a.id, b.name or b.id, body.t),
-                      code=code, colour=colour,
+                      code=code, colour=colour, colour_calibration=blend_calibration(a, b),
                       model_version=a.model_version, source="interpolate",
                       parents={"a": a.id, "b": b.id, "t": body.t}, owner_id=auth.current_owner())
     with session_scope(services.sessions) as session:
