@@ -76,7 +76,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``patch``: side of the training patches; None: ``PATCH``.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"``; ``lattice``: ``"auto"`` or
     None: what ``model.structure.photo_structure`` detects on the photo. A grain leaning
-    3-20 degrees off its axis (``model.structure.grain_turn``) is straightened first: the
+    3-45 degrees off its nearer axis (``model.structure.grain_turn``) is straightened first: the
     fit learns from the turned photo, and its tiles show the grain straight (``straightened``:
     the degrees turned, 0 when not). The manifest and the result say what was used (the
     lattice in world units).

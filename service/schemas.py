@@ -50,8 +50,8 @@ class Structure(BaseModel):
         description="the axis the noise is stretched along (the photo's grain: x left-right, y up-down); "
                     "null: isotropic")
     straightened: float = Field(
-        0.0, description="degrees the photo was turned before fitting so that its grain, leaning 3 to 20 degrees "
-                         "off the axis, runs along it (the tiles show it straight); 0: not turned")
+        0.0, description="degrees the photo was turned before fitting so that its grain, leaning 3 to 45 degrees "
+                         "off the nearer axis, runs along it (the tiles show it straight); 0: not turned")
     grain_stretch: float | None = Field(
         None, description="how many times longer the sampler's noise cells are along the grain: 16 for a strong "
                           "grain (gradients across it at least 9x those along it), else 8; null: no grain")
@@ -169,7 +169,9 @@ class FitIn(BaseModel):
                             "that axis (16x for a strong grain: gradients >= 9x) so tiles keep the grain in the "
                             "photo's orientation. auto (default): "
                             "detected from the photo (luminance gradients >= 3x stronger across one axis than "
-                            "along it at 1, 2 and 4 px); null: isotropic")
+                            "along it at 1, 2 and 4 px, or so on the photo turned by its main orientation); "
+                            "a grain leaning 3 to 45 degrees off the nearer axis is straightened first. null: "
+                            "isotropic")
     lattice: Literal["auto"] | None = Field(
         "auto", description="regular exemplar (bricks, tile grids, perforated metal): auto (default) detects the "
                             "2D lattice the photo repeats on (two independent autocorrelation peaks >= 0.3 "

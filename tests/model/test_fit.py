@@ -105,7 +105,8 @@ def test_a_boards_photo_keeps_its_grain_and_reads_its_boards(tmp_path, vgg):
 def test_a_leaning_grain_is_fitted_straightened(tmp_path, monkeypatch):
     """A grain 8 degrees off the photo's y axis: the fit learns from the photo turned
     upright (read as it is, not resized back up), and says by how much; an upright grain
-    and a lean under GRAIN_TILT_MIN are fitted as they are."""
+    and a lean under GRAIN_TILT_MIN are fitted as they are; one 35 degrees off (which the
+    axis test misses) is found on the turned photo and turned too."""
     import model.fit as fit
     from model.structure import GRAIN_TILT_MIN, grain_tilt
     from model.train import load_exemplars
@@ -122,7 +123,7 @@ def test_a_leaning_grain_is_fitted_straightened(tmp_path, monkeypatch):
         raise Stop
 
     monkeypatch.setattr(fit, "train", train)
-    for name, lean in (("leaning", 8.0), ("upright", 0.0), ("slight", GRAIN_TILT_MIN / 2)):
+    for name, lean in (("leaning", 8.0), ("upright", 0.0), ("slight", GRAIN_TILT_MIN / 2), ("diagonal", 35.0)):
         saved_png(tmp_path / f"{name}.png", streaks(angle_degrees=lean))
         with pytest.raises(Stop):
             fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space, grain="auto")
@@ -132,6 +133,9 @@ def test_a_leaning_grain_is_fitted_straightened(tmp_path, monkeypatch):
     assert photo.shape[0] == photo.shape[1] and abs(photo.shape[0] - side) <= 1
     for name in ("upright", "slight"):
         assert seen[name][0] == "y" and seen[name][1].shape[:2] == (256, 256)
+    grain, photo = seen["diagonal"]  # past the axis test: found on the turned photo, and turned
+    assert grain == "y" and grain_tilt(photo, "y") == pytest.approx(0.0, abs=0.3)
+    assert abs(photo.shape[0] - 256 / (np.cos(np.radians(35)) + np.sin(np.radians(35)))) <= 1
     # the whole fit: its result and manifest say the turn
     monkeypatch.undo()
     result = fit_exemplar(tmp_path / "leaning.png", tmp_path / "fit", init_checkpoint=space, minutes=0.02, patch=32,

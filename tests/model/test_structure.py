@@ -10,7 +10,7 @@ pytest.importorskip("torch")  # model/structure.py folds lattices with model/tra
 
 from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, detect_boards, detect_even,  # noqa: E402
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
-                             photo_structure, straighten)
+                             grain_turn, leaning_grain, photo_structure, straighten)
 from tests.model.photos import boards, corrugation, fibres, running_bond, streaks  # noqa: E402
 
 
@@ -188,6 +188,24 @@ def test_grain_tilt_reads_a_lean_and_straighten_takes_it_out(lean):
     c, s = np.cos(np.radians(lean)), np.sin(np.radians(abs(lean)))
     assert straight.shape == (int(256 / (c + s)),) * 2 + (3,)  # the largest square inside the turned photo
     assert np.abs(straighten(photo, 0.0) - photo).max() < 1e-5  # no turn: the photo itself
+
+
+@pytest.mark.parametrize("lean, axis, turn", [(35.0, "y", 35.0), (-40.0, "y", -40.0), (60.0, "x", -30.0)])
+def test_a_grain_leaning_past_the_axis_test_is_found_on_the_turned_photo(lean, axis, turn):
+    """Streaks 30-60 degrees off both axes: the axis test finds no grain; the photo turned
+    by its main orientation has one along the nearer axis, and the fit turns it by that."""
+    photo = streaks(angle_degrees=lean)
+    assert detect_grain(photo) is None
+    assert leaning_grain(photo) == axis and photo_structure(photo) == (axis, None)
+    assert grain_turn(photo, axis) == pytest.approx(turn, abs=0.3)
+    assert detect_grain(straighten(photo, grain_turn(photo, axis))) == axis
+    assert photo_structure(photo, grain=None) == (None, None)  # an isotropic fit asked for: none
+
+
+def test_leaning_grain_finds_none_on_isotropic_or_upright_photos(skimage_textures):
+    for name in ("grass", "gravel", "brick"):  # the brick's grain is upright: detect_grain's
+        assert leaning_grain(skimage_textures[name]) is None, name
+    assert leaning_grain(streaks()) is None and leaning_grain(np.full((64, 64, 3), 0.5)) is None
 
 
 @pytest.mark.parametrize("lean", [6.0, 12.0])
