@@ -8,9 +8,10 @@ import pytest
 
 pytest.importorskip("torch")  # model/structure.py folds lattices with model/train.py's helpers
 
-from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, detect_boards, detect_even,  # noqa: E402
+from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,  # noqa: E402
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
-                             grain_turn, leaning_grain, photo_structure, straighten)
+                             grain_turn, leaning_grain, photo_structure, same_lattice, straighten)
+from model.structure import _lattice_on  # noqa: E402
 from tests.model.photos import boards, corrugation, fibres, running_bond, streaks  # noqa: E402
 
 
@@ -58,6 +59,51 @@ def test_fold_lattice_moves_a_bond_that_is_off_onto_the_photos_own():
     assert off[:2] == pytest.approx((32.0, 0.0), abs=0.3)
     assert off[2] == pytest.approx(-16.0, abs=0.3) and off[3] == pytest.approx(11.0, abs=0.3)
     assert fold_lattice(image, (32.0, 0.0, 16.0, 11.0)) == pytest.approx((32.0, 0.0, 16.0, 11.0), abs=0.3)
+
+
+def test_autocorrelation_is_the_mean_over_each_offsets_overlap():
+    """No wrapping: at offset (dy, dx) the mean of l(p) l(p + d) over the pixels where both
+    are in the image, at index (dy mod h, dx mod w)."""
+    values = np.random.default_rng(0).standard_normal((6, 8))
+    found = autocorrelation(values)
+    assert found.shape == values.shape
+    for dy in range(-3, 3):
+        for dx in range(-4, 4):
+            a = values[max(0, -dy):6 - max(0, dy), max(0, -dx):8 - max(0, dx)]
+            b = values[max(0, dy):6 - max(0, -dy), max(0, dx):8 - max(0, -dx)]
+            assert found[dy % 6, dx % 8] == pytest.approx(np.mean(a * b), abs=1e-12), (dy, dx)
+
+
+@pytest.mark.parametrize("size, offset", [(230, 0), (200, 13), (181, 37)])
+def test_detect_lattice_finds_a_running_bond_in_a_photo_that_does_not_tile(size, offset):
+    """A photo's opposite edges do not meet: a wrapped autocorrelation saw a seam there and
+    lost these crops of the bond (None); every lattice vector found must be on the bond."""
+    found = detect_lattice(running_bond(300)[offset:offset + size, offset:offset + size])
+    assert found is not None
+    vectors = np.array(found).reshape(2, 2) @ np.linalg.inv(np.array([[32.0, 0.0], [16.0, 11.0]]))  # in bond steps
+    assert np.abs(vectors - np.round(vectors)).max() < 0.05, found
+
+
+def test_a_photo_that_tiles_is_measured_wrapped_one_that_does_not_unwrapped():
+    """Found without wrapping; where the wrapped autocorrelation finds the same lattice (a
+    photo that tiles, as CG textures do) its exact measurement is the one kept."""
+    y, x = np.mgrid[0:256, 0:256].astype(np.float64)
+    u, v = 2 * np.pi * x / (256 / 14), 2 * np.pi * y / (256 / 12)  # 14 x 12 holes: a tile
+    holes = 0.5 + 0.25 * np.tanh(3 * (np.cos(u) + np.cos(v) + 0.6 * np.cos(u + v)))
+    tile = np.repeat(np.clip(holes + 0.05 * np.random.default_rng(0).standard_normal(holes.shape), 0, 1)[..., None],
+                     3, axis=2)
+    assert same_lattice(_lattice_on(tile, False), _lattice_on(tile, True))
+    assert detect_lattice(tile) == _lattice_on(tile, True)
+    crop = running_bond(300)[:230, :230]  # the wrapped correlation loses this bond
+    assert _lattice_on(crop, True) is None and detect_lattice(crop) == _lattice_on(crop, False)
+
+
+def test_same_lattice_takes_any_basis_of_it_and_no_sublattice():
+    bond = (32.0, 0.0, 16.0, 11.0)
+    assert same_lattice(bond, (32.0, 0.0, -16.0, 11.0))        # b - a
+    assert same_lattice(bond, (16.05, 11.0, -15.95, 11.0))     # b and b - a, a twentieth of a pixel off
+    assert not same_lattice(bond, (32.0, 0.0, 0.0, 22.0))      # two courses: a sublattice
+    assert not same_lattice(bond, (32.0, 0.0, 0.0, 11.0))      # the course alone: another lattice
 
 
 def test_detect_lattice_measures_a_skewed_lattice_to_a_fraction_of_a_pixel():
@@ -143,14 +189,16 @@ def test_detect_stripes_measures_the_period_across_the_stripes(skimage_textures)
 
 def test_detect_boards_measures_the_board_width_across_the_grain(skimage_textures):
     """Boards repeat across their grain, which the photo's autocorrelation hides under the
-    grain's streaks (no lattice, no stripes); averaged along the grain the joints show. The
-    width comes to a fraction of a pixel, also where it falls between two pixels (whose
-    peaks split), and the board is the shortest repeat, not two boards."""
+    grain's streaks (no lattice; the stripe detector reads 9.3-px boards as 28-px stripes,
+    three boards, and is not asked on a grain photo); averaged along the grain the joints
+    show. The width comes to a fraction of a pixel, also where it falls between two pixels
+    (whose peaks split), and the board is the shortest repeat, not two boards."""
     for width in (9.3, 12.5, 25.6):
         image = boards(width)
-        assert detect_grain(image) == "y" and detect_lattice(image) is None and detect_stripes(image) is None
+        assert detect_grain(image) == "y" and detect_lattice(image) is None
         ax, ay, bx, by = detect_boards(image, "y")
         assert abs(ax - width) < 0.1 and ay == 0 and (bx, by) == pytest.approx((0.0, ax)), (width, ax)
+        assert photo_structure(image) == ("y", (ax, ay, bx, by))  # grain and boards, not stripes
     ax, ay, bx, by = detect_boards(boards().transpose(1, 0, 2), "x")  # boards left-right
     assert ax == 0 and abs(ay - 25.6) < 0.1 and (bx, by) == pytest.approx((-ay, 0.0))
     assert detect_boards(boards(), "x") is None                     # along the grain: no joints
