@@ -19,6 +19,7 @@ from .context import Services, build_services
 from .errors import PROBLEM_MEDIA_TYPE, install_error_handlers
 from .logs import setup_logging
 from .middleware import RequestContextMiddleware
+from .recolour import warn_if_stale
 from .routes import jobs, system, textures, tiles
 from .settings import Settings
 from .site import SiteFiles
@@ -74,6 +75,11 @@ async def _warm_up(app: FastAPI) -> AsyncIterator[None]:
             app.state.services.registry
         except Exception:  # reported by /readyz and by each request that needs a model
             log.exception("model registry could not be loaded")
+            return
+        try:
+            warn_if_stale(app.state.services)
+        except Exception:  # a hint for operators: never in the way of serving
+            log.exception("could not count textures with stale colour tables")
 
     threading.Thread(target=load, name="warm-up", daemon=True).start()
     yield

@@ -24,7 +24,7 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-from sqlalchemy import or_, select
+from sqlalchemy import func, or_, select
 from sqlalchemy.orm import load_only
 
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures, calibrate_texture
@@ -46,16 +46,32 @@ class RecolourReport:
     skipped: dict[str, str] = field(default_factory=dict)  # id -> why
 
 
+def _stale(query, services):  # noqa: ANN001, ANN202
+    """``query`` narrowed to textures on a loaded model with tables of an older (or unknown) recipe."""
+    return (query.where(Texture.model_version.in_(set(services.registry.models)))
+            .where(or_(Texture.colour_calibration.is_(None), Texture.colour_calibration < COLOUR_CALIBRATION)))
+
+
 def stale_colour_textures(services) -> list[Texture]:  # noqa: ANN001
     """Textures on a loaded model whose tables are of an older (or unknown) recipe, oldest
     first; only the columns that decide what to do are loaded."""
-    query = (select(Texture).order_by(Texture.created_at, Texture.id)
-             .where(Texture.model_version.in_(set(services.registry.models)))
-             .where(or_(Texture.colour_calibration.is_(None), Texture.colour_calibration < COLOUR_CALIBRATION))
+    query = (_stale(select(Texture), services).order_by(Texture.created_at, Texture.id)
              .options(load_only(Texture.id, Texture.model_version, Texture.source, Texture.parents,
                                 Texture.exemplar_key, Texture.sampler_key, Texture.created_at)))
     with session_scope(services.sessions) as session:
         return list(session.scalars(query))
+
+
+def warn_if_stale(services) -> int:  # noqa: ANN001
+    """Log a warning naming the command when textures have tables of an older recipe (at
+    the API's start: an upgrade that changed the recipe says so where operators look);
+    how many there are."""
+    with session_scope(services.sessions) as session:
+        count = session.scalar(_stale(select(func.count()).select_from(Texture), services))
+    if count:
+        log.warning("%d textures have colour tables of an older recipe (their tiles keep the old colours): "
+                    "run `texspace recolour`", count)
+    return count
 
 
 def recolour_textures(services, *, dry_run: bool = False) -> RecolourReport:  # noqa: ANN001

@@ -16,7 +16,7 @@ from service.cli import main
 from service.context import build_services
 from service.db import session_scope
 from service.main import create_app
-from service.recolour import recolour_textures, stale_colour_textures
+from service.recolour import recolour_textures, stale_colour_textures, warn_if_stale
 from service.settings import Settings
 from service.tables import Texture
 from tests.conftest import fresh_postgres_database
@@ -133,6 +133,18 @@ def test_recolour_computes_stale_tables_again(world: dict) -> None:
 
     again = recolour_textures(services)  # idempotent: only the orphan is left
     assert (again.recoloured, again.blended, list(again.skipped)) == ([], [], [world["orphan"]["id"]])
+
+
+@pytest.mark.parametrize("database", ["sqlite"], indirect=True)
+def test_the_api_start_names_the_command_while_tables_are_stale(world: dict, caplog) -> None:
+    services = world["services"]
+    with caplog.at_level("WARNING", logger="service.recolour"):
+        assert warn_if_stale(services) == 5  # a, b, the fit's, the blend, the orphan
+    assert "5 textures" in caplog.text and "texspace recolour" in caplog.text
+    recolour_textures(services)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="service.recolour"):
+        assert warn_if_stale(services) == 1  # the orphan, reported by the command
 
 
 @pytest.mark.parametrize("database", ["sqlite"], indirect=True)
