@@ -72,6 +72,15 @@ GRAIN_TILT_BLUR = 2.0
 # planks' (0.44 / 0.44; 1.00) gives way to their grain (LATTICE_STRONG); another cardboard
 # has peaks 0.41 / 0.37 but support 0.14; the other 29 have no two peaks >= 0.3.
 LATTICE_PEAK = 0.3
+LATTICE_REACH = 1 / 3  # of the image's height and width: where repeats are looked for
+# Large cells: a photo showing fewer than three repeats across (floor tiles photographed
+# close: 2.5 tiles of 102 px at the working resolution) has its peaks beyond LATTICE_REACH.
+# Looked for there only where nothing else was found (no lattice, grain, boards or stripes),
+# and only lattices whose both vectors are at least LARGE_CELL_MIN of the image: a reach of
+# 0.45 for every photo turned the cardboard's stripes into lattices with a far, chance
+# second vector, and moved the validation brick wall's measured bond by 0.3 px.
+LARGE_CELL_REACH = 0.45
+LARGE_CELL_MIN = 0.25
 # A lattice whose peaks are not all this strong loses to grain when the photo has grain:
 # the wood planks' lattice (0.44) made a 60-s fit draw diagonal blobs, their grain (y)
 # vertical boards.
@@ -139,10 +148,11 @@ def autocorrelation(values: np.ndarray) -> np.ndarray:
     return full[grid] / overlap
 
 
-def luminance_correlation(image: np.ndarray, wrap: bool = False) -> tuple[np.ndarray, list[tuple]] | None:
+def luminance_correlation(image: np.ndarray, wrap: bool = False, within: float = LATTICE_REACH
+                          ) -> tuple[np.ndarray, list[tuple]] | None:
     """The photo's luminance autocorrelation, normalised to 1 at the origin ([0, 0]),
     and its repeat peaks: local maxima of at least LATTICE_PEAK, at least
-    LATTICE_MIN_OFFSET px from the origin and within a third of the image, as (value,
+    LATTICE_MIN_OFFSET px from the origin and within ``within`` of the image, as (value,
     length, dx, dy). None for a flat photo. ``wrap``: circular (the photo taken as a tile,
     exact where it is one), else over each offset's overlap (``autocorrelation``)."""
     luminance = rec709_luminance(image)
@@ -161,7 +171,7 @@ def luminance_correlation(image: np.ndarray, wrap: bool = False) -> tuple[np.nda
     dy, dx = np.meshgrid(dy, dx, indexing="ij")
     peaks = ((correlation == ndimage.maximum_filter(correlation, size=5, mode="wrap"))
              & (correlation >= LATTICE_PEAK) & (np.hypot(dx, dy) >= LATTICE_MIN_OFFSET)
-             & (np.abs(dx) <= width // 3) & (np.abs(dy) <= height // 3))
+             & (np.abs(dx) <= int(width * within + 1e-9)) & (np.abs(dy) <= int(height * within + 1e-9)))
     return correlation, list(zip(correlation[peaks], np.hypot(dx[peaks], dy[peaks]), dx[peaks], dy[peaks]))
 
 
@@ -202,9 +212,20 @@ def same_lattice(a, b, tolerance: float = 0.1) -> bool:  # noqa: ANN001
     return bool(np.abs(steps - whole).max() <= tolerance and abs(round(np.linalg.det(whole))) == 1)
 
 
-def _lattice_on(image: np.ndarray, wrap: bool) -> tuple[float, float, float, float] | None:
+def detect_large_cells(image: np.ndarray) -> tuple[float, float, float, float] | None:
+    """``detect_lattice`` with repeats looked for up to LARGE_CELL_REACH of the image, kept
+    only if both basis vectors are at least LARGE_CELL_MIN of its shorter side (for photos
+    where nothing else was found: ``photo_structure``)."""
+    found = _unwrapped_found_wrapped_measured(image, functools.partial(_lattice_on, within=LARGE_CELL_REACH))
+    if found is None or min(np.hypot(found[0], found[1]), np.hypot(found[2], found[3])) \
+            < LARGE_CELL_MIN * min(image.shape[:2]):
+        return None
+    return found
+
+
+def _lattice_on(image: np.ndarray, wrap: bool, within: float = LATTICE_REACH) -> tuple[float, float, float, float] | None:
     """``detect_lattice`` on the wrapped or unwrapped autocorrelation."""
-    measured = luminance_correlation(image, wrap)
+    measured = luminance_correlation(image, wrap, within)
     if measured is None or not measured[1]:
         return None
     correlation, found = measured
@@ -216,7 +237,7 @@ def _lattice_on(image: np.ndarray, wrap: bool) -> tuple[float, float, float, flo
     if not others:
         return None
     value_b, _, bx, by = _strongest(others)
-    basis, support = refine_lattice(correlation, np.array([[ax, ay], [bx, by]], np.float64))
+    basis, support = refine_lattice(correlation, np.array([[ax, ay], [bx, by]], np.float64), within)
     if support < LATTICE_SUPPORT:
         return None
     if min(value_a, value_b) < LATTICE_STRONG and detect_grain(image) is not None:
@@ -282,10 +303,10 @@ def _locate_peaks(correlation: np.ndarray, predicted: np.ndarray, radius: int) -
     return np.stack([peak_x + dx, peak_y + dy], axis=1), values.max(axis=1), interior
 
 
-def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, float]:
+def refine_lattice(correlation: np.ndarray, basis: np.ndarray, within: float = LATTICE_REACH) -> tuple[np.ndarray, float]:
     """A least-squares basis (2, 2) (rows a, b as x, y) for the lattice points i a + j b
     that ``correlation`` (normalised, origin at [0, 0], wrapping) shows, and the lattice's
-    support: the share of its points within a third of the image with a peak of at least
+    support: the share of its points within ``within`` of the image with a peak of at least
     LATTICE_SUPPORT_PEAK nearby. The fit uses each point's local peak, if at least
     LATTICE_REFINE_PEAK, to a fraction of a pixel (``_locate_peaks``). ``basis`` comes back
     as it was when too few points agree or the fit moves a vector by more than a fifth of
@@ -297,7 +318,7 @@ def refine_lattice(correlation: np.ndarray, basis: np.ndarray) -> tuple[np.ndarr
     steps = np.stack([i.ravel(), j.ravel()], axis=1)
     steps = steps[(steps != 0).any(axis=1)]
     predicted = steps @ basis
-    inside = (np.abs(predicted[:, 0]) < width / 3) & (np.abs(predicted[:, 1]) < height / 3)
+    inside = (np.abs(predicted[:, 0]) < width * within) & (np.abs(predicted[:, 1]) < height * within)
     steps, predicted = steps[inside], np.rint(predicted[inside]).astype(int)
     if not len(steps):
         return basis, 0.0
@@ -551,14 +572,15 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
                     ) -> tuple[str | None, tuple[float, float, float, float] | None]:
     """What a fit builds in for ``photo``: (grain, lattice in pixels).
 
-    ``grain``: "x", "y", None or "auto" (``detect_grain`` where no lattice was found, else
-    ``leaning_grain`` where no stripes were found either). ``lattice``: "auto"
-    (``detect_lattice``, folded; else on a photo with grain ``detect_boards``, without
-    ``detect_stripes``) or None. Boards keep their grain; a photo with a lattice or stripes
-    gets none. Boards come before stripes on a grain photo: its boards' joints are stripes
-    too, and a stripe detector reads their repeat at any multiple (9.3-px synthetic boards:
-    28 px, three boards) and would drop the grain. A grain found by ``leaning_grain`` comes
-    without boards: they are looked for on the turned photo."""
+    In this order, each where the ones before found nothing: a lattice (``detect_lattice``,
+    folded; ``lattice="auto"``); grain along an axis (``detect_grain``; ``grain="auto"``);
+    on a grain photo boards (``detect_boards``, which keep the grain), on one without,
+    stripes (``detect_stripes``); a leaning grain (``leaning_grain``, without boards: they
+    are looked for on the turned photo); large cells (``detect_large_cells``). Boards come
+    before stripes on a grain photo: its boards' joints are stripes too, and the stripe
+    detector reads their repeat at any multiple (9.3-px synthetic boards: 28 px, three
+    boards) and would drop the grain. ``grain`` "x" / "y" / None and ``lattice`` None are
+    taken as given. A photo with a lattice or stripes gets no grain."""
     found = detect_lattice(photo) if lattice == "auto" else None
     found = fold_lattice(photo, found) if found else None
     asked = grain
@@ -570,4 +592,6 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
         found = detect_boards(photo, grain) if grain else detect_stripes(photo)
     if asked == "auto" and grain is None and found is None:
         grain = leaning_grain(photo)
+    if lattice == "auto" and found is None and grain is None:
+        found = detect_large_cells(photo)
     return grain, found

@@ -176,9 +176,10 @@ class FitIn(BaseModel):
         "auto", description="regular exemplar (bricks, tile grids, perforated metal): auto (default) detects the "
                             "2D lattice the photo repeats on (two independent autocorrelation peaks >= 0.3 "
                             "spanning a lattice whose other points show peaks too; a weak one gives way to "
-                            "grain), else stripes (corrugation), else on a photo with grain its boards (the "
-                            "luminance averaged along the grain repeating across it: plank floors, decking; "
-                            "they keep their grain), and the fitted sampler, its shader and its tileable twin "
+                            "grain), else on a photo with grain its boards (the luminance averaged along the "
+                            "grain repeating across it: plank floors, decking; they keep their grain), on one "
+                            "without stripes (corrugation), and where nothing was found, large cells (tiles "
+                            "over a third of the photo: 2 to 3 across), and the fitted sampler, its shader and its tileable twin "
                             "also read each point's phase on it, so tiles show rows, grids and board joints. "
                             "null: off")
     even: Literal["auto"] | None = Field(

@@ -11,7 +11,7 @@ pytest.importorskip("torch")  # model/structure.py folds lattices with model/tra
 from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,  # noqa: E402
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
                              grain_turn, leaning_grain, photo_structure, same_lattice, straighten)
-from model.structure import _lattice_on  # noqa: E402
+from model.structure import _lattice_on, detect_large_cells  # noqa: E402
 from tests.model.photos import boards, corrugation, fibres, running_bond, streaks  # noqa: E402
 
 
@@ -140,6 +140,27 @@ def test_detect_lattice_finds_a_tile_grid_four_tiles_across():
     assert found is not None
     change = np.array([[tile, 0], [0, tile]]) @ np.linalg.inv(np.array(found).reshape(2, 2))
     assert np.abs(change - np.rint(change)).max() < 0.02 and abs(abs(np.linalg.det(np.rint(change))) - 1) < 1e-9, found
+
+
+def test_tiles_larger_than_a_third_of_the_photo_are_found_where_nothing_else_is(skimage_textures):
+    """2.5 tiles of 102 px across (a floor photographed close), not tiling: past the reach
+    of detect_lattice, found by detect_large_cells, which photo_structure asks last; photos
+    without a repeat and striped ones keep what they had."""
+    rng = np.random.default_rng(5)
+    size, tile = 256, 102.4
+    veins = ndimage.gaussian_filter(rng.standard_normal((size, size)), 6)
+    image = 0.85 + 0.1 * veins / np.abs(veins).max()
+    y, x = np.mgrid[0:size, 0:size]
+    image[(np.abs((y + 20) % tile) < 1.5) | (np.abs((x + 20) % tile) < 1.5)] = 0.55  # grout
+    photo = np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+    assert detect_lattice(photo) is None
+    grain, found = photo_structure(photo)
+    assert grain is None and found == detect_large_cells(photo)
+    change = np.array([[tile, 0], [0, tile]]) @ np.linalg.inv(np.array(found).reshape(2, 2))
+    assert np.abs(change - np.rint(change)).max() < 0.02 and abs(abs(np.linalg.det(np.rint(change))) - 1) < 1e-9, found
+    for name in ("grass", "gravel", "brick"):
+        assert detect_large_cells(skimage_textures[name]) is None, name
+    assert photo_structure(corrugation()) == (None, pytest.approx(detect_stripes(corrugation())))
 
 
 def test_a_weak_lattice_gives_way_to_grain(monkeypatch):
