@@ -15,6 +15,7 @@ from PIL import Image
 from service.context import Services, build_services
 from service.main import create_app
 from service.settings import Settings
+from tests.conftest import fresh_postgres_database
 
 
 def brick_png(size: int = 96, rgba: bool = False) -> bytes:
@@ -44,6 +45,17 @@ def shaded_png() -> bytes:
 @pytest.fixture(scope="session")
 def photo() -> bytes:
     return brick_png()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database(request) -> Iterator[dict]:
+    """Settings for the embedded SQLite default, or for a fresh PostgreSQL database (a test
+    that takes it runs on both; ``indirect`` parametrisation picks one)."""
+    if request.param == "sqlite":
+        yield {}
+        return
+    with fresh_postgres_database() as url:
+        yield {"database_url": url}
 
 
 @pytest.fixture

@@ -19,7 +19,6 @@ from service.main import create_app
 from service.recolour import recolour_textures, stale_colour_textures, warn_if_stale
 from service.settings import Settings
 from service.tables import Texture
-from tests.conftest import fresh_postgres_database
 from tests.service.conftest import brick_png
 from tests.service.test_model_versions import second_model
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures, calibrate_texture, identity_colour
@@ -27,15 +26,6 @@ from worker.images import encode_texture, read_image, working_photo
 from worker.runtime import SamplerSession
 
 TILE = "/v1/textures/{}/tiles/6/0/0.png?size=64"
-
-
-@pytest.fixture(params=["sqlite", "postgresql"])
-def database(request) -> Iterator[dict]:
-    if request.param == "sqlite":
-        yield {}
-        return
-    with fresh_postgres_database() as url:
-        yield {"database_url": url}
 
 
 @pytest.fixture

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import shutil
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,21 +17,10 @@ from service.main import create_app
 from service.reencode import reencode_textures
 from service.settings import PACKAGED_MODEL_DIR, Settings
 from service.tables import Job, Texture
-from tests.conftest import fresh_postgres_database
 from tests.service.conftest import brick_png
 from tests.service.test_model_versions import second_model
 from worker.colour_match import blend_textures
 from worker.images import encode_texture, read_image
-
-
-@pytest.fixture(params=["sqlite", "postgresql"])
-def database(request) -> Iterator[dict]:
-    """Settings for the embedded SQLite default, or for a fresh PostgreSQL database."""
-    if request.param == "sqlite":
-        yield {}
-        return
-    with fresh_postgres_database() as url:
-        yield {"database_url": url}
 
 
 @pytest.fixture
