@@ -160,7 +160,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     sampler_key = keys.sampler_key(new_id)
     services.storage.put_file(sampler_key, out_dir / "sampler.onnx")
     _store_tileable(services, sampler_key, out_dir)
-    colour = _fitted_colour(services, out_dir / "sampler.onnx", code, image)
+    colour = fitted_colour(services.registry.fitted_sampler(out_dir / "sampler.onnx"), code, image)
     exemplar_key = keys.exemplar_key(new_id, Path(texture.exemplar_key).name)  # own copy: outlives the parent
     services.storage.put_file(exemplar_key, original)
     with session_scope(services.sessions) as session:
@@ -209,7 +209,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
     local = services.sampler_path(texture.id, sampler_key)  # where sampler_for looks: no second download
     local.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(sampler_path, local)
-    colour = _fitted_colour(services, local, code, image)
+    colour = fitted_colour(services.registry.fitted_sampler(local), code, image)
     with session_scope(services.sessions) as session:
         current = session.get(Job, job.id)
         row = session.get(Texture, texture.id)
@@ -237,12 +237,12 @@ def _store_tileable(services: Services, sampler_key: str, fit_dir: Path) -> None
         services.storage.put_file(keys.tileable_key(sampler_key), path)
 
 
-def _fitted_colour(services: Services, sampler_path: Path, code: list[float], image: np.ndarray) -> list[float] | None:
-    """The texture's colour table for its fitted sampler (the table matches the photo to a
-    sampler's own raw output, so a new sampler needs a new table); None if it has no colour stage.
-    ``image``: the exemplar as its encoding saw it (``working_photo``: float32 sRGB at the
-    model's working resolution)."""
-    colour = calibrate_texture(services.registry.fitted_sampler(sampler_path), np.asarray(code, np.float32), image,
+def fitted_colour(sampler, code: list[float], image: np.ndarray) -> list[float] | None:  # noqa: ANN001
+    """The texture's colour table for its fitted ``sampler`` (a SamplerSession; the table
+    matches the photo to a sampler's own raw output, so a new sampler needs a new table);
+    None if it has no colour stage. ``image``: the exemplar as its encoding saw it
+    (``working_photo``: float32 sRGB at the model's working resolution)."""
+    colour = calibrate_texture(sampler, np.asarray(code, np.float32), image,
                                curves="linear")  # the transfer the fit was optimised under
     return [float(v) for v in colour] or None
 

@@ -31,6 +31,7 @@ from worker.colour_match import COLOUR_CALIBRATION, blend_textures, calibrate_te
 from worker.images import read_image, working_photo
 
 from .db import session_scope
+from .job_kinds import fitted_colour
 from .tables import Texture, blend_calibration, utcnow
 
 log = logging.getLogger(__name__)
@@ -117,13 +118,10 @@ def _calibrate_again(services, texture_id: str) -> str | None:  # noqa: ANN001
     image = working_photo(read_image(services.storage.get_bytes(row.exemplar_key),
                                      max_pixels=services.settings.max_image_pixels),
                           runtime.short_side, row.lighting)
-    encoder = (row.encoder_code if row.encoder_code is not None else None if row.sampler_key else row.code)
-    encoder_colour = _table(calibrate_texture(runtime.sampler, np.asarray(encoder, np.float32), image)
-                            if encoder is not None else None)
-    colour = encoder_colour
-    if row.sampler_key:  # a fitted sampler's table: its linear transfer
-        colour = _table(calibrate_texture(services.sampler_for(row), np.asarray(row.code, np.float32), image,
-                                          curves="linear"))
+    encoder_colour, space = None, row.model_space()  # the code the model's own sampler draws, if any
+    if space:
+        encoder_colour = _table(calibrate_texture(runtime.sampler, np.asarray(space[0], np.float32), image))
+    colour = fitted_colour(services.sampler_for(row), row.code, image) if row.sampler_key else encoder_colour
     with session_scope(services.sessions) as session:
         current = session.get(Texture, texture_id)
         if current is None:
@@ -139,9 +137,9 @@ def _calibrate_again(services, texture_id: str) -> str | None:  # noqa: ANN001
     return None
 
 
-def _table(values) -> list[float] | None:  # noqa: ANN001
+def _table(values: np.ndarray) -> list[float] | None:
     """A table as stored: floats, or None for a sampler without a colour stage."""
-    return None if values is None or not len(values) else [float(v) for v in values]
+    return [float(v) for v in values] or None
 
 
 def _blend_problem(services, texture: Texture, done: set[str], planned: bool) -> str | None:  # noqa: ANN001
