@@ -260,10 +260,15 @@ def cmd_reencode(args: argparse.Namespace, settings: Settings) -> None:
     print(f"{verb} {len(report.encoded)} textures (photo encoded again) and {len(report.blended)} blends "
           f"onto model {report.target}; {len(report.refinements)} refinements "
           f"{'would be ' if args.dry_run else ''}queued")
-    for texture_id, why in report.skipped.items():
+    _report_skipped(report.skipped, args.dry_run, "moved")
+
+
+def _report_skipped(skipped: dict[str, str], dry_run: bool, done: str) -> None:
+    """Print each texture a maintenance run left as it was, and why; exit 1 for a real run."""
+    for texture_id, why in skipped.items():
         print(f"skipped {texture_id}: {why}")
-    if report.skipped and not args.dry_run:
-        raise CliError(f"{len(report.skipped)} textures were not moved (listed above)", code=1)
+    if skipped and not dry_run:
+        raise CliError(f"{len(skipped)} textures were not {done} (listed above)", code=1)
 
 
 def cmd_recolour(args: argparse.Namespace, settings: Settings) -> None:
@@ -275,10 +280,7 @@ def cmd_recolour(args: argparse.Namespace, settings: Settings) -> None:
     verb = "would recolour" if args.dry_run else "recoloured"
     print(f"{verb} {len(report.recoloured)} textures (from their photos) and {len(report.blended)} blends "
           f"with colour calibration {report.calibration}")
-    for texture_id, why in report.skipped.items():
-        print(f"skipped {texture_id}: {why}")
-    if report.skipped and not args.dry_run:
-        raise CliError(f"{len(report.skipped)} textures were not recoloured (listed above)", code=1)
+    _report_skipped(report.skipped, args.dry_run, "recoloured")
 
 
 def cmd_encode(args: argparse.Namespace, settings: Settings) -> None:
