@@ -78,8 +78,10 @@ LATTICE_REACH = 1 / 3  # of the image's height and width: where repeats are look
 # Looked for there only where nothing else was found (no lattice, grain, boards or stripes),
 # and only lattices whose both vectors are at least LARGE_CELL_MIN of the image: a reach of
 # 0.45 for every photo turned the cardboard's stripes into lattices with a far, chance
-# second vector, and moved the validation brick wall's measured bond by 0.3 px.
-LARGE_CELL_REACH = 0.45
+# second vector, and moved the validation brick wall's measured bond by 0.3 px. Half the
+# image is as far as the correlation reaches (offsets of up to half the image each way):
+# two whole tiles across is the fewest a lattice is found in (at 0.45, 2.25).
+LARGE_CELL_REACH = 0.5
 LARGE_CELL_MIN = 0.25
 # A lattice whose peaks are not all this strong loses to grain when the photo has grain:
 # the wood planks' lattice (0.44) made a 60-s fit draw diagonal blobs, their grain (y)
@@ -89,6 +91,10 @@ LATTICE_SUPPORT = 0.6
 LATTICE_SUPPORT_PEAK = 0.25
 LATTICE_MIN_OFFSET = 4
 LATTICE_TIE = 0.05  # peaks this close to the strongest count as equally strong
+# A lattice found on the unwrapped correlation is measured on the wrapped one where that
+# finds the same lattice with no basis vector more than this many px away
+# (``_unwrapped_found_wrapped_measured``). On the packaged photos they agree within 0.1 px.
+WRAPPED_AGREE_PX = 1.0
 # Refinement: every lattice point within a third of the image whose correlation peak is at
 # least LATTICE_REFINE_PEAK, located to a fraction of a pixel, fits the basis by least
 # squares; a basis read off single integer peaks can be a pixel or two off (the validation
@@ -200,7 +206,13 @@ def _unwrapped_found_wrapped_measured(image: np.ndarray, find) -> tuple[float, f
     if found is None:
         return None
     wrapped = find(image, wrap=True)
-    return wrapped if wrapped is not None and same_lattice(found, wrapped) else found
+    if wrapped is None or not same_lattice(found, wrapped):
+        return found
+    # and within a pixel of it: a step's tenth is 12 px on a 120-px tile, and the wrapped
+    # correlation of a close-up of tiles peaks at half the image, where its two edges meet
+    first, second = np.asarray(found, np.float64).reshape(2, 2), np.asarray(wrapped, np.float64).reshape(2, 2)
+    moved = np.abs(second - np.round(second @ np.linalg.inv(first)) @ first).max()
+    return wrapped if moved <= WRAPPED_AGREE_PX else found
 
 
 def same_lattice(a, b, tolerance: float = 0.1) -> bool:  # noqa: ANN001
@@ -215,12 +227,36 @@ def same_lattice(a, b, tolerance: float = 0.1) -> bool:  # noqa: ANN001
 def detect_large_cells(image: np.ndarray) -> tuple[float, float, float, float] | None:
     """``detect_lattice`` with repeats looked for up to LARGE_CELL_REACH of the image, kept
     only if both basis vectors are at least LARGE_CELL_MIN of its shorter side (for photos
-    where nothing else was found: ``photo_structure``)."""
+    where nothing else was found: ``photo_structure``), as its shortest basis
+    (``shortest_basis``): with two tiles across, a repeat of half the image is as far one
+    way as the other, and the diagonal can come out as a basis vector."""
     found = _unwrapped_found_wrapped_measured(image, functools.partial(_lattice_on, within=LARGE_CELL_REACH))
-    if found is None or min(np.hypot(found[0], found[1]), np.hypot(found[2], found[3])) \
-            < LARGE_CELL_MIN * min(image.shape[:2]):
+    if found is None:
+        return None
+    found = shortest_basis(found)
+    if min(np.hypot(found[0], found[1]), np.hypot(found[2], found[3])) < LARGE_CELL_MIN * min(image.shape[:2]):
         return None
     return found
+
+
+def shortest_basis(lattice: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    """The same lattice spanned by its two shortest independent vectors (Lagrange-Gauss
+    reduction: take the shorter vector off the longer, as many whole times as brings it
+    nearest, until that no longer shortens it), each pointing with non-negative x (y where
+    x is near 0), the shorter first; a basis that is already shortest comes back as it was.
+    (128, 128), (128, 0) px -> (128, 0), (0, 128)."""
+    a, b = np.asarray(lattice, np.float64).reshape(2, 2)
+    if abs(a @ b) <= 0.5 * min(a @ a, b @ b):
+        return tuple(float(v) for v in lattice)
+    if a @ a > b @ b:
+        a, b = b, a
+    while True:
+        b = b - np.round((a @ b) / (a @ a)) * a
+        if b @ b >= a @ a:
+            break
+        a, b = b, a
+    a, b = (v if v[0] > 0.5 or (abs(v[0]) <= 0.5 and v[1] >= 0) else -v for v in (a, b))
+    return float(a[0]), float(a[1]), float(b[0]), float(b[1])
 
 
 def _lattice_on(image: np.ndarray, wrap: bool, within: float = LATTICE_REACH) -> tuple[float, float, float, float] | None:
@@ -291,9 +327,13 @@ def _locate_peaks(correlation: np.ndarray, predicted: np.ndarray, radius: int) -
     maximum, not the window's edge climbing towards a neighbouring peak (N,)."""
     height, width = correlation.shape
     window = np.arange(-radius, radius + 1)
-    ys = (predicted[:, 1, None, None] + window[None, :, None]) % height       # (N, K, 1)
-    xs = (predicted[:, 0, None, None] + window[None, None, :]) % width        # (N, 1, K)
-    values = correlation[ys, xs].reshape(len(predicted), -1)
+    ys = predicted[:, 1, None, None] + window[None, :, None]       # (N, K, 1) signed offsets
+    xs = predicted[:, 0, None, None] + window[None, None, :]       # (N, 1, K)
+    values = correlation[ys % height, xs % width]
+    # offsets past half the image are the opposite ones (d - n): a window around a repeat
+    # near half the image would find the repeat at -d there and take it for one at n - d
+    values = np.where((np.abs(ys) <= height // 2) & (np.abs(xs) <= width // 2), values, -np.inf)
+    values = values.reshape(len(predicted), -1)
     best = values.argmax(axis=1)
     peak_y, peak_x = predicted[:, 1] + window[best // len(window)], predicted[:, 0] + window[best % len(window)]
     at = correlation[peak_y % height, peak_x % width]

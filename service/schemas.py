@@ -179,7 +179,7 @@ class FitIn(BaseModel):
                             "grain), else on a photo with grain its boards (the luminance averaged along the "
                             "grain repeating across it: plank floors, decking; they keep their grain), on one "
                             "without stripes (corrugation), and where nothing was found, large cells (tiles "
-                            "over a third of the photo: 2 to 3 across), and the fitted sampler, its shader and its tileable twin "
+                            "over a third of the photo: 2 to 3 across, looked for up to half of it), and the fitted sampler, its shader and its tileable twin "
                             "also read each point's phase on it, so tiles show rows, grids and board joints. "
                             "null: off")
     even: Literal["auto"] | None = Field(

@@ -10,7 +10,7 @@ pytest.importorskip("torch")  # model/structure.py folds lattices with model/tra
 
 from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,  # noqa: E402
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
-                             grain_turn, leaning_grain, photo_structure, same_lattice, straighten)
+                             grain_turn, leaning_grain, photo_structure, same_lattice, shortest_basis, straighten)
 from model.structure import _lattice_on, detect_large_cells  # noqa: E402
 from tests.model.photos import boards, corrugation, fibres, running_bond, streaks  # noqa: E402
 
@@ -161,6 +161,38 @@ def test_tiles_larger_than_a_third_of_the_photo_are_found_where_nothing_else_is(
     for name in ("grass", "gravel", "brick"):
         assert detect_large_cells(skimage_textures[name]) is None, name
     assert photo_structure(corrugation()) == (None, pytest.approx(detect_stripes(corrugation())))
+
+
+def test_two_tiles_across_are_found_at_their_size_not_at_half_the_photo():
+    """2.1 tiles of 121 px across (the fewest a correlation up to half the image shows):
+    found at 121 px, not 128 (repeats at -121 px lie within the search window around +121
+    once it crosses half the image, and read as +135), as the two shortest vectors."""
+    rng = np.random.default_rng(7)
+    size, tile = 256, 121.0
+    veins = ndimage.gaussian_filter(rng.standard_normal((size, size)), 6)
+    image = 0.85 + 0.1 * veins / np.abs(veins).max()
+    y, x = np.mgrid[0:size, 0:size]
+    image[(np.abs((y + 30) % tile) < 1.5) | (np.abs((x + 30) % tile) < 1.5)] = 0.55
+    grain, found = photo_structure(np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2))
+    assert grain is None and found is not None
+    lengths = np.hypot(*np.array(found).reshape(2, 2).T)
+    assert np.abs(lengths - tile).max() < 1.0, found
+    assert same_lattice(found, (tile, 0, 0, tile), tolerance=0.01), found
+
+
+def test_shortest_basis_spans_the_same_lattice_with_its_shortest_vectors():
+    assert shortest_basis((128, 128, 128, 0)) == pytest.approx((128, 0, 0, 128))
+    assert shortest_basis((5, 0, 47, 1)) == pytest.approx((2, 1, 1, -2))  # 47 - 9 x 5 = 2, then (5, 0) - 2 (2, 1)
+    for basis in [(128, 128, 128, 0), (5, 0, 47, 1), (3, 4, -7, 11)]:
+        reduced = np.array(shortest_basis(basis)).reshape(2, 2)
+        assert same_lattice(basis, reduced.ravel(), tolerance=1e-9)
+        a, b = reduced
+        assert abs(a @ b) <= 0.5 * (a @ a) + 1e-9 and a @ a <= b @ b + 1e-9  # Gauss-reduced
+    grid = (0.0, 64.0, -64.0, 0.0)  # already shortest: as it was, order and signs too
+    assert shortest_basis(grid) == grid
+    # a running bond's basis (a brick along, half a brick per course) is not the shortest:
+    # its diagonals are (which is why only large cells are reduced)
+    assert shortest_basis((32.0, 0.0, -16.0, 13.8)) == pytest.approx((16.0, -13.8, 16.0, 13.8))
 
 
 def test_a_weak_lattice_gives_way_to_grain(monkeypatch):
