@@ -168,6 +168,12 @@ evaluate: data
 	$(PY) -m model.evaluate --checkpoint-dir runs/compare --group ours-shipped=model/weights \
 		--exemplars data/textures/val --out docs/eval/compare
 
+# What model/structure.py finds (grain, lattices, stripes, boards) on the packaged photos and
+# on crops, turns and close-ups cut from them: the reference to diff after a detector change.
+.PHONY: structure
+structure: data
+	$(PY) docs/eval/structure.py --data data/textures --out docs/eval/structure
+
 # Product-level quality (issue 14): colour (CIELAB), style against colour-matched value
 # noise, diversity and oblique / axis slices, all through encoder.onnx + sampler.onnx as
 # the service serves them. Another export side by side: QUALITY_ARGS='--model-dir DIR --label NAME'.
