@@ -180,8 +180,8 @@ class FitIn(BaseModel):
                             "grain repeating across it: plank floors, decking; they keep their grain), on one "
                             "without stripes (corrugation), and where nothing was found, large cells (tiles "
                             "over a third of the photo: 2 to 3 across, looked for up to half of it), and the fitted sampler, its shader and its tileable twin "
-                            "also read each point's phase on it, so tiles show rows, grids and board joints. "
-                            "null: off")
+                            "also read each point's phase on it, so tiles show rows, grids and board joints "
+                            "(read on the photo with its smooth shading divided out). null: off")
     even: Literal["auto"] | None = Field(
         "auto", description="auto (default): a photo with no grain or lattice that is even at large scales (its "
                             "32-px block means vary by under 3% of its luminance variance: gravel, asphalt, "

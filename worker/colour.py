@@ -1,4 +1,6 @@
-"""The one pair of sRGB transfer functions every image reader and writer uses.
+"""The one pair of sRGB transfer functions every image reader and writer uses, and the
+one smooth-shading removal (``even_lighting``: an upload's ``lighting: even``, and what the
+structure detectors of model/ read).
 
 Exact piecewise IEC 61966-2-1 curves (linear segment near black, 2.4 power above),
 not the 2.2 gamma approximation. Inputs are clipped to [0, 1] first: the sampler's
@@ -39,3 +41,26 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
 def linear_to_srgb8(linear: np.ndarray) -> np.ndarray:
     """Linear 0..1 floats to 8-bit sRGB codes (round half up). Returns uint8, same shape."""
     return (linear_to_srgb(linear) * np.float32(255) + np.float32(0.5)).astype(np.uint8)
+
+
+def even_lighting(image: np.ndarray) -> np.ndarray:
+    """The photo with its smooth shading divided out: light falling off across it, a
+    vignette. A quadratic in x and y fitted to log luminance (least squares, linear light),
+    taken out relative to its mean, so the photo keeps its mean log luminance and every
+    detail smaller than the photo itself; the texture's own large patches partly go too
+    where they happen to look like shading (the validation granite's).
+
+    image : (H, W, 3) float32 sRGB 0..1. Returns the same shape, float32 sRGB 0..1 (a pixel
+    brightened past white clips)."""
+    linear = srgb_to_linear(image)
+    height, width = linear.shape[:2]
+    y, x = np.linspace(-1, 1, height)[:, None], np.linspace(-1, 1, width)[None, :]
+    step = max(1, int(np.sqrt(height * width / 65536)))  # the fit needs no more samples than this
+    sample = np.s_[::step, ::step]
+    log_luminance = np.log(np.maximum(linear[sample] @ LUMA_709, 1e-4), dtype=np.float64)
+    xs, ys = np.broadcast_arrays(x[sample], y[sample])
+    terms = np.stack([np.ones_like(xs), xs, ys, xs * xs, xs * ys, ys * ys], axis=-1).reshape(-1, 6)
+    _, cx, cy, cxx, cxy, cyy = np.linalg.lstsq(terms, log_luminance.ravel(), rcond=None)[0]
+    shading = (cx * x + cxx * x * x) + (cy * y + cyy * y * y) + cxy * x * y     # (H, W) by broadcasting
+    shading -= shading.mean()
+    return linear_to_srgb(linear * np.exp(-shading)[..., None].astype(np.float32))

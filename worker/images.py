@@ -33,7 +33,7 @@ from PIL import Image
 from skimage.transform import resize
 
 from worker import decode
-from worker.colour import LUMA_709, linear_to_srgb, linear_to_srgb8, srgb_to_linear
+from worker.colour import even_lighting, linear_to_srgb, linear_to_srgb8, srgb_to_linear
 from worker.colour_match import calibrate_texture
 # resize_short_side and encoder_crops live beside the reader, which training and fits share
 from worker.decode import (MIN_SIDE, PixelBudget, encoder_crops, resize_short_side,
@@ -70,29 +70,6 @@ def encode_image(runtime: ModelRuntime, image: np.ndarray, *, grid: int = 3) -> 
     """Texture code of an sRGB image: the mean of its crops' codes. Returns (8,) float32."""
     crops = encoder_crops(image, short_side=runtime.short_side, size=runtime.input_size, grid=grid)
     return runtime.encode(crops).mean(axis=0).astype(np.float32)
-
-
-def even_lighting(image: np.ndarray) -> np.ndarray:
-    """The photo with its smooth shading divided out: light falling off across it, a
-    vignette. A quadratic in x and y fitted to log luminance (least squares, linear light),
-    taken out relative to its mean, so the photo keeps its mean log luminance and every
-    detail smaller than the photo itself; the texture's own large patches partly go too
-    where they happen to look like shading (the validation granite's).
-
-    image : (H, W, 3) float32 sRGB 0..1. Returns the same shape, float32 sRGB 0..1 (a pixel
-    brightened past white clips)."""
-    linear = srgb_to_linear(image)
-    height, width = linear.shape[:2]
-    y, x = np.linspace(-1, 1, height)[:, None], np.linspace(-1, 1, width)[None, :]
-    step = max(1, int(np.sqrt(height * width / 65536)))  # the fit needs no more samples than this
-    sample = np.s_[::step, ::step]
-    log_luminance = np.log(np.maximum(linear[sample] @ LUMA_709, 1e-4), dtype=np.float64)
-    xs, ys = np.broadcast_arrays(x[sample], y[sample])
-    terms = np.stack([np.ones_like(xs), xs, ys, xs * xs, xs * ys, ys * ys], axis=-1).reshape(-1, 6)
-    _, cx, cy, cxx, cxy, cyy = np.linalg.lstsq(terms, log_luminance.ravel(), rcond=None)[0]
-    shading = (cx * x + cxx * x * x) + (cy * y + cyy * y * y) + cxy * x * y     # (H, W) by broadcasting
-    shading -= shading.mean()
-    return linear_to_srgb(linear * np.exp(-shading)[..., None].astype(np.float32))
 
 
 def working_photo(image: np.ndarray, short_side: int, lighting: str = "as-is") -> np.ndarray:

@@ -13,6 +13,11 @@ PNG) and read back at short side 256, so their repeats come out larger by 256 / 
 * **crops**: each validation photo cut to 100-230 px squares at offsets 0 and 37;
 * **turns**: the validation brick wall turned by a few degrees (``straighten``: the largest
   centred square inside the turned photo);
+* **degraded**: every packaged photo as a phone might deliver it: JPEG at quality 60,
+  Gaussian noise (sigma 0.02, 0.04), a 1-px blur, a vignette (corners 30% darker), light
+  falling off across it (0.8x to 1.2x left to right), taken at 160 px and enlarged; each
+  counts as kept when it finds the clean photo's grain and the same lattice (to a twentieth
+  of a step);
 * **close-ups**: the two validation photos of 64-px tiles (floor tiles, concrete) cut to
   128-180 px at offsets 0, 20 and 37, so 2 to 2.8 tiles across; the true lattice is the
   square of 64 x 256 / side px, and a found lattice is right when it is the same lattice to
@@ -23,14 +28,18 @@ Writes ``results.json`` (every photo's grain and lattice in px) and ``results.md
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import time
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
+from scipy import ndimage
 
 from model.data import load_exemplar
 from model.structure import photo_structure, same_lattice, straighten
+from worker.decode import read_image
 from worker.images import resize_short_side
 
 SHORT_SIDE = 256
@@ -40,6 +49,36 @@ TURNED = "miniworld_brick_wall_1"
 CLOSE_UP_PHOTOS, TILE_PX = ("miniworld_floor_tiles_white", "miniworld_concrete_3"), 64.0
 CLOSE_UP_SIDES, CLOSE_UP_OFFSETS = (128, 132, 136, 140, 144, 160, 180), (0, 20, 37)
 RIGHT_TO = 0.05  # of a step (same_lattice's tolerance)
+
+
+def as_jpeg(image: np.ndarray, quality: int) -> np.ndarray:
+    buffer = io.BytesIO()
+    Image.fromarray(np.round(image * 255.0).astype(np.uint8)).save(buffer, "JPEG", quality=quality)
+    return resize_short_side(read_image(buffer.getvalue(), max_pixels=1 << 24), SHORT_SIDE)
+
+
+def with_noise(image: np.ndarray, sigma: float) -> np.ndarray:
+    return np.clip(image + np.random.default_rng(0).normal(0.0, sigma, image.shape), 0, 1).astype(np.float32)
+
+
+def shaded(image: np.ndarray, vignette: float = 0.0, falloff: float = 0.0) -> np.ndarray:
+    """``image`` times a vignette (corners 1 - vignette) and a left-to-right ramp (1 -+ falloff)."""
+    height, width = image.shape[:2]
+    y, x = np.mgrid[0:height, 0:width].astype(np.float64)
+    radius2 = ((x - width / 2) ** 2 + (y - height / 2) ** 2) / ((width / 2) ** 2 + (height / 2) ** 2)
+    light = (1 - vignette * radius2) * (1 + falloff * (2 * x / (width - 1) - 1))
+    return np.clip(image * light[..., None], 0, 1).astype(np.float32)
+
+
+DEGRADED = {
+    "jpeg 60": lambda image: as_jpeg(image, 60),
+    "noise 0.02": lambda image: with_noise(image, 0.02),
+    "noise 0.04": lambda image: with_noise(image, 0.04),
+    "blur 1 px": lambda image: ndimage.gaussian_filter(image, (1.0, 1.0, 0.0)),
+    "vignette 30%": lambda image: shaded(image, vignette=0.3),
+    "falloff 20%": lambda image: shaded(image, falloff=0.2),
+    "160 px": lambda image: resize_short_side(resize_short_side(image, 160), SHORT_SIDE),
+}
 
 
 def read_back(image: np.ndarray) -> np.ndarray:
@@ -60,7 +99,15 @@ def measure(data: Path) -> dict[str, list[dict]]:
     photos = {p.stem: load_exemplar(p, SHORT_SIDE, quantise=False) for p in sorted(data.glob("*/*.png"))}
     validation = sorted(p.stem for p in (data / "val").glob("*.png"))
     rows = {"packaged": [structure_row(name, photo) for name, photo in photos.items()], "crops": [], "turns": [],
-            "close-ups": []}
+            "degraded": [], "close-ups": []}
+    for clean in rows["packaged"]:
+        truth = tuple(clean["lattice_px"]) if clean["lattice_px"] else None
+        for how, degrade in DEGRADED.items():
+            row = structure_row(f"{clean['photo']}, {how}", degrade(photos[clean["photo"]]))
+            row["right"] = row["grain"] == clean["grain"] and (
+                row["lattice_px"] is None if truth is None
+                else row["lattice_px"] is not None and same_lattice(row["lattice_px"], truth, RIGHT_TO))
+            rows["degraded"].append(row)
     for name in validation:
         for side in CROP_SIDES:
             for offset in CROP_OFFSETS:
@@ -82,10 +129,14 @@ def to_markdown(rows: dict[str, list[dict]]) -> str:
     lines = ["# What model/structure.py finds", "",
              "`make structure` (docs/eval/structure.py). Lattices in px at the working resolution (ax, ay, bx, by; x right, "
              "y down); close-ups: right when the same lattice as the true square grid to a twentieth of a step.", ""]
-    close = rows["close-ups"]
-    lines += [f"Close-ups right: {sum(r['right'] for r in close)} of {len(close)}.", ""]
+    close, degraded = rows["close-ups"], rows["degraded"]
+    lines += [f"Close-ups right: {sum(r['right'] for r in close)} of {len(close)}. Degraded copies that find what "
+              f"the clean photo does: {sum(r['right'] for r in degraded)} of {len(degraded)}.", ""]
     for section, found in rows.items():
-        lines += [f"## {section}", "", "| photo | grain | lattice (px) |" + (" truth | right |" if section == "close-ups" else ""),
+        if section == "degraded":  # only the copies that differ from their clean photo
+            found = [r for r in found if not r["right"]]
+        lines += [f"## {section}" + (" (the copies that differ)" if section == "degraded" else ""), "",
+                  "| photo | grain | lattice (px) |" + (" truth | right |" if section == "close-ups" else ""),
                   "|---|---|---|" + ("---|---|" if section == "close-ups" else "")]
         for r in found:
             lattice = ", ".join(f"{v:.1f}" for v in r["lattice_px"]) if r["lattice_px"] else "-"
@@ -106,7 +157,9 @@ def main(argv: list[str] | None = None) -> int:
     rows = measure(args.data)
     seconds = time.perf_counter() - start
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(rows, indent=1) + "\n")
+    # one photo a line: the file diffs like the table
+    sections = [f'"{section}": [\n' + ",\n".join(json.dumps(row) for row in found) + "\n]" for section, found in rows.items()]
+    (args.out / "results.json").write_text("{\n" + ",\n".join(sections) + "\n}\n")
     (args.out / "results.md").write_text(to_markdown(rows))
     print(f"wrote {args.out}/results.json, results.md ({seconds:.0f} s)")
     return 0

@@ -15,6 +15,7 @@ ort = pytest.importorskip("onnxruntime")
 from model.export import export_model  # noqa: E402
 from model.fit import fit_exemplar  # noqa: E402
 from model.structure import detect_boards, detect_stripes  # noqa: E402
+from worker.colour import even_lighting  # noqa: E402
 from tests.model.photos import boards, corrugation, running_bond  # noqa: E402
 from model.evaluate import load_candidates  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
@@ -65,7 +66,7 @@ def test_a_striped_photo_is_fitted_on_its_stripes(tmp_path, vgg):
     photo = saved_png(image, corrugation())
     result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=space,
                           minutes=0.02, patch=32, lattice="auto", grain="auto")
-    stripes = np.array(detect_stripes(photo)) / ModelConfig().pixels_per_unit
+    stripes = np.array(detect_stripes(even_lighting(photo))) / ModelConfig().pixels_per_unit  # as detection reads it
     assert result["grain"] is None and result["lattice"] == pytest.approx(stripes.tolist())
     unfitted = fit_exemplar(image, tmp_path / "plain", init_checkpoint=space,
                             minutes=0.02, patch=32, lattice=None, grain="auto")
@@ -85,7 +86,7 @@ def test_a_boards_photo_keeps_its_grain_and_reads_its_boards(tmp_path, vgg):
     photo = saved_png(image, boards())
     result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=space,
                           minutes=0.02, patch=32, lattice="auto", grain="auto")
-    found = np.array(detect_boards(photo, "y")) / ModelConfig().pixels_per_unit
+    found = np.array(detect_boards(even_lighting(photo), "y")) / ModelConfig().pixels_per_unit  # as detection reads it
     assert result["grain"] == "y" and result["lattice"] == pytest.approx(found.tolist())
     vector = np.concatenate([np.asarray(result["code"], np.float32), identity_colour(216)])
     tileable = PeriodicSampler(SamplerSession(tmp_path / "fit" / TILEABLE_SAMPLER, threads=1), period=0.9)

@@ -11,8 +11,10 @@ pytest.importorskip("torch")  # model/structure.py folds lattices with model/tra
 from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,  # noqa: E402
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
                              grain_turn, leaning_grain, photo_structure, same_lattice, shortest_basis, straighten)
-from model.structure import _lattice_on, _repeats_along_stripes, detect_large_cells  # noqa: E402
+from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,  # noqa: E402
+                             luminance_correlation, stripe_normal)
 from tests.model.photos import boards, corrugation, fibres, running_bond, streaks  # noqa: E402
+from worker.colour import even_lighting  # noqa: E402
 
 
 def test_detect_grain_finds_axis_aligned_streaks_only(skimage_textures):
@@ -155,12 +157,12 @@ def test_tiles_larger_than_a_third_of_the_photo_are_found_where_nothing_else_is(
     photo = np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
     assert detect_lattice(photo) is None
     grain, found = photo_structure(photo)
-    assert grain is None and found == detect_large_cells(photo)
+    assert grain is None and found == detect_large_cells(even_lighting(photo))  # (what the detectors read)
     change = np.array([[tile, 0], [0, tile]]) @ np.linalg.inv(np.array(found).reshape(2, 2))
     assert np.abs(change - np.rint(change)).max() < 0.02 and abs(abs(np.linalg.det(np.rint(change))) - 1) < 1e-9, found
     for name in ("grass", "gravel", "brick"):
         assert detect_large_cells(skimage_textures[name]) is None, name
-    assert photo_structure(corrugation()) == (None, pytest.approx(detect_stripes(corrugation())))
+    assert photo_structure(corrugation()) == (None, pytest.approx(detect_stripes(even_lighting(corrugation()))))
 
 
 def test_two_tiles_across_are_found_at_their_size_not_at_half_the_photo():
@@ -200,6 +202,36 @@ def test_a_repeat_along_leaning_stripes_is_read_within_a_pixel():
     basis = np.array([brick, 10.7 * across + 16.0 * along])
     assert _repeats_along_stripes(correlation, basis, across)
     assert not _repeats_along_stripes(ridge, basis, across)
+
+
+def test_a_tile_grid_in_a_vignette_keeps_its_grid():
+    """Corners 60% darker (a strong vignette): the detectors read the photo with its smooth
+    shading divided out, so the 64-px grid is found as on the evenly lit photo (before:
+    none)."""
+    rng = np.random.default_rng(5)
+    size, tile = 256, 64
+    veins = ndimage.gaussian_filter(rng.standard_normal((size, size)), 6)
+    image = 0.85 + 0.1 * veins / np.abs(veins).max()
+    y, x = np.mgrid[0:size, 0:size]
+    image[(y % tile == 0) | (x % tile == 0)] = 0.55
+    falloff = 1 - 0.3 * ((x - size / 2) ** 2 + (y - size / 2) ** 2) / (size * size / 4)
+    grain, found = photo_structure(np.repeat((image * falloff)[..., None], 3, axis=2).astype(np.float32))
+    assert grain is None and found is not None and same_lattice(found, (tile, 0, 0, tile), tolerance=0.01), found
+
+
+def test_a_lattice_of_every_other_repeat_is_made_twice_as_fine():
+    """Near-tied peaks can give the second vector two courses down instead of the bond
+    (a stacked lattice, every other repeat): its half step (a + b) / 2 is a peak, so the
+    bond comes back. Half a brick along the course, on the courses' ridge, is no repeat:
+    the bond stays as it is."""
+    photo = running_bond()
+    correlation, peaks = luminance_correlation(photo)
+    across = stripe_normal(photo)
+    stacked = np.array([[32.0, 0.0], [0.0, 22.0]])
+    finer = _finer_lattice(correlation, stacked, peaks, 0.3, across)
+    assert same_lattice(finer.ravel(), (32.0, 0.0, 16.0, 11.0), tolerance=0.05), finer
+    bond = np.array([[32.0, 0.0], [16.0, 11.0]])
+    assert np.array_equal(_finer_lattice(correlation, bond, peaks, 0.3, across), bond)
 
 
 def test_shortest_basis_spans_the_same_lattice_with_its_shortest_vectors():
@@ -273,7 +305,7 @@ def test_detect_boards_measures_the_board_width_across_the_grain(skimage_texture
         assert detect_grain(image) == "y" and detect_lattice(image) is None
         ax, ay, bx, by = detect_boards(image, "y")
         assert abs(ax - width) < 0.1 and ay == 0 and (bx, by) == pytest.approx((0.0, ax)), (width, ax)
-        assert photo_structure(image) == ("y", (ax, ay, bx, by))  # grain and boards, not stripes
+        assert photo_structure(image) == ("y", detect_boards(even_lighting(image), "y"))  # grain and boards, not stripes
     ax, ay, bx, by = detect_boards(boards().transpose(1, 0, 2), "x")  # boards left-right
     assert ax == 0 and abs(ay - 25.6) < 0.1 and (bx, by) == pytest.approx((-ay, 0.0))
     assert detect_boards(boards(), "x") is None                     # along the grain: no joints
@@ -289,9 +321,10 @@ def test_photo_structure_decides_what_a_fit_builds_in(skimage_textures):
     keep it; "auto" detects, None turns a part off, an explicit grain is kept as given."""
     bond, board, plain = running_bond(), corrugation(), boards()
     grain, lattice = photo_structure(bond)
-    assert grain is None and lattice == pytest.approx(fold_lattice(bond, detect_lattice(bond)))
-    assert photo_structure(board) == (None, pytest.approx(detect_stripes(board)))
-    assert photo_structure(plain) == ("y", pytest.approx(detect_boards(plain, "y")))
+    evened = even_lighting(bond)  # what the detectors read
+    assert grain is None and lattice == pytest.approx(fold_lattice(evened, detect_lattice(evened)))
+    assert photo_structure(board) == (None, pytest.approx(detect_stripes(even_lighting(board))))
+    assert photo_structure(plain) == ("y", pytest.approx(detect_boards(even_lighting(plain), "y")))
     assert photo_structure(streaks()) == ("y", None)                       # one piece of wood
     assert photo_structure(skimage_textures["gravel"]) == (None, None)
     assert photo_structure(plain, lattice=None) == ("y", None)             # grain alone

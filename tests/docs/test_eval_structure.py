@@ -1,0 +1,54 @@
+"""docs/eval/structure.py: its degraded copies and how a run is summarised (no packaged
+photos needed: a synthetic tile grid stands in)."""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch", reason="docs/eval/structure.py imports model/ (the train extra)")
+
+SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "eval" / "structure.py"
+
+
+@pytest.fixture(scope="module")
+def structure():
+    spec = importlib.util.spec_from_file_location("eval_structure", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_shading_darkens_the_corners_and_ramps_across(structure):
+    flat = np.full((64, 80, 3), 0.5, np.float32)
+    vignette = structure.shaded(flat, vignette=0.3)
+    assert vignette[0, 0, 0] == pytest.approx(0.35) and vignette[32, 40, 0] == pytest.approx(0.5)
+    ramp = structure.shaded(flat, falloff=0.2)
+    assert ramp[10, 0, 0] == pytest.approx(0.4) and ramp[10, -1, 0] == pytest.approx(0.6)
+
+
+def test_every_degraded_copy_is_a_photo_at_the_working_size(structure):
+    from scipy import ndimage
+    detail = ndimage.gaussian_filter(np.random.default_rng(0).standard_normal((256, 256, 3)), (3, 3, 0))
+    photo = (0.5 + 0.3 * detail / np.abs(detail).max()).astype(np.float32)
+    for how, degrade in structure.DEGRADED.items():
+        copy = degrade(photo)
+        assert copy.shape == photo.shape and 0 <= copy.min() and copy.max() <= 1, how
+        assert 0 < np.abs(copy - photo).mean() < 0.1, how  # changed, and still the photo
+
+
+def test_rows_mark_a_found_grid_right_and_the_summary_counts_them(structure):
+    size, tile = 256, 64
+    y, x = np.mgrid[0:size, 0:size]
+    grid = np.where((y % tile == 0) | (x % tile == 0), 0.55, 0.85)
+    grid = np.repeat((grid + 0.02 * np.random.default_rng(1).standard_normal(grid.shape))[..., None], 3, axis=2)
+    right = structure.structure_row("grid", grid.astype(np.float32), (tile, 0.0, 0.0, tile))
+    wrong = structure.structure_row("grid", grid.astype(np.float32), (tile * 1.5, 0.0, 0.0, tile))
+    assert right["right"] and not wrong["right"]
+    flat = dict(structure.structure_row("flat", np.full((64, 64, 3), 0.5, np.float32)), right=False)
+    text = structure.to_markdown({"packaged": [], "crops": [], "turns": [], "degraded": [flat, {**flat, "right": True}],
+                                  "close-ups": [right, wrong]})
+    assert "Close-ups right: 1 of 2. Degraded copies that find what the clean photo does: 1 of 2." in text
+    assert text.count("| flat |") == 1  # only the degraded copy that differs is listed
