@@ -84,6 +84,14 @@ LATTICE_REACH = 1 / 3  # of the image's height and width: where repeats are look
 # two whole tiles across is the fewest a lattice is found in (at 0.45, 2.25).
 LARGE_CELL_REACH = 0.5
 LARGE_CELL_MIN = 0.25
+# Long lattices (``detect_long_lattice``): one repeat within LATTICE_REACH, the other up to
+# LARGE_CELL_REACH (a rug's bands of motifs, 62.7 px along and 112 px across at 256 px,
+# peaks 0.68 / 0.44). Kept only if one peak is LATTICE_STRONG and each basis vector's
+# correlation tops its value at half the vector by LONG_HALF_DIP: along grain or stripes
+# the correlation is a ridge, high everywhere, and its noise has local maxima (synthetic
+# boards: 0.62 at (0, 93) px, 0.63 at (0, 46)); a true repeat's half step falls between
+# motifs (the rug: 0.68 -> 0.11, 0.44 -> -0.18; close-ups of floor tiles 0.85 -> 0.41).
+LONG_HALF_DIP = 0.1
 # A lattice whose peaks are not all this strong loses to grain when the photo has grain:
 # the wood planks' lattice (0.44) made a 60-s fit draw diagonal blobs, their grain (y)
 # vertical boards.
@@ -246,6 +254,24 @@ def detect_large_cells(image: np.ndarray) -> tuple[float, float, float, float] |
     return found
 
 
+def detect_long_lattice(image: np.ndarray) -> tuple[float, float, float, float] | None:
+    """A lattice with one repeat beyond LATTICE_REACH (a rug's bands of motifs: 62.7 px
+    along them, 112 px across, at 256 px), looked for up to LARGE_CELL_REACH (for photos
+    where no lattice, boards or stripes were found: ``photo_structure``), as its shortest
+    basis, or None. Kept only if one of its two repeats is strong and each dips halfway to
+    it (LATTICE_STRONG, LONG_HALF_DIP), with grain or without: a weak far repeat, or one
+    on the ridge of grain or stripes, is too often chance. A lattice whose vectors are both
+    within LATTICE_REACH is ``detect_lattice``'s to find or refuse."""
+    found = _unwrapped_found_wrapped_measured(image, functools.partial(_lattice_on, within=LARGE_CELL_REACH,
+                                                                       long=True))
+    if found is None:
+        return None
+    found = shortest_basis(found)
+    if max(np.hypot(found[0], found[1]), np.hypot(found[2], found[3])) <= LATTICE_REACH * min(image.shape[:2]):
+        return None
+    return found
+
+
 def shortest_basis(lattice: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
     """The same lattice spanned by its two shortest independent vectors (Lagrange-Gauss
     reduction: take the shorter vector off the longer, as many whole times as brings it
@@ -266,8 +292,10 @@ def shortest_basis(lattice: tuple[float, float, float, float]) -> tuple[float, f
     return float(a[0]), float(a[1]), float(b[0]), float(b[1])
 
 
-def _lattice_on(image: np.ndarray, wrap: bool, within: float = LATTICE_REACH) -> tuple[float, float, float, float] | None:
-    """``detect_lattice`` on the wrapped or unwrapped autocorrelation."""
+def _lattice_on(image: np.ndarray, wrap: bool, within: float = LATTICE_REACH, long: bool = False
+                ) -> tuple[float, float, float, float] | None:
+    """``detect_lattice`` on the wrapped or unwrapped autocorrelation; ``long``: as
+    ``detect_long_lattice`` keeps it (one strong repeat is enough, grain or not)."""
     measured = luminance_correlation(image, wrap, within)
     if measured is None or not measured[1]:
         return None
@@ -285,7 +313,10 @@ def _lattice_on(image: np.ndarray, wrap: bool, within: float = LATTICE_REACH) ->
     basis, support = refine_lattice(correlation, basis, within)
     if support < LATTICE_SUPPORT:
         return None
-    if min(value_a, value_b) < LATTICE_STRONG and detect_grain(image) is not None:
+    if long and (max(value_a, value_b) < LATTICE_STRONG or not all(
+            _within_a_pixel(correlation, v) >= _within_a_pixel(correlation, v / 2) + LONG_HALF_DIP for v in basis)):
+        return None
+    if not long and min(value_a, value_b) < LATTICE_STRONG and detect_grain(image) is not None:
         return None
     across = stripe_normal(image)
     if across is not None and not _repeats_along_stripes(correlation, basis, across):
@@ -336,12 +367,16 @@ def _repeats_along_stripes(correlation: np.ndarray, basis: np.ndarray, across: n
         return True  # no repeat along the stripes in view (cinder blocks: 128 px): nothing to judge
     vector = vectors[along][np.argmin(length[along])]
     step = np.array([-across[1], across[0]]) * RIDGE_STEP
+    crest = max(_within_a_pixel(correlation, vector - step), _within_a_pixel(correlation, vector + step))
+    return bool(_within_a_pixel(correlation, vector) >= crest + LATTICE_TIE)  # not a ridge's noise
 
-    def near(point):  # the largest value within a pixel: a peak or a ridge's crest off the grid
-        x, y = np.rint(point).astype(int)
-        return correlation[(y + np.arange(-1, 2))[:, None] % height, (x + np.arange(-1, 2))[None, :] % width].max()
 
-    return bool(near(vector) >= max(near(vector - step), near(vector + step)) + LATTICE_TIE)  # not a ridge's noise
+def _within_a_pixel(correlation: np.ndarray, point: np.ndarray) -> float:
+    """The correlation's largest value within a pixel of ``point`` (dx, dy): a peak, or a
+    ridge's crest off the pixel grid."""
+    height, width = correlation.shape
+    x, y = np.rint(point).astype(int)
+    return float(correlation[(y + np.arange(-1, 2))[:, None] % height, (x + np.arange(-1, 2))[None, :] % width].max())
 
 
 def parabola_top(before, at, after):
@@ -668,6 +703,10 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
         # boards: stripes that keep their grain; stripes: a lattice whose second vector
         # carries no repeat
         found = detect_boards(photo, grain) if grain else detect_stripes(photo)
+    if lattice == "auto" and found is None:
+        found = detect_long_lattice(photo)
+        if found is not None:
+            grain = None
     if asked == "auto" and grain is None and found is None:
         grain = leaning_grain(photo)
     if lattice == "auto" and found is None and grain is None:

@@ -66,3 +66,22 @@ def boards(width: float = 25.6, size: int = 256, seed: int = 5) -> np.ndarray:
     joint = np.abs(((x + 0.5) / width + 0.5) % 1 - 0.5) * width < 1.0
     image = 0.55 + 0.03 * grain + tone - 0.3 * joint + 0.01 * rng.standard_normal((size, size))
     return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+
+def banded_motifs(across: float = 60.0, down: float = 110.0, size: int = 256, weave: float = 0.08,
+                  seed: int = 3) -> np.ndarray:
+    """A woven rug: two bands a repeat of ``down`` px (dark with diamonds, light with bars,
+    dark lines between), its motifs every ``across`` px along them, and a weave of
+    horizontal streaks (``weave``: their std) that reads as grain along x. Its lattice,
+    (across, 0) and (0, down), reaches past a third of a 256-px photo."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    u, v = (x % across) / across - 0.5, (y % down) / down
+    image = np.where(v < 0.5, 0.35, 0.65)
+    image = np.where((v < 0.02) | (np.abs(v - 0.5) < 0.02), 0.1, image)
+    diamond = np.abs(u) / 0.3 + np.abs(v - 0.25) * down / across / 0.25 < 1.0
+    bar = (np.abs(u) < 0.4) & (np.abs(v - 0.75) < 0.05)
+    image = np.where(diamond | bar, 0.9, image) + 0.03 * ndimage.gaussian_filter(rng.standard_normal((size, size)), 1)
+    streaks = ndimage.gaussian_filter(rng.standard_normal((size, size)), (0.7, 12.0))
+    image = image + weave * streaks / streaks.std()
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)

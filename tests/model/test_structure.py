@@ -12,8 +12,9 @@ from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelatio
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
                              grain_turn, leaning_grain, photo_structure, same_lattice, shortest_basis, straighten)
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,  # noqa: E402
+                             detect_long_lattice,
                              luminance_correlation, stripe_normal)
-from tests.model.photos import boards, corrugation, fibres, running_bond, streaks  # noqa: E402
+from tests.model.photos import banded_motifs, boards, corrugation, fibres, running_bond, streaks  # noqa: E402
 from worker.colour import even_lighting  # noqa: E402
 
 
@@ -163,6 +164,33 @@ def test_tiles_larger_than_a_third_of_the_photo_are_found_where_nothing_else_is(
     for name in ("grass", "gravel", "brick"):
         assert detect_large_cells(skimage_textures[name]) is None, name
     assert photo_structure(corrugation()) == (None, pytest.approx(detect_stripes(even_lighting(corrugation()))))
+
+
+@pytest.mark.parametrize("weave", [0.0, 0.08])
+def test_a_lattice_reaching_past_a_third_of_the_photo_is_found_and_beats_the_grain(weave, skimage_textures):
+    """A rug's bands of motifs: 60 px along them, 110 px down, past detect_lattice's reach.
+    With a weave (grain x) the grain came first and the fit drew streaks; the lattice wins
+    now, grain or not. Stochastic photos, stripes and a weak far repeat find none."""
+    photo = banded_motifs(weave=weave)
+    evened = even_lighting(photo)
+    assert detect_lattice(evened) is None and detect_grain(evened) == ("x" if weave else None)
+    grain, found = photo_structure(photo)
+    assert grain is None and found is not None
+    assert same_lattice(found, (60.0, 0.0, 0.0, 110.0), tolerance=0.01), found
+    for name in ("grass", "gravel", "brick"):
+        assert detect_long_lattice(even_lighting(skimage_textures[name])) is None, name
+    assert detect_long_lattice(even_lighting(corrugation())) is None
+    # along grain the correlation is a ridge whose noise has maxima: boards' (0, 93) px, 0.62
+    assert detect_long_lattice(even_lighting(boards())) is None
+    # a far repeat needs one strong peak: a faint grid of 100-px tiles (peaks ~0.5) is
+    # left to detect_large_cells, which photo_structure asks last, a clear one is found
+    rng = np.random.default_rng(5)
+    y, x = np.mgrid[0:256, 0:256]
+    texture = ndimage.gaussian_filter(rng.standard_normal((256, 256)), 2) / 0.14
+    for noise, found in ((0.06, False), (0.01, True)):
+        image = 0.8 + noise * texture
+        image[(y % 100 < 2) | (x % 100 < 2)] -= 0.25
+        assert (detect_long_lattice(np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)) is not None) == found
 
 
 def test_two_tiles_across_are_found_at_their_size_not_at_half_the_photo():
