@@ -683,8 +683,9 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
     In this order, each where the ones before found nothing: a lattice (``detect_lattice``,
     folded; ``lattice="auto"``); grain along an axis (``detect_grain``; ``grain="auto"``);
     on a grain photo boards (``detect_boards``, which keep the grain), on one without,
-    stripes (``detect_stripes``); a leaning grain (``leaning_grain``, without boards: they
-    are looked for on the turned photo); large cells (``detect_large_cells``). Boards come
+    stripes (``detect_stripes``); a lattice reaching past a third of the photo
+    (``detect_long_lattice``, which drops a detected grain: a rug's bands); a leaning grain
+    (``leaning_grain``, without boards: they are looked for on the turned photo); large cells (``detect_large_cells``). Boards come
     before stripes on a grain photo: its boards' joints are stripes too, and the stripe
     detector reads their repeat at any multiple (9.3-px synthetic boards: 28 px, three
     boards) and would drop the grain. ``grain`` "x" / "y" / None and ``lattice`` None are
@@ -705,7 +706,7 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
         found = detect_boards(photo, grain) if grain else detect_stripes(photo)
     if lattice == "auto" and found is None:
         found = detect_long_lattice(photo)
-        if found is not None:
+        if found is not None and asked == "auto":
             grain = None
     if asked == "auto" and grain is None and found is None:
         grain = leaning_grain(photo)

@@ -177,6 +177,7 @@ def test_a_lattice_reaching_past_a_third_of_the_photo_is_found_and_beats_the_gra
     grain, found = photo_structure(photo)
     assert grain is None and found is not None
     assert same_lattice(found, (60.0, 0.0, 0.0, 110.0), tolerance=0.01), found
+    assert photo_structure(photo, grain="y") == ("y", found)  # a grain asked for is kept
     for name in ("grass", "gravel", "brick"):
         assert detect_long_lattice(even_lighting(skimage_textures[name])) is None, name
     assert detect_long_lattice(even_lighting(corrugation())) is None
