@@ -100,6 +100,7 @@ LATTICE_SUPPORT = 0.6
 LATTICE_SUPPORT_PEAK = 0.25
 LATTICE_MIN_OFFSET = 4
 LATTICE_TIE = 0.05  # peaks this close to the strongest count as equally strong
+FINER_TIMES = 3  # how many times _finer_lattice may refine a lattice
 # A repeat along stripes (``_repeats_along_stripes``) is a peak: its correlation (the largest
 # within a pixel) tops the ridge's RIDGE_STEP px either way along it by LATTICE_TIE. Read
 # within a pixel because on a turned photo the ridge leans off the pixel grid: the validation
@@ -194,6 +195,22 @@ def luminance_correlation(image: np.ndarray, wrap: bool = False, within: float =
              & (correlation >= LATTICE_PEAK) & (np.hypot(dx, dy) >= LATTICE_MIN_OFFSET)
              & (np.abs(dx) <= int(width * within + 1e-9)) & (np.abs(dy) <= int(height * within + 1e-9)))
     return correlation, list(zip(correlation[peaks], np.hypot(dx[peaks], dy[peaks]), dx[peaks], dy[peaks]))
+
+
+def peak_height(correlation: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The height of the correlation's peaks at ``points`` ((N, 2) offsets dx, dy, rounded to
+    pixels) between pixels: the value there plus how far the parabolas through it and its
+    neighbours along x and along y rise above it. A sharp repeat off the pixel grid reads low
+    at its nearest pixel (hexagonal tiles of 15 px: 0.76 against 0.84 for an on-grid one)."""
+    height, width = correlation.shape
+    x, y = np.rint(np.asarray(points, np.float64)).astype(int).T
+    at = correlation[y % height, x % width]
+    rise = 0.0
+    for before, after in ((correlation[y % height, (x - 1) % width], correlation[y % height, (x + 1) % width]),
+                          (correlation[(y - 1) % height, x % width], correlation[(y + 1) % height, x % width])):
+        curve = before - 2 * at + after
+        rise = rise + np.where(curve < 0, -(after - before) ** 2 / (8 * np.where(curve < 0, curve, -1.0)), 0.0)
+    return at + rise
 
 
 def _strongest(candidates: list[tuple]) -> tuple:
@@ -308,8 +325,12 @@ def _lattice_on(image: np.ndarray, wrap: bool, within: float = LATTICE_REACH, lo
     if not others:
         return None
     value_b, _, bx, by = _strongest(others)
-    basis = _finer_lattice(correlation, np.array([[ax, ay], [bx, by]], np.float64), found,
-                           min(value_a, value_b), stripe_normal(image))
+    basis, across = np.array([[ax, ay], [bx, by]], np.float64), stripe_normal(image)
+    for _ in range(FINER_TIMES):  # hexagonal tiles: a lattice of every 4th one, twice as fine twice
+        finer = _finer_lattice(correlation, basis, found, across)
+        if finer is basis:
+            break
+        basis = finer
     basis, support = refine_lattice(correlation, basis, within)
     if support < LATTICE_SUPPORT:
         return None
@@ -325,24 +346,38 @@ def _lattice_on(image: np.ndarray, wrap: bool, within: float = LATTICE_REACH, lo
     return float(ax), float(ay), float(bx), float(by)
 
 
-def _finer_lattice(correlation: np.ndarray, basis: np.ndarray, peaks: list[tuple], strength: float,
-                   across: np.ndarray | None) -> np.ndarray:
-    """The lattice twice as fine, where a half step of ``basis`` ((a + b) / 2, a / 2 or
-    b / 2) is a repeat too: within 1.5 px of one of ``peaks`` (``luminance_correlation``'s
-    local maxima) at least ``strength`` less LATTICE_TIE, and, if it runs along the stripes
-    (``across``), a peak along them, not a point of their ridge (``_repeats_along_stripes``).
-    The second vector is the shortest of the near-strongest peaks, and near-ties go either
-    way: the validation brick wall's bond, (-16, 10.7) px, and two courses down, (0, 21.3),
-    are within 0.03, and the photo read back from an 8-bit PNG with light falling across it
-    got the stacked lattice of two courses, every other repeat."""
+def _finer_lattice(correlation: np.ndarray, basis: np.ndarray, peaks: list[tuple], across: np.ndarray | None
+                   ) -> np.ndarray:
+    """The lattice twice or three times as fine, where a half step of ``basis`` ((a + b) / 2,
+    a / 2 or b / 2) or a third ((a +- b) / 3, a / 3, b / 3, and another point of its coset) is
+    a repeat too: within 1.5 px of one of ``peaks`` (``luminance_correlation``'s local
+    maxima) whose height between pixels (``peak_height``) is at least the basis's less
+    LATTICE_TIE, and, if it runs along the stripes (``across``), a peak along them, not a
+    point of their ridge (``_repeats_along_stripes``); else ``basis`` itself.
+
+    The basis is the shortest of the near-strongest peaks, read at whole pixels, and
+    near-ties go either way: the validation brick wall's bond, (-16, 10.7) px, and two
+    courses down, (0, 21.3), are within 0.03 (read back from an 8-bit PNG with light falling
+    across it, the photo got the stacked lattice of two courses). Hexagonal tiles repeat off
+    the pixel grid in every direction but one, where they read up to 0.1 lower: 15-px tiles
+    got a rectangular lattice of every other tile (26, 0), (0, 45) px, 17-px tiles one of
+    every fourth (twice as fine twice: ``FINER_TIMES``), 20-px tiles one of every third."""
     a, b = basis
-    points = np.array([(dx, dy) for value, _, dx, dy in peaks if value >= strength - LATTICE_TIE], np.float64)
+    points = np.array([(dx, dy) for _, _, dx, dy in peaks], np.float64)
+    points = points[peak_height(correlation, points) >= peak_height(correlation, basis).min() - LATTICE_TIE] \
+        if len(points) else points
     if not len(points):
         return basis
-    for half, finer in ((0.5 * (a + b), (a, 0.5 * (a + b))), (0.5 * a, (0.5 * a, b)), (0.5 * b, (a, 0.5 * b))):
-        if np.hypot(*half) < LATTICE_MIN_OFFSET or np.hypot(*(points - half).T).min() > 1.5:
+    halves = [(0.5 * (a + b), (a, 0.5 * (a + b))), (0.5 * a, (0.5 * a, b)), (0.5 * b, (a, 0.5 * b))]
+    thirds = [((a + b) / 3, (a, (a + b) / 3)), ((a - b) / 3, (a, (a - b) / 3)), (a / 3, (a / 3, b)), (b / 3, (a, b / 3))]
+    for k, (step, finer) in enumerate(halves + thirds):
+        if np.hypot(*step) < LATTICE_MIN_OFFSET:
             continue
-        if across is not None and abs(half @ across) < 1.0 \
+        # a third: another point of its coset must be a peak too (one can be there by chance)
+        checked = [step] if k < len(halves) else [step, min(step - a, step - b, key=np.linalg.norm)]
+        if any(np.hypot(*(points - point).T).min() > 1.5 for point in checked):
+            continue
+        if across is not None and abs(step @ across) < 1.0 \
                 and not _repeats_along_stripes(correlation, np.array(finer), across):
             continue
         return np.array(finer)

@@ -11,8 +11,9 @@ PNG) and read back at short side 256, so their repeats come out larger by 256 / 
 
 * **packaged**: the 41 photos of ``data/textures`` (train and val), each as it is;
 * **crops**: each validation photo cut to 100-230 px squares at offsets 0 and 37;
-* **turns**: the validation brick wall turned by a few degrees (``straighten``: the largest
-  centred square inside the turned photo);
+* **turns**: the validation brick wall turned by -15..15 degrees (``straighten``: the largest
+  centred square inside the turned photo); right when it finds the lattice of the photo as
+  it is, turned the same way, to 0.08 of a step (a turned photo is measured on fewer bricks);
 * **degraded**: every packaged photo as a phone might deliver it: JPEG at quality 60,
   Gaussian noise (sigma 0.02, 0.04), a 1-px blur, a vignette (corners 30% darker), light
   falling off across it (0.8x to 1.2x left to right), taken at 160 px and enlarged; each
@@ -21,7 +22,9 @@ PNG) and read back at short side 256, so their repeats come out larger by 256 / 
 * **close-ups**: the two validation photos of 64-px tiles (floor tiles, concrete) cut to
   128-180 px at offsets 0, 20 and 37, so 2 to 2.8 tiles across; the true lattice is the
   square of 64 x 256 / side px, and a found lattice is right when it is the same lattice to
-  a twentieth of a step (``same_lattice``).
+  a twentieth of a step (``same_lattice``);
+* **hexagonal tiles** (synthetic, ``tests/model/photos.py``): 9-45 px from centre to corner,
+  turned 0, 7, 15 and 30 degrees, right to a twentieth of a step.
 
 Writes ``results.json`` (every photo's grain and lattice in px) and ``results.md``.
 """
@@ -30,6 +33,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -42,10 +46,14 @@ from model.structure import photo_structure, same_lattice, straighten
 from worker.decode import read_image
 from worker.images import resize_short_side
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for its test photos
+from tests.model.photos import hexagonal_tiles  # noqa: E402
+
 SHORT_SIDE = 256
 CROP_SIDES, CROP_OFFSETS = (100, 128, 160, 200, 230), (0, 37)
-TURNS = (3.0, 5.0, 10.0, -7.0)
-TURNED = "miniworld_brick_wall_1"
+TURNS = tuple(float(d) for d in range(-15, 16) if d)
+TURNED, TURN_RIGHT_TO = "miniworld_brick_wall_1", 0.08
+HEX_RADII, HEX_TURNS = (9, 11, 13, 15, 17, 20, 23, 26, 30, 35, 40, 45), (0.0, 7.0, 15.0, 30.0)
 CLOSE_UP_PHOTOS, TILE_PX = ("miniworld_floor_tiles_white", "miniworld_concrete_3"), 64.0
 CLOSE_UP_SIDES, CLOSE_UP_OFFSETS = (128, 132, 136, 140, 144, 160, 180), (0, 20, 37)
 RIGHT_TO = 0.05  # of a step (same_lattice's tolerance)
@@ -86,20 +94,27 @@ def read_back(image: np.ndarray) -> np.ndarray:
     return resize_short_side(np.round(image * 255.0).astype(np.float32) / 255.0, SHORT_SIDE)
 
 
-def structure_row(name: str, photo: np.ndarray, truth: tuple | None = None) -> dict:
+def structure_row(name: str, photo: np.ndarray, truth: tuple | None = None, right_to: float = RIGHT_TO) -> dict:
     grain, lattice = photo_structure(photo)
     row = {"photo": name, "grain": grain, "lattice_px": [round(v, 2) for v in lattice] if lattice else None}
     if truth is not None:
-        row["truth_px"] = list(truth)
-        row["right"] = bool(lattice is not None and same_lattice(lattice, truth, RIGHT_TO))
+        row["truth_px"] = [round(float(v), 2) for v in truth]
+        row["right"] = bool(lattice is not None and same_lattice(lattice, truth, right_to))
     return row
+
+
+def turned_lattice(lattice: tuple, degrees: float) -> tuple:
+    """``lattice`` (px) as it lies in the photo turned by ``straighten(photo, degrees)``."""
+    turn = np.radians(-degrees)
+    rotation = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    return tuple(float(v) for v in (np.asarray(lattice, np.float64).reshape(2, 2) @ rotation.T).ravel())
 
 
 def measure(data: Path) -> dict[str, list[dict]]:
     photos = {p.stem: load_exemplar(p, SHORT_SIDE, quantise=False) for p in sorted(data.glob("*/*.png"))}
     validation = sorted(p.stem for p in (data / "val").glob("*.png"))
     rows = {"packaged": [structure_row(name, photo) for name, photo in photos.items()], "crops": [], "turns": [],
-            "degraded": [], "close-ups": []}
+            "degraded": [], "close-ups": [], "hexagonal tiles": []}
     for clean in rows["packaged"]:
         truth = tuple(clean["lattice_px"]) if clean["lattice_px"] else None
         for how, degrade in DEGRADED.items():
@@ -113,8 +128,10 @@ def measure(data: Path) -> dict[str, list[dict]]:
             for offset in CROP_OFFSETS:
                 cut = photos[name][offset:offset + side, offset:offset + side]
                 rows["crops"].append(structure_row(f"{name} {side} px at {offset}", read_back(cut)))
+    upright = next(r["lattice_px"] for r in rows["packaged"] if r["photo"] == TURNED)
     for degrees in TURNS:
-        rows["turns"].append(structure_row(f"{TURNED} turned {degrees:g} deg", straighten(photos[TURNED], degrees)))
+        rows["turns"].append(structure_row(f"{TURNED} turned {degrees:g} deg", straighten(photos[TURNED], degrees),
+                                           turned_lattice(upright, degrees), TURN_RIGHT_TO))
     for name in CLOSE_UP_PHOTOS:
         for side in CLOSE_UP_SIDES:
             tile = TILE_PX * SHORT_SIDE / side
@@ -122,25 +139,35 @@ def measure(data: Path) -> dict[str, list[dict]]:
                 cut = photos[name][offset:offset + side, offset:offset + side]
                 rows["close-ups"].append(structure_row(f"{name} {side} px at {offset} ({side / TILE_PX:.2f} tiles "
                                                        f"across)", read_back(cut), (tile, 0.0, 0.0, tile)))
+    for radius in HEX_RADII:
+        for degrees in HEX_TURNS:
+            photo, truth = hexagonal_tiles(radius, degrees)
+            rows["hexagonal tiles"].append(structure_row(f"{radius} px turned {degrees:g} deg", photo, truth))
     return rows
 
 
 def to_markdown(rows: dict[str, list[dict]]) -> str:
     lines = ["# What model/structure.py finds", "",
              "`make structure` (docs/eval/structure.py). Lattices in px at the working resolution (ax, ay, bx, by; x right, "
-             "y down); close-ups: right when the same lattice as the true square grid to a twentieth of a step.", ""]
-    close, degraded = rows["close-ups"], rows["degraded"]
-    lines += [f"Close-ups right: {sum(r['right'] for r in close)} of {len(close)}. Degraded copies that find what "
-              f"the clean photo does: {sum(r['right'] for r in degraded)} of {len(degraded)}.", ""]
+             "y down); close-ups, hexagonal tiles: right when the same lattice as the truth to a twentieth of a step; turns: "
+             "the upright photo's lattice turned, to 0.08 of a step.", ""]
+    def right(section: str) -> str:
+        return f"{sum(r['right'] for r in rows[section])} of {len(rows[section])}"
+
+    lines += [f"Close-ups right: {right('close-ups')}. Degraded copies that find what the clean photo does: "
+              f"{right('degraded')}. Turns right: {right('turns')}. Hexagonal tiles right: {right('hexagonal tiles')}.", ""]
     for section, found in rows.items():
         if section == "degraded":  # only the copies that differ from their clean photo
             found = [r for r in found if not r["right"]]
+        truths = section in ("close-ups", "turns", "hexagonal tiles")
         lines += [f"## {section}" + (" (the copies that differ)" if section == "degraded" else ""), "",
-                  "| photo | grain | lattice (px) |" + (" truth | right |" if section == "close-ups" else ""),
-                  "|---|---|---|" + ("---|---|" if section == "close-ups" else "")]
+                  "| photo | grain | lattice (px) |" + (" truth | right |" if truths else ""),
+                  "|---|---|---|" + ("---|---|" if truths else "")]
         for r in found:
             lattice = ", ".join(f"{v:.1f}" for v in r["lattice_px"]) if r["lattice_px"] else "-"
-            extra = f" {r['truth_px'][0]:.1f} | {'yes' if r['right'] else 'no'} |" if section == "close-ups" else ""
+            truth = f"{r['truth_px'][0]:.1f}" if section == "close-ups" else (  # (a square grid: its side)
+                ", ".join(f"{v:.1f}" for v in r["truth_px"]) if truths else "")
+            extra = f" {truth} | {'yes' if r['right'] else 'no'} |" if truths else ""
             lines.append(f"| {r['photo']} | {r['grain'] or '-'} | {lattice} |{extra}")
         lines.append("")
     return "\n".join(lines)

@@ -48,7 +48,25 @@ def test_rows_mark_a_found_grid_right_and_the_summary_counts_them(structure):
     wrong = structure.structure_row("grid", grid.astype(np.float32), (tile * 1.5, 0.0, 0.0, tile))
     assert right["right"] and not wrong["right"]
     flat = dict(structure.structure_row("flat", np.full((64, 64, 3), 0.5, np.float32)), right=False)
-    text = structure.to_markdown({"packaged": [], "crops": [], "turns": [], "degraded": [flat, {**flat, "right": True}],
-                                  "close-ups": [right, wrong]})
-    assert "Close-ups right: 1 of 2. Degraded copies that find what the clean photo does: 1 of 2." in text
+    text = structure.to_markdown({"packaged": [], "crops": [], "turns": [right], "degraded": [flat, {**flat, "right": True}],
+                                  "close-ups": [right, wrong], "hexagonal tiles": [wrong]})
+    assert ("Close-ups right: 1 of 2. Degraded copies that find what the clean photo does: 1 of 2. Turns right: "
+            "1 of 1. Hexagonal tiles right: 0 of 1.") in text
     assert text.count("| flat |") == 1  # only the degraded copy that differs is listed
+
+
+def test_a_turned_photo_is_judged_against_the_upright_lattice_turned_the_same_way(structure):
+    """straighten's sense of turning and turned_lattice's agree: a grid of 48-px tiles with
+    4-px grout, turned 10 degrees either way, is found on the turned lattice, not the other."""
+    from model.structure import photo_structure, same_lattice, straighten
+
+    size, tile = 400, 48
+    y, x = np.mgrid[0:size, 0:size]
+    grid = np.where((y % tile < 4) | (x % tile < 4), 0.45, 0.85)
+    grid = np.repeat((grid + 0.02 * np.random.default_rng(2).standard_normal(grid.shape))[..., None], 3, axis=2)
+    upright = photo_structure(grid.astype(np.float32))[1]
+    assert upright is not None
+    for degrees in (10.0, -10.0):
+        found = photo_structure(straighten(grid.astype(np.float32), degrees))[1]
+        assert found is not None and same_lattice(found, structure.turned_lattice(upright, degrees), 0.05), found
+        assert not same_lattice(found, structure.turned_lattice(upright, -degrees), 0.05)

@@ -85,3 +85,26 @@ def banded_motifs(across: float = 60.0, down: float = 110.0, size: int = 256, we
     streaks = ndimage.gaussian_filter(rng.standard_normal((size, size)), (0.7, 12.0))
     image = image + weave * streaks / streaks.std()
     return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+
+def hexagonal_tiles(radius: float, turn_degrees: float = 0.0, size: int = 256, seed: int = 0
+                    ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """Hexagonal tiles (centre to corner ``radius`` px) with 2.5-px soft grout over a mottled
+    glaze, their lattice turned by ``turn_degrees``: (photo, lattice basis in px)."""
+    rng = np.random.default_rng(seed)
+    turn = np.radians(turn_degrees)
+    rotation = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    basis = rotation @ np.array([[np.sqrt(3) * radius, np.sqrt(3) * radius / 2], [0.0, 1.5 * radius]])  # columns
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    points = np.stack([x.ravel(), y.ravel()])
+    cell = np.floor(np.linalg.solve(basis, points))
+    nearest, second = np.full(points.shape[1], np.inf), np.full(points.shape[1], np.inf)
+    for i in (-1, 0, 1, 2):  # the centres around each point: the two nearest make the grout
+        for j in (-1, 0, 1, 2):
+            distance = np.hypot(*(points - basis @ (cell + np.array([[i], [j]]))))
+            second = np.where(distance < nearest, nearest, np.minimum(second, distance))
+            nearest = np.minimum(nearest, distance)
+    edge = (second - nearest).reshape(size, size)
+    glaze = ndimage.gaussian_filter(rng.standard_normal((size, size)), 2) / 0.14
+    image = 0.7 + 0.05 * glaze - 0.35 * np.clip(2.5 - edge, 0, 1)
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2), tuple(float(v) for v in basis.T.ravel())

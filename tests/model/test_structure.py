@@ -14,7 +14,8 @@ from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelatio
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,  # noqa: E402
                              detect_long_lattice,
                              luminance_correlation, stripe_normal)
-from tests.model.photos import banded_motifs, boards, corrugation, fibres, running_bond, streaks  # noqa: E402
+from tests.model.photos import (banded_motifs, boards, corrugation, fibres, hexagonal_tiles, running_bond,  # noqa: E402
+                                streaks)
 from worker.colour import even_lighting  # noqa: E402
 
 
@@ -257,10 +258,19 @@ def test_a_lattice_of_every_other_repeat_is_made_twice_as_fine():
     correlation, peaks = luminance_correlation(photo)
     across = stripe_normal(photo)
     stacked = np.array([[32.0, 0.0], [0.0, 22.0]])
-    finer = _finer_lattice(correlation, stacked, peaks, 0.3, across)
+    finer = _finer_lattice(correlation, stacked, peaks, across)
     assert same_lattice(finer.ravel(), (32.0, 0.0, 16.0, 11.0), tolerance=0.05), finer
     bond = np.array([[32.0, 0.0], [16.0, 11.0]])
-    assert np.array_equal(_finer_lattice(correlation, bond, peaks, 0.3, across), bond)
+    assert np.array_equal(_finer_lattice(correlation, bond, peaks, across), bond)
+
+
+@pytest.mark.parametrize("radius, turn", [(15, 0.0), (17, 0.0), (20, 0.0), (26, 7.0)])
+def test_hexagonal_tiles_get_their_own_lattice_not_one_of_every_second_third_or_fourth_tile(radius, turn):
+    """Hexagonal tiles repeat off the pixel grid, where their peaks read low: these came out
+    as lattices of every 2nd (15 px, 26 px turned), 4th (17 px) and 3rd (20 px) tile."""
+    photo, truth = hexagonal_tiles(radius, turn)
+    found = detect_lattice(photo)
+    assert found is not None and same_lattice(found, truth, tolerance=0.05), (found, truth)
 
 
 def test_shortest_basis_spans_the_same_lattice_with_its_shortest_vectors():
