@@ -12,7 +12,7 @@ from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelatio
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
                              grain_turn, leaning_grain, photo_structure, same_lattice, shortest_basis, straighten)
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,  # noqa: E402
-                             detect_long_lattice,
+                             detect_long_lattice, pixel_noise,
                              luminance_correlation, stripe_normal)
 from tests.model.photos import (banded_motifs, boards, corrugation, fibres, hexagonal_tiles, running_bond,  # noqa: E402
                                 streaks)
@@ -271,6 +271,28 @@ def test_hexagonal_tiles_get_their_own_lattice_not_one_of_every_second_third_or_
     photo, truth = hexagonal_tiles(radius, turn)
     found = detect_lattice(photo)
     assert found is not None and same_lattice(found, truth, tolerance=0.05), (found, truth)
+
+
+def test_pixel_noise_reads_white_noise_and_not_edges():
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:256, 0:256]
+    grid = np.where((y % 64 < 3) | (x % 64 < 3), 0.5, 0.8) + 0.1 * np.sin(x / 40.0)  # edges, shading
+    assert pixel_noise(grid) < 1e-3
+    for sigma in (0.01, 0.03):
+        assert pixel_noise(grid + sigma * rng.standard_normal(grid.shape)) == pytest.approx(sigma, rel=0.1)
+
+
+@pytest.mark.parametrize("grout, noise", [(0.05, 0.02), (0.05, 0.03), (0.08, 0.04)])
+def test_a_faint_grid_keeps_its_lattice_under_noise(grout, noise):
+    """Grout 0.05-0.08 darker than a mottled glaze, under white noise of 0.02-0.04 (a phone
+    in dim light): the noise had pulled every repeat under LATTICE_PEAK (none found)."""
+    rng = np.random.default_rng(1)
+    y, x = np.mgrid[0:256, 0:256]
+    image = 0.7 + 0.02 * ndimage.gaussian_filter(rng.standard_normal((256, 256)), 6) / 0.05
+    image[(y % 64 < 3) | (x % 64 < 3)] -= grout
+    image = image + noise * rng.standard_normal((256, 256))
+    grain, found = photo_structure(np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2))
+    assert grain is None and found is not None and same_lattice(found, (64, 0, 0, 64), tolerance=0.05), found
 
 
 def test_shortest_basis_spans_the_same_lattice_with_its_shortest_vectors():
