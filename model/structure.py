@@ -217,8 +217,7 @@ def peak_height(correlation: np.ndarray, points: np.ndarray) -> np.ndarray:
     rise = 0.0
     for before, after in ((correlation[y % height, (x - 1) % width], correlation[y % height, (x + 1) % width]),
                           (correlation[(y - 1) % height, x % width], correlation[(y + 1) % height, x % width])):
-        curve = before - 2 * at + after
-        rise = rise + np.where(curve < 0, -(after - before) ** 2 / (8 * np.where(curve < 0, curve, -1.0)), 0.0)
+        rise = rise + 0.25 * (after - before) * parabola_top(before, at, after)  # the parabola's top, less `at`
     return at + rise
 
 
@@ -382,10 +381,11 @@ def _finer_lattice(correlation: np.ndarray, basis: np.ndarray, peaks: list[tuple
     the pixel grid in every direction but one, where they read up to 0.1 lower: 15-px tiles
     got a rectangular lattice of every other tile (26, 0), (0, 45) px, 17-px tiles one of
     every fourth (twice as fine twice: ``FINER_TIMES``), 20-px tiles one of every third."""
+    if not peaks:
+        return basis
     a, b = basis
     points = np.array([(dx, dy) for _, _, dx, dy in peaks], np.float64)
-    points = points[peak_height(correlation, points) >= peak_height(correlation, basis).min() - LATTICE_TIE] \
-        if len(points) else points
+    points = points[peak_height(correlation, points) >= peak_height(correlation, basis).min() - LATTICE_TIE]
     if not len(points):
         return basis
     halves = [(0.5 * (a + b), (a, 0.5 * (a + b))), (0.5 * a, (0.5 * a, b)), (0.5 * b, (a, 0.5 * b))]
@@ -741,10 +741,10 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
     on a grain photo boards (``detect_boards``, which keep the grain), on one without,
     stripes (``detect_stripes``); a lattice reaching past a third of the photo
     (``detect_long_lattice``, which drops a detected grain: a rug's bands); a leaning grain
-    (``leaning_grain``, without boards: they are looked for on the turned photo); large cells (``detect_large_cells``). Boards come
-    before stripes on a grain photo: its boards' joints are stripes too, and the stripe
-    detector reads their repeat at any multiple (9.3-px synthetic boards: 28 px, three
-    boards) and would drop the grain. ``grain`` "x" / "y" / None and ``lattice`` None are
+    (``leaning_grain``, without boards: they are looked for on the turned photo); large
+    cells (``detect_large_cells``). Boards come before stripes on a grain photo: its boards'
+    joints are stripes too, and the stripe detector reads their repeat at any multiple
+    (9.3-px synthetic boards: 28 px, three boards) and would drop the grain. ``grain`` "x" / "y" / None and ``lattice`` None are
     taken as given. A photo with a lattice or stripes gets no grain.
 
     The detectors read the photo with its smooth shading divided out
