@@ -12,7 +12,7 @@ from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelatio
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
                              grain_turn, leaning_grain, photo_structure, same_lattice, shortest_basis, straighten)
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,  # noqa: E402
-                             detect_long_lattice, pixel_noise,
+                             detect_long_lattice, peak_height, pixel_noise,
                              luminance_correlation, stripe_normal)
 from tests.model.photos import (banded_motifs, boards, corrugation, fibres, hexagonal_tiles, running_bond,  # noqa: E402
                                 streaks)
@@ -264,13 +264,25 @@ def test_a_lattice_of_every_other_repeat_is_made_twice_as_fine():
     assert np.array_equal(_finer_lattice(correlation, bond, peaks, across), bond)
 
 
-@pytest.mark.parametrize("radius, turn", [(15, 0.0), (17, 0.0), (20, 0.0), (26, 7.0)])
+@pytest.mark.parametrize("radius, turn", [(15, 0.0), (17, 0.0), (20, 0.0), (26, 7.0), (13, 30.0)])
 def test_hexagonal_tiles_get_their_own_lattice_not_one_of_every_second_third_or_fourth_tile(radius, turn):
     """Hexagonal tiles repeat off the pixel grid, where their peaks read low: these came out
-    as lattices of every 2nd (15 px, 26 px turned), 4th (17 px) and 3rd (20 px) tile."""
+    as lattices of every 2nd (15 px, 26 px turned; 13 px turned 30 degrees until peaks were
+    read by Lanczos interpolation), 4th (17 px) and 3rd (20 px) tile."""
     photo, truth = hexagonal_tiles(radius, turn)
     found = detect_lattice(photo)
     assert found is not None and same_lattice(found, truth, tolerance=0.05), (found, truth)
+
+
+def test_peak_height_reads_a_peak_between_pixels():
+    """A smooth peak of height 1 half a pixel off the grid both ways reads 0.78 at its
+    nearest pixel and 0.90 by the parabolas through its neighbours; between pixels, by
+    Lanczos interpolation, within 0.02 of 1. On the grid it reads what the pixel holds."""
+    y, x = np.mgrid[0:64, 0:64]
+    dy, dx = (y + 32) % 64 - 32, (x + 32) % 64 - 32  # offsets laid out as a correlation's
+    correlation = np.exp(-((dx - 9.5) ** 2 + (dy - 16.5) ** 2) / 2.0) + np.exp(-(dx ** 2 + (dy + 20) ** 2) / 2.0)
+    heights = peak_height(correlation, np.array([[10.0, 16.0], [0.0, -20.0]]))
+    assert abs(heights[0] - 1.0) < 0.02 and abs(heights[1] - 1.0) < 1e-9, heights
 
 
 def test_pixel_noise_reads_white_noise_and_not_edges():
