@@ -123,7 +123,7 @@ def read_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
             loaded = trimesh.load(io.BytesIO(mesh_bytes), file_type=MESH_TYPES[ext], process=False)
             mesh, normals = _as_mesh(loaded)
         except Exception as exc:  # trimesh raises many types on malformed files
-            raise InvalidMesh(f"cannot parse {ext.upper()} mesh: {exc}") from None
+            raise _unreadable(mesh_bytes, ext, f"cannot parse {ext.upper()} mesh: {exc}") from None
         if not isinstance(mesh, trimesh.Trimesh):
             raise InvalidMesh("file holds no triangle mesh")
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
@@ -140,7 +140,7 @@ def read_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
     if np.abs(vertices).max() > MAX_COORDINATE:
         raise InvalidMesh(f"mesh has vertex coordinates beyond +-{MAX_COORDINATE:g}")
     if faces.min() < 0 or faces.max() >= len(vertices):
-        raise InvalidMesh(f"face indices out of range [0, {len(vertices)})")
+        raise _unreadable(mesh_bytes, ext, f"face indices out of range [0, {len(vertices)})")
     tri = vertices[faces]
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     extent = max(float(np.ptp(vertices, axis=0).max()), 1e-300)
@@ -148,6 +148,44 @@ def read_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
         raise InvalidMesh("every face is degenerate (zero area)")
     uv = None if uv is None or len(uv) != len(vertices) else np.asarray(uv, dtype=np.float64)
     return Mesh(vertices, faces, uv, _unit_normals(normals, len(vertices)))
+
+
+def _unreadable(mesh_bytes: bytes, ext: str, otherwise: str) -> InvalidMesh:
+    """The error for a mesh that failed to load: an OBJ's bad face where it has one, else ``otherwise``."""
+    problem = obj_face_problem(mesh_bytes) if ext == "obj" else None
+    return InvalidMesh(f"bad OBJ mesh: {problem}" if problem else otherwise)
+
+
+def obj_face_problem(data: bytes) -> str | None:
+    """The first face of an OBJ that names a vertex the file does not have, said so that
+    its author can find it ("face 2 (line 5) names vertex 9; the file has 3 vertices"), or
+    None. Positive numbers count from the file's first vertex, negative ones back from the
+    last vertex before the face (the OBJ convention). Only run on a mesh that failed to load:
+    a line-by-line read."""
+    lines = data.splitlines()
+    total = sum(1 for line in lines if line.split(maxsplit=1)[:1] == [b"v"])
+    seen = faces = 0
+    for number, line in enumerate(lines, 1):
+        keyword = line.split(maxsplit=1)[:1]
+        if keyword == [b"v"]:
+            seen += 1
+        elif keyword == [b"f"]:
+            faces += 1
+            for corner in line.split()[1:]:
+                text = corner.split(b"/")[0].decode("ascii", "replace")
+                try:
+                    index = int(text)
+                except ValueError:
+                    return f"face {faces} (line {number}) has a corner {text!r} that is not a vertex number"
+                if index == 0 or index > total or -index > seen:
+                    have = (f"{seen} {_vertices(seen)} {'comes' if seen == 1 else 'come'} before it" if index < 0
+                            else f"the file has {total} {_vertices(total)}")
+                    return f"face {faces} (line {number}) names vertex {index}; {have}"
+    return None
+
+
+def _vertices(count: int) -> str:
+    return "vertex" if count == 1 else "vertices"
 
 
 _OBJ_HEADER_LINES = (b"#", b"\n", b"o ", b"g ", b"s ", b"mtllib ")  # lines before the first v that name, not shape

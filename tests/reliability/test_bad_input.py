@@ -33,7 +33,7 @@ IMAGES = {
 }
 MESHES = {
     "nan_vertices.obj": (422, "invalid-mesh", "NaN"),
-    "out_of_range.obj": (422, "invalid-mesh", "out of bounds"),
+    "out_of_range.obj": (422, "invalid-mesh", "names vertex 99"),
     "no_faces.obj": (422, "invalid-mesh", "no faces"),
     "all_degenerate.obj": (422, "invalid-mesh", "degenerate"),
     "faces_over_limit.obj": (413, "limit-exceeded", "1152 faces"),

@@ -17,7 +17,7 @@ from scipy import ndimage
 from skimage.draw import polygon
 
 from worker import atlas
-from worker.bake import BakeLimits, bake_mesh, bake_texture, load_mesh, read_mesh, read_plain_obj
+from worker.bake import BakeLimits, bake_mesh, bake_texture, load_mesh, obj_face_problem, read_mesh, read_plain_obj
 from worker.colour import linear_to_srgb8
 from worker.errors import AtlasFailed, Canceled, InvalidMesh, InvalidParameter, LimitExceeded
 from worker.raster import uv_to_texel
@@ -145,7 +145,10 @@ def test_other_mesh_types(waves, meshes, tmp_path):
 
 BAD_MESHES = [
     ("nan.obj", b"v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n", "NaN"),
-    ("range.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 9\n", "out of (bounds|range)"),
+    ("range.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 9\n",
+     r"face 2 \(line 5\) names vertex 9; the file has 3 vertices"),
+    ("range-slashes.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 4/1\n",
+     r"face 1 \(line 5\) names vertex 4; the file has 3 vertices"),
     ("nofaces.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no faces"),
     ("flat.obj", b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "degenerate"),
     ("garbage.glb", b"glTF not really" * 10, "cannot parse"),
@@ -161,6 +164,15 @@ BAD_MESHES = [
 def test_bad_meshes(filename, data, message):
     with pytest.raises(InvalidMesh, match=message):
         load_mesh(data, filename)
+
+
+def test_obj_face_problem_names_the_face_and_its_line():
+    """What a bad OBJ's upload is told (``read_mesh`` asks only when the mesh failed)."""
+    assert obj_face_problem(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n") is None
+    assert obj_face_problem(b"v 0 0 0\nv 1 0 0\nf -1 -2 -3\nv 0 1 0\n") == \
+        "face 1 (line 3) names vertex -3; 2 vertices come before it"
+    assert obj_face_problem(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n") == \
+        "face 1 (line 4) has a corner 'x' that is not a vertex number"
 
 
 def test_mesh_limits(meshes):
