@@ -759,8 +759,9 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
     (``leaning_grain``, without boards: they are looked for on the turned photo); large
     cells (``detect_large_cells``). Boards come before stripes on a grain photo: its boards'
     joints are stripes too, and the stripe detector reads their repeat at any multiple
-    (9.3-px synthetic boards: 28 px, three boards) and would drop the grain. ``grain`` "x" / "y" / None and ``lattice`` None are
-    taken as given. A photo with a lattice or stripes gets no grain.
+    (9.3-px synthetic boards: 28 px, three boards) and would drop the grain. ``grain``
+    "x" / "y" / None and ``lattice`` None are taken as given. A photo with a lattice or
+    stripes gets no grain.
 
     The detectors read the photo with its smooth shading divided out
     (``worker.colour.even_lighting``): light falling off across a photo, or a vignette,

@@ -163,10 +163,10 @@ def obj_face_problem(data: bytes) -> str | None:
     last vertex before the face (the OBJ convention). Only run on a mesh that failed to load:
     a line-by-line read."""
     lines = data.splitlines()
-    total = sum(1 for line in lines if line.split(maxsplit=1)[:1] == [b"v"])
+    keywords = [line.split(maxsplit=1)[:1] for line in lines]
+    total = keywords.count([b"v"])
     seen = faces = 0
-    for number, line in enumerate(lines, 1):
-        keyword = line.split(maxsplit=1)[:1]
+    for number, (line, keyword) in enumerate(zip(lines, keywords), 1):
         if keyword == [b"v"]:
             seen += 1
         elif keyword == [b"f"]:
