@@ -126,6 +126,8 @@ def read_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
             raise _unreadable(mesh_bytes, ext, f"cannot parse {ext.upper()} mesh: {exc}") from None
         if not isinstance(mesh, trimesh.Trimesh):
             raise InvalidMesh("file holds no triangle mesh")
+        if ext == "obj" and _obj_names_vertex_zero(mesh_bytes):   # trimesh reads 0 as the last vertex
+            raise _unreadable(mesh_bytes, ext, "an OBJ face names vertex 0; OBJ counts vertices from 1")
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
         faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
         uv = getattr(mesh.visual, "uv", None)
@@ -148,6 +150,19 @@ def read_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
         raise InvalidMesh("every face is degenerate (zero area)")
     uv = None if uv is None or len(uv) != len(vertices) else np.asarray(uv, dtype=np.float64)
     return Mesh(vertices, faces, uv, _unit_normals(normals, len(vertices)))
+
+
+def _obj_names_vertex_zero(data: bytes) -> bool:
+    """Whether an OBJ face has a corner whose vertex number is 0 (OBJ counts from 1, or
+    back from -1). trimesh loads it as the last vertex, which would bake a wrong triangle
+    or call the mesh "degenerate". Vectorised: the lone zeros (a 0 after a blank and before
+    a blank, a slash or the end) are found with numpy, and only their lines are read; a
+    regex over a 23 MB file took 0.2-0.3 s."""
+    text = np.frombuffer(data + b"\n", np.uint8)
+    zeros = np.flatnonzero(text[1:-1] == ord("0")) + 1
+    blank, ends = np.frombuffer(b" \t", np.uint8), np.frombuffer(b" \t/\r\n", np.uint8)
+    lone = zeros[np.isin(text[zeros - 1], blank) & np.isin(text[zeros + 1], ends)]
+    return any(data[data.rfind(b"\n", 0, at) + 1:at].lstrip()[:1] == b"f" for at in lone)
 
 
 def _unreadable(mesh_bytes: bytes, ext: str, otherwise: str) -> InvalidMesh:

@@ -149,6 +149,9 @@ BAD_MESHES = [
      r"face 2 \(line 5\) names vertex 9; the file has 3 vertices"),
     ("range-slashes.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 4/1\n",
      r"face 1 \(line 5\) names vertex 4; the file has 3 vertices"),
+    ("zero.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 0\n",      # trimesh reads 0 as
+     r"face 2 \(line 6\) names vertex 0; the file has 4 vertices"),               # vertex 4: a wrong face
+    ("zero-flat.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "names vertex 0"),  # was "degenerate"
     ("nofaces.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no faces"),
     ("flat.obj", b"v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "degenerate"),
     ("garbage.glb", b"glTF not really" * 10, "cannot parse"),
@@ -173,6 +176,13 @@ def test_obj_face_problem_names_the_face_and_its_line():
         "face 1 (line 3) names vertex -3; 2 vertices come before it"
     assert obj_face_problem(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n") == \
         "face 1 (line 4) has a corner 'x' that is not a vertex number"
+
+
+def test_lone_zeros_outside_faces_are_no_vertex_zero():
+    """Zero coordinates, zero texture indices and zeros in comments load as they are."""
+    vertices, faces, uv = load_mesh(b"# f 0 1 2\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\n"
+                                    b"f 1/1 2/2 3/3\n", "zeros.obj")
+    assert faces.tolist() == [[0, 1, 2]] and vertices[0].tolist() == [0, 0, 0]
 
 
 def test_mesh_limits(meshes):
