@@ -48,7 +48,7 @@ bench: install-test
 	$(PY) bench/load.py   # 32 clients, 60 s, on a real `texspace serve` (loopback)
 
 # the README picture: exemplars beside tiles synthesised from their codes; the shipped one
-# adds each photo's 60-s fit: make fits FIT_ARGS='--minutes 1 --threads 1' and FIGURE_ARGS='--fits runs/fits'
+# adds each photo's fit: make fits FIT_ARGS='--threads 1' FIT_JOBS=2 and FIGURE_ARGS='--fits runs/fits'
 readme-figure: data
 	$(PY) docs/make_readme_figure.py docs/images/exemplar-and-tile.png $(FIGURE_ARGS)
 
@@ -136,7 +136,7 @@ $(addprefix compare-,$(VARIANT_NAMES)): compare-%: data
 # Single-exemplar fits of every validation exemplar at the default settings
 # (runs/fits/<name>), FIT_JOBS at a time, then each fit against the shipped space's
 # encoder code. A timed fit's result depends on the steps it gets: the model card's
-# figures ran FIT_ARGS='--minutes 1 --threads 1' FIT_JOBS=2 on 2 cores.
+# figures ran FIT_ARGS='--threads 1' FIT_JOBS=2 on 2 cores (4 minutes, as the service's).
 FIT_ARGS ?=
 FIT_JOBS ?= 1
 VAL_IMAGES = $(wildcard data/textures/val/*.png)

@@ -1,6 +1,6 @@
 """The fit's probe: how long one score of its fixed planes takes (model/train.py ``Probe``).
 
-A 60-s fit (the product's refinement) scores itself every 25 steps on 4 planes of 256 px
+A fit (the product's refinement: 240 s) scores itself every 25 steps on 4 planes of 256 px
 (twice its training patch); each score is the field on 262,144 points and VGG16 on four
 256^2 images, without gradients. The figure: the probe as ``Probe.score`` computes it (one
 plane, one image at a time: ``render_slices`` and ``Objective`` chunk when gradients are

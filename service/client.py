@@ -162,14 +162,16 @@ class Client:
         return self._call("POST", f"/v1/textures/{texture_id}/bakes", files={"mesh": (filename, data)},
                           data=form, headers=self._key(idempotency_key)).json()
 
-    def fit(self, texture_id: str, *, seconds: float = 60.0, grain: str | None = "auto",
+    def fit(self, texture_id: str, *, seconds: float | None = None, grain: str | None = "auto",
             lattice: str | None = "auto", even: str | None = "auto", idempotency_key: str | None = None) -> Job:
         """Submit a fit (needs the train extra on the workers): refines the texture's sampler.
+        ``seconds``: its time budget (None: the server's default, 240);
         ``grain``: "x", "y", "auto" (detected from the photo) or None (isotropic);
         ``lattice``: "auto" (a repeat lattice detected from the photo) or None;
         ``even``: "auto" (an even photo's coarse octaves muted) or None."""
         return self._call("POST", f"/v1/textures/{texture_id}/fit",
-                          json={"seconds": seconds, "grain": grain, "lattice": lattice, "even": even},
+                          json={"grain": grain, "lattice": lattice, "even": even}
+                          | ({} if seconds is None else {"seconds": seconds}),
                           headers=self._key(idempotency_key)).json()
 
     def job(self, job: Job | str) -> Job:

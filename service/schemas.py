@@ -16,7 +16,7 @@ from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
 from worker.volume_writers import FORMATS as VOLUME_FORMATS
 
 from .deps import SafeText
-from .settings import JOB_KINDS
+from .settings import FIT_SECONDS, JOB_KINDS
 from .tables import JOB_STATES, Job, Texture
 
 CODE_SIZE = 8
@@ -162,7 +162,7 @@ class VolumeIn(BaseModel):
 
 class FitIn(BaseModel):
     model_config = {"extra": "forbid"}
-    seconds: float = Field(60.0, gt=0, le=3600, description="optimisation time budget; capped by the server")
+    seconds: float = Field(FIT_SECONDS, gt=0, le=3600, description="optimisation time budget; capped by the server")
     grain: Literal["x", "y", "auto"] | None = Field(
         "auto", description="anisotropic exemplar (wood, brushed metal): the direction its grain runs in the photo, "
                             "x = left-right, y = up-down; the fitted solid's noise cells are stretched 8x along "

@@ -18,6 +18,12 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 #: some (``worker_kinds``)
 JOB_KINDS = ("volume", "bake", "region", "fit")
 JobKind = Literal[JOB_KINDS]
+#: a fit's time budget unless one is asked for: an upload's refinement and ``POST .../fit``.
+#: 4 minutes, as ``model.fit``'s own default: against 60 s (one thread, seed 0, 9 validation
+#: photos) the tiles' style error was lower on 8 and the same on one, bricks 0.111 -> 0.043,
+#: granite 0.417 -> 0.339 (docs/notes/model-history.md, 2026-11-29). Fits have a queue of
+#: their own (service/queue.py), so a longer one holds up no tile, volume or bake.
+FIT_SECONDS = 240.0
 #: the model export shipped inside the package (``model/weights``)
 PACKAGED_MODEL_DIR = Path(__file__).resolve().parent.parent / "model" / "weights"
 
@@ -78,7 +84,7 @@ class Settings(BaseSettings):
                                          "second bake of a mesh skips xatlas; default data_dir/cache/atlas")
     atlas_cache_bytes: int = Field(512 * 2**20, ge=0, description="size bound of atlas_cache_dir (least "
                                    "recently used entries go first); 0 disables the cache")
-    fit_seconds: float = Field(60.0, gt=0, description="time budget of an upload's automatic refinement")
+    fit_seconds: float = Field(FIT_SECONDS, gt=0, description="time budget of an upload's automatic refinement")
     max_fit_seconds: float = Field(900.0, gt=0)
 
     # --- jobs --------------------------------------------------------------------------

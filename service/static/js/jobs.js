@@ -17,7 +17,7 @@ export function fraction(progress) {
   return Math.max(0, Math.min(1, p > 1 ? p / 100 : p));
 }
 
-/** What a job makes, e.g. "bake sphere.obj (glb)", "volume 64^3 (npy)", "fit 60 s". */
+/** What a job makes, e.g. "bake sphere.obj (glb)", "volume 64^3 (npy)", "fit 240 s". */
 function what(job) {
   const p = job.params || {};
   if (job.kind === 'bake') return `bake ${p.filename || 'mesh'} (${p.format || 'glb'})`;

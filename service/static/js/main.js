@@ -411,7 +411,7 @@ $('fit-start').addEventListener('click', async () => {
   if (!requireTexture()) return;
   const source = state.current;
   const name = textureName(source);
-  const seconds = Math.max(1, Number($('fit-seconds').value) || 60);
+  const seconds = Math.max(1, Number($('fit-seconds').value) || 240);
   fitRunning = true;
   $('fit-start').disabled = true;
   showFit(`fit of ${name}: queued`, 0);
