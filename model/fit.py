@@ -25,8 +25,8 @@ from PIL import Image
 from model.data import load_exemplar
 from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
 from model.networks import load_checkpoint
-from model.structure import (EVEN_BLOCK, GRAIN_STRETCH, detect_even, grain_stretch, grain_turn, photo_structure,
-                             straighten)
+from model.structure import (EVEN_BLOCK, GRAIN_STRETCH, detect_even, grain_stretch, grain_turn, photo_lean,
+                             photo_structure, straighten)
 from model.train import TrainConfig, train
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
@@ -69,9 +69,10 @@ PATCH = 128
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
                  patch: int | None = None, grain: str | None = None, loss: str = "gram", progress=None,
                  quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None,
-                 rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto") -> dict:
+                 rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto",
+                 lean: str | None = "auto") -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
-    'straightened', 'grain_stretch', 'lattice', 'muted_octaves'}.
+    'straightened', 'grain_stretch', 'lattice', 'muted_octaves', 'lean'}.
 
     ``patch``: side of the training patches; None: ``PATCH``.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"``; ``lattice``: ``"auto"`` or
@@ -90,6 +91,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     (``model.structure.detect_even``) is fitted with its coarse octaves muted (``coarse_octaves``;
     the probe still compares with the unmuted start); None: never. ``muted_octaves`` in the
     result: how many the served sampler has muted (0 when the fit kept its unmuted start).
+    ``lean``: ``"auto"``: a photo with no grain or lattice is fitted with a learned linear map of
+    world (x, y) (``ModelConfig.warp``) that starts at its lean (``model.structure.photo_lean``:
+    [degrees, stretch] in the result); None: never.
     """
     if rate not in RATES:
         raise ValueError(f"rate must be one of {', '.join(RATES)}, got {rate!r}")
@@ -113,6 +117,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     stretch = grain_stretch(photo, grain) if grain else GRAIN_STRETCH  # (of the turned photo)
     muted = (coarse_octaves(space_cfg.pixels_per_unit, space_cfg.n_octaves)
              if even == "auto" and not grain and not lattice and detect_even(photo) else 0)
+    lean = photo_lean(photo) if lean == "auto" and not grain and not lattice else None
     patch = patch or PATCH
     with tempfile.TemporaryDirectory() as run_dir:
         exemplar = Path(image_path)
@@ -131,7 +136,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
             grain=grain or None, grain_stretch=stretch, lattice=lattice, lattice_cell=bool(lattice),
             threads=threads or 0,
-            spectrum=spectrum, mute_octaves=muted)
+            spectrum=spectrum, mute_octaves=muted, warp=lean is not None,
+            warp_start=lean)
         ckpt_path = train(cfg, progress=progress)
         model, ckpt = load_checkpoint(ckpt_path)
     # The probe scores the unmuted start first; a fit that kept it serves no muted octave.
@@ -167,9 +173,11 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "rate": rate,
         "spectrum": spectrum,
         "muted_octaves": muted,
+        "lean": [round(lean[0], 2), round(lean[1], 3)] if lean else None,
     }
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return {"code": code, "sampler": str(out_dir / "sampler.onnx"), "version": manifest["version"],
+            "lean": manifest["lean"],
             "steps": ckpt["step"], "grain": manifest["grain"], "straightened": manifest["straightened"],
             "grain_stretch": manifest["grain_stretch"], "lattice": manifest["lattice"], "muted_octaves": muted}
 
@@ -209,15 +217,20 @@ def main(argv=None):
     p.add_argument("--even", choices=["auto", "none"], default="auto",
                    help="auto (default): a photo even at large scales (model.structure.detect_even, no grain "
                         "or lattice) is fitted with its coarse noise octaves muted; none: never")
+    p.add_argument("--lean", choices=["auto", "none"], default="auto",
+                   help="auto (default): a photo with no grain or lattice is fitted with a learned linear map "
+                        "of world x, y that starts at the photo's lean (model.structure.photo_lean: the "
+                        "direction its features run and how much longer they are along it); none: never")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
                           patch=args.patch, grain=None if args.grain == "none" else args.grain, loss=args.loss,
                           quiet=False, seed=args.seed, device=args.device, threads=args.threads,
                           lattice=None if args.lattice == "none" else args.lattice, rate=args.rate,
-                          spectrum=args.spectrum, even=None if args.even == "none" else args.even)
+                          spectrum=args.spectrum, even=None if args.even == "none" else args.even,
+                          lean=None if args.lean == "none" else args.lean)
     print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "straightened", "grain_stretch", "lattice",
-                                             "muted_octaves", "sampler")}))
+                                             "muted_octaves", "lean", "sampler")}))
 
 
 if __name__ == "__main__":

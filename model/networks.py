@@ -56,6 +56,11 @@ class ModelConfig:
     # (a 3D diagonal that shows on every slice plane): blobs and streaks leaned 20-30 degrees
     # in every 2D tile. Grain is a fixed input stretch (``grain``), unaffected.
     isotropic_transforms: bool = False
+    # A learned linear map of world x and y before the noise, I + W (``TextureField.warp``),
+    # for fits of photos whose features lean without being a grain (the validation granite:
+    # 1.26x longer along -39 degrees). A fit starts it at the photo's lean
+    # (model.structure.photo_lean); a space never has one (isotropic_transforms, above).
+    warp: bool = False
     pixels_per_unit: float = 256.0  # exemplar pixels per world unit; octave k has 2^k cells per unit
     encoder_width: int = 32
     # The encoder sees each crop with its colour removed (every channel to zero mean, unit
@@ -349,11 +354,17 @@ class TextureField(nn.Module):
         if cfg.grain:
             scale[{"x": 0, "y": 1}[cfg.grain]] = 1.0 / cfg.grain_stretch
         self.register_buffer("world_scale", scale, persistent=False)
+        self.warp = nn.Parameter(torch.zeros(2, 2, dtype=torch.float64)) if cfg.warp else None
         if cfg.lattice:
             basis = torch.tensor(cfg.lattice, dtype=torch.float64).reshape(2, 2).t()  # columns a, b
             self.register_buffer("lattice_inverse", torch.linalg.inv(basis), persistent=False)
         if cfg.lattice_cell:  # [n_a, n_b, 3], standardised colour; a fit fills it in
             self.register_buffer("lattice_mean_cell", torch.zeros(*cfg.lattice_cell, 3), persistent=True)
+
+    def warp_matrix(self) -> torch.Tensor:
+        """float64 [D,D]: the identity with ``warp`` added to its x, y block."""
+        d = self.cfg.dims
+        return torch.eye(d, dtype=torch.float64, device=self.warp.device) + F.pad(self.warp, (0, d - 2, 0, d - 2))
 
     def lattice_phases(self, points: torch.Tensor, period: torch.Tensor | None = None) -> torch.Tensor:
         """float64 [B,P,>=2] -> float32 [B,P,4*H (+3)]: sin and cos of 2 pi k u, u the point's
@@ -414,6 +425,10 @@ class TextureField(nn.Module):
         if self.cfg.grain:  # (a Python branch: isotropic exports carry no extra node)
             points = points * self.world_scale
             anchor = anchor * self.world_scale if anchor is not None else None
+        if self.warp is not None:  # (x, y) -> (I + W) (x, y); z as it is
+            warp = self.warp_matrix().t()
+            points = points @ warp
+            anchor = anchor[..., :d] @ warp if anchor is not None else None
         mats = self.octave_basis.unsqueeze(0)  # [1,K,D,D]
         if self.cfg.flags.transforms:
             mats = torch.matmul(transforms.to(torch.float64), mats)  # T_k (R_k 2^k)
@@ -439,6 +454,10 @@ class TextureField(nn.Module):
         then moves the octave's lattice by the integer vectors m_x (a, b) and m_y (-b, a),
         which the noise wraps (``wrap_cells`` in model/noise.py). The rounding moves a
         frequency by at most c / (2 f L) of itself: ~6% for a 1024^2 tile (L = 4 units).
+        With a ``warp`` W, each octave's whole 2x2 map f W diag(grain) L / c is rounded to
+        integer steps N (its diagonal at least 1; where N would be singular, as at coarse
+        octaves of a mild warp, its off-diagonal is dropped): a period along x then moves the
+        lattice by R N e_x, along y by R N e_y, R the octave's turn.
         """
         b, p, d = points.shape
         k = self.cfg.n_octaves
@@ -450,16 +469,28 @@ class TextureField(nn.Module):
         a, s, c = torch.tensor([TILEABLE_ROTATIONS[i % len(TILEABLE_ROTATIONS)] for i in range(k)],
                                dtype=torch.float64, device=dev).unbind(-1)  # [K] each
         grain = self.world_scale.to(dev)
-        steps_x = torch.clamp_min(torch.round(freq * grain[0] * period / c), 1.0)  # [B,K]
-        steps_y = torch.clamp_min(torch.round(freq * grain[1] * period / c), 1.0)
-        fx, fy = (steps_x / period).unsqueeze(1), (steps_y / period).unsqueeze(1)  # [B,1,K] (x c / c)
         x, y = points[..., 0:1], points[..., 1:2]  # [B,P,1]
-        axes = [a * fx * x - s * fy * y, s * fx * x + a * fy * y]
+        if self.warp is None:
+            steps_x = torch.clamp_min(torch.round(freq * grain[0] * period / c), 1.0)  # [B,K]
+            steps_y = torch.clamp_min(torch.round(freq * grain[1] * period / c), 1.0)
+            fx, fy = (steps_x / period).unsqueeze(1), (steps_y / period).unsqueeze(1)  # [B,1,K] (x c / c)
+            axes = [a * fx * x - s * fy * y, s * fx * x + a * fy * y]
+            u = torch.stack([steps_x * a, steps_x * s])  # [2,B,K]
+            v = torch.stack([-steps_y * s, steps_y * a])
+        else:
+            g = self.warp_matrix()[:2, :2] * grain[:2]  # W diag(grain), as lattice_points maps (x, y)
+            n = [[torch.round(freq * g[i, j] * period / c) for j in range(2)] for i in range(2)]  # [B,K] each
+            n[0][0], n[1][1] = torch.clamp_min(n[0][0], 1.0), torch.clamp_min(n[1][1], 1.0)
+            singular = n[0][0] * n[1][1] == n[0][1] * n[1][0]
+            n[0][1], n[1][0] = (torch.where(singular, torch.zeros_like(m), m) for m in (n[0][1], n[1][0]))
+            qx = (n[0][0] / period).unsqueeze(1) * x + (n[0][1] / period).unsqueeze(1) * y  # [B,P,K]
+            qy = (n[1][0] / period).unsqueeze(1) * x + (n[1][1] / period).unsqueeze(1) * y
+            axes = [a * qx - s * qy, s * qx + a * qy]
+            u = torch.stack([a * n[0][0] - s * n[1][0], s * n[0][0] + a * n[1][0]])  # R N e_x
+            v = torch.stack([a * n[0][1] - s * n[1][1], s * n[0][1] + a * n[1][1]])  # R N e_y
         if d == 3:
             axes.append(freq.unsqueeze(1) * points[..., 2:3])
         lattice = torch.stack(axes, dim=-1) + self.octave_offset  # [B,P,K,D]
-        u = torch.stack([steps_x * a, steps_x * s])  # [2,B,K]
-        v = torch.stack([-steps_y * s, steps_y * a])
         return lattice, torch.stack([u, v]).unsqueeze(3)  # [2,2,B,1,K]
 
     def forward(self, points: torch.Tensor, z: torch.Tensor, seed: torch.Tensor,

@@ -695,6 +695,21 @@ def grain_tilt(image: np.ndarray, grain: str) -> float:
     return float(-((axis - across) % 180.0 - 90.0))
 
 
+def photo_lean(image: np.ndarray, blur: float = GRAIN_TILT_BLUR) -> tuple[float, float]:
+    """(degrees, stretch): the direction the photo's features run along, as ``grain_tilt``
+    measures it from +x towards +y, and how much longer they are along it than across it
+    (the square root of the structure tensor's eigenvalue ratio: features stretched k times
+    have gradients k times weaker along them)."""
+    luminance = rec709_luminance(image)
+    margin = int(4 * blur)
+    gy, gx = (ndimage.gaussian_filter(luminance, blur, order=order)[margin:-margin, margin:-margin]
+              for order in ((1, 0), (0, 1)))
+    tensor = np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])
+    values, vectors = np.linalg.eigh(tensor)  # ascending: the first changes least, along the features
+    degrees = (np.degrees(np.arctan2(vectors[1, 0], vectors[0, 0])) + 90.0) % 180.0 - 90.0
+    return float(degrees), float(np.sqrt(values[1] / max(values[0], 1e-30)))
+
+
 def grain_turn(image: np.ndarray, grain: str | None) -> float:
     """The degrees a fit turns the photo by so its grain runs along ``grain``'s axis: its
     ``grain_tilt`` where that leans GRAIN_TILT_MIN..GRAIN_TILT_MAX degrees, else 0 (no

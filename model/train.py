@@ -100,6 +100,8 @@ class TrainConfig:
     colour_weight: float = 50.0
     colour_normalise: bool = False
     isotropic_transforms: bool = False
+    warp: bool = False
+    warp_start: tuple[float, float] | None = None
     decay_start: int | None = None
     decay_end: int | None = None
     decay_by_time: bool = False
@@ -169,6 +171,11 @@ def parse_args(argv=None) -> TrainConfig:
     p.add_argument("--isotropic-transforms", action="store_true",
                    help="per-octave transforms keep only their isotropic scale (|det T|^(1/D) I): no learned "
                         "stretch direction, so 2D tiles do not lean")
+    p.add_argument("--warp", action="store_true",
+                   help="learn a linear map of world x, y before the noise (a fit's lean, ModelConfig.warp)")
+    p.add_argument("--warp-start", type=float, nargs=2, metavar=("DEGREES", "STRETCH"),
+                   help="the warp's start: features STRETCH times longer along DEGREES from +x towards +y "
+                        "(default: the identity)")
     p.add_argument("--decay-start", type=int,
                    help="step at which the learning rates start to fall linearly, to 10%% at --decay-end")
     p.add_argument("--decay-end", type=int, help="step at which the decay ends (default: --steps)")
@@ -474,7 +481,7 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
                             smooth=cfg.smooth, exemplar_short_side=cfg.short_side, grain=cfg.grain,
                             grain_stretch=cfg.grain_stretch,
                             colour_blind_encoder=cfg.colour_normalise, isotropic_transforms=cfg.isotropic_transforms,
-                            lattice=cfg.lattice, lattice_cell=mean_cell.shape[:2] if mean_cell is not None else None)
+                            warp=cfg.warp, lattice=cfg.lattice, lattice_cell=mean_cell.shape[:2] if mean_cell is not None else None)
     model = TextureSpace(model_cfg)
     if mean_cell is not None:
         model.field.lattice_mean_cell.copy_(torch.from_numpy(mean_cell))
@@ -487,14 +494,26 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
     if init.cfg.to_dict() | {"grain": model_cfg.grain, "grain_stretch": model_cfg.grain_stretch,
                              "colour_blind_encoder": model_cfg.colour_blind_encoder,
                              "isotropic_transforms": model_cfg.isotropic_transforms,
+                             "warp": model_cfg.warp,
                              "lattice": model_cfg.lattice, "lattice_cell": model_cfg.lattice_cell} != model_cfg.to_dict():
         raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {model_cfg.to_dict()}")
     missing, unexpected = model.load_state_dict(init.state_dict(), strict=False)
     new = {"field.decoder.from_phase.weight"} if model_cfg.lattice and not init.cfg.lattice else set()
     new |= {"field.lattice_mean_cell"} if model_cfg.lattice_cell and not init.cfg.lattice_cell else set()
+    new |= {"field.warp"} if model_cfg.warp and not init.cfg.warp else set()
     if unexpected or set(missing) != new:
         raise SystemExit(f"--init weights do not fit this model: missing {missing}, unexpected {unexpected}")
+    if model.field.warp is not None and cfg.warp_start:
+        model.field.warp.data.copy_(lean_warp(*cfg.warp_start) - torch.eye(2, dtype=torch.float64))
     return model, ckpt.get("codes")  # a space's learned code table, if it has one
+
+
+def lean_warp(degrees: float, stretch: float) -> torch.Tensor:
+    """float64 [2,2]: the map of world (x, y) under which the noise, and so every feature,
+    is ``stretch`` times longer along the direction ``degrees`` from +x towards +y (world y
+    runs down the photo's rows, so the angle is the photo's, as ``photo_lean`` measures it)."""
+    u = torch.tensor([np.cos(np.radians(degrees)), np.sin(np.radians(degrees))], dtype=torch.float64)
+    return torch.eye(2, dtype=torch.float64) + (1.0 / stretch - 1.0) * torch.outer(u, u)
 
 
 def initial_code(model: TextureSpace, image: np.ndarray, crop: int) -> torch.Tensor:
@@ -542,8 +561,9 @@ def make_optimizer(cfg: TrainConfig, model: TextureSpace, codes: torch.nn.Parame
     # the transform head gets its own group only when it has its own learning rate.
     # (a lattice fit's phase weights, new to it, move as fast as the transforms)
     phase = model.field.decoder.from_phase if model.field.decoder is not None else None
-    head = [*model.field.translator.to_transform.parameters(),
-            *(phase.parameters() if phase is not None else ())] if cfg.transform_lr else []
+    warp = model.field.warp  # (a fit's lean moves as fast as the transforms too)
+    head = [*model.field.translator.to_transform.parameters(), *(phase.parameters() if phase is not None else ()),
+            *([warp] if warp is not None else ())] if cfg.transform_lr else []
     head_ids = {id(t) for t in head}
     groups = [{"params": [t for t in model.field.parameters() if id(t) not in head_ids], "base_lr": cfg.lr},
               {"params": [codes], "base_lr": cfg.code_lr}]

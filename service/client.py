@@ -163,14 +163,16 @@ class Client:
                           data=form, headers=self._key(idempotency_key)).json()
 
     def fit(self, texture_id: str, *, seconds: float | None = None, grain: str | None = "auto",
-            lattice: str | None = "auto", even: str | None = "auto", idempotency_key: str | None = None) -> Job:
+            lattice: str | None = "auto", even: str | None = "auto", lean: str | None = "auto",
+            idempotency_key: str | None = None) -> Job:
         """Submit a fit (needs the train extra on the workers): refines the texture's sampler.
         ``seconds``: its time budget (None: the server's default, 240);
         ``grain``: "x", "y", "auto" (detected from the photo) or None (isotropic);
         ``lattice``: "auto" (a repeat lattice detected from the photo) or None;
-        ``even``: "auto" (an even photo's coarse octaves muted) or None."""
+        ``even``: "auto" (an even photo's coarse octaves muted) or None;
+        ``lean``: "auto" (a photo's lean, where it has no grain or lattice) or None."""
         return self._call("POST", f"/v1/textures/{texture_id}/fit",
-                          json={"grain": grain, "lattice": lattice, "even": even}
+                          json={"grain": grain, "lattice": lattice, "even": even, "lean": lean}
                           | ({} if seconds is None else {"seconds": seconds}),
                           headers=self._key(idempotency_key)).json()
 

@@ -123,7 +123,7 @@ def auto_fit_params(services: Services, model_version: str) -> dict[str, Any] | 
     if not (services.registry.get(model_version).model_dir / "space.pt").is_file():
         return None
     return {"seconds": min(settings.fit_seconds, settings.max_fit_seconds), "grain": "auto", "lattice": "auto",
-            "even": "auto", "in_place": True}
+            "even": "auto", "lean": "auto", "in_place": True}
 
 
 def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -150,7 +150,8 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     fitted = _fit_exemplar(services, texture, p, photo, out_dir, progress, should_cancel)
     structure = {"grain": fitted.get("grain"), "straightened": fitted.get("straightened", 0.0),
                  "grain_stretch": fitted.get("grain_stretch"),
-                 "lattice": fitted.get("lattice"), "muted_octaves": fitted.get("muted_octaves", 0)}
+                 "lattice": fitted.get("lattice"), "muted_octaves": fitted.get("muted_octaves", 0),
+                 "lean": fitted.get("lean")}
     code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
     values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
     if p.in_place:
@@ -193,7 +194,7 @@ def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path
         raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
     # TEXSPACE_FIT_THREADS: a fit must not take the cores tiles need
     return fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0,
-                        progress=report, grain=p.grain, lattice=p.lattice, even=p.even,
+                        progress=report, grain=p.grain, lattice=p.lattice, even=p.even, lean=p.lean,
                         threads=services.settings.fit_threads)
 
 

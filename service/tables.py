@@ -98,6 +98,7 @@ class Texture(Base):
     # "straightened": degrees the photo was turned (absent in rows from before),
     # "grain_stretch": 8 | 16 | None (absent in rows from before: 8 with a grain),
     # "muted_octaves": n (absent in rows from before: 0),
+    # "lean": [degrees, stretch] | None (absent in rows from before: None),
     # "lattice": [ax, ay, bx, by] world units | None}. None for the encoder's code.
     structure: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     # How its photo is taken when encoded or fitted (worker.images.LIGHTING): "as-is", or

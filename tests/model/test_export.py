@@ -238,6 +238,43 @@ def test_isotropic_transforms_keep_the_volume_and_export(tmp_path):
     assert np.abs(run(session, points, zz, 4) - ref).max() < 1e-3
 
 
+def test_a_warped_field_leans_exports_and_tiles(tmp_path):
+    # A fit's warp (ModelConfig.warp) stretches every feature along its lean: an untrained
+    # field warped 4x along 30 degrees changes slowly along that direction and fast across
+    # it; the sampler, its tileable sampler (rounded per octave to whole steps a period) and
+    # torch agree, and the tileable one repeats exactly.
+    from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler
+    from model.train import lean_warp
+
+    torch.manual_seed(4)
+    model = TextureSpace(ModelConfig(variant="ours", nearest_input=False, smooth=True, isotropic_transforms=True,
+                                     warp=True))
+    with torch.no_grad():
+        model.field.warp.copy_(lean_warp(30.0, 4.0) - torch.eye(2, dtype=torch.float64))
+    export_sampler(model.field, tmp_path / "sampler.onnx")
+    export_tileable_sampler(model.field, tmp_path / TILEABLE_SAMPLER)
+    session = ort.InferenceSession(str(tmp_path / "sampler.onnx"), providers=["CPUExecutionProvider"])
+    z = np.random.default_rng(2).standard_normal((1, 8)).astype(np.float32)
+    steps = np.arange(2048)[:, None] / 1024.0
+    line = lambda degrees: np.array([np.cos(np.radians(degrees)), np.sin(np.radians(degrees)), 0.0]) * steps + 0.3
+    variation = lambda rgb: np.abs(np.diff(rgb, axis=0)).mean()
+    along, across = run(session, line(30.0), z, 4), run(session, line(120.0), z, 4)
+    assert variation(along) * 2.5 < variation(across)
+    with torch.no_grad():
+        ref = model.sample(torch.from_numpy(line(30.0))[None], torch.from_numpy(z), 4)[0].numpy()
+    assert np.abs(along - ref).max() < 1e-4
+    tileable = ort.InferenceSession(str(tmp_path / TILEABLE_SAMPLER), providers=["CPUExecutionProvider"])
+    points = np.random.default_rng(3).random((3000, 3)) * 2
+    feed = {"points": points, "z": z, "seed": np.asarray(4), "colour": identity_colour()[None].numpy(),
+            "period": np.asarray(2.0)}
+    rgb = tileable.run(None, feed)[0]
+    for shift in ([2.0, 0, 0], [0, -6.0, 0], [4.0, 2.0, 0]):
+        assert np.array_equal(tileable.run(None, feed | {"points": points + shift})[0], rgb), shift
+    tiled_along = tileable.run(None, feed | {"points": line(30.0)})[0]
+    tiled_across = tileable.run(None, feed | {"points": line(120.0)})[0]
+    assert variation(tiled_along) * 2.5 < variation(tiled_across)  # the rounded warp still leans
+
+
 def test_noise_hash_runs_in_uint32_without_casts(exported):
     # The 32-bit hash is the sampler's hottest part: its shifts must be plain uint32
     # BitShifts (no Cast pairs around them) and no tensor of the graph may stay int32.

@@ -385,6 +385,36 @@ def test_an_even_photo_is_fitted_with_its_coarse_octaves_muted(tmp_path, monkeyp
     assert fit.coarse_octaves(256.0, 8) == 4 and fit.coarse_octaves(128.0, 8) == 3
 
 
+def test_a_photo_without_grain_or_lattice_is_fitted_from_its_lean(tmp_path, monkeypatch, skimage_textures):
+    """An isotropic fit trains a warp that starts at the photo's lean (photo_lean); a lattice
+    photo, or lean=None, trains none."""
+    import model.fit as fit
+    from model.structure import photo_lean
+
+    space = space_checkpoint(tmp_path)
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - records the setting, trains nothing
+        seen[Path(cfg.exemplar).stem] = (cfg.warp, cfg.warp_start)
+        raise Stop
+
+    monkeypatch.setattr(fit, "train", train)
+    gravel = saved_png(tmp_path / "gravel.png", skimage_textures["gravel"])
+    saved_png(tmp_path / "bricks.png", running_bond())
+    for name in ("gravel", "bricks"):
+        with pytest.raises(Stop):
+            fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space, grain="auto",
+                         lattice="auto")
+    assert seen["gravel"][0] and seen["gravel"][1] == pytest.approx(photo_lean(gravel), rel=0.02)
+    assert seen["bricks"] == (False, None)
+    with pytest.raises(Stop):
+        fit_exemplar(tmp_path / "gravel.png", tmp_path / "gravel", init_checkpoint=space, lean=None)
+    assert seen["gravel"] == (False, None)
+
+
 def test_a_strong_grain_is_fitted_with_longer_noise_cells(tmp_path, monkeypatch):
     """model.structure.grain_stretch picks the stretch the fit trains and exports: 16 for long
     fibres, 8 for a weak grain; the result and manifest say which (null without grain)."""

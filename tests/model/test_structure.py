@@ -10,7 +10,7 @@ pytest.importorskip("torch")  # model/structure.py folds lattices with model/tra
 
 from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,  # noqa: E402
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
-                             grain_turn, leaning_grain, photo_structure, same_lattice, shortest_basis, straighten)
+                             grain_turn, leaning_grain, photo_lean, photo_structure, same_lattice, shortest_basis, straighten)
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,  # noqa: E402
                              detect_long_lattice, peak_height, pixel_noise,
                              luminance_correlation, stripe_normal)
@@ -466,3 +466,28 @@ def test_detect_even_tells_gravel_from_a_photo_with_large_patches(skimage_textur
     y = np.linspace(0, 2 * np.pi, gravel.shape[0])[:, None, None]
     assert not detect_even(np.clip(gravel * (0.7 + 0.3 * np.sin(y)), 0, 1))
     assert not detect_even(np.full((256, 256, 3), 0.5))
+
+
+def leaning_blobs(degrees: float, along: float, across: float, size: int = 256, seed: int = 0) -> np.ndarray:
+    """Noise low-passed by a Gaussian of ``along`` px along the direction ``degrees`` (from +x
+    towards +y, y down the rows) and ``across`` px across it: blobs that lean and stretch."""
+    spectrum = np.fft.fft2(np.random.default_rng(seed).standard_normal((size, size)))
+    ky, kx = np.meshgrid(np.fft.fftfreq(size) * 2 * np.pi, np.fft.fftfreq(size) * 2 * np.pi, indexing="ij")
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    k_along, k_across = kx * c + ky * s, -kx * s + ky * c
+    noise = np.fft.ifft2(spectrum * np.exp(-0.5 * ((along * k_along) ** 2 + (across * k_across) ** 2))).real
+    return np.repeat(np.clip(0.5 + 0.15 * noise / noise.std(), 0, 1)[..., None], 3, axis=2)
+
+
+@pytest.mark.parametrize("degrees", [-39.0, 20.0, 75.0])
+def test_photo_lean_reads_where_blobs_run_and_how_much_longer_they_are(degrees):
+    """Blobs 8 px long and 3 px across: photo_lean gives their direction and, through its
+    own 2-px blur, a stretch of sqrt((64 + 4) / (9 + 4)) = 2.3 (a mild lean reads within a few
+    degrees: one photo's blobs are a sample); blobs without a direction, a stretch near 1.
+    Its angle is grain_tilt's."""
+    photo = leaning_blobs(degrees, 8.0, 3.0)
+    lean, stretch = photo_lean(photo)
+    assert lean == pytest.approx(degrees, abs=2.0)
+    assert stretch == pytest.approx(np.sqrt(68 / 13), rel=0.1)
+    assert grain_tilt(photo, "x") == pytest.approx(lean, abs=0.1)
+    assert photo_lean(leaning_blobs(0.0, 4.0, 4.0))[1] < 1.08

@@ -26,15 +26,16 @@ MODEL_DIR = REPO / "model" / "weights"
 FAKE_LATTICE = [0.5, 0.0, -0.21875, 0.166875]
 FAKE_TURN = -6.86  # degrees a leaning grain was turned (vpython_wood_old's lean)
 FAKE_MUTED = 4  # coarse octaves an even photo's fit mutes at 256 px a unit
+FAKE_LEAN = [-39.14, 1.258]  # the validation granite's (model.structure.photo_lean)
 
 
 def fake_fit_module(calls: list[dict]) -> types.ModuleType:
     def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain=None,  # noqa: ANN001, ANN202
                      loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu", lattice=None,
-                     rate="falling", spectrum=0.0, even="auto"):
+                     rate="falling", spectrum=0.0, even="auto", lean="auto"):
         calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),
                       "init_checkpoint": Path(init_checkpoint),
-                      "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice, "even": even})
+                      "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice, "even": even, "lean": lean})
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
@@ -47,7 +48,8 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
                 "grain": grain if grain in ("x", "y") else None, "straightened": FAKE_TURN if grain in ("x", "y") else 0.0,
                 "grain_stretch": 16.0 if grain in ("x", "y") else None,
                 "lattice": FAKE_LATTICE if lattice == "auto" else None,
-                "muted_octaves": FAKE_MUTED if even == "auto" and not grain and not lattice else 0}
+                "muted_octaves": FAKE_MUTED if even == "auto" and not grain and not lattice else 0,
+                "lean": FAKE_LEAN if lean == "auto" and not grain and not lattice else None}
 
     module = types.ModuleType("model.fit")
     module.fit_exemplar = fit_exemplar
@@ -101,7 +103,7 @@ def test_the_stand_in_has_the_real_fit_exemplar_signature() -> None:
 def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_calls) -> None:
     res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30, "grain": "y"})
     assert res.status_code == 202, res.text
-    assert res.json()["params"] == {"seconds": 30, "grain": "y", "lattice": "auto", "even": "auto"}
+    assert res.json()["params"] == {"seconds": 30, "grain": "y", "lattice": "auto", "even": "auto", "lean": "auto"}
     job = fit_client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     assert job["params"]["grain"] == "y"                      # recorded on the job
@@ -111,7 +113,7 @@ def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_call
     fitted = fit_client.get(job["links"]["output_texture"]).json()
     assert fitted["source"] == "fit" and fitted["parents"]["job"] == job["id"]
     assert fitted["structure"] == {"grain": "y", "straightened": FAKE_TURN, "grain_stretch": 16.0,
-                                   "lattice": FAKE_LATTICE, "muted_octaves": 0}  # as the fit says
+                                   "lattice": FAKE_LATTICE, "muted_octaves": 0, "lean": None}  # as the fit says
     assert fit_client.get(f"/v1/textures/{fit_texture['id']}").json()["structure"] is None   # the encoder's
 
 
@@ -149,6 +151,21 @@ def test_fit_even_reaches_fit_exemplar_and_the_muted_octaves_show_in_the_structu
     res = fit_client.post(fit_texture["links"]["fit"], json={"even": "yes"})
     assert res.status_code == 422 and "even" in res.json()["detail"]
     assert len(fit_calls) == 2
+
+
+def test_fit_lean_reaches_fit_exemplar_and_shows_in_the_structure(fit_client, fit_texture, fit_calls) -> None:
+    """lean=auto (default) lets model.fit start a photo without grain or lattice from its lean;
+    null never; the fitted texture's structure says where it started."""
+    structures = []
+    for body in ({"grain": None, "lattice": None}, {"grain": None, "lattice": None, "lean": None}):
+        res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30} | body)
+        assert res.status_code == 202, res.text
+        job = fit_client.get(res.json()["links"]["self"]).json()
+        structures.append(fit_client.get(job["links"]["output_texture"]).json()["structure"])
+    assert [call["lean"] for call in fit_calls] == ["auto", None]
+    assert [s["lean"] for s in structures] == [FAKE_LEAN, None]
+    res = fit_client.post(fit_texture["links"]["fit"], json={"lean": 30})
+    assert res.status_code == 422 and "lean" in res.json()["detail"]
 
 
 @pytest.mark.parametrize("grain", ["z", "Y", "", 1])

@@ -74,7 +74,7 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     job = client.get(f"/v1/jobs/{refinement['job_id']}").json()
     assert job["kind"] == "fit" and job["texture_id"] == texture["id"]
     assert job["params"] == {"seconds": services.settings.fit_seconds, "grain": "auto", "lattice": "auto",
-                             "even": "auto", "in_place": True}  # all detected by model.fit
+                             "even": "auto", "lean": "auto", "in_place": True}  # all detected by model.fit
 
     before = client.get(TILE.format(texture["id"]))
     assert before.status_code == 200
@@ -90,7 +90,7 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     assert refined["refinement"] == {"job_id": job["id"], "state": "succeeded", "progress": 1.0}
     assert refined["code"] == [0.0] * 8                         # the fit's code (the stand-in's)
     assert refined["structure"] == {"grain": None, "straightened": 0.0, "grain_stretch": None,
-                                   "lattice": FAKE_LATTICE, "muted_octaves": 0}   # what the fit detected
+                                   "lattice": FAKE_LATTICE, "muted_octaves": 0, "lean": None}   # the fit's
     assert refined["source"] == "upload" and refined["links"]["tiles"] == texture["links"]["tiles"]
     assert client.get("/v1/textures").json()["items"][0]["sampler"] == "fitted"
 
