@@ -481,7 +481,8 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
                             smooth=cfg.smooth, exemplar_short_side=cfg.short_side, grain=cfg.grain,
                             grain_stretch=cfg.grain_stretch,
                             colour_blind_encoder=cfg.colour_normalise, isotropic_transforms=cfg.isotropic_transforms,
-                            warp=cfg.warp, lattice=cfg.lattice, lattice_cell=mean_cell.shape[:2] if mean_cell is not None else None)
+                            warp=cfg.warp, lattice=cfg.lattice,
+                            lattice_cell=mean_cell.shape[:2] if mean_cell is not None else None)
     model = TextureSpace(model_cfg)
     if mean_cell is not None:
         model.field.lattice_mean_cell.copy_(torch.from_numpy(mean_cell))

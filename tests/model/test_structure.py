@@ -10,7 +10,8 @@ pytest.importorskip("torch")  # model/structure.py folds lattices with model/tra
 
 from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,  # noqa: E402
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
-                             grain_turn, leaning_grain, photo_lean, photo_structure, same_lattice, shortest_basis, straighten)
+                             grain_turn, leaning_grain, photo_lean, photo_structure, same_lattice, shortest_basis,
+                             straighten)
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,  # noqa: E402
                              detect_long_lattice, peak_height, pixel_noise,
                              luminance_correlation, stripe_normal)

@@ -35,7 +35,8 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
                      rate="falling", spectrum=0.0, even="auto", lean="auto"):
         calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),
                       "init_checkpoint": Path(init_checkpoint),
-                      "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice, "even": even, "lean": lean})
+                      "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice, "even": even,
+                      "lean": lean})
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
