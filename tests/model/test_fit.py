@@ -28,6 +28,25 @@ def space_checkpoint(tmp_path: Path) -> Path:
     return tmp_path / "space" / "space.pt"
 
 
+class StopFit(Exception):
+    """Raised by ``stop_before_training``'s stand-in for ``model.fit.train``."""
+
+
+def stop_before_training(monkeypatch, read) -> dict:  # noqa: ANN001
+    """Replace ``model.fit.train`` by a stand-in that records ``read(cfg)`` under the
+    exemplar's stem and raises StopFit: what a fit would train, without training it."""
+    import model.fit as fit
+
+    seen = {}
+
+    def train(cfg, progress=None):  # noqa: ANN001, ANN202
+        seen[Path(cfg.exemplar).stem] = read(cfg)
+        raise StopFit
+
+    monkeypatch.setattr(fit, "train", train)
+    return seen
+
+
 def saved_png(path: Path, photo: np.ndarray) -> np.ndarray:
     """Write ``photo`` (0..1) as an 8-bit PNG at ``path``; the pixels as a fit reads them back."""
     Image.fromarray((photo * 255).round().astype(np.uint8)).save(path)
@@ -108,25 +127,15 @@ def test_a_leaning_grain_is_fitted_straightened(tmp_path, monkeypatch):
     upright (read as it is, not resized back up), and says by how much; an upright grain
     and a lean under GRAIN_TILT_MIN are fitted as they are; one 35 degrees off (which the
     axis test misses) is found on the turned photo and turned too."""
-    import model.fit as fit
     from model.structure import GRAIN_TILT_MIN, grain_tilt
     from model.train import load_exemplars
     from tests.model.photos import streaks
 
     space = space_checkpoint(tmp_path)
-    seen = {}
-
-    class Stop(Exception):
-        pass
-
-    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - records the photo the run reads, trains nothing
-        seen[Path(cfg.exemplar).stem] = (cfg.grain, load_exemplars(cfg)[1][0])
-        raise Stop
-
-    monkeypatch.setattr(fit, "train", train)
+    seen = stop_before_training(monkeypatch, lambda cfg: (cfg.grain, load_exemplars(cfg)[1][0]))
     for name, lean in (("leaning", 8.0), ("upright", 0.0), ("slight", GRAIN_TILT_MIN / 2), ("diagonal", 35.0)):
         saved_png(tmp_path / f"{name}.png", streaks(angle_degrees=lean))
-        with pytest.raises(Stop):
+        with pytest.raises(StopFit):
             fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space, grain="auto")
     grain, photo = seen["leaning"]
     assert grain == "y" and grain_tilt(photo, "y") == pytest.approx(0.0, abs=0.3)
@@ -154,24 +163,15 @@ def test_every_fit_takes_the_large_patch_and_falling_rates_by_default(tmp_path, 
     import model.fit as fit
 
     space = space_checkpoint(tmp_path)
-    seen = {}
-
-    class Stop(Exception):
-        pass
-
-    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - records the run's settings, trains nothing
-        seen[Path(cfg.exemplar).stem] = (cfg.patch, cfg.lattice is not None, cfg.decay_by_time, cfg.batch)
-        raise Stop
-
-    monkeypatch.setattr(fit, "train", train)
+    seen = stop_before_training(monkeypatch, lambda cfg: (cfg.patch, cfg.lattice is not None, cfg.decay_by_time, cfg.batch))
     for name, image in (("corrugated", corrugation()), ("bricks", running_bond())):
         Image.fromarray((image * 255).round().astype(np.uint8)).save(tmp_path / f"{name}.png")
-        with pytest.raises(Stop):
+        with pytest.raises(StopFit):
             fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space,
                          lattice="auto", grain="auto")
     assert seen == {"corrugated": (fit.PATCH, True, True, 1), "bricks": (fit.PATCH, True, True, 1)}
     for rate, falling in (("falling", True), ("constant", False)):
-        with pytest.raises(Stop):
+        with pytest.raises(StopFit):
             fit_exemplar(tmp_path / "bricks.png", tmp_path / "bricks", init_checkpoint=space,
                          lattice="auto", rate=rate)
         assert seen["bricks"][2] is falling
@@ -319,14 +319,11 @@ def test_patch_side_defaults_to_128_with_or_without_a_lattice(tmp_path, monkeypa
     """The measured default (model/fit.py: PATCH); an explicit patch wins."""
     import model.fit as fit
 
-    class Stop(Exception):
-        pass
-
     seen = []
 
     def fake_train(cfg, progress=None):
         seen.append(cfg.patch)
-        raise Stop
+        raise StopFit
 
     monkeypatch.setattr(fit, "train", fake_train)
     space = space_checkpoint(tmp_path)
@@ -335,7 +332,7 @@ def test_patch_side_defaults_to_128_with_or_without_a_lattice(tmp_path, monkeypa
     noise = ndimage.gaussian_filter(np.random.default_rng(2).random((256, 256)), 3)
     Image.fromarray((np.repeat(noise[..., None], 3, axis=2) * 255).astype(np.uint8)).save(plain)
     for image, patch in ((plain, None), (bricks, None), (plain, 48)):
-        with pytest.raises(Stop):
+        with pytest.raises(StopFit):
             fit_exemplar(image, tmp_path / "fit", init_checkpoint=space, patch=patch,
                          lattice="auto", grain="auto")
     assert seen == [fit.PATCH, fit.PATCH, 48] and fit.PATCH == 128
@@ -363,23 +360,14 @@ def test_an_even_photo_is_fitted_with_its_coarse_octaves_muted(tmp_path, monkeyp
     import model.fit as fit
 
     space = space_checkpoint(tmp_path)
-    seen = {}
-
-    class Stop(Exception):
-        pass
-
-    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - records the setting, trains nothing
-        seen[Path(cfg.exemplar).stem] = cfg.mute_octaves
-        raise Stop
-
-    monkeypatch.setattr(fit, "train", train)
+    seen = stop_before_training(monkeypatch, lambda cfg: cfg.mute_octaves)
     saved_png(tmp_path / "gravel.png", skimage_textures["gravel"])
     saved_png(tmp_path / "bricks.png", running_bond())
     for name, even in (("gravel", "auto"), ("bricks", "auto")):
-        with pytest.raises(Stop):
+        with pytest.raises(StopFit):
             fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space, even=even)
     assert seen == {"gravel": 4, "bricks": 0}
-    with pytest.raises(Stop):
+    with pytest.raises(StopFit):
         fit_exemplar(tmp_path / "gravel.png", tmp_path / "gravel", init_checkpoint=space, even=None)
     assert seen["gravel"] == 0
     assert fit.coarse_octaves(256.0, 8) == 4 and fit.coarse_octaves(128.0, 8) == 3
@@ -388,29 +376,19 @@ def test_an_even_photo_is_fitted_with_its_coarse_octaves_muted(tmp_path, monkeyp
 def test_a_photo_without_grain_or_lattice_is_fitted_from_its_lean(tmp_path, monkeypatch, skimage_textures):
     """An isotropic fit trains a warp that starts at the photo's lean (photo_lean); a lattice
     photo, or lean=None, trains none."""
-    import model.fit as fit
     from model.structure import photo_lean
 
     space = space_checkpoint(tmp_path)
-    seen = {}
-
-    class Stop(Exception):
-        pass
-
-    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - records the setting, trains nothing
-        seen[Path(cfg.exemplar).stem] = (cfg.warp, cfg.warp_start)
-        raise Stop
-
-    monkeypatch.setattr(fit, "train", train)
+    seen = stop_before_training(monkeypatch, lambda cfg: (cfg.warp, cfg.warp_start))
     gravel = saved_png(tmp_path / "gravel.png", skimage_textures["gravel"])
     saved_png(tmp_path / "bricks.png", running_bond())
     for name in ("gravel", "bricks"):
-        with pytest.raises(Stop):
+        with pytest.raises(StopFit):
             fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space, grain="auto",
                          lattice="auto")
     assert seen["gravel"][0] and seen["gravel"][1] == pytest.approx(photo_lean(gravel), rel=0.02)
     assert seen["bricks"] == (False, None)
-    with pytest.raises(Stop):
+    with pytest.raises(StopFit):
         fit_exemplar(tmp_path / "gravel.png", tmp_path / "gravel", init_checkpoint=space, lean=None)
     assert seen["gravel"] == (False, None)
 
@@ -418,24 +396,14 @@ def test_a_photo_without_grain_or_lattice_is_fitted_from_its_lean(tmp_path, monk
 def test_a_strong_grain_is_fitted_with_longer_noise_cells(tmp_path, monkeypatch):
     """model.structure.grain_stretch picks the stretch the fit trains and exports: 16 for long
     fibres, 8 for a weak grain; the result and manifest say which (null without grain)."""
-    import model.fit as fit
     from model.networks import load_checkpoint
     from tests.model.photos import fibres
 
     space = space_checkpoint(tmp_path)
-    seen = {}
-
-    class Stop(Exception):
-        pass
-
-    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - records the setting, trains nothing
-        seen[Path(cfg.exemplar).stem] = (cfg.grain, cfg.grain_stretch)
-        raise Stop
-
-    monkeypatch.setattr(fit, "train", train)
+    seen = stop_before_training(monkeypatch, lambda cfg: (cfg.grain, cfg.grain_stretch))
     for name, photo in (("strong", fibres(40, 4)), ("weak", fibres(12, 4))):
         saved_png(tmp_path / f"{name}.png", photo)
-        with pytest.raises(Stop):
+        with pytest.raises(StopFit):
             fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=space, grain="auto")
     assert seen == {"strong": ("y", 16.0), "weak": ("y", 8.0)}
     monkeypatch.undo()
