@@ -683,16 +683,23 @@ def grain_tilt(image: np.ndarray, grain: str) -> float:
     photo's grain runs, measured from +x towards +y (x right, y down: clockwise as shown),
     in (-90, 90]. The grain runs where the luminance changes least: across the main axis of
     the structure tensor (the mean outer product of the luminance gradient, taken as
-    derivatives of a GRAIN_TILT_BLUR px Gaussian)."""
-    luminance = rec709_luminance(image)
-    margin = int(4 * GRAIN_TILT_BLUR)  # the blur's mirrored border bends leaning streaks
-    # derivatives of the Gaussian: central differences damp the steeper component of a
-    # leaning streak more and overstate its lean (by 7% on 9-px stripes)
-    gy, gx = (ndimage.gaussian_filter(luminance, GRAIN_TILT_BLUR, order=order)[margin:-margin, margin:-margin]
-              for order in ((1, 0), (0, 1)))
-    across = 0.5 * np.degrees(np.arctan2(2 * np.mean(gx * gy), np.mean(gx * gx) - np.mean(gy * gy)))
+    derivatives of a GRAIN_TILT_BLUR px Gaussian: ``structure_tensor``)."""
+    (xx, xy), (_, yy) = structure_tensor(image)
+    across = 0.5 * np.degrees(np.arctan2(2 * xy, xx - yy))
     axis = 0.0 if grain == "x" else 90.0
     return float(-((axis - across) % 180.0 - 90.0))
+
+
+def structure_tensor(image: np.ndarray, blur: float = GRAIN_TILT_BLUR) -> np.ndarray:
+    """(2, 2) float64: the mean outer product of the luminance gradient (x, y), taken as
+    derivatives of a ``blur`` px Gaussian, without the border the blur mirrors."""
+    luminance = rec709_luminance(image)
+    margin = int(4 * blur)  # the blur's mirrored border bends leaning streaks
+    # derivatives of the Gaussian: central differences damp the steeper component of a
+    # leaning streak more and overstate its lean (by 7% on 9-px stripes)
+    gy, gx = (ndimage.gaussian_filter(luminance, blur, order=order)[margin:-margin, margin:-margin]
+              for order in ((1, 0), (0, 1)))
+    return np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])
 
 
 def photo_lean(image: np.ndarray, blur: float = GRAIN_TILT_BLUR) -> tuple[float, float]:
@@ -700,12 +707,7 @@ def photo_lean(image: np.ndarray, blur: float = GRAIN_TILT_BLUR) -> tuple[float,
     measures it from +x towards +y, and how much longer they are along it than across it
     (the square root of the structure tensor's eigenvalue ratio: features stretched k times
     have gradients k times weaker along them)."""
-    luminance = rec709_luminance(image)
-    margin = int(4 * blur)
-    gy, gx = (ndimage.gaussian_filter(luminance, blur, order=order)[margin:-margin, margin:-margin]
-              for order in ((1, 0), (0, 1)))
-    tensor = np.array([[np.mean(gx * gx), np.mean(gx * gy)], [np.mean(gx * gy), np.mean(gy * gy)]])
-    values, vectors = np.linalg.eigh(tensor)  # ascending: the first changes least, along the features
+    values, vectors = np.linalg.eigh(structure_tensor(image, blur))  # ascending: the first changes least, along the features
     degrees = (np.degrees(np.arctan2(vectors[1, 0], vectors[0, 0])) + 90.0) % 180.0 - 90.0
     return float(degrees), float(np.sqrt(values[1] / max(values[0], 1e-30)))
 

@@ -136,9 +136,9 @@ function structureNote(texture) {
   if (structure.lattice && structure.grain) return ` (boards, grain along ${structure.grain}${turned})`;
   if (structure.lattice) return ' (follows the photo\'s repeat lattice)';
   if (structure.grain) return ` (grain along ${structure.grain}${turned})`;
-  const lean = structure.lean ? `, leaning ${structure.lean[0].toFixed(0)}° like the photo` : '';
-  if (structure.muted_octaves) return ` (even: its coarsest noise octaves muted${lean})`;
-  if (lean) return ` (${lean.slice(2)})`;
+  const lean = structure.lean ? `leaning ${structure.lean[0].toFixed(0)}° like the photo` : '';
+  if (structure.muted_octaves) return ` (even: its coarsest noise octaves muted${lean ? `, ${lean}` : ''})`;
+  if (lean) return ` (${lean})`;
   return '';
 }
 
