@@ -707,7 +707,8 @@ def photo_lean(image: np.ndarray, blur: float = GRAIN_TILT_BLUR) -> tuple[float,
     measures it from +x towards +y, and how much longer they are along it than across it
     (the square root of the structure tensor's eigenvalue ratio: features stretched k times
     have gradients k times weaker along them)."""
-    values, vectors = np.linalg.eigh(structure_tensor(image, blur))  # ascending: the first changes least, along the features
+    # eigenvalues ascending: the first vector is where luminance changes least, along the features
+    values, vectors = np.linalg.eigh(structure_tensor(image, blur))
     degrees = (np.degrees(np.arctan2(vectors[1, 0], vectors[0, 0])) + 90.0) % 180.0 - 90.0
     return float(degrees), float(np.sqrt(values[1] / max(values[0], 1e-30)))
 

@@ -163,7 +163,8 @@ def test_every_fit_takes_the_large_patch_and_falling_rates_by_default(tmp_path, 
     import model.fit as fit
 
     space = space_checkpoint(tmp_path)
-    seen = stop_before_training(monkeypatch, lambda cfg: (cfg.patch, cfg.lattice is not None, cfg.decay_by_time, cfg.batch))
+    seen = stop_before_training(monkeypatch,
+                                lambda cfg: (cfg.patch, cfg.lattice is not None, cfg.decay_by_time, cfg.batch))
     for name, image in (("corrugated", corrugation()), ("bricks", running_bond())):
         Image.fromarray((image * 255).round().astype(np.uint8)).save(tmp_path / f"{name}.png")
         with pytest.raises(StopFit):
