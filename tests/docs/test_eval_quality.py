@@ -56,3 +56,22 @@ def test_baseline_tiles_sit_at_the_tile_positions(quality):
     # tiles (0, 0) and (1, 0) of one seed are neighbours on one field: they join without a seam
     seam = np.abs(tiles[0][:, -1] - tiles[1][:, 0]).mean()
     assert seam < 2 * np.abs(np.diff(tiles[0], axis=1)).mean()
+
+
+def quality_row(oblique_over_axis: float, pattern_2d: bool = False) -> dict:
+    """One photo's figures as measure_photo gives them, all within target but the ratio."""
+    colour = {"de76": 0.1, "de2000": 0.1, "std_ratio": [1.0, 1.0, 1.0]}
+    return {"colour": {"pooled": colour, "worst_tile": colour}, "style": {"win": True, "ours": 0.1},
+            "diversity_min": 0.1, "style_oblique": oblique_over_axis, "style_axis": 1.0,
+            "oblique_over_axis": oblique_over_axis, "pattern_2d": pattern_2d}
+
+
+def test_the_worst_photo_oblique_target_leaves_out_2d_pattern_fits_and_reports_them(quality):
+    summary = quality.summarise([quality_row(1.0), quality_row(1.4), quality_row(2.2, pattern_2d=True)])
+    assert summary["max_oblique_over_axis"] == 2.2                     # still reported, whole
+    assert summary["max_oblique_over_axis_solid"] == 1.4 and summary["oblique_over_axis_pattern_2d"] == [2.2]
+    assert summary["pass"]["oblique_over_axis_worst_photo"]
+    assert "lattice and stripe fits 2.20" in quality.to_markdown(
+        {"models": {"m": {"summary": summary, "photos": {}, "model_dir": "d", "version": "v", "step": 1}}})
+    # a solid that is not a 2D pattern is held to it
+    assert not quality.summarise([quality_row(1.0), quality_row(1.6)])["pass"]["oblique_over_axis_worst_photo"]
