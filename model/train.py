@@ -775,9 +775,40 @@ class Probe:
 
     def restore_best(self) -> dict:
         """Put the best weights and code back; returns {'score', 'step'} for the checkpoint."""
-        self.run.model.load_state_dict(self.best["model"])
-        self.run.codes.data.copy_(self.best["code"])
+        self._load(self.best)
         return {"score": self.best_score, "step": self.best["step"]}
+
+    def lend_best(self, use) -> None:  # noqa: ANN001
+        """``use(model, code, step)`` with the best state in the model (code: float32 [1, C], a
+        copy), then the training state put back: a fit's interim exports what it would end on now."""
+        current = self.snapshot()
+        self._load(self.best)
+        try:
+            use(self.run.model, self.run.codes.detach().clone(), self.best["step"])
+        finally:
+            self._load(current)
+            self.run.model.train()  # an export leaves its module in eval mode
+
+    def _load(self, state: dict) -> None:
+        self.run.model.load_state_dict(state["model"])  # in place: the optimiser keeps its parameters
+        self.run.codes.data.copy_(state["code"])
+
+
+class Interim:
+    """A fit's first result, published while it goes on (``train(interim=...)``): at the first
+    probe at least ``seconds`` into the run whose best state beats the start (step > 0),
+    ``publish(model, code, step)`` gets that state, once. An upload's refinement serves it,
+    so its tiles look like the photo in about a minute instead of at the fit's end."""
+
+    def __init__(self, seconds: float, publish):  # noqa: ANN001
+        self.seconds, self.publish, self.done = float(seconds), publish, False
+
+    def offer(self, probe: Probe, elapsed: float) -> None:
+        """Called after each probe score, ``elapsed`` seconds into the run."""
+        if self.done or elapsed < self.seconds or probe.best["step"] == 0:
+            return
+        self.done = True
+        probe.lend_best(self.publish)
 
 
 class Budget:
@@ -796,6 +827,9 @@ class Budget:
 
     def left(self, step: int) -> bool:
         return step < self.total and time.monotonic() < self.deadline
+
+    def elapsed(self) -> float:
+        return time.monotonic() - self.started
 
     def time_done(self) -> float:
         """The share of a timed run's wall time spent (0 for a run bounded by steps)."""
@@ -860,8 +894,10 @@ def mute_coarse_octaves(model: TextureSpace, count: int) -> None:
     weight.register_hook(lambda grad: grad * keep)
 
 
-def train(cfg: TrainConfig, progress=None) -> Path:
-    """Run (or resume) training; ``progress(fraction)`` is called after every step."""
+def train(cfg: TrainConfig, progress=None, interim: Interim | None = None) -> Path:
+    """Run (or resume) training; ``progress(fraction)`` is called after every step.
+    ``interim``: a fit's first result, published from its probe while it goes on (``Interim``;
+    single mode with ``--probe-every`` only)."""
     run = setup(cfg)
     if run.ckpt_path.exists():
         resume(run, run.ckpt_path)
@@ -887,6 +923,8 @@ def train(cfg: TrainConfig, progress=None) -> Path:
                 progress(fraction)
             if probe is not None and run.step % cfg.probe_every == 0:
                 probe.update()
+                if interim is not None:
+                    interim.offer(probe, budget.elapsed())
             if run.step % cfg.ckpt_every == 0:
                 save(run)
                 run.log.flush()

@@ -147,11 +147,16 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
         photo = workdir / "evened.tiff"  # 16-bit sRGB: what model.fit reads, at its own resolution
         photo.write_bytes(write_image(image, "tiff", colour="srgb"))
     out_dir = workdir / "fit"
-    fitted = _fit_exemplar(services, texture, p, photo, out_dir, progress, should_cancel)
-    structure = {"grain": fitted.get("grain"), "straightened": fitted.get("straightened", 0.0),
-                 "grain_stretch": fitted.get("grain_stretch"),
-                 "lattice": fitted.get("lattice"), "muted_octaves": fitted.get("muted_octaves", 0),
-                 "lean": fitted.get("lean")}
+
+    def serve_interim(folder: Path, code: list[float], step: int, found: dict[str, Any]) -> None:
+        # the fit's best state part way: the texture serves it until the final one replaces it
+        _refine_in_place(services, job, texture, folder / keys.SAMPLER, [float(c) for c in code], image,
+                         fit_structure(found), interim=True)
+
+    in_place_interim = p.in_place and services.settings.fit_interim_seconds > 0
+    fitted = _fit_exemplar(services, texture, p, photo, out_dir, progress, should_cancel,
+                           serve_interim if in_place_interim else None)
+    structure = fit_structure(fitted)
     code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
     values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
     if p.in_place:
@@ -178,10 +183,21 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     return {**values, "output_texture_id": new_id}
 
 
+def fit_structure(found: dict[str, Any]) -> dict[str, Any]:
+    """The texture's ``structure`` from what model.fit reports it built in (its result, or
+    the interim's ``structure``)."""
+    return {"grain": found.get("grain"), "straightened": found.get("straightened", 0.0),
+            "grain_stretch": found.get("grain_stretch"),
+            "lattice": found.get("lattice"), "muted_octaves": found.get("muted_octaves", 0),
+            "lean": found.get("lean")}
+
+
 def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path: Path, out_dir: Path,
-                  progress: Progress, should_cancel: ShouldCancel) -> dict[str, Any]:
+                  progress: Progress, should_cancel: ShouldCancel,
+                  interim: Callable[..., None] | None = None) -> dict[str, Any]:
     """Run model.fit.fit_exemplar (torch) from the texture's model's space.pt; its result
-    (code, grain and lattice used, ...)."""
+    (code, grain and lattice used, ...). ``interim``: model.fit's hook for its best state
+    ``TEXSPACE_FIT_INTERIM_SECONDS`` in (an in-place refinement serves it)."""
     from model.fit import fit_exemplar  # torch lives in model/, imported only here
 
     def report(fraction: float, *_: Any, **__: Any) -> None:  # no cancel hook: stop at a report
@@ -193,17 +209,21 @@ def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path
     if not checkpoint.is_file():
         raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
     # TEXSPACE_FIT_THREADS: a fit must not take the cores tiles need
+    extra = {"interim": interim, "interim_seconds": services.settings.fit_interim_seconds} if interim else {}
     return fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0,
                         progress=report, grain=p.grain, lattice=p.lattice, even=p.even, lean=p.lean,
-                        threads=services.settings.fit_threads)
+                        threads=services.settings.fit_threads, **extra)
 
 
 def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],
-                     image: np.ndarray, structure: dict[str, Any]) -> None:
+                     image: np.ndarray, structure: dict[str, Any], interim: bool = False) -> None:
     """Make ``texture`` serve the fitted sampler: store it under a key of this attempt's own
     (so a tile ETag, which includes the key, never names two samplers' bytes), then update
-    the row if this attempt still holds the job. The encoder's code is kept for blends."""
-    folder = keys.refinement_prefix(texture.id, job.id, job.attempt)
+    the row if this attempt still holds the job. The encoder's code is kept for blends.
+    ``interim``: the fit's state part way (``sampler_interim``), in the attempt's ``interim``
+    folder; it stays there once the final one is served, so a request that read the row
+    before the swap still finds its sampler (it goes with the texture's refinements)."""
+    folder = keys.refinement_prefix(texture.id, job.id, job.attempt) + ("/interim" if interim else "")
     sampler_key = f"{folder}/{keys.SAMPLER}"
     services.storage.put_file(sampler_key, sampler_path)
     _store_tileable(services, sampler_key, sampler_path.parent)
@@ -225,7 +245,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
         if row.encoder_code is None:  # the first refinement: keep what the encoder gave, for blends
             row.encoder_code, row.encoder_colour = list(row.code), row.colour
         row.code, row.colour, row.sampler_key, row.updated_at = code, colour, sampler_key, utcnow()
-        row.structure = structure
+        row.structure, row.sampler_interim = structure, interim
 
 
 def _store_tileable(services: Services, sampler_key: str, fit_dir: Path) -> None:

@@ -108,6 +108,7 @@ def _encode_again(services, runtime, texture: Texture, refine: dict | None) -> b
         row.code, row.colour = [float(c) for c in code], [float(c) for c in colour] or None
         row.colour_calibration = COLOUR_CALIBRATION
         row.encoder_code = row.encoder_colour = row.structure = row.sampler_key = None
+        row.sampler_interim = False
         row.model_version, row.updated_at = runtime.version, utcnow()
         row.refinement_job_id = new_id() if refine else None
     # what was fitted in the old space: refinements, and a fit's own texture's sampler pair

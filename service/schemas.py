@@ -89,9 +89,11 @@ class TextureOut(BaseModel):
     width: int | None = Field(None, description="exemplar width in pixels")
     height: int | None = None
     has_own_sampler: bool = Field(description="true for fitted textures (they carry their own sampler)")
-    sampler: Literal["encoder", "fitted"] = Field(
-        description="what tiles come from: the model's sampler at the encoder's code, or a sampler fitted "
-                    "to this exemplar (a fit's new texture, or an upload once its refinement succeeded)")
+    sampler: Literal["encoder", "interim", "fitted"] = Field(
+        description="what tiles come from: the model's sampler at the encoder's code; an interim, the best state "
+                    "of the upload's refinement part way through its fit (TEXSPACE_FIT_INTERIM_SECONDS), which "
+                    "the finished fit replaces; or a sampler fitted to this exemplar (a fit's new texture, or an "
+                    "upload once its refinement succeeded)")
     refinement: Refinement | None = Field(None, description="the upload's automatic refinement, if one was queued")
     structure: Structure | None = Field(
         None, description="what the fitted sampler was built with (grain, repeat lattice); null from the encoder")
@@ -108,7 +110,7 @@ class TextureOut(BaseModel):
         base = f"/v1/textures/{t.id}"
         return cls(id=t.id, name=t.name, code=t.code, colour=t.colour, model_version=t.model_version, source=t.source,
                    parents=t.parents, width=t.width, height=t.height, has_own_sampler=bool(t.sampler_key),
-                   sampler="fitted" if t.sampler_key else "encoder",
+                   sampler=("interim" if t.sampler_interim else "fitted") if t.sampler_key else "encoder",
                    refinement=Refinement(job_id=refinement.id, state=refinement.state, progress=refinement.progress)
                    if refinement is not None else None,
                    structure=Structure(**t.served_structure()) if t.served_structure() else None,

@@ -107,6 +107,9 @@ class Settings(BaseSettings):
     auto_fit: bool = Field(True, description="refine every upload in place with a fit job; effective where "
                            "torch is installed on the API and the model ships its space.pt")
     fit_threads: int = Field(1, ge=0, description="torch threads of a fit job (0: torch's default, every core)")
+    fit_interim_seconds: float = Field(
+        60.0, ge=0, description="an upload's refinement serves its fit's best state this many seconds in (if it "
+        "beats the encoder's code by then), until the finished fit replaces it; 0: only the finished fit")
 
     # --- HTTP ----------------------------------------------------------------------------
     tile_cache_bytes: int = Field(64 * 2**20, ge=0)

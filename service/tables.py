@@ -10,7 +10,7 @@ import uuid
 from typing import Any
 
 import numpy as np
-from sqlalchemy import JSON, Boolean, DateTime, Float, Integer, String, Text, TypeDecorator
+from sqlalchemy import JSON, Boolean, DateTime, Float, Integer, String, Text, TypeDecorator, false
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from worker.colour_match import texture_vector
@@ -104,6 +104,9 @@ class Texture(Base):
     # How its photo is taken when encoded or fitted (worker.images.LIGHTING): "as-is", or
     # "even" (its smooth shading divided out). The stored photo itself is never changed.
     lighting: Mapped[str] = mapped_column(String(8), default="as-is", server_default="as-is")
+    # True while sampler_key is the interim a running refinement published part way through
+    # its fit (the best state after TEXSPACE_FIT_INTERIM_SECONDS): its final sampler replaces it.
+    sampler_interim: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
     updated_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
 

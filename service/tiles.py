@@ -330,9 +330,10 @@ def tile_etag(texture: Texture, *, z: int, x: int, y: int, size: int, seed: int,
 
 
 def tiles_final(services: Services, texture: Texture) -> bool:
-    """False while the texture's in-place refinement may still replace its sampler, so
-    that its tile URLs will serve new bytes (under new ETags) once the job succeeds."""
-    if texture.sampler_key or not texture.refinement_job_id:
+    """False while the texture's in-place refinement may still replace its sampler (the
+    encoder's, or the refinement's own interim), so that its tile URLs will serve new bytes
+    (under new ETags) once the job succeeds."""
+    if (texture.sampler_key and not texture.sampler_interim) or not texture.refinement_job_id:
         return True
     with session_scope(services.sessions) as session:
         state = session.scalar(select(Job.state).where(Job.id == texture.refinement_job_id))

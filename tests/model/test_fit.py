@@ -39,7 +39,7 @@ def stop_before_training(monkeypatch, read) -> dict:  # noqa: ANN001
 
     seen = {}
 
-    def train(cfg, progress=None):  # noqa: ANN001, ANN202
+    def train(cfg, progress=None, interim=None):  # noqa: ANN001, ANN202
         seen[Path(cfg.exemplar).stem] = read(cfg)
         raise StopFit
 
@@ -322,7 +322,7 @@ def test_patch_side_defaults_to_128_with_or_without_a_lattice(tmp_path, monkeypa
 
     seen = []
 
-    def fake_train(cfg, progress=None):
+    def fake_train(cfg, progress=None, interim=None):
         seen.append(cfg.patch)
         raise StopFit
 
@@ -428,7 +428,7 @@ def test_a_fit_that_keeps_its_unmuted_start_reports_no_muted_octaves(tmp_path, m
 
     space = space_checkpoint(tmp_path)
 
-    def train(cfg, progress=None):  # noqa: ANN001, ANN202 - the space itself, kept at kept_step
+    def train(cfg, progress=None, interim=None):  # noqa: ANN001, ANN202 - the space itself, kept at kept_step
         ckpt = torch.load(space, weights_only=False)
         path = Path(cfg.out) / "kept.pt"
         torch.save({**ckpt, "code": torch.zeros(1, 8), "step": kept_step, "wall_seconds": 1.0,
@@ -441,3 +441,46 @@ def test_a_fit_that_keeps_its_unmuted_start_reports_no_muted_octaves(tmp_path, m
     result = fit_exemplar(tmp_path / "gravel.png", tmp_path / "fit", init_checkpoint=space)
     manifest = json.loads((tmp_path / "fit" / "manifest.json").read_text())
     assert result["muted_octaves"] == manifest["muted_octaves"] == reported
+
+
+def test_a_fit_publishes_its_interim_as_a_contract_sampler_with_its_structure(tmp_path, monkeypatch,
+                                                                               skimage_textures):
+    """``interim``: what train's Interim hands over (a model, its code, the step) is written as
+    the sampler pair under OUTDIR/interim and passed on with the code and the result's
+    structure; the fit then ends as usual."""
+    import model.fit as fit
+    from model.networks import load_checkpoint
+
+    space = space_checkpoint(tmp_path)
+    lent = torch.full((1, 8), 0.25)
+
+    def train(cfg, progress=None, interim=None):  # noqa: ANN001, ANN202
+        assert interim is not None and interim.seconds == 12.0
+        model, _ = load_checkpoint(space)
+        interim.publish(model, lent, 25)  # as Probe.lend_best does
+        ckpt = torch.load(space, weights_only=False)
+        path = Path(cfg.out) / "end.pt"
+        torch.save({**ckpt, "code": torch.zeros(1, 8), "step": 50, "wall_seconds": 1.0,
+                    "probe": {"score": 1.0, "step": 50}}, path)
+        return path
+
+    monkeypatch.setattr(fit, "train", train)
+    saved_png(tmp_path / "gravel.png", skimage_textures["gravel"])
+    published = []
+    result = fit_exemplar(tmp_path / "gravel.png", tmp_path / "fit", init_checkpoint=space,
+                          interim=lambda *args: published.append(args), interim_seconds=12.0)
+    ((folder, code, step, structure),) = published
+    assert folder == tmp_path / "fit" / "interim" and step == 25 and code == [0.25] * 8
+    assert structure == {k: result[k] for k in structure}  # gravel: even, leaning; as the result says
+    assert structure["muted_octaves"] == 4 and structure["lean"] is not None and structure["lattice"] is None
+    from model.colour import identity_colour
+
+    for name in ("sampler.onnx", "sampler_tileable.onnx"):  # both load; the interim draws its own code
+        session = ort.InferenceSession(str(folder / name), providers=["CPUExecutionProvider"])
+        feeds = {"points": np.random.default_rng(0).random((64, 3)), "colour": identity_colour()[None].numpy(),
+                 "z": np.asarray([code], np.float32), "seed": np.asarray(1, np.int64)}
+        if name == "sampler_tileable.onnx":
+            feeds["period"] = np.asarray(4.0)
+        assert np.isfinite(session.run(None, feeds)[0]).all()
+    assert json.loads((tmp_path / "fit" / "code.json").read_text())["code"] == [0.0] * 8  # the end's, not the interim's
+

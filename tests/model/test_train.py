@@ -304,3 +304,66 @@ def test_muted_octaves_stay_silent_through_training_and_the_start_stays_on_offer
         optimiser.step()
         optimiser.zero_grad()
     assert not weight[:, :9].any() and not torch.equal(weight[:, 9:], before[:, 9:])
+
+
+def test_lend_best_hands_the_best_state_and_puts_the_training_state_back():
+    """Probe.lend_best: ``use`` sees the best weights and code; afterwards the run is where it
+    was (weights, code, train mode), and the optimiser still holds the same parameters."""
+    from types import SimpleNamespace
+
+    from model.train import Probe
+
+    model = torch.nn.Linear(2, 2)
+    codes = torch.nn.Parameter(torch.zeros(1, 8))
+    probe = object.__new__(Probe)  # its state only: no planes, no objective
+    probe.run = SimpleNamespace(model=model, codes=codes, step=3)
+    probe.best = probe.snapshot()
+    with torch.no_grad():  # training moved on after the best state
+        model.weight.add_(1.0)
+        codes.add_(2.0)
+    current_weight, parameter = model.weight.detach().clone(), model.weight
+    seen = []
+    probe.lend_best(lambda m, code, step: seen.append((m.weight.detach().clone(), code, step, m.eval())))
+    ((weight, code, step, _),) = seen
+    assert torch.equal(weight, probe.best["model"]["weight"]) and torch.equal(code, torch.zeros(1, 8)) and step == 3
+    assert torch.equal(model.weight, current_weight) and torch.equal(codes, torch.full((1, 8), 2.0))
+    assert model.training and model.weight is parameter
+
+
+def test_an_interim_is_published_once_at_the_first_probe_that_beats_the_start(tmp_path, brick, vgg):
+    """train(interim=Interim(0, ...)) in a fit: one call, at the first probe whose best state
+    is past step 0, with that state; training goes on to its last step afterwards."""
+    from model.train import Interim
+
+    image = tmp_path / "brick.png"
+    Image.fromarray((brick * 255).astype(np.uint8)).save(image)
+    out = tmp_path / "run"
+    cfg = parse_args(["--mode", "single", "--exemplar", str(image), "--out", str(out), "--patch", "32", "--batch", "1",
+                      "--short-side", "128", "--crop", "64", "--quiet", "--layers", "relu1_1,relu2_1", "--steps", "6",
+                      "--lr", "0.01", "--warmup", "1", "--probe-every", "1"])
+    published = []
+    train(cfg, interim=Interim(0.0, lambda model, code, step: published.append((step, code.clone()))))
+    scores = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines() if "probe" in line]
+    better = [s["step"] for s in scores if s["probe"] < scores[0]["probe"]]
+    _, ckpt = load_checkpoint(out / "checkpoint.pt")
+    assert ckpt["step"] == 6 and better  # (at this seed and rate the second step already beats the start)
+    ((step, code),) = published
+    assert step == better[0]
+    assert code.shape == (1, 8)
+
+
+def test_an_interim_waits_for_its_seconds():
+    from types import SimpleNamespace
+
+    from model.train import Interim
+
+    calls = []
+    interim = Interim(60.0, None)
+    probe = SimpleNamespace(best={"step": 25}, lend_best=lambda use: calls.append(use))
+    interim.offer(probe, 59.0)
+    assert calls == [] and not interim.done
+    interim.offer(SimpleNamespace(best={"step": 0}, lend_best=calls.append), 61.0)  # the start still best
+    assert calls == [] and not interim.done
+    interim.offer(probe, 61.0)
+    interim.offer(probe, 90.0)  # once
+    assert len(calls) == 1 and interim.done

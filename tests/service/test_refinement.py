@@ -24,7 +24,7 @@ from service.tables import Texture
 from service.tiles import CACHE_CONTROL, REFINING_CACHE_CONTROL
 from tests.service.conftest import upload_photo
 
-from .test_fit_grain import FAKE_LATTICE, MODEL_DIR, fake_fit_module
+from .test_fit_grain import FAKE_LATTICE, FAKE_INTERIM_CODE, MODEL_DIR, fake_fit_module
 
 TILE = "/v1/textures/{}/tiles/6/0/0.png?size=64"
 
@@ -108,6 +108,61 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     assert used[0].read_bytes() == (MODEL_DIR / "sampler.onnx").read_bytes()  # what the fit wrote
     assert row.encoder_code == texture["code"]                  # kept: blends use it
     assert client.get(TILE.format(texture["id"]), headers={"If-None-Match": after.headers["etag"]}).status_code == 304
+
+
+def test_upload_serves_its_fits_interim_until_the_fit_ends(refining, photo, fit_calls) -> None:
+    """A fit that publishes its best state part way (TEXSPACE_FIT_INTERIM_SECONDS): the
+    texture serves it at once (new code, new ETag, still no-cache: the fit will replace it),
+    then the finished fit's sampler under yet another ETag, immutable; the interim's files
+    stay in the attempt's folder."""
+    client, services = refining
+    texture = upload_photo(client, photo)
+    encoder = client.get(TILE.format(texture["id"]))
+    seen: dict = {}
+
+    def during_interim() -> None:
+        seen["texture"] = client.get(f"/v1/textures/{texture['id']}").json()
+        seen["tile"] = client.get(TILE.format(texture["id"]))
+        with services.sessions() as session:
+            seen["key"] = session.get(Texture, texture["id"]).sampler_key
+
+    sys.modules["model.fit"].during_interim = during_interim
+    run_fit_lane(services)
+    assert fit_calls[0]["interim_seconds"] == services.settings.fit_interim_seconds == 60.0
+    interim_texture, tile = seen["texture"], seen["tile"]
+    assert interim_texture["sampler"] == "interim" and interim_texture["has_own_sampler"]
+    assert interim_texture["code"] == FAKE_INTERIM_CODE and interim_texture["refinement"]["state"] == "running"
+    assert interim_texture["structure"]["lattice"] == FAKE_LATTICE          # what the fit builds in, from the start
+    assert tile.status_code == 200 and tile.headers["etag"] != encoder.headers["etag"]
+    assert tile.content != encoder.content
+    assert tile.headers["cache-control"] == REFINING_CACHE_CONTROL  # the finished fit will replace it
+    assert seen["key"].endswith("/interim/sampler.onnx")
+
+    refined = client.get(f"/v1/textures/{texture['id']}").json()
+    assert refined["sampler"] == "fitted" and refined["code"] == [0.0] * 8
+    assert refined["refinement"]["state"] == "succeeded"
+    final = client.get(TILE.format(texture["id"]), headers={"If-None-Match": tile.headers["etag"]})
+    assert final.status_code == 200 and final.headers["etag"] not in (tile.headers["etag"], encoder.headers["etag"])
+    assert final.headers["cache-control"] == CACHE_CONTROL
+    with services.sessions() as session:
+        row = session.get(Texture, texture["id"])
+    assert row.encoder_code == texture["code"] and not row.sampler_interim  # the encoder's code kept from before
+    assert services.storage.exists(seen["key"])  # a request that read the row before the swap still finds it
+
+
+def test_no_interim_is_asked_for_when_it_is_off_or_for_a_fit_of_a_new_texture(refining, photo, fit_calls) -> None:
+    client, services = refining
+    services.settings.fit_interim_seconds = 0
+    sys.modules["model.fit"].during_interim = lambda: pytest.fail("no interim was asked for")
+    texture = upload_photo(client, photo)
+    run_fit_lane(services)
+    assert fit_calls[-1]["interim"] is None
+    assert client.get(f"/v1/textures/{texture['id']}").json()["sampler"] == "fitted"
+    services.settings.fit_interim_seconds = 60.0
+    job = client.post(f"/v1/textures/{texture['id']}/fit", json={"seconds": 5}).json()  # a new texture
+    run_fit_lane(services)
+    assert fit_calls[-1]["interim"] is None
+    assert client.get(f"/v1/jobs/{job['id']}").json()["state"] == "succeeded"
 
 
 def test_refined_upload_blends_by_its_encoder_code(refining, photo) -> None:

@@ -281,9 +281,12 @@ export function tileTemplate(id, { seed, plane, offset, size = 256, v }) {
   return apiUrl(`textures/${id}/tiles/`) + `{z}/{x}/{y}.png?${query}`;
 }
 
-/** The `v` of a texture's tile URLs: 'fitted' once it serves a fitted sampler, else none. */
+/**
+ * The `v` of a texture's tile URLs: what it serves once that is not its encoder's code,
+ * 'interim' (its refinement's first state) or 'fitted', else none.
+ */
 export function tileVersion(texture) {
-  return texture?.sampler === 'fitted' ? 'fitted' : undefined;
+  return texture?.sampler === 'fitted' || texture?.sampler === 'interim' ? texture.sampler : undefined;
 }
 
 export function tileUrl(id, z, x, y, params) {

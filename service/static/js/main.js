@@ -93,10 +93,12 @@ async function sizeExemplar(texture) {
 
 // ---- refinement: an upload's fit job (TEXSPACE_AUTO_FIT) -----------------------------
 // A new upload is served from its encoder code at once; a fit job then refines the same
-// texture, which serves its own fitted sampler once the job succeeds: the page shows the
-// job's progress, then reloads the map's tiles under new URLs (api.tileVersion).
+// texture, which serves an interim (the fit's best state a minute in) and its own fitted
+// sampler once the job succeeds: the page shows the job's progress, looks for the interim
+// now and then, and reloads the map's tiles under new URLs each time (api.tileVersion).
 
 const ENDED = new Set(['succeeded', 'failed', 'canceled']);
+const INTERIM_LOOK_MS = 5000; // how often a refining texture is fetched again for its interim
 let stopRefinement = () => {};
 
 function showRefinement(text = '', jobState = '') {
@@ -118,14 +120,43 @@ function followRefinement(texture) {
     showRefinement();
     return;
   }
-  const refining = (job) => showRefinement(`refining… ${Math.round(fraction(job.progress) * 100)}%`, job.state);
+  const interimNote = () => (state.current?.sampler === 'interim' ? ': tiles from its first minute' : '');
+  const refining = (job) => showRefinement(`refining… ${Math.round(fraction(job.progress) * 100)}%${interimNote()}`,
+    job.state);
+  let lookedAt = Date.now();
   refining(refinement);
   stopRefinement = follow({ id: refinement.job_id, state: refinement.state }, (job) => {
     if (state.current?.id !== texture.id) return;
     if (job.state === 'succeeded') refined(texture.id);
-    else if (ENDED.has(job.state)) showRefinement(`refinement ${job.state}: tiles from the encoder's code`, job.state);
-    else refining(job);
+    else if (ENDED.has(job.state)) {
+      const served = state.current.sampler === 'interim' ? "its fit's first minute" : "the encoder's code";
+      showRefinement(`refinement ${job.state}: tiles from ${served}`, job.state);
+    } else {
+      refining(job);
+      if (state.current.sampler === 'encoder' && Date.now() - lookedAt >= INTERIM_LOOK_MS) {
+        lookedAt = Date.now();
+        reloadServed(texture.id).then((now) => { if (now) refining(job); }).catch(sayError);
+      }
+    }
   });
+}
+
+/**
+ * Fetch the texture again; if it is the one on the map, keep it and, where it serves
+ * something new (an interim, its fitted sampler), show the new tiles. Its new state, or
+ * null when another texture is on the map by now.
+ */
+async function reloadServed(textureId) {
+  const texture = await api.getTexture(textureId);
+  state.textures = state.textures.map((t) => (t.id === texture.id ? texture : t));
+  if (state.current?.id !== texture.id) return null;
+  const changed = texture.sampler !== state.current.sampler;
+  state.current = texture;
+  if (changed) {
+    renderLibrary(); // its new code
+    textureMap.update({ v: api.tileVersion(texture) });
+  }
+  return texture;
 }
 
 /** What the fit built in (texture.structure), for the status line: '' when nothing. */
@@ -145,13 +176,8 @@ function structureNote(texture) {
 /** The refinement succeeded: the texture's tiles now come from its fitted sampler. */
 async function refined(textureId) {
   try {
-    const texture = await api.getTexture(textureId);
-    state.textures = state.textures.map((t) => (t.id === texture.id ? texture : t));
-    if (state.current?.id !== texture.id) return;
-    state.current = texture;
-    renderLibrary(); // its new code
-    textureMap.update({ v: api.tileVersion(texture) });
-    showRefinement(`refined: tiles from the fitted sampler${structureNote(texture)}`, 'succeeded');
+    const texture = await reloadServed(textureId);
+    if (texture) showRefinement(`refined: tiles from the fitted sampler${structureNote(texture)}`, 'succeeded');
   } catch (error) {
     sayError(error);
   }
