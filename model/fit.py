@@ -136,8 +136,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     def publish(model, code, step):  # noqa: ANN001, ANN202 (train's Interim hands the best state)
         folder = out_dir / "interim"
         folder.mkdir(exist_ok=True)
-        export_sampler(model.field, folder / "sampler.onnx")
-        export_tileable_sampler(model.field, folder / TILEABLE_SAMPLER)
+        write_samplers(model.field, folder)
         interim(folder, code.reshape(-1).tolist(), step, dict(structure))
     with tempfile.TemporaryDirectory() as run_dir:
         exemplar = Path(image_path)
@@ -169,8 +168,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     torch.save({key: ckpt.get(key) for key in ("config", "model", "code", "step", "wall_seconds", "mode", "data",
                                                "loss", "layers", "final_loss", "probe")} | {"init": str(init)},
                out_dir / "fit.pt")
-    export_sampler(model.field, out_dir / "sampler.onnx")
-    export_tileable_sampler(model.field, out_dir / TILEABLE_SAMPLER)
+    write_samplers(model.field, out_dir)
     code = ckpt["code"].reshape(-1).tolist()
     (out_dir / "code.json").write_text(json.dumps({"code": code}) + "\n")
     structure["muted_octaves"] = muted
@@ -194,6 +192,12 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return {"code": code, "sampler": str(out_dir / "sampler.onnx"), "version": manifest["version"],
             "steps": ckpt["step"], **structure}
+
+
+def write_samplers(field, folder: Path) -> None:  # noqa: ANN001 (a TextureField)
+    """A fitted field's sampler pair: ``sampler.onnx`` (Contract 1) and its tileable twin."""
+    export_sampler(field, folder / "sampler.onnx")
+    export_tileable_sampler(field, folder / TILEABLE_SAMPLER)
 
 
 def coarse_octaves(pixels_per_unit: float, n_octaves: int, block: float = EVEN_BLOCK) -> int:

@@ -114,6 +114,12 @@ class Texture(Base):
         """What this texture's sampler takes as its code: z, then the colour table if any."""
         return texture_vector(self.code, self.colour)
 
+    def refinement_may_replace_sampler(self) -> bool:
+        """True while an in-place refinement may still give this texture another sampler: it
+        has one queued or running (``tiles_final`` asks its job) and serves the encoder's code
+        or the refinement's interim; False once it serves a final fitted sampler, or has none."""
+        return bool(self.refinement_job_id) and (not self.sampler_key or self.sampler_interim)
+
     def served_structure(self) -> dict | None:
         """What the sampler it serves was fitted with (grain, repeat lattice); None when it
         serves its model's sampler (a re-encode keeps no stale structure either)."""

@@ -333,7 +333,7 @@ def tiles_final(services: Services, texture: Texture) -> bool:
     """False while the texture's in-place refinement may still replace its sampler (the
     encoder's, or the refinement's own interim), so that its tile URLs will serve new bytes
     (under new ETags) once the job succeeds."""
-    if (texture.sampler_key and not texture.sampler_interim) or not texture.refinement_job_id:
+    if not texture.refinement_may_replace_sampler():
         return True
     with session_scope(services.sessions) as session:
         state = session.scalar(select(Job.state).where(Job.id == texture.refinement_job_id))

@@ -48,8 +48,7 @@ async def get_tile(
     key = dict(z=address.z, x=address.x, y=address.y, size=params.size, seed=params.seed,
                plane=params.plane, offset=params.offset, fmt=fmt)
     cache_control = CACHE_CONTROL
-    # else final: no query
-    refining = texture.refinement_job_id and (not texture.sampler_key or texture.sampler_interim)
+    refining = texture.refinement_may_replace_sampler()  # else final: no query
     if refining and not await run_in_threadpool(tiles_final, services, texture):
         cache_control = REFINING_CACHE_CONTROL  # same ETag, same bytes; the URL's bytes will change
     if serves_previews(services.settings, address.z):
