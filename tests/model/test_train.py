@@ -367,3 +367,30 @@ def test_an_interim_waits_for_its_seconds():
     interim.offer(probe, 61.0)
     interim.offer(probe, 90.0)  # once
     assert len(calls) == 1 and interim.done
+
+
+def test_precision_auto_follows_the_hardware_and_named_precisions_are_kept(monkeypatch):
+    from model import train as train_module
+
+    cpu = torch.device("cpu")
+    assert train_module.resolve_precision("fp32", cpu) is None
+    assert train_module.resolve_precision("bf16", cpu) is torch.bfloat16
+    monkeypatch.setattr(train_module, "cpu_has_native_bf16", lambda: False)  # emulated bf16: no faster
+    assert train_module.resolve_precision("auto", cpu) is None
+    monkeypatch.setattr(train_module, "cpu_has_native_bf16", lambda: True)
+    assert train_module.resolve_precision("auto", cpu) is torch.bfloat16
+    with pytest.raises(SystemExit):
+        TrainConfig(out="x", precision="fp16")
+
+
+def test_bf16_features_are_float32_and_their_gram_loss_stays_within_a_percent(vgg, brick):
+    layers = ("relu1_1", "relu2_1", "relu3_1", "relu4_1", "relu5_1")
+    exact = Objective([brick], layers, "gram")
+    mixed = Objective([brick], layers, "gram", precision=torch.bfloat16)
+    images = torch.from_numpy(np.stack([brick[:64, :64], brick[64:, 64:]]).transpose(0, 3, 1, 2).copy())
+    feats = mixed.features(images)
+    assert all(value.dtype == torch.float32 for value in feats.values())
+    assert mixed.features(images)["relu3_1"].shape == exact.features(images)["relu3_1"].shape
+    noisy = (images + 0.1 * torch.rand_like(images)).clamp(0, 1)
+    reference, reduced = float(exact(noisy, np.array([0, 0]))), float(mixed(noisy, np.array([0, 0])))
+    assert reference > 0 and abs(reduced - reference) < 0.01 * reference
