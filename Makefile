@@ -176,9 +176,15 @@ structure: data
 
 # Product-level quality (issue 14): colour (CIELAB), style against colour-matched value
 # noise, diversity and oblique / axis slices, all through encoder.onnx + sampler.onnx as
-# the service serves them. Another export side by side: QUALITY_ARGS='--model-dir DIR --label NAME'.
+# the service serves them; style over each photo's own floor (issue 48, eval/style_floor.py)
+# for the tiles, by-example noise (eval/by_example.py) and value noise, with medians.
+# Another export side by side: QUALITY_ARGS='--model-dir DIR --label NAME'; fits: '--fits runs/fits'.
 QUALITY_ARGS ?=
-.PHONY: quality
+.PHONY: quality tune-by-example
 quality: data
 	$(PY) docs/eval/quality.py --model-dir model/weights --label shipped $(QUALITY_ARGS) \
 		--exemplars data/textures/val --out docs/eval/quality
+
+# The by-example baseline's triangle edge: its style error over the floor per edge, per photo
+tune-by-example: data
+	$(PY) -m eval.tune_by_example --exemplars data/textures/val --out docs/eval/quality/by_example_tuning.md
