@@ -183,3 +183,11 @@ def test_model_reads_photos_with_the_upload_reader() -> None:
                        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
                        and node.func.attr == "open" and getattr(node.func.value, "id", None) == "Image"]
     assert not opened, "Pillow reads a photo outside fetch: " + ", ".join(opened)
+
+
+def test_the_product_never_imports_the_eval_tools() -> None:
+    """eval/ (the tools ``make`` runs) is not in the wheel: service/, worker/ and model/ never import it."""
+    bad = [f"{path.relative_to(ROOT)}:{line} imports {target}"
+           for package in ("service", "worker", "model") for name, path in modules(package).items()
+           for target, line in imported(name, path) if target.split(".")[0] == "eval"]
+    assert not bad, "\n".join(bad)
