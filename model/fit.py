@@ -14,6 +14,7 @@ a repeat lattice, stripes, boards) is ``model/structure.py``'s to detect.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import tempfile
 from pathlib import Path
@@ -76,7 +77,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                  quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None,
                  rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto",
                  lean: str | None = "auto", interim=None, interim_seconds: float = INTERIM_SECONDS,
-                 precision: str = "auto") -> dict:
+                 precision: str = "auto", run_dir: str | Path | None = None, pause=None) -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
     'straightened', 'grain_stretch', 'lattice', 'muted_octaves', 'lean'}.
 
@@ -107,6 +108,12 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``sampler.onnx`` and tileable sampler), its code (list of floats), the step it is from and
     the structure keys of the result; not at all if no state beats the start by then or before
     the end. The fit goes on meanwhile; an exception from ``interim`` stops it.
+    ``run_dir``: the training run's folder (default: a temporary one). A fit whose ``run_dir``
+    holds a paused run continues it, with the rest of its ``minutes``.
+    ``pause()``: asked once, right after the interim is published: True stops the fit there;
+    ``run_dir`` then holds its resumable state and the result is ``{'paused': True, 'steps',
+    ...structure}`` (nothing exported). The service pauses an upload's fit so that the uploads
+    queued behind it reach their interims first.
     """
     if rate not in RATES:
         raise ValueError(f"rate must be one of {', '.join(RATES)}, got {rate!r}")
@@ -142,7 +149,10 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         folder.mkdir(exist_ok=True)
         write_samplers(model.field, folder)
         interim(folder, code.reshape(-1).tolist(), step, dict(structure))
-    with tempfile.TemporaryDirectory() as run_dir:
+    if pause is not None and interim is None:
+        raise ValueError("pause is asked after the interim: give an interim too")
+    with contextlib.nullcontext(str(run_dir)) if run_dir else tempfile.TemporaryDirectory() as run_dir:
+        Path(run_dir).mkdir(parents=True, exist_ok=True)
         exemplar = Path(image_path)
         if turned:  # training reads the turned photo as it is (it is smaller than the working size)
             exemplar = Path(run_dir) / f"{Path(image_path).stem}.png"
@@ -162,9 +172,11 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             threads=threads or 0,
             spectrum=spectrum, mute_octaves=muted, warp=lean is not None,
             warp_start=lean)
-        ckpt_path = train(cfg, progress=progress,
+        ckpt_path = train(cfg, progress=progress, pause=pause,
                           interim=Interim(interim_seconds, publish) if interim is not None else None)
         model, ckpt = load_checkpoint(ckpt_path)
+        if ckpt.get("paused"):
+            return {"paused": True, "steps": ckpt["step"], **structure}
     # The probe scores the unmuted start first; a fit that kept it serves no muted octave.
     if (ckpt.get("probe") or {}).get("step", 1) == 0:
         muted = 0

@@ -647,6 +647,12 @@ class Run:
     wall: float = 0.0  # seconds spent in steps, over all runs of this checkpoint
     history: list[float] = field(default_factory=list)  # this run's step losses
     probe: dict | None = None  # the probe's choice {'score', 'step'}, once it made one
+    # A fit that pauses (train's ``pause``) and resumes: the seconds of its budget spent before
+    # this run, the probe's best state so far ({'score', 'model', 'code', 'step'}) and whether
+    # the checkpoint is a pause (no best state restored: it holds the training state).
+    budget_spent: float = 0.0
+    probe_best: dict | None = None
+    paused: bool = False
 
     @property
     def ckpt_path(self) -> Path:
@@ -701,6 +707,7 @@ def resume(run: Run, path: Path) -> None:
         group["base_lr"] = base_lr  # (and older checkpoints' groups have none)
     run.codes.data.copy_(ckpt["code"] if run.cfg.mode == "single" else ckpt["codes"])
     run.step, run.wall = ckpt["step"], ckpt.get("wall_seconds", 0.0)
+    run.budget_spent, run.probe_best = ckpt.get("budget_seconds", 0.0), ckpt.get("probe_best")
     run.rng.bit_generator.state = ckpt["numpy_rng"]
     torch.set_rng_state(ckpt["torch_rng"])
     print(f"resumed {path} at step {run.step}")
@@ -802,6 +809,13 @@ class Probe:
         self.origins, self.axes, self.seeds = origins.to(run.device), axes.to(run.device), seeds.to(run.device)
         self.best_score, self.best = self.score(), self.snapshot()
         self.log(self.best_score)
+        saved = run.probe_best  # a resumed pause: the best state before it, if it beats this one
+        if saved is not None and saved["score"] <= self.best_score:
+            self.best_score, self.best = saved["score"], {key: saved[key] for key in ("model", "code", "step")}
+
+    def saved_best(self) -> dict:
+        """The best state and its score, for a paused fit's checkpoint."""
+        return {"score": self.best_score, **self.best}
 
     def score(self) -> float:
         """The objective on the fixed planes, at twice the training patch size."""
@@ -870,11 +884,14 @@ class Budget:
     whose default (100,000) would promise an ETA of hours.
     """
 
-    def __init__(self, cfg: TrainConfig, step: int):
-        self.started, self.total, self.timed = time.monotonic(), cfg.steps, bool(cfg.minutes)
+    def __init__(self, cfg: TrainConfig, step: int, spent: float = 0.0):
+        # ``spent``: seconds of the budget used before this run (a fit resumed after a pause:
+        # its minutes are its whole budget, and its rates fall over all of it)
+        self.started, self.total, self.timed = time.monotonic() - spent, cfg.steps, bool(cfg.minutes)
         self.deadline = self.started + cfg.minutes * 60 if self.timed else math.inf
-        self.bar = (tqdm(total=round(cfg.minutes * 60), disable=cfg.quiet, dynamic_ncols=True, unit="s",
-                         bar_format="{l_bar}{bar}| {n:.0f}/{total} s [{elapsed}<{remaining}{postfix}]") if self.timed
+        self.bar = (tqdm(total=round(cfg.minutes * 60), initial=round(spent), disable=cfg.quiet, dynamic_ncols=True,
+                         unit="s", bar_format="{l_bar}{bar}| {n:.0f}/{total} s [{elapsed}<{remaining}{postfix}]")
+                    if self.timed
                     else tqdm(total=self.total, initial=step, disable=cfg.quiet, dynamic_ncols=True, unit="step"))
 
     def left(self, step: int) -> bool:
@@ -923,6 +940,8 @@ def save(run: Run) -> None:
     }
     if run.probe is not None:
         ckpt["probe"] = run.probe
+    if run.paused:  # resumable: the training state above, and the best state apart from it
+        ckpt.update(paused=True, budget_seconds=run.budget_spent, probe_best=to_cpu(run.probe_best))
     ckpt["code" if cfg.mode == "single" else "codes"] = to_cpu(run.codes)
     tmp = run.ckpt_path.with_suffix(".tmp")
     torch.save(ckpt, tmp)
@@ -946,10 +965,13 @@ def mute_coarse_octaves(model: TextureSpace, count: int) -> None:
     weight.register_hook(lambda grad: grad * keep)
 
 
-def train(cfg: TrainConfig, progress=None, interim: Interim | None = None) -> Path:
+def train(cfg: TrainConfig, progress=None, interim: Interim | None = None, pause=None) -> Path:  # noqa: ANN001
     """Run (or resume) training; ``progress(fraction)`` is called after every step.
     ``interim``: a fit's first result, published from its probe while it goes on (``Interim``;
-    single mode with ``--probe-every`` only)."""
+    single mode with ``--probe-every`` only). ``pause()``: asked once, right after the interim
+    is published; True ends the run there with a resumable checkpoint (``"paused": True``: the
+    training state, the seconds of the budget spent, the probe's best state apart), which
+    ``train`` on the same ``--out`` continues, so that queued fits can reach their interims first."""
     run = setup(cfg)
     if run.ckpt_path.exists():
         resume(run, run.ckpt_path)
@@ -964,7 +986,7 @@ def train(cfg: TrainConfig, progress=None, interim: Interim | None = None) -> Pa
     stop = threading.Event()
     if threading.current_thread() is threading.main_thread():  # a job thread cannot own signals
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    budget = Budget(cfg, run.step)
+    budget = Budget(cfg, run.step, run.budget_spent if cfg.mode == "single" else 0.0)
     run.model.train()
     try:
         while budget.left(run.step) and not stop.is_set():
@@ -975,14 +997,19 @@ def train(cfg: TrainConfig, progress=None, interim: Interim | None = None) -> Pa
                 progress(fraction)
             if probe is not None and run.step % cfg.probe_every == 0:
                 probe.update()
-                if interim is not None:
+                if interim is not None and not interim.done:
                     interim.offer(probe, budget.elapsed())
+                    if interim.done and pause is not None and pause():
+                        run.paused = True
+                        break
             if run.step % cfg.ckpt_every == 0:
                 save(run)
                 run.log.flush()
     finally:
         budget.close()
-        if probe is not None:
+        if run.paused:
+            run.budget_spent, run.probe_best = budget.elapsed(), probe.saved_best()
+        elif probe is not None:
             if run.step % cfg.probe_every:  # the state after the last score
                 probe.update()
             run.probe = probe.restore_best()

@@ -39,7 +39,7 @@ def stop_before_training(monkeypatch, read) -> dict:  # noqa: ANN001
 
     seen = {}
 
-    def train(cfg, progress=None, interim=None):  # noqa: ANN001, ANN202
+    def train(cfg, progress=None, interim=None, pause=None):  # noqa: ANN001, ANN202
         seen[Path(cfg.exemplar).stem] = read(cfg)
         raise StopFit
 
@@ -322,7 +322,7 @@ def test_patch_side_defaults_to_128_with_or_without_a_lattice(tmp_path, monkeypa
 
     seen = []
 
-    def fake_train(cfg, progress=None, interim=None):
+    def fake_train(cfg, progress=None, interim=None, pause=None):
         seen.append(cfg.patch)
         raise StopFit
 
@@ -428,7 +428,7 @@ def test_a_fit_that_keeps_its_unmuted_start_reports_no_muted_octaves(tmp_path, m
 
     space = space_checkpoint(tmp_path)
 
-    def train(cfg, progress=None, interim=None):  # noqa: ANN001, ANN202 - the space itself, kept at kept_step
+    def train(cfg, progress=None, interim=None, pause=None):  # noqa: ANN001, ANN202 - the space itself, kept at kept_step
         ckpt = torch.load(space, weights_only=False)
         path = Path(cfg.out) / "kept.pt"
         torch.save({**ckpt, "code": torch.zeros(1, 8), "step": kept_step, "wall_seconds": 1.0,
@@ -454,7 +454,7 @@ def test_a_fit_publishes_its_interim_as_a_contract_sampler_with_its_structure(tm
     space = space_checkpoint(tmp_path)
     lent = torch.full((1, 8), 0.25)
 
-    def train(cfg, progress=None, interim=None):  # noqa: ANN001, ANN202
+    def train(cfg, progress=None, interim=None, pause=None):  # noqa: ANN001, ANN202
         assert interim is not None and interim.seconds == 12.0
         model, _ = load_checkpoint(space)
         interim.publish(model, lent, 25)  # as Probe.lend_best does

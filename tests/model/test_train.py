@@ -394,3 +394,31 @@ def test_bf16_features_are_float32_and_their_gram_loss_stays_within_a_percent(vg
     noisy = (images + 0.1 * torch.rand_like(images)).clamp(0, 1)
     reference, reduced = float(exact(noisy, np.array([0, 0]))), float(mixed(noisy, np.array([0, 0])))
     assert reference > 0 and abs(reduced - reference) < 0.01 * reference
+
+
+def test_a_fit_paused_after_its_interim_resumes_to_the_uninterrupted_result(tmp_path, brick, vgg):
+    """train(pause=...) stops right after the interim with a resumable checkpoint; training the
+    same --out again ends where one uninterrupted run ends (same steps, code and best state)."""
+    from model.train import Interim
+
+    image = tmp_path / "brick.png"
+    Image.fromarray((brick * 255).astype(np.uint8)).save(image)
+
+    def config(out):
+        return parse_args(["--mode", "single", "--exemplar", str(image), "--out", str(out), "--patch", "32",
+                           "--batch", "1", "--short-side", "128", "--crop", "64", "--quiet", "--layers",
+                           "relu1_1,relu2_1", "--steps", "6", "--lr", "0.01", "--warmup", "1", "--probe-every", "1",
+                           "--precision", "fp32"])
+    train(config(tmp_path / "whole"))
+    published, asked = [], []
+    paused = train(config(tmp_path / "paused"), interim=Interim(0.0, lambda model, code, step: published.append(step)),
+                   pause=lambda: asked.append(True) or True)
+    _, ckpt = load_checkpoint(paused)
+    assert asked == [True] and ckpt["paused"] and ckpt["step"] == published[0] < 6
+    assert ckpt["probe_best"]["step"] == published[0] and ckpt["budget_seconds"] >= 0
+    train(config(tmp_path / "paused"))  # the continuation: no interim, no pause
+    _, whole = load_checkpoint(tmp_path / "whole" / "checkpoint.pt")
+    _, resumed = load_checkpoint(tmp_path / "paused" / "checkpoint.pt")
+    assert resumed["step"] == whole["step"] == 6 and not resumed.get("paused")
+    assert resumed["probe"]["step"] == whole["probe"]["step"]
+    assert torch.allclose(resumed["code"], whole["code"], atol=1e-5)
