@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 
 from worker.colour_match import COLOUR_CALIBRATION, calibrate_texture
-from worker.errors import Canceled, FeatureUnavailable, InvalidParameter
+from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, Paused
 from worker.files import extension, media_type
 from worker.images import read_image, working_photo, write_image
 
-from . import keys
+from . import jobs, keys
 from .container import Services
 from .db import session_scope
 from .limits import bake_limits
@@ -39,6 +39,18 @@ def _texture(services: Services, job: Job) -> Texture:
     return texture
 
 
+def _texture_to_render(services: Services, job: Job) -> Texture:
+    """The job's texture, its sampler recorded on the job; a job submitted with
+    ``after_refinement`` while the texture's refinement may still replace its sampler goes back
+    to the queue instead (no attempt spent) until the refinement ends."""
+    texture = _texture(services, job)
+    sampler = jobs.served_sampler(services, texture.id, waiting=bool(job.params.get("after_refinement")))
+    if sampler and sampler["waiting_for_refinement"]:
+        raise Paused(f"waits for the refinement of texture {texture.id}", resend=False)
+    jobs.record_sampler(services, job.id, sampler)
+    return texture
+
+
 def _store_result(services: Services, job: Job, path: Path, fmt: str) -> dict[str, Any]:
     filename = path.name
     key = keys.result_key(job.id, filename)
@@ -51,7 +63,7 @@ def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
                should_cancel: ShouldCancel) -> dict[str, Any]:
     from worker.volumes import render_volume
 
-    texture = _texture(services, job)
+    texture = _texture_to_render(services, job)
     p = VolumeIn.model_validate(job.params)
     out_path = workdir / f"volume-{texture.id[:8]}-{p.resolution}{extension(p.format)}"
     path = render_volume(services.sampler_for(texture), texture.sampling_code(), p.seed, resolution=p.resolution,
@@ -64,7 +76,7 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
              should_cancel: ShouldCancel) -> dict[str, Any]:
     from worker.bake import bake_mesh
 
-    texture = _texture(services, job)
+    texture = _texture_to_render(services, job)
     p = BakeParams.model_validate(job.params)
     mesh_bytes = services.storage.get_bytes(job.input_key)
     stem = Path(p.filename).stem or "mesh"
@@ -86,7 +98,7 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
                should_cancel: ShouldCancel) -> dict[str, Any]:
     from worker.regions import RegionLimits, render_region
 
-    texture = _texture(services, job)
+    texture = _texture_to_render(services, job)
     p = RegionIn.model_validate(job.params)
     maps = tuple(p.maps)
     fmt = "zip" if maps else p.format  # with derived maps, a zip of colour + maps
@@ -154,8 +166,25 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
                          fit_structure(found), interim=True)
 
     in_place_interim = p.in_place and services.settings.fit_interim_seconds > 0
+    # A refinement pauses after its interim while other uploads wait for theirs (its training
+    # state stored); its continuation, on any worker, resumes that state with no interim of its own.
+    paused_key = keys.paused_fit_key(job.id)
+    run_dir = workdir / "run"
+    resumed = in_place_interim and services.storage.exists(paused_key)
+    if resumed:
+        services.storage.get_file(paused_key, run_dir / "checkpoint.pt")
+
+    def pause() -> bool:
+        return jobs.fits_waiting_for_interim(services, job.id)
+
     fitted = _fit_exemplar(services, texture, p, photo, out_dir, progress, should_cancel,
-                           serve_interim if in_place_interim else None)
+                           serve_interim if in_place_interim and not resumed else None,
+                           pause=pause if in_place_interim and not resumed else None, run_dir=run_dir)
+    if fitted.get("paused"):
+        services.storage.put_file(paused_key, run_dir / "checkpoint.pt")
+        raise Paused(f"paused after its interim at step {fitted['steps']}: other uploads wait for theirs",
+                     stage="interim")
+    services.storage.delete(paused_key)
     structure = fit_structure(fitted)
     code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
     values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
@@ -194,10 +223,12 @@ def fit_structure(found: dict[str, Any]) -> dict[str, Any]:
 
 def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path: Path, out_dir: Path,
                   progress: Progress, should_cancel: ShouldCancel,
-                  interim: Callable[..., None] | None = None) -> dict[str, Any]:
+                  interim: Callable[..., None] | None = None, pause: Callable[[], bool] | None = None,
+                  run_dir: Path | None = None) -> dict[str, Any]:
     """Run model.fit.fit_exemplar (torch) from the texture's model's space.pt; its result
     (code, grain and lattice used, ...). ``interim``: model.fit's hook for its best state
-    ``TEXSPACE_FIT_INTERIM_SECONDS`` in (an in-place refinement serves it)."""
+    ``TEXSPACE_FIT_INTERIM_SECONDS`` in (an in-place refinement serves it); ``pause`` and
+    ``run_dir``: model.fit's, to stop after the interim and to resume."""
     from model.fit import fit_exemplar  # torch lives in model/, imported only here
 
     def report(fraction: float, *_: Any, **__: Any) -> None:  # no cancel hook: stop at a report
@@ -209,10 +240,12 @@ def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path
     if not checkpoint.is_file():
         raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
     # TEXSPACE_FIT_THREADS: a fit must not take the cores tiles need
-    extra = {"interim": interim, "interim_seconds": services.settings.fit_interim_seconds} if interim else {}
+    settings = services.settings
+    extra = {"interim": interim, "interim_seconds": settings.fit_interim_seconds, "pause": pause} if interim else {}
     return fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0,
                         progress=report, grain=p.grain, lattice=p.lattice, even=p.even, lean=p.lean,
-                        threads=services.settings.fit_threads, **extra)
+                        threads=settings.fit_threads, device=settings.fit_device, precision=settings.fit_precision,
+                        run_dir=run_dir, **extra)
 
 
 def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],

@@ -47,10 +47,12 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
         if existing is not None:
             return same_request(existing, fingerprint), False
     check_queue_room(services)  # back-pressure: 503 + Retry-After when full
+    sampler = (served_sampler(services, texture_id, waiting=bool(params.get("after_refinement")))
+               if texture_id and kind != "fit" else None)
     job = Job(id=job_id or new_id(), kind=kind, texture_id=texture_id, params=params, input_key=input_key,
               state="queued", attempt=0, max_attempts=services.settings.max_attempts, progress=0.0,
               cancel_requested=False, idempotency_key=idempotency_key, request_hash=fingerprint,
-              owner_id=current_owner())
+              owner_id=current_owner(), sampler=sampler)
     try:
         with session_scope(services.sessions) as session:
             session.add(job)
@@ -79,6 +81,39 @@ def queue_refinement(services: Services, texture: Texture, params: dict[str, Any
             session.execute(update(Texture).where(Texture.id == texture.id).values(refinement_job_id=None))
     finally:
         owner_var.reset(token)
+
+
+def served_sampler(services: Services, texture_id: str, waiting: bool = False) -> dict[str, Any] | None:
+    """What ``texture_id`` renders with now (a job's ``sampler``): ``kind`` (encoder, interim,
+    fitted), ``version`` (the model's, plus ``+fit.HASH`` of its own sampler), ``refining``
+    (its refinement is queued or running and may still replace it) and
+    ``waiting_for_refinement`` (``waiting``, a job's after_refinement, and refining)."""
+    with session_scope(services.sessions) as session:
+        texture = session.get(Texture, texture_id)
+        if texture is None:
+            return None
+        refining = texture.refinement_may_replace_sampler() and session.scalar(
+            select(Job.state).where(Job.id == texture.refinement_job_id)) in ("queued", "running")
+    key = texture.sampler_key
+    kind = ("interim" if texture.sampler_interim else "fitted") if key else "encoder"
+    version = texture.model_version + (f"+fit.{hashlib.sha256(key.encode()).hexdigest()[:8]}" if key else "")
+    return {"kind": kind, "version": version, "refining": bool(refining),
+            "waiting_for_refinement": bool(waiting and refining)}
+
+
+def record_sampler(services: Services, job_id: str, sampler: dict[str, Any]) -> None:
+    """Store what a job renders with, as it starts."""
+    with session_scope(services.sessions) as session:
+        session.execute(update(Job).where(Job.id == job_id).values(sampler=sampler))
+
+
+def release_waiting(services: Services, texture_id: str) -> None:
+    """Send again the queued jobs of ``texture_id`` (those held for its refinement, which ended)."""
+    with session_scope(services.sessions) as session:
+        held = session.scalars(select(Job.id).where(Job.texture_id == texture_id, Job.state == "queued",
+                                                    Job.kind != "fit")).all()
+    for job_id in held:
+        enqueue(services, job_id)  # a duplicate message is harmless: claim() is conditional
 
 
 def same_request(job: Job, fingerprint: str) -> Job:
@@ -142,7 +177,8 @@ def claim(services: Services, job_id: str) -> Claim | None:
         moved = session.execute(
             update(Job).where(Job.id == job_id, Job.state == "queued", Job.attempt == job.attempt)
             .values(state="running", attempt=attempt, worker_id=services.worker_id, heartbeat_at=now,
-                    lease_expires_at=lease, started_at=job.started_at or now, progress=0.0, error=None)
+                    lease_expires_at=lease, started_at=job.started_at or now, error=None,
+                    progress=job.progress if job.stage else 0.0)  # (a paused fit goes on from where it was)
         ).rowcount
     if moved != 1:
         return None
@@ -247,3 +283,109 @@ def release_worker(services: Services) -> list[str]:
             released.append(job_id)
             enqueue(services, job_id)
     return released
+
+
+# --- the fit lane's order ----------------------------------------------------------------
+# An upload's refinement runs in two stages: its fit until the interim is served, then (when
+# other uploads wait for theirs) a pause, its state stored, and a continuation queued behind
+# them. The lane runs first stages before continuations and whole fits, and among tenants the
+# one whose fits ran least recently first, so that a burst of one tenant's uploads delays
+# another tenant's first refinement by at most one stage.
+FIT_STAGE_OVERHEAD_SECONDS = 6.0  # start (photo, structure, VGG targets) and the interim's export, 2 cores
+
+
+def _first_stage(job: Job) -> bool:
+    """A queued fit that will publish an interim before anything else: an upload's refinement
+    that has not been paused yet."""
+    return bool((job.params or {}).get("in_place")) and job.stage is None
+
+
+def fit_order(services: Services) -> list[Job]:
+    """The queued fits in the order the fit lane will run them (``pick_fit``): first stages
+    before the rest; within each, the tenant whose fits last ran longest ago, then the oldest."""
+    with session_scope(services.sessions) as session:
+        queued = session.scalars(select(Job).where(Job.kind == "fit", Job.state == "queued")
+                                 .order_by(Job.created_at, Job.id)).all()
+        owners = {job.owner_id for job in queued}
+        last_ran = dict(session.execute(select(Job.owner_id, func.max(Job.heartbeat_at)).where(
+            Job.kind == "fit", Job.heartbeat_at.is_not(None)).group_by(Job.owner_id)).all()) if queued else {}
+    order: list[Job] = []
+    for group in ([j for j in queued if _first_stage(j)], [j for j in queued if not _first_stage(j)]):
+        # round robin: each pick moves its tenant to the back (the tick stands for "ran now")
+        turn = {owner: (1, last_ran[owner]) if last_ran.get(owner) else (0, 0) for owner in owners}
+        for tick, _ in enumerate(list(group)):
+            heads = {}  # each tenant's oldest job in the group (the group is oldest first)
+            for job in group:
+                heads.setdefault(job.owner_id, job)
+            owner = min(heads, key=lambda o: (turn[o], heads[o].created_at, heads[o].id))
+            job = heads[owner]
+            group.remove(job)
+            order.append(job)
+            turn[owner] = (2, tick)
+    return order
+
+
+def pick_fit(services: Services, job_id: str) -> str:
+    """The fit the lane should run for a message naming ``job_id``: the first of ``fit_order``.
+    A fit-lane message is a turn, not an address: each queued fit sent one, so the lane runs as
+    many fits as were queued, in this order (``job_id`` when none is queued: nothing to run)."""
+    order = fit_order(services)
+    return order[0].id if order else job_id
+
+
+def fits_waiting_for_interim(services: Services, job_id: str) -> bool:
+    """Whether an upload other than ``job_id``'s waits for its refinement's first stage: a fit
+    past its interim then pauses for it."""
+    return any(_first_stage(job) and job.id != job_id for job in fit_order(services))
+
+
+@dataclass
+class FitLane:
+    """The fit lane now: its queued fits in run order and its running ones (``fit_lane``)."""
+
+    order: list[Job]
+    running: list[Job]
+
+
+def fit_lane(services: Services) -> FitLane:
+    with session_scope(services.sessions) as session:
+        running = session.scalars(select(Job).where(Job.kind == "fit", Job.state == "running")).all()
+    return FitLane(order=fit_order(services), running=list(running))
+
+
+def refinement_wait(services: Services, job: Job, lane: FitLane | None = None) -> dict[str, Any]:
+    """Where an upload's refinement stands in the fit lane: ``position`` (fits that run before
+    it starts; 0: next or running) and estimates, in seconds from now, of when its interim
+    and its final sampler arrive (None once there, or unknown). Estimates assume one fit lane
+    and stages as long as the settings make them (``fit_interim_seconds``, each job's seconds).
+    ``lane``: ``fit_lane(services)``, read once for many textures."""
+    lane = lane or fit_lane(services)
+    interim, overhead = services.settings.fit_interim_seconds, FIT_STAGE_OVERHEAD_SECONDS
+
+    def whole(j: Job) -> float:
+        return float((j.params or {}).get("seconds", services.settings.fit_seconds)) + overhead
+
+    def rest(j: Job) -> float:  # (progress: the share of its budget spent, kept over a pause)
+        return whole(j) * (1.0 - j.progress)
+
+    def first(j: Job) -> float:  # an upload's first stage, up to its interim
+        return interim + overhead if interim > 0 and _first_stage(j) else rest(j)
+
+    if job.state == "running":
+        spent = job.progress * whole(job)
+        to_interim = max(0.0, interim + overhead - spent) if job.stage is None and interim > 0 else None
+        return {"position": 0, "interim_eta_seconds": to_interim, "final_eta_seconds": rest(job)}
+    ids = [j.id for j in lane.order]
+    if job.state != "queued" or job.id not in ids:
+        return {"position": None, "interim_eta_seconds": None, "final_eta_seconds": None}
+    k, order = ids.index(job.id), lane.order
+    start = sum(rest(j) for j in lane.running) + sum(first(j) for j in order[:k])
+    if not _first_stage(job):
+        return {"position": k, "interim_eta_seconds": None, "final_eta_seconds": start + rest(job)}
+    reached = start + first(job)
+    # then the first stages behind it, the continuations of those ahead, every other queued fit
+    behind = sum(first(j) for j in order[k + 1:] if _first_stage(j))
+    others = sum(rest(j) - first(j) for j in order[:k] if _first_stage(j)) + sum(
+        rest(j) for j in order if not _first_stage(j))
+    return {"position": k, "interim_eta_seconds": reached,
+            "final_eta_seconds": reached + behind + others + rest(job) - first(job)}

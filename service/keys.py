@@ -53,6 +53,12 @@ def job_input_key(job_id: str, filename: str) -> str:
     return f"{job_prefix(job_id)}/input/{filename}"
 
 
+def paused_fit_key(job_id: str) -> str:
+    """A paused fit's training state (weights, Adam moments, best state), which its
+    continuation, on any worker, resumes."""
+    return f"{job_prefix(job_id)}/paused/checkpoint.pt"
+
+
 def result_key(job_id: str, filename: str) -> str:
     """A job's result: the same key on every run, so a re-run overwrites it (idempotent)."""
     return f"{job_prefix(job_id)}/result/{filename}"

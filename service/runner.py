@@ -2,7 +2,12 @@
 
 Retry policy: domain errors (bad mesh, limits, ...) are final, since a re-run would fail
 the same way; unexpected errors re-queue until ``max_attempts``; a worker killed
-outright is noticed by the reaper when its lease expires.
+outright is noticed by the reaper when its lease expires. A kind that raises ``Paused``
+(an upload's fit after its interim, while other uploads wait) goes back to the queue
+without using an attempt, its progress kept.
+
+Fit-lane messages are turns: the lane runs the fit ``jobs.pick_fit`` chooses, whichever
+queued fit the message names.
 """
 from __future__ import annotations
 
@@ -11,7 +16,7 @@ import shutil
 import threading
 import time
 
-from worker.errors import Canceled, TexspaceError
+from worker.errors import Canceled, Paused, TexspaceError
 
 from . import jobs
 from .container import Services
@@ -84,7 +89,11 @@ class Lease:
 
 
 def run_job_attempt(services: Services, job_id: str) -> str | None:
-    """Run one attempt of ``job_id`` if it is queued; return the state it ended in."""
+    """Run one attempt of ``job_id`` if it is queued (a fit: of the fit the lane's order puts
+    first); return the state it ended in."""
+    named = jobs.get(services, job_id)
+    if named is not None and named.kind == "fit":
+        job_id = jobs.pick_fit(services, job_id)
     token = job_id_var.set(job_id)
     try:
         claim = jobs.claim(services, job_id)
@@ -97,6 +106,7 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
         workdir = services.work_dir / f"{job_id}-{claim.attempt}"
         workdir.mkdir(parents=True, exist_ok=True)
         started = time.monotonic()
+        resend = True
         try:
             with Lease(services, claim) as lease:
                 if claim.job.cancel_requested:
@@ -105,6 +115,9 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
                 if lease.lost.is_set():
                     raise Canceled("lease lost")
             state, values = "succeeded", {**values, "progress": 1.0}
+        except Paused as exc:  # back in line, the attempt not spent (a paused fit keeps its progress)
+            state, values = "queued", {"attempt": claim.attempt - 1, "stage": exc.stage, "progress": lease.progress}
+            resend = exc.resend
         except Canceled as exc:
             state, values = "canceled", {"error": problem_for(exc).to_dict()}
         except TexspaceError as exc:
@@ -119,8 +132,10 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
             shutil.rmtree(workdir, ignore_errors=True)
         if jobs.finish(services, claim, state, **values):
             log.info("job %s", state, extra={"seconds": round(time.monotonic() - started, 3)})
-            if state == "queued":
+            if state == "queued" and resend:
                 jobs.enqueue(services, job_id)
+            if claim.job.kind == "fit" and state != "queued" and claim.job.texture_id:
+                jobs.release_waiting(services, claim.job.texture_id)  # jobs held for this refinement
         else:
             log.warning("job ended as %s but its lease was taken over; result discarded", state)
             if jobs.get(services, job_id) is None:  # deleted with its texture meanwhile: leave no files

@@ -17,7 +17,7 @@ from worker.volume_writers import FORMATS as VOLUME_FORMATS
 
 from .deps import SafeText
 from .settings import FIT_SECONDS, JOB_KINDS
-from .tables import JOB_STATES, Job, Texture
+from .tables import JOB_STATES, TERMINAL_STATES, Job, Texture
 
 CODE_SIZE = 8
 Seed = Annotated[int, Field(ge=0, le=2**31 - 1, description="texture instance; same seed, same texture")]
@@ -40,7 +40,33 @@ class Refinement(BaseModel):
 
     job_id: str
     state: Literal[JOB_STATES]
-    progress: float = Field(ge=0, le=1)
+    progress: float = Field(ge=0, le=1, description="share of the fit's time budget spent (0 while queued)")
+    stage: Literal["queued", "fitting", "paused", "done"] = Field(
+        description="queued: waiting for its first turn; fitting: running; paused: its interim served, waiting "
+                    "(its state stored) for its continuation while other uploads get theirs; done: ended")
+    queue_position: int | None = Field(
+        None, ge=0, description="fits the fit lane runs before this one starts (0: next, or running); "
+                                "null once it ended")
+    interim_eta_seconds: float | None = Field(
+        None, ge=0, description="estimated seconds until its first refined tiles (the interim) are served; "
+                                "null once served, or when none will be")
+    final_eta_seconds: float | None = Field(
+        None, ge=0, description="estimated seconds until its final fitted sampler is served; null once it ended")
+
+
+    @classmethod
+    def of(cls, job: Job, wait: dict | None = None) -> "Refinement":
+        wait = wait or {}
+        stage = ("done" if job.state in TERMINAL_STATES else "fitting" if job.state == "running"
+                 else "paused" if job.stage else "queued")
+        return cls(job_id=job.id, state=job.state, progress=job.progress, stage=stage,
+                   queue_position=wait.get("position"),
+                   interim_eta_seconds=_rounded(wait.get("interim_eta_seconds")),
+                   final_eta_seconds=_rounded(wait.get("final_eta_seconds")))
+
+
+def _rounded(seconds: float | None) -> float | None:
+    return None if seconds is None else round(max(0.0, seconds), 1)
 
 
 class Structure(BaseModel):
@@ -105,14 +131,14 @@ class TextureOut(BaseModel):
     links: TextureLinks
 
     @classmethod
-    def of(cls, t: Texture, refinement: Job | None = None) -> "TextureOut":
-        """``refinement``: the job named by ``t.refinement_job_id``, if any."""
+    def of(cls, t: Texture, refinement: Job | None = None, wait: dict | None = None) -> "TextureOut":
+        """``refinement``: the job named by ``t.refinement_job_id``, if any; ``wait``: its place
+        in the fit lane (``service.jobs.refinement_wait``)."""
         base = f"/v1/textures/{t.id}"
         return cls(id=t.id, name=t.name, code=t.code, colour=t.colour, model_version=t.model_version, source=t.source,
                    parents=t.parents, width=t.width, height=t.height, has_own_sampler=bool(t.sampler_key),
                    sampler=("interim" if t.sampler_interim else "fitted") if t.sampler_key else "encoder",
-                   refinement=Refinement(job_id=refinement.id, state=refinement.state, progress=refinement.progress)
-                   if refinement is not None else None,
+                   refinement=Refinement.of(refinement, wait) if refinement is not None else None,
                    structure=Structure(**t.served_structure()) if t.served_structure() else None,
                    lighting=t.lighting or "as-is",
                    created_at=t.created_at, updated_at=t.updated_at,
@@ -145,6 +171,10 @@ Bounds = Annotated[list[list[float]], Field(min_length=2, max_length=2, descript
 
 class VolumeIn(BaseModel):
     model_config = {"extra": "forbid"}
+    after_refinement: bool = Field(
+        False, description="if the texture's refinement may still replace its sampler (it is queued or running), "
+                           "wait for it to end and render with the refined sampler; false: render now with what the "
+                           "texture serves (the job's sampler says which)")
     resolution: int = Field(64, ge=2, le=1024, description="voxels per side (N); capped by the server limit")
     bounds: Bounds = Field(default_factory=lambda: [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     seed: Seed = 0
@@ -234,6 +264,7 @@ class BakeParams(BaseModel):
     gpu_format: Literal[GPU_FORMATS] | None = None
     normal_strength: float = DEFAULT_NORMAL_STRENGTH
     projection: Literal[BAKE_PROJECTIONS] = "auto"
+    after_refinement: bool = False
 
 
 RASTER_LIMIT = COORD_LIMIT * MAX_TILE_SIZE  # the raster window worker/tiles.py renders exactly
@@ -243,6 +274,10 @@ class RegionIn(BaseModel):
     """A large 2D export of the infinite plane (issue 5), rendered by a job."""
 
     model_config = {"extra": "forbid"}
+    after_refinement: bool = Field(
+        False, description="if the texture's refinement may still replace its sampler (it is queued or running), "
+                           "wait for it to end and render with the refined sampler; false: render now with what the "
+                           "texture serves (the job's sampler says which)")
     z: int = Field(ge=MIN_ZOOM, le=MAX_ZOOM, description="zoom level, as for tiles")
     x0: int = Field(ge=-RASTER_LIMIT, le=RASTER_LIMIT, description="first raster column at zoom z")
     y0: int = Field(ge=-RASTER_LIMIT, le=RASTER_LIMIT, description="first raster row at zoom z")
@@ -299,6 +334,18 @@ class JobLinks(BaseModel):
     output_texture: str | None
 
 
+class JobSampler(BaseModel):
+    kind: Literal["encoder", "interim", "fitted"] = Field(
+        description="encoder: the model's sampler at the encoder's code; interim: a refinement's state part way; "
+                    "fitted: a sampler fitted to the exemplar")
+    version: str = Field(description="the model's version, and for a fitted or interim sampler its own (+fit.HASH)")
+    refining: bool = Field(
+        description="the texture's refinement may still replace this sampler: the job was (or will be) rendered "
+                    "before it ended; submit with after_refinement to wait for it")
+    waiting_for_refinement: bool = Field(
+        False, description="queued until the texture's refinement ends (after_refinement)")
+
+
 class JobOut(BaseModel):
     id: str
     kind: Literal[JOB_KINDS]
@@ -313,6 +360,9 @@ class JobOut(BaseModel):
     error: dict[str, Any] | None = Field(None, description="problem document of the failure")
     result: JobResult | None
     output_texture_id: str | None
+    sampler: JobSampler | None = Field(
+        None, description="what the job renders with: while queued, what its texture serves now; from its start, "
+                          "what it used; null for fits")
     created_at: dt.datetime
     started_at: dt.datetime | None
     finished_at: dt.datetime | None
@@ -330,6 +380,7 @@ class JobOut(BaseModel):
                    result=JobResult(filename=j.result_filename, media_type=j.result_media_type,
                                     size=j.result_size) if done else None,
                    output_texture_id=j.output_texture_id, created_at=j.created_at, started_at=j.started_at,
+                   sampler=JobSampler(**j.sampler) if j.sampler else None,
                    finished_at=j.finished_at, heartbeat_at=j.heartbeat_at, lease_expires_at=j.lease_expires_at,
                    links=JobLinks(self=base, events=f"{base}/events", cancel=f"{base}/cancel",
                                   result=f"{base}/result" if done else None,

@@ -107,6 +107,11 @@ class Settings(BaseSettings):
     auto_fit: bool = Field(True, description="refine every upload in place with a fit job; effective where "
                            "torch is installed on the API and the model ships its space.pt")
     fit_threads: int = Field(1, ge=0, description="torch threads of a fit job (0: torch's default, every core)")
+    fit_device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="where a fit job's steps run: auto takes the worker's CUDA GPU when torch sees one")
+    fit_precision: Literal["auto", "bf16", "fp32"] = Field(
+        "auto", description="arithmetic of a fit's VGG loss and decoder: auto is bfloat16 on CUDA and on CPUs "
+        "with native bfloat16 (AVX-512 BF16, AMX), float32 elsewhere")
     fit_interim_seconds: float = Field(
         60.0, ge=0, description="an upload's refinement serves its fit's best state this many seconds in (if it "
         "beats the encoder's code by then), until the finished fit replaces it; 0: only the finished fit")

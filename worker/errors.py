@@ -38,6 +38,17 @@ class Canceled(TexspaceError):
     """A job's ``should_cancel()`` returned True; work stopped between two steps."""
 
 
+class Paused(Exception):
+    """A job stopped (or not started) on purpose: it goes back to the queue without using an
+    attempt. An upload's fit after its interim, its state saved, while other uploads wait for
+    theirs (``stage="interim"``, sent again at once); a job that waits for its texture's
+    refinement (``resend=False``: the refinement's end sends it). Not an error: no problem."""
+
+    def __init__(self, detail: str, *, stage: str | None = None, resend: bool = True):
+        super().__init__(detail)
+        self.stage, self.resend = stage, resend
+
+
 class ModelNotFound(TexspaceError):
     """No loaded model has the requested version, or a model directory is incomplete."""
 

@@ -81,6 +81,9 @@ def submit_bake(
         description="solid: the solid texture at each surface point; triplanar: the texture's xy plane "
                     "projected along x, y and z, blended by the surface normal; auto: triplanar for a "
                     "texture fitted on a repeat lattice (structure.lattice), else solid")] = "auto",
+    after_refinement: Annotated[bool, Form(
+        description="if the texture's refinement may still replace its sampler, wait for it to end and bake "
+                    "with the refined sampler; false: bake now with what the texture serves")] = False,
 ) -> JobOut:
     """UV-unwrap a mesh and bake the solid texture into its atlas (a job)."""
     load_texture(services, texture_id)
@@ -90,7 +93,7 @@ def submit_bake(
     filename = safe_filename(mesh.filename, "mesh.obj")
     params = BakeParams(resolution=resolution, seed=seed, scale=scale, format=format, filename=filename,
                         maps=sorted(set(maps)), gpu_format=gpu_format, normal_strength=normal_strength,
-                        projection=projection).model_dump()
+                        projection=projection, after_refinement=after_refinement).model_dump()
     fingerprint = jobs.request_hash("bake", texture_id, params, sha256(data).encode())
     if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:
         return accepted(response, jobs.same_request(existing, fingerprint), False)

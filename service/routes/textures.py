@@ -102,7 +102,11 @@ def texture_outs(services, textures: list[Texture]) -> list[TextureOut]:  # noqa
     if job_ids:
         with session_scope(services.sessions) as session:
             found = {j.id: j for j in session.scalars(select(Job).where(Job.id.in_(job_ids)))}
-    return [TextureOut.of(t, found.get(t.refinement_job_id or "")) for t in textures]
+    waiting = [job for job in found.values() if job.state in ("queued", "running")]
+    lane = jobs.fit_lane(services) if waiting else None  # read once for the whole page
+    waits = {job.id: jobs.refinement_wait(services, job, lane) for job in waiting}
+    return [TextureOut.of(t, found.get(t.refinement_job_id or ""), waits.get(t.refinement_job_id or ""))
+            for t in textures]
 
 
 def texture_out(services, texture: Texture) -> TextureOut:  # noqa: ANN001

@@ -40,11 +40,13 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
     unset, it publishes none (a real fit whose start stayed best until then)."""
     def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain=None,  # noqa: ANN001, ANN202
                      loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu", lattice=None,
-                     rate="falling", spectrum=0.0, even="auto", lean="auto", interim=None, interim_seconds=60.0):
+                     rate="falling", spectrum=0.0, even="auto", lean="auto", interim=None, interim_seconds=60.0,
+                     precision="auto", run_dir=None, pause=None):
         calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),
                       "init_checkpoint": Path(init_checkpoint),
                       "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice, "even": even,
-                      "lean": lean, "interim": interim, "interim_seconds": interim_seconds})
+                      "lean": lean, "interim": interim, "interim_seconds": interim_seconds, "device": device,
+                      "precision": precision, "pause": pause})
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         # what model.fit reports it used: the grain asked for (straightened by FAKE_TURN), a
@@ -60,6 +62,10 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
             shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "interim" / "sampler.onnx")
             interim(out_dir / "interim", FAKE_INTERIM_CODE, 25, dict(structure))
             module.during_interim()
+            if pause is not None and pause():  # as model.fit: the run's state kept in run_dir, nothing exported
+                Path(run_dir).mkdir(parents=True, exist_ok=True)
+                (Path(run_dir) / "checkpoint.pt").write_bytes(b"paused at step 25")
+                return {"paused": True, "steps": 25, **structure}
         shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
         (out_dir / "code.json").write_text(json.dumps({"code": [0.0] * 8}))
         if progress:

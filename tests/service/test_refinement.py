@@ -87,7 +87,8 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     assert job["output_texture_id"] == texture["id"]           # the same texture, refined
     refined = client.get(f"/v1/textures/{texture['id']}").json()
     assert refined["sampler"] == "fitted" and refined["has_own_sampler"]
-    assert refined["refinement"] == {"job_id": job["id"], "state": "succeeded", "progress": 1.0}
+    assert refined["refinement"] == {"job_id": job["id"], "state": "succeeded", "progress": 1.0, "stage": "done",
+                                     "queue_position": None, "interim_eta_seconds": None, "final_eta_seconds": None}
     assert refined["code"] == [0.0] * 8                         # the fit's code (the stand-in's)
     assert refined["structure"] == {"grain": None, "straightened": 0.0, "grain_stretch": None,
                                    "lattice": FAKE_LATTICE, "muted_octaves": 0, "lean": None}   # the fit's

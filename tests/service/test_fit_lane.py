@@ -1,0 +1,144 @@
+"""The fit lane's order: every waiting upload reaches its interim before any fit goes on past
+its own (a refinement pauses after its interim, its state stored, and a continuation resumes
+it); among tenants, the one whose fits ran least recently goes first; the texture says where
+its refinement stands (position, estimates).
+
+The fit is the stand-in of test_fit_grain.py (no torch), which pauses as model.fit does when
+asked to after its interim; the queue keeps its messages (MemoryHuey) until a test runs them.
+"""
+from __future__ import annotations
+
+import datetime as dt
+import sys
+
+import pytest
+
+from service import jobs, keys
+from service.db import session_scope
+from service.tables import Job, utcnow
+from tests.service.conftest import upload_photo
+
+from .test_refinement import refining, run_fit_lane  # noqa: F401 (fixtures)
+from .test_fit_grain import FAKE_INTERIM_CODE
+
+
+@pytest.fixture
+def fit_calls(monkeypatch) -> list[dict]:
+    from .test_fit_grain import fake_fit_module
+
+    calls: list[dict] = []
+    module = fake_fit_module(calls)
+    module.during_interim = lambda: None  # every fit publishes an interim
+    monkeypatch.setitem(sys.modules, "model.fit", module)
+    monkeypatch.setattr("service.job_kinds.torch_available", lambda: True)
+    return calls
+
+
+def drain_fit_lane(services, limit: int = 20) -> None:
+    for _ in range(limit):
+        if not services.fit_huey.pending_count():
+            return
+        run_fit_lane(services)
+    pytest.fail("the fit lane never emptied")
+
+
+def test_waiting_uploads_reach_their_interims_before_any_fit_goes_on(refining, photo, fit_calls) -> None:
+    client, services = refining
+    textures = [upload_photo(client, photo, name=f"t{k}") for k in range(3)]
+    drain_fit_lane(services)
+    assert len(fit_calls) == 5  # t0 and t1 pause for the uploads behind them; t2 has no one behind it
+    first_stages = [call["interim"] is not None for call in fit_calls]
+    assert first_stages == [True, True, True, False, False]
+    assert [call["pause"] is not None for call in fit_calls] == first_stages  # a continuation never pauses
+    for texture in textures:
+        now = client.get(f"/v1/textures/{texture['id']}").json()
+        assert now["sampler"] == "fitted" and now["refinement"]["stage"] == "done"
+        job = client.get(f"/v1/jobs/{texture['refinement']['job_id']}").json()
+        assert job["state"] == "succeeded" and job["attempt"] == 1  # a pause spends no attempt
+        assert not services.storage.exists(keys.paused_fit_key(job["id"]))  # the paused state is gone
+
+
+def test_a_paused_refinement_serves_its_interim_and_says_so(refining, photo, fit_calls) -> None:
+    client, services = refining
+    first, second = upload_photo(client, photo), upload_photo(client, photo)
+    queued = client.get(f"/v1/textures/{second['id']}").json()["refinement"]
+    assert queued["stage"] == "queued" and queued["queue_position"] == 1
+    assert 0 < client.get(f"/v1/textures/{first['id']}").json()["refinement"]["interim_eta_seconds"] \
+        < queued["interim_eta_seconds"] < queued["final_eta_seconds"]
+    run_fit_lane(services)  # the first upload's first stage: interim, then a pause for the second
+    paused = client.get(f"/v1/textures/{first['id']}").json()
+    assert paused["sampler"] == "interim" and paused["code"] == FAKE_INTERIM_CODE
+    assert paused["refinement"]["stage"] == "paused" and paused["refinement"]["state"] == "queued"
+    assert paused["refinement"]["interim_eta_seconds"] is None and paused["refinement"]["queue_position"] == 1
+    assert services.storage.exists(keys.paused_fit_key(first["refinement"]["job_id"]))
+    second_now = client.get(f"/v1/textures/{second['id']}").json()["refinement"]
+    assert second_now["queue_position"] == 0  # the second upload's first stage goes before the continuation
+
+
+def add_fit(services, owner: str | None, minutes_ago: float, **values) -> str:
+    job = Job(kind="fit", texture_id=None, params={"in_place": True, "seconds": 90.0}, state="queued",
+              owner_id=owner, created_at=utcnow() - dt.timedelta(minutes=minutes_ago), **values)
+    with session_scope(services.sessions) as session:
+        session.add(job)
+    return job.id
+
+
+def test_one_tenants_burst_delays_another_tenants_first_refinement_by_one_fit(refining) -> None:
+    _, services = refining
+    burst = [add_fit(services, "a", 10 - k) for k in range(4)]
+    other = add_fit(services, "b", 5)
+    later = add_fit(services, "c", 1)
+    order = [job.id for job in jobs.fit_order(services)]
+    assert order == [burst[0], other, later, burst[1], burst[2], burst[3]]
+    assert jobs.pick_fit(services, later) == burst[0]  # a message is a turn, not an address
+
+
+def test_first_stages_go_before_continuations_and_tenants_that_just_ran_wait(refining) -> None:
+    _, services = refining
+    paused = add_fit(services, "a", 10, stage="interim", progress=0.2)
+    whole = add_fit(services, "a", 9)
+    with session_scope(services.sessions) as session:  # a POST .../fit job: a new texture, no interim
+        session.get(Job, whole).params = {"in_place": False, "seconds": 90.0}
+    recent = add_fit(services, "a", 8)
+    fresh = add_fit(services, "b", 1)
+    ran = add_fit(services, "b", 30)
+    with session_scope(services.sessions) as session:  # tenant b's fit ran a moment ago
+        job = session.get(Job, ran)
+        job.state, job.heartbeat_at = "succeeded", utcnow()
+    order = [job.id for job in jobs.fit_order(services)]
+    assert order == [recent, fresh, paused, whole]
+    assert jobs.fits_waiting_for_interim(services, paused)
+    with session_scope(services.sessions) as session:  # only continuations and whole fits left
+        for job_id in (recent, fresh):
+            session.get(Job, job_id).state = "succeeded"
+    assert not jobs.fits_waiting_for_interim(services, paused)
+
+
+def run_main_lane(services) -> None:
+    task = services.huey.dequeue()
+    assert task is not None, "no message on the main lane"
+    services.huey.execute(task)
+
+
+def test_jobs_say_which_sampler_they_use_and_wait_for_the_refinement_when_asked(refining, photo) -> None:
+    client, services = refining
+    texture = upload_photo(client, photo)
+    url = f"/v1/textures/{texture['id']}/volumes"
+    now = client.post(url, json={"resolution": 4, "format": "npy"}).json()
+    later = client.post(url, json={"resolution": 4, "format": "npy", "after_refinement": True}).json()
+    assert now["sampler"]["kind"] == "encoder" and now["sampler"]["refining"]
+    assert not now["sampler"]["waiting_for_refinement"] and later["sampler"]["waiting_for_refinement"]
+    run_main_lane(services)
+    run_main_lane(services)
+    done = client.get(f"/v1/jobs/{now['id']}").json()
+    held = client.get(f"/v1/jobs/{later['id']}").json()
+    assert done["state"] == "succeeded" and done["sampler"]["kind"] == "encoder"
+    assert held["state"] == "queued" and held["attempt"] == 0  # held back, no attempt spent, not sent again
+    assert services.huey.pending_count() == 0
+    run_fit_lane(services)  # the refinement ends: the held job is sent again
+    assert services.huey.pending_count() == 1
+    run_main_lane(services)
+    held = client.get(f"/v1/jobs/{later['id']}").json()
+    assert held["state"] == "succeeded" and held["attempt"] == 1
+    assert held["sampler"]["kind"] == "fitted" and not held["sampler"]["refining"]
+    assert held["sampler"]["version"].startswith(texture["model_version"] + "+fit.")
