@@ -111,6 +111,7 @@ class Source:
     """
 
     name: str
+    families: str  # how family_of groups its photos: "set", "material" or "biome"
     package: str
     version: str
     sha256: str
@@ -130,7 +131,7 @@ class Source:
 # sha256 recorded from the first download (2026-12-02, Debian 12 "bookworm").
 SOURCES: tuple[Source, ...] = (
     Source(
-        "openarena", "openarena-081-textures", "0.8.5split-14",
+        "openarena", "set", "openarena-081-textures", "0.8.5split-14",
         "72bf05abd5286a1523b56ca04e25bceb775813d747f92ecd20749d512361a81f",
         "usr/share/games/openarena/baseoa/pak4-textures.pk3", r"^textures/", True,
         "GPL-2+", "License: GPL-2+", "",
@@ -138,14 +139,14 @@ SOURCES: tuple[Source, ...] = (
         "the package's CREDITS), GPL-2+",
     ),
     Source(
-        "nexuiz", "nexuiz-textures", "2.5.2-12",
+        "nexuiz", "set", "nexuiz-textures", "2.5.2-12",
         "d1ebefbcc7c730f9b68c286f11d3430906c111a99e0c3ec60ad25a32de175510",
         "usr/share/games/nexuiz/data/textures.pk3", r"^textures/", True,
         "GPL-2+", "GNU General Public License", "",
         "Nexuiz textures (c) 2002-2009 Alientrap, Lee Vermeulen and contributors, GPL-2+",
     ),
     Source(
-        "ufoai", "ufoai-textures", "2.5-2",
+        "ufoai", "material", "ufoai-textures", "2.5-2",
         "51c9c6a778249a3fa432c81c8c30ac5675ae5a1e675a33b0ce04545753d3218c",
         "usr/share/games/ufoai/base/0textures.pk3",
         r"^textures/tex_(buildings|buildings_snow|material|nature|streets|terrain|dirt)/", False,
@@ -154,7 +155,7 @@ SOURCES: tuple[Source, ...] = (
         "licences (GPL-2+, CC-BY-3.0, CC-BY-SA-3.0, ...) in the package's copyright file",
     ),
     Source(
-        "0ad", "0ad-data", "0.0.26-1",
+        "0ad", "biome", "0ad-data", "0.0.26-1",
         "53745ae74d05bccf6783400fa98f3932b21729ab9d2e86151aa2c331c3455178",
         "usr/share/games/0ad/mods/public/public.zip", r"^art/textures/terrain/types/", False,
         "CC-BY-SA-3.0", "Files: *\nCopyright: 2010 Wildfire Games\nLicense: CC-BY-SA-3.0",
@@ -270,34 +271,42 @@ def unpack_source(source: Source) -> tuple[Path, str, Path]:
 
 # ---------------------------------------------------------------------------- licences
 
-def dep5_stanzas(text: str) -> list[tuple[tuple[str, ...], str]]:
-    """(file patterns, licence short name) of every ``Files:`` stanza of a DEP-5
-    (machine-readable) copyright file, in file order; [] for free-form files."""
+Stanza = tuple[tuple[str, ...], str, str]  # (file patterns, licence short name, copyright holders)
+
+
+def dep5_stanzas(text: str) -> list[Stanza]:
+    """(file patterns, licence short name, copyright holders on one line) of every
+    ``Files:`` stanza of a DEP-5 (machine-readable) copyright file, in file order;
+    [] for free-form files."""
     stanzas = []
     for block in re.split(r"\n\s*\n", text):
         files = re.search(r"^Files:(.*(?:\n[ \t].*)*)", block, re.MULTILINE)
+        holders = re.search(r"^Copyright:(.*(?:\n[ \t].*)*)", block, re.MULTILINE)
         licence = re.search(r"^License:[ \t]*(\S+)", block, re.MULTILINE)
         if files and licence:
-            stanzas.append((tuple(files.group(1).split()), licence.group(1)))
+            holder_lines = [] if holders is None else [line.strip() for line in holders.group(1).splitlines()]
+            stanzas.append((tuple(files.group(1).split()), licence.group(1), "; ".join(filter(None, holder_lines))))
     return stanzas
 
 
-def licence_of(path: str, stanzas: Sequence[tuple[tuple[str, ...], str]], default: str) -> str:
-    """The licence DEP-5 gives ``path``: the last stanza whose pattern matches wins."""
-    licence = default
-    for patterns, name in stanzas:
+def licence_of(path: str, stanzas: Sequence[Stanza], default: tuple[str, str]) -> tuple[str, str]:
+    """(licence, copyright holders) DEP-5 gives ``path``: the last matching stanza wins."""
+    found = default
+    for patterns, licence, holders in stanzas:
         if any(fnmatch.fnmatchcase(path, pattern) for pattern in patterns):
-            licence = name
-    return licence
+            found = (licence, holders)
+    return found
 
 
-def member_licences(source: Source, members: Sequence[str], copyright_text: str) -> list[str]:
-    """Licence of each archive member, from the package's own copyright file."""
+def member_licences(source: Source, members: Sequence[str], copyright_text: str) -> list[tuple[str, str]]:
+    """(licence, copyright holders) of each archive member, from the package's own
+    copyright file: CC-BY files need their author named, not only the game."""
     if source.licence_phrase not in copyright_text:
         raise ValueError(f"{source.package}: copyright file no longer says {source.licence_phrase!r}")
     stanzas = dep5_stanzas(copyright_text)
     # The archive's upstream name may differ in its suffix (0ad: x.png.cached.dds is x.png).
-    return [licence_of(source.copyright_prefix + m.removesuffix(".cached.dds"), stanzas, source.default_licence)
+    return [licence_of(source.copyright_prefix + m.removesuffix(".cached.dds"), stanzas,
+                       (source.default_licence, source.credit))
             for m in members]
 
 
@@ -392,18 +401,29 @@ def decode(raw: bytes) -> tuple[np.ndarray, np.ndarray | None, Image.Image]:
 
 # ---------------------------------------------------------------------------- families
 
-def family_of(member: str) -> str:
-    """Material family of an archive member: its folder and its name without the
-    numbering, e.g. ``textures/gothic_block/blocks17b.jpg`` -> ``gothic_block/blocks``,
-    ``.../alpine_arctic/grass_dirt_01.png.cached.dds`` -> ``alpine_arctic/grass_dirt``.
-    No source name in it: packs shared by two games (the evil* sets in OpenArena and
-    Nexuiz) are one family, so they cannot straddle the split.
+def family_of(source: Source, member: str) -> str:
+    """Material family of an archive member, by ``source.families``:
+
+    ``set``: the folder, an artist's themed texture set in Quake-style packs, whose
+    members are variants of each other (``textures/gothic_block/blocks15_c.jpg`` ->
+    ``gothic_block``); ``material``: folder and first word of the name
+    (``textures/tex_buildings/concrete024.png`` -> ``tex_buildings/concrete``);
+    ``biome``: biome and first material word, the biome being the folder or, in the
+    top folder ``types``, the name's first word (0 A.D.: ``alpine_arctic/grass_dirt_01``
+    -> ``alpine_arctic/grass``, ``types/temp_grass_long`` -> ``temp/grass``).
+    Coarse on purpose: a wet, dim or cracked variant must not land across the split
+    from its original. No source name in it: packs shared by two games (the evil* sets
+    in OpenArena and Nexuiz) are one family, so they cannot straddle the split either.
     """
     parts = member.lower().removesuffix(".cached.dds").split("/")
     folder = parts[-2] if len(parts) > 1 else ""
     stem = parts[-1].split(".")[0]
-    stem = re.sub(r"(?:[_\-\s]*\d+[a-z]?)+$", "", stem).rstrip("_- ") or stem
-    return f"{folder}/{stem}"
+    words = [word for word in re.findall(r"[a-z]+", stem) if len(word) > 1] or [stem]  # "_b", "3b": variants
+    if source.families == "set":
+        return folder
+    if source.families == "biome" and folder == "types" and len(words) > 1:
+        return f"{words[0]}/{words[1]}"
+    return f"{folder}/{words[0]}"
 
 
 def split_of(family: str) -> str:
@@ -449,7 +469,7 @@ def fetch_corpus(out: Path = DEFAULT_CORPUS_DIR, sources: Sequence[Source] = SOU
                 continue
             names.add(photo_name(source, member))
             members.append(member)
-        for member, licence in zip(members, member_licences(source, members, copyright_text)):
+        for member, (licence, holders) in zip(members, member_licences(source, members, copyright_text)):
             if licence not in LICENCES:
                 rejected[f"licence {licence}"] = rejected.get(f"licence {licence}", 0) + 1
                 continue
@@ -469,7 +489,8 @@ def fetch_corpus(out: Path = DEFAULT_CORPUS_DIR, sources: Sequence[Source] = SOU
             if reasons:
                 continue
             # Only the thumbnail stays in memory (2,000 decoded photos would not fit).
-            photos.append({"source": source, "member": member, "licence": licence, "file": files / member,
+            photos.append({"source": source, "member": member, "licence": licence, "holders": holders,
+                           "file": files / member,
                            "thumbnail": thumbnail(image)})
         log(f"{source.name}: {len(members)} candidate files, {sum(p['source'] is source for p in photos)} photos kept")
     # Earlier sources win duplicates; within a source, sorted member order.
@@ -482,7 +503,7 @@ def fetch_corpus(out: Path = DEFAULT_CORPUS_DIR, sources: Sequence[Source] = SOU
     entries = []
     for photo in photos:
         source, member = photo["source"], photo["member"]
-        family = family_of(member)
+        family = family_of(source, member)
         split = split_of(family)
         name = photo_name(source, member)
         raw = photo["file"].read_bytes()
@@ -503,6 +524,7 @@ def fetch_corpus(out: Path = DEFAULT_CORPUS_DIR, sources: Sequence[Source] = SOU
             "source_file": f"{source.archive}:{member}",
             "source_sha256": hashlib.sha256(raw).hexdigest(),
             "licence": photo["licence"], "licence_kind": LICENCES[photo["licence"]],
+            "copyright": photo["holders"],
         })
     if len({e["name"] for e in entries}) != len(entries):
         raise ValueError("two photos map to one output name")

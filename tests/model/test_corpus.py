@@ -79,11 +79,17 @@ def test_near_duplicates_catch_repeats_up_to_rotation_not_new_patterns():
     assert near_duplicates(batch).tolist() == [False, False, False, False, True, True]
 
 
-def test_families_strip_numbering_and_ignore_the_source():
-    assert family_of("textures/gothic_block/blocks17b.jpg") == "gothic_block/blocks"
-    assert family_of("art/textures/terrain/types/alpine_arctic/grass_dirt_01.png.cached.dds") == "alpine_arctic/grass_dirt"
-    assert family_of("textures/tex_buildings/concrete024.png") == "tex_buildings/concrete"
-    assert family_of("textures/e7/e7walldesign01b.jpg") == "e7/e7walldesign"
+def test_families_group_variants_and_ignore_the_source():
+    source = {s.name: s for s in SOURCES}
+    assert family_of(source["openarena"], "textures/gothic_block/blocks15_c.jpg") == "gothic_block"
+    assert family_of(source["nexuiz"], "textures/e7/e7walldesign01b.jpg") == family_of(
+        source["openarena"], "textures/e7/e7dimfloor.jpg") == "e7"
+    assert family_of(source["ufoai"], "textures/tex_buildings/concrete024.png") == "tex_buildings/concrete"
+    zero_ad = source["0ad"]
+    assert family_of(zero_ad, "art/textures/terrain/types/alpine_arctic/grass_dirt_01.png.cached.dds") == "alpine_arctic/grass"
+    assert family_of(zero_ad, "art/textures/terrain/types/temp_grass_long.dds.cached.dds") == "temp/grass"
+    assert family_of(zero_ad, "art/textures/terrain/types/sahara/sand_01_wet.png.cached.dds") == family_of(
+        zero_ad, "art/textures/terrain/types/sahara/sand_02.png.cached.dds")
 
 
 def test_split_is_deterministic_keeps_families_disjoint_and_holds_out_enough():
@@ -100,10 +106,11 @@ def test_dep5_licences_take_the_last_matching_stanza():
             "Files:\n base/textures/a/one.png\n base/textures/b/*\nCopyright: x\nLicense: CC-BY-3.0\n\n"
             "License: GPL-2+\n text\n")
     stanzas = dep5_stanzas(text)
-    assert stanzas == [(("*",), "GPL-2+"), (("base/textures/a/one.png", "base/textures/b/*"), "CC-BY-3.0")]
-    assert licence_of("base/textures/a/one.png", stanzas, "?") == "CC-BY-3.0"
-    assert licence_of("base/textures/b/two.jpg", stanzas, "?") == "CC-BY-3.0"
-    assert licence_of("base/textures/a/two.png", stanzas, "?") == "GPL-2+"
+    assert stanzas == [(("*",), "GPL-2+", "team"), (("base/textures/a/one.png", "base/textures/b/*"), "CC-BY-3.0", "x")]
+    assert licence_of("base/textures/a/one.png", stanzas, ("?", "?")) == ("CC-BY-3.0", "x")
+    assert licence_of("base/textures/b/two.jpg", stanzas, ("?", "?")) == ("CC-BY-3.0", "x")
+    assert licence_of("base/textures/a/two.png", stanzas, ("?", "?")) == ("GPL-2+", "team")
+    assert licence_of("other.png", [], ("CC0-1.0", "someone")) == ("CC0-1.0", "someone")
 
 
 def test_candidates_skip_maps_decor_and_props():
