@@ -69,10 +69,15 @@ clean-data:
 # stops after TRAIN_STEPS steps in total, then exports to model/weights/.
 TRAIN_STEPS ?= 20000
 TRAIN_ARGS ?= --patch 64 --batch 4 --lr 2e-4 --warmup 200 --no-nearest --smooth --colour-normalise --isotropic-transforms --threads 2 --ckpt-every 100
-.PHONY: data train export evaluate
+.PHONY: data data-large train export evaluate
 
 data: install-test
 	$(PY) -m model.data fetch
+
+# The opt-in large corpus (docs/DATA.md): ~2.2 GB of Debian packages fetched once into
+# the cache, photos into data/textures-large/{train,val}. Needs apt-get and dpkg-deb.
+data-large: install-test
+	$(PY) -m model.data fetch --corpus large
 
 train: data
 	@if [ ! -f runs/space/checkpoint.pt ] && [ -f model/checkpoints/space-train.pt ]; then \
