@@ -389,8 +389,11 @@ def near_duplicates(thumbnails: np.ndarray, min_correlation: float = 0.95, max_c
     return np.triu(duplicate, k=1).any(axis=0)
 
 
-def decode(raw: bytes) -> tuple[np.ndarray, np.ndarray | None, Image.Image]:
-    """Image bytes -> (RGB uint8 array, alpha uint8 array or None, RGB Pillow image)."""
+def _read_source(raw: bytes) -> tuple[np.ndarray, np.ndarray | None, Image.Image]:
+    """A packaged source image's bytes -> (RGB uint8 array, alpha uint8 array or None,
+    RGB Pillow image). Pillow, not ``worker.decode``, as in ``model.data._read_source``:
+    this converts package files into the PNG data set (TGA and DDS included), and the
+    filter needs the alpha channel the upload reader composites away."""
     with Image.open(io.BytesIO(raw)) as opened:
         image = opened.convert("RGBA") if opened.mode in ("RGBA", "LA", "PA") or "transparency" in opened.info \
             else opened.convert("RGB")
@@ -475,7 +478,7 @@ def fetch_corpus(out: Path = DEFAULT_CORPUS_DIR, sources: Sequence[Source] = SOU
                 continue
             raw = (files / member).read_bytes()
             try:
-                rgb, alpha, image = decode(raw)
+                rgb, alpha, image = _read_source(raw)
             except (OSError, ValueError):
                 rejected["undecodable"] = rejected.get("undecodable", 0) + 1
                 continue
@@ -507,7 +510,7 @@ def fetch_corpus(out: Path = DEFAULT_CORPUS_DIR, sources: Sequence[Source] = SOU
         split = split_of(family)
         name = photo_name(source, member)
         raw = photo["file"].read_bytes()
-        image = decode(raw)[2]
+        image = _read_source(raw)[2]
         if min(image.size) > MAX_SHORT_SIDE:
             scale = MAX_SHORT_SIDE / min(image.size)
             image = image.resize((round(image.width * scale), round(image.height * scale)), Image.Resampling.LANCZOS)
