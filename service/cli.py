@@ -9,11 +9,15 @@ status 2 (bad input) or 1 (the work failed), never a traceback, with nothing wri
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import logging
 import math
 import os
+import shutil
 import sys
+import tempfile
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -32,7 +36,7 @@ from . import auth, db, processes
 from .context import build_services
 from .logs import setup_logging
 from .schemas import BAKE_PROJECTIONS, bake_projection
-from .settings import Settings
+from .settings import FIT_SECONDS, Settings
 from .tables import Texture
 
 log = logging.getLogger(__name__)
@@ -127,14 +131,20 @@ def _sqlite_file(url: str) -> Path | None:
 
 
 class TextureSource:
-    """A texture named on the command line: an image file (encoded now) or a stored id.
-    Looking an id up never creates a database: a mistyped path is refused instead."""
+    """A texture named on the command line: an image file (encoded now, and with ``refine``
+    seconds fitted as an upload's refinement is) or a stored id. Looking an id up never
+    creates a database: a mistyped path is refused instead."""
 
-    def __init__(self, settings: Settings, ref: str, lighting: str = "as-is") -> None:
+    def __init__(self, settings: Settings, ref: str, lighting: str = "as-is", refine: float | None = None) -> None:
         path = Path(ref)
         if path.is_file():
             self._encode(settings, path, lighting)
+            if refine:
+                self._refine(settings, path, lighting, refine)
             return
+        if refine:
+            raise CliError(f"--refine applies to an image file; a stored texture ({ref!r}) is refined by the "
+                           "service (its refinement, or POST /v1/textures/{id}/fit)")
         url = settings.resolved_database_url
         database = _sqlite_file(url)
         if database is not None and not database.is_file():  # a mistyped path: no database made for it
@@ -168,6 +178,46 @@ class TextureSource:
         self.model_version = runtime.version
         self.structure = None
         self.tileable_sampler = runtime.tileable_sampler
+        self.image = image
+
+    def _refine(self, settings: Settings, path: Path, lighting: str, seconds: float) -> None:
+        """Fit the photo for ``seconds`` (model.fit, the train extra) and draw with the fitted
+        sampler, its code and a colour table made for it, as a refined upload is drawn."""
+        try:
+            from model.fit import fit_exemplar  # torch lives in model/, imported only here
+        except ImportError:
+            raise CliError("--refine needs PyTorch: pip install 'texspace[train]'", code=1) from None
+        from worker.images import working_photo, write_image
+
+        from .job_kinds import fitted_colour
+
+        registry = _registry(settings)
+        runtime = registry.get(settings.default_model_version)
+        checkpoint = runtime.model_dir / "space.pt"
+        if not checkpoint.is_file():
+            raise CliError(f"model {runtime.version} ships no space.pt checkpoint to refine from", code=1)
+        image = working_photo(self.image, runtime.short_side, lighting)  # as the encoding saw it
+        folder = Path(tempfile.mkdtemp(prefix="texspace-refine-"))
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)  # the samplers are read until the end
+        photo = path
+        if lighting == "even":  # the fit sees the evened photo, as the service's does
+            photo = folder / "evened.tiff"
+            photo.write_bytes(write_image(image, "tiff", colour="srgb"))
+        bar, report = _progress_bar(f"refine ({seconds:g} s)")
+        with bar, warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the ONNX exporter's tracer warnings say nothing to a user
+            fitted = fit_exemplar(photo, folder / "fit", init_checkpoint=checkpoint, minutes=seconds / 60.0,
+                                  progress=report, device=settings.fit_device, precision=settings.fit_precision)
+        code = json.loads((folder / "fit" / "code.json").read_text())["code"]
+        self.sampler = registry.fitted_sampler(folder / "fit" / "sampler.onnx")
+        colour = fitted_colour(self.sampler, code, image)
+        from worker.colour_match import texture_vector
+        from worker.runtime import TILEABLE_SAMPLER
+
+        self.z, self.code = np.asarray(code, np.float32), texture_vector(code, colour)
+        self.structure = {key: fitted.get(key) for key in ("grain", "straightened", "grain_stretch", "lattice",
+                                                           "muted_octaves", "lean")}
+        self.tileable_sampler = lambda: registry.fitted_sampler(folder / "fit" / TILEABLE_SAMPLER)
 
 
 @contextmanager
@@ -297,7 +347,7 @@ def cmd_tile(args: argparse.Namespace, settings: Settings) -> None:
     out, fmt = output(args, TILE_EXTENSIONS, f"tile-{args.z}-{args.x}-{args.y}")
     _at_most(args.size, settings.max_tile_size, "tile size", "TEXSPACE_MAX_TILE_SIZE")
     check_tile_work(settings, args.z, args.size)
-    source = TextureSource(settings, args.texture, args.lighting)
+    source = TextureSource(settings, args.texture, args.lighting, args.refine)
     rgb = render_tile(source.sampler, source.code, args.seed, args.z, args.x, args.y, args.size,
                       pixels_per_unit=source.ppu, plane=args.plane, offset=args.offset)
     out.write_bytes(write_image(rgb, fmt))
@@ -312,7 +362,7 @@ def cmd_volume(args: argparse.Namespace, settings: Settings) -> None:
     bounds = np.asarray(args.bounds, np.float64).reshape(2, 3)
     if (np.abs(bounds) >= OFFSET_LIMIT).any() or not (bounds[1] > bounds[0]).all():
         raise CliError("--bounds: coordinates below 1e9 in magnitude, and X1 > X0, Y1 > Y0, Z1 > Z0")
-    source = TextureSource(settings, args.texture, args.lighting)
+    source = TextureSource(settings, args.texture, args.lighting, args.refine)
     bar, report = _progress_bar("volume")
     with bar:
         path = render_volume(source.sampler, source.code, args.seed, resolution=args.resolution,
@@ -333,7 +383,7 @@ def cmd_bake(args: argparse.Namespace, settings: Settings) -> None:
     _at_most(mesh.stat().st_size, settings.max_mesh_bytes, f"{mesh}: size in bytes", "TEXSPACE_MAX_MESH_BYTES")
     data = mesh.read_bytes()
     check_mesh(settings, data, mesh.name)  # as the API does at submission, before any work
-    source = TextureSource(settings, args.texture, args.lighting)
+    source = TextureSource(settings, args.texture, args.lighting, args.refine)
     bar, report = _progress_bar("bake")
     with bar:
         result = bake_mesh(source.sampler, source.code, args.seed, mesh_bytes=data, filename=mesh.name,
@@ -350,7 +400,7 @@ def cmd_tileable(args: argparse.Namespace, settings: Settings) -> None:
 
     out, fmt = output(args, TILEABLE_EXTENSIONS, f"tileable-{args.size}")
     _at_most(args.size * args.size, settings.max_region_pixels, "pixels", "TEXSPACE_MAX_REGION_PIXELS")
-    source = TextureSource(settings, args.texture, args.lighting)
+    source = TextureSource(settings, args.texture, args.lighting, args.refine)
     bar, report = _progress_bar("tileable")
     with bar:
         path = render_region(source.tileable_sampler(), source.code, args.seed, z=NATIVE_ZOOM, x0=0, y0=0,
@@ -365,7 +415,7 @@ def cmd_shader(args: argparse.Namespace, settings: Settings) -> None:
     from worker.shader import emit_shader, shader_name
 
     out, fmt = output(args, SHADER_EXTENSIONS, "shader")
-    source = TextureSource(settings, args.texture, args.lighting)
+    source = TextureSource(settings, args.texture, args.lighting, args.refine)
     sampler = getattr(source.sampler, "sampler", source.sampler)  # a model's runtime, or a fitted sampler
     ref = Path(args.texture)
     name = shader_name(ref.stem if ref.is_file() else args.texture)
@@ -440,6 +490,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("image", help="IMAGE file or TEXTURE_ID (required)")
     lighting_arg(p)
 
+    def refine_arg(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--refine", nargs="?", type=ranged(float, 0, 3600, above=True), const=FIT_SECONDS,
+                       metavar="SECONDS", help="an image file: fit it first, as an upload's refinement is, for "
+                       f"SECONDS ({FIT_SECONDS:g} when not given), with a progress bar; needs the train extra "
+                       "(PyTorch). Without it: the encoder's code, at once")
+
     def texture_args(p: argparse.ArgumentParser, what: str, formats: dict[str, tuple[str, ...]], name: str) -> None:
         p.add_argument("--seed", type=ranged(int, 0, SEED_MAX), default=0,
                        help=f"texture instance, 0..{SEED_MAX}")
@@ -451,6 +507,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--format", choices=list(formats),
                        help=f"must agree with -o's extension (default: from -o's extension, else {first})")
         lighting_arg(p)
+        refine_arg(p)
 
     p = proc("tile", cmd_tile, "render one tile of an image file or stored texture id")
     p.add_argument("texture", help="IMAGE file or TEXTURE_ID (required)")
@@ -506,6 +563,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=list(SHADER_EXTENSIONS),
                    help="must agree with -o's extension (default: from -o's extension, else glsl)")
     lighting_arg(p)
+    refine_arg(p)
 
     p = proc("keys", cmd_keys, "API keys: create, list, revoke")
     actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")

@@ -1,0 +1,42 @@
+"""``texspace tile|volume|bake|tileable|shader IMAGE --refine [SECONDS]``: the photo is fitted
+first, as an upload's refinement is, and drawn with the fitted sampler, its code and a colour
+table made for it. The fit is test_fit_grain.py's stand-in (no torch)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from service.cli import main
+from service.settings import FIT_SECONDS
+from tests.service.test_cli_errors import refused, tree
+
+from .test_fit_grain import fake_fit_module
+
+
+@pytest.fixture
+def fit_calls(monkeypatch) -> list[dict]:
+    calls: list[dict] = []
+    monkeypatch.setitem(sys.modules, "model.fit", fake_fit_module(calls))
+    return calls
+
+
+def test_refine_fits_the_photo_before_it_draws(cli_env: Path, fit_calls) -> None:
+    main(["tile", "brick.png", "6", "0", "0", "--size", "64", "-o", "plain.png"])
+    assert not fit_calls
+    main(["tile", "brick.png", "6", "0", "0", "--size", "64", "-o", "refined.png", "--refine", "30"])
+    (call,) = fit_calls
+    assert call["minutes"] == 0.5 and call["image_path"].name == "brick.png"
+    assert call["interim"] is None and call["pause"] is None  # nothing to serve part way
+    # the stand-in fits code zeros: another code through the sampler, other pixels
+    assert (cli_env / "refined.png").read_bytes() != (cli_env / "plain.png").read_bytes()
+    main(["shader", "brick.png", "-o", "s.glsl", "--refine"])  # SECONDS defaults to an upload's budget
+    assert fit_calls[-1]["minutes"] == FIT_SECONDS / 60
+
+
+def test_refine_of_a_stored_texture_is_refused(cli_env: Path, capsys, fit_calls) -> None:
+    before = tree(cli_env)
+    code, line = refused(["tile", "0123456789abcdef", "6", "0", "0", "--refine"], capsys)
+    assert code == 2 and "--refine applies to an image file" in line, line
+    assert not fit_calls and not tree(cli_env) - before
