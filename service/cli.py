@@ -494,7 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--refine", nargs="?", type=ranged(float, 0, 3600, above=True), const=FIT_SECONDS,
                        metavar="SECONDS", help="an image file: fit it first, as an upload's refinement is, for "
                        f"SECONDS ({FIT_SECONDS:g} when not given), with a progress bar; needs the train extra "
-                       "(PyTorch). Without it: the encoder's code, at once")
+                       "(PyTorch) (default: no fit, the encoder's code at once)")
 
     def texture_args(p: argparse.ArgumentParser, what: str, formats: dict[str, tuple[str, ...]], name: str) -> None:
         p.add_argument("--seed", type=ranged(int, 0, SEED_MAX), default=0,
