@@ -33,6 +33,28 @@ PREVIEW_HEADER = "X-Texspace-Tile"
 Job = dict[str, Any]
 
 
+class _ProgressBar:
+    """A tqdm bar on stderr fed by :meth:`Client.wait`'s updates (tqdm: a service dependency,
+    imported only when a bar is asked for)."""
+
+    def __init__(self, description: str) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=100, desc=description, unit="%", bar_format="{l_bar}{bar}| {n:.0f}% [{elapsed}{postfix}]")
+
+    def update(self, job: Job) -> None:
+        self.bar.n = round(100 * float(job.get("progress", 0.0)), 1)
+        stage = "paused after its interim" if job.get("stage") == "interim" and job.get("state") == "queued" else None
+        self.bar.set_postfix_str(stage or job.get("state", ""), refresh=False)
+        self.bar.refresh()
+
+    def __enter__(self) -> "_ProgressBar":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.bar.close()
+
+
 class ApiError(Exception):
     """An error answer: ``status`` and the problem document (``title``, ``detail``, ``type``)."""
 
@@ -195,10 +217,16 @@ class Client:
         return self._call("POST", f"/v1/jobs/{_job_id(job)}/cancel").json()
 
     def wait(self, job: Job | str, *, timeout: float | None = None,
-             progress: Callable[[Job], None] | None = None) -> Job:
+             progress: Callable[[Job], None] | bool | None = None) -> Job:
         """Follow a job's server-sent events until it ends; ``progress`` gets each update
-        (a dict with ``state``, ``progress`` 0..1, ``attempt``). Returns the succeeded job,
-        raises :class:`JobFailed` otherwise, ``TimeoutError`` after ``timeout`` seconds."""
+        (a dict with ``state``, ``progress`` 0..1, ``attempt`` and a fit's ``stage``: null, or
+        ``"interim"`` while an upload's refinement waits, paused after its interim);
+        ``progress=True`` draws a bar on stderr instead. Returns the succeeded job, raises
+        :class:`JobFailed` otherwise, ``TimeoutError`` after ``timeout`` seconds."""
+        if progress is True:
+            with _ProgressBar(f"job {_job_id(job)[:8]}") as bar:
+                return self.wait(job, timeout=timeout, progress=bar.update)
+        progress = progress or None
         job_id = _job_id(job)
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:  # a dropped stream (proxy timeout, restart) is picked up again
@@ -216,6 +244,17 @@ class Client:
                 if end["state"] != "succeeded":
                     raise JobFailed(end)
                 return end
+
+    def wait_refined(self, texture: dict | str, *, timeout: float | None = None,
+                     progress: Callable[[Job], None] | bool | None = None) -> dict:
+        """Wait for an upload's refinement (its ``refinement`` fit job) to end; returns the texture
+        as it is then (``sampler``: ``fitted`` when it succeeded). A texture without one is
+        returned at once. ``progress``: as for :meth:`wait`."""
+        texture_id = texture if isinstance(texture, str) else texture["id"]
+        refinement = self.texture(texture_id).get("refinement")
+        if refinement is not None:
+            self.wait(refinement["job_id"], timeout=timeout, progress=progress)
+        return self.texture(texture_id)
 
     def _follow(self, job_id: str, progress: Callable[[Job], None] | None, timeout: float | None) -> Job | None:
         """The final job from the event stream, or None when it closed before the end."""

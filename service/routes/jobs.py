@@ -234,7 +234,7 @@ async def job_events(services: ServicesDep, request: Request, job_id: JobId) -> 
                 yield f"id: {event_id}\nevent: canceled\ndata: {gone.model_dump_json()}\n\n"
                 return
             seen = job
-            snapshot = (job.state, round(job.progress, 4), job.attempt)
+            snapshot = (job.state, round(job.progress, 4), job.attempt, job.stage)
             if job.state in TERMINAL_STATES:
                 event_id += 1
                 yield f"id: {event_id}\nevent: {job.state}\ndata: {JobOut.of(job).model_dump_json()}\n\n"
@@ -242,7 +242,8 @@ async def job_events(services: ServicesDep, request: Request, job_id: JobId) -> 
             if snapshot != last:
                 event_id += 1
                 idle = 0.0
-                data = json.dumps({"state": job.state, "progress": job.progress, "attempt": job.attempt})
+                data = json.dumps({"state": job.state, "progress": job.progress, "attempt": job.attempt,
+                                   "stage": job.stage})
                 yield f"id: {event_id}\nevent: progress\ndata: {data}\n\n"
                 last = snapshot
             elif idle >= SSE_KEEPALIVE_SECONDS:

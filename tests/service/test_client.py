@@ -112,3 +112,25 @@ def test_fit_sends_every_option_the_server_takes() -> None:
     sent = [FitIn.model_validate(body) for body in bodies]
     assert (sent[0].grain, sent[0].lattice, sent[0].even, sent[0].seconds) == (None, None, None, 30)
     assert sent[1].model_dump() == FitIn().model_dump()  # the defaults are the server's
+
+
+def test_wait_refined_follows_the_uploads_refinement_with_a_bar(capsys) -> None:
+    """wait_refined: the texture's refinement job, its progress drawn as a bar (a paused
+    refinement says so), then the texture as it is after it."""
+    texture = {"id": "t1", "sampler": "encoder", "refinement": {"job_id": "f1", "state": "queued"}}
+    refined = {**texture, "sampler": "fitted", "refinement": {"job_id": "f1", "state": "succeeded"}}
+    stream = events(("progress", {"state": "running", "progress": 0.1, "attempt": 1, "stage": None}),
+                    ("progress", {"state": "queued", "progress": 0.1, "attempt": 0, "stage": "interim"}),
+                    ("succeeded", {"id": "f1", "kind": "fit", "state": "succeeded", "progress": 1.0}))
+    answers = iter([texture, refined])
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/jobs/f1/events":
+            return httpx.Response(200, content=stream, headers={"content-type": "text/event-stream"})
+        assert request.url.path == "/v1/textures/t1"
+        return httpx.Response(200, json=next(answers))
+
+    with client_for(handler) as ts:
+        assert ts.wait_refined("t1", progress=True)["sampler"] == "fitted"
+    bar = capsys.readouterr().err
+    assert "job f1" in bar and "paused after its interim" in bar and "10%" in bar
