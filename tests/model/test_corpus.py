@@ -86,10 +86,11 @@ def test_families_group_variants_and_ignore_the_source():
         source["openarena"], "textures/e7/e7dimfloor.jpg") == "e7"
     assert family_of(source["ufoai"], "textures/tex_buildings/concrete024.png") == "tex_buildings/concrete"
     zero_ad = source["0ad"]
-    assert family_of(zero_ad, "art/textures/terrain/types/alpine_arctic/grass_dirt_01.png.cached.dds") == "alpine_arctic/grass"
-    assert family_of(zero_ad, "art/textures/terrain/types/temp_grass_long.dds.cached.dds") == "temp/grass"
-    assert family_of(zero_ad, "art/textures/terrain/types/sahara/sand_01_wet.png.cached.dds") == family_of(
-        zero_ad, "art/textures/terrain/types/sahara/sand_02.png.cached.dds")
+    terrain = "art/textures/terrain/types/"
+    assert family_of(zero_ad, terrain + "alpine_arctic/grass_dirt_01.png.cached.dds") == "alpine_arctic/grass"
+    assert family_of(zero_ad, terrain + "temp_grass_long.dds.cached.dds") == "temp/grass"
+    assert family_of(zero_ad, terrain + "sahara/sand_01_wet.png.cached.dds") == family_of(
+        zero_ad, terrain + "sahara/sand_02.png.cached.dds")
 
 
 def test_split_is_deterministic_keeps_families_disjoint_and_holds_out_enough():
@@ -118,7 +119,8 @@ def test_candidates_skip_maps_decor_and_props():
     assert is_candidate(quake, "textures/gothic_block/blocks15.jpg")
     assert is_candidate(quake, "textures/e7/e7walldesign01b.jpg")  # "design" is not a "sign"
     for member in ("textures/gothic_block/blocks15_norm.tga", "textures/base_light/ceil1_30.jpg",
-                   "textures/gothic_trim/border2.jpg", "textures/skies/stars.jpg", "textures/evil4_metals/mtlpanel.jpg"):
+                   "textures/gothic_trim/border2.jpg", "textures/skies/stars.jpg",
+                   "textures/evil4_metals/mtlpanel.jpg"):
         assert not is_candidate(quake, member), member
 
 
