@@ -30,6 +30,14 @@ model's working resolution, short side ``exemplar_short_side``):
   independent per channel (``rgb``) and luminance-only (``lum``: one noise scaled per
   channel); the one with the lower error on that photo is the baseline (the stronger
   one; its name is reported). Win: ours < baseline. Target: wins on >= 80% of photos;
+* style over the photo's floor (issue 48, ``eval/style_floor.py``): the same Gram error on
+  128^2 crops at the working size. The photo's floor: each of its four corner crops against
+  the mean Gram of the other three, averaged. A synthesis's error: each quadrant of each of
+  the 8 tiles against the mean Gram of the four corner crops, averaged. Ratio = error /
+  floor (as good as more of the photo: ~1), for the tiles, for the value-noise baseline (the
+  kind with the lower crop error) and for by-example noise (``eval/by_example.py``: Heitz
+  and Neyret 2018, histogram-preserving blending of random patches of the photo on a
+  triangle grid) at the same tile positions and seeds. Medians over photos are reported;
 * diversity: VGG feature distance (``model.losses.feature_distance``) between the seed-1
   and seed-2 tile at each position, mean over positions. Target: > 0 on every photo;
 * 3D: style error of 256 px slices on 3 axis-aligned planes (xy, xz, yz at random
@@ -48,6 +56,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -57,12 +66,16 @@ from skimage.color import deltaE_ciede2000, rgb2lab
 
 from model.losses import feature_distance, gram_loss, gram_matrices
 from model.slices import fixed_planes
-from model.vgg import GATYS_LAYERS, shared_vgg
+from model.vgg import GATYS_LAYERS
 from worker.colour import linear_to_srgb
 from worker.colour_match import calibrate_texture, texture_vector
 from worker.images import encode_texture, read_image, resize_short_side
 from worker.runtime import ModelRuntime, SamplerSession
 from worker.tiles import NATIVE_ZOOM, render_tile
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for eval/ (not installed)
+from eval.by_example import TRIANGLE_EDGE, by_example_tile, gaussianise  # noqa: E402
+from eval.style_floor import CROP, crop_errors, photo_floor, style_ratio, vgg_features  # noqa: E402
 
 TILE = 256
 POSITIONS = ((0, 0), (1, 0), (0, 1), (1, 1))  # tile (x, y) at native zoom
@@ -168,14 +181,38 @@ def baseline_tiles(photo: np.ndarray, pixels_per_unit: float, kind: str) -> np.n
     return np.stack(tiles)
 
 
-def vgg_features(images: np.ndarray, batch: int = 4) -> dict[str, torch.Tensor]:
-    """VGG16 Gatys-layer features of sRGB images (N, H, W, 3) -> {layer: (N, C, h, w)}."""
-    vgg = shared_vgg(GATYS_LAYERS)
-    parts = []
-    with torch.no_grad():
-        for start in range(0, len(images), batch):
-            parts.append(vgg(torch.from_numpy(np.ascontiguousarray(images[start:start + batch].transpose(0, 3, 1, 2)))))
-    return {name: torch.cat([p[name] for p in parts]) for name in parts[0]}
+def by_example_tiles(photo: np.ndarray) -> np.ndarray:
+    """By-example noise of the photo (working size: one plane pixel per photo pixel) at the
+    tiles' positions and seeds, like ``render_tiles``: (8, TILE, TILE, 3) float32 sRGB."""
+    example = gaussianise(photo)  # once for all tiles
+    return np.stack([by_example_tile(example, TILE, TILE, (x * TILE, y * TILE), seed)
+                     for seed in SEEDS for x, y in POSITIONS])
+
+
+def photo_baselines(photo: np.ndarray, pixels_per_unit: float, targets: dict[str, torch.Tensor]) -> dict:
+    """What does not depend on the model, for a photo at one working size: the value-noise
+    baselines' whole-photo style errors per kind, the photo's floor, and the crop errors of
+    the value-noise kinds and of by-example noise."""
+    floor = photo_floor(photo)
+    whole, crop = {}, {}
+    for kind in ("rgb", "lum"):
+        tiles = baseline_tiles(photo, pixels_per_unit, kind)
+        whole[kind] = float(style_errors(tiles, targets).mean())
+        crop[f"value_noise_{kind}"] = float(crop_errors(tiles, floor).mean())
+    crop["by_example"] = float(crop_errors(by_example_tiles(photo), floor).mean())
+    return {"whole": whole, "floor": floor, "crop": crop}
+
+
+def floor_figures(ours_error: float, base: dict) -> dict:
+    """One photo's style errors over its floor: the tiles', by-example noise's and the
+    value-noise kind with the lower crop error (the stronger one)."""
+    floor, crop = base["floor"], base["crop"]
+    kind = min(("rgb", "lum"), key=lambda k: crop[f"value_noise_{k}"])
+    return {"floor": floor.floor, "corner_errors": floor.corner_errors.tolist(),
+            "error": ours_error, "ratio": style_ratio(ours_error, floor.floor),
+            "by_example_error": crop["by_example"], "by_example_ratio": style_ratio(crop["by_example"], floor.floor),
+            "value_noise_error": crop[f"value_noise_{kind}"], "value_noise_kind": kind,
+            "value_noise_ratio": style_ratio(crop[f"value_noise_{kind}"], floor.floor)}
 
 
 def style_errors(images: np.ndarray, targets: dict[str, torch.Tensor]) -> np.ndarray:
@@ -215,21 +252,28 @@ def measure_photo(runtime: ModelRuntime, image: np.ndarray, baselines: dict) -> 
         diversity = feature_distance({k: v[:n] for k, v in features.items()},
                                      {k: v[n:] for k, v in features.items()}).numpy()
     key = (runtime.short_side, runtime.pixels_per_unit)
-    if key not in baselines:  # the baseline depends on the working resolution only
-        baselines[key] = {kind: float(style_errors(baseline_tiles(photo, runtime.pixels_per_unit, kind), targets).mean())
-                          for kind in ("rgb", "lum")}
-    base = baselines[key]
+    if key not in baselines:  # the baselines and the floor depend on the working resolution only
+        baselines[key] = photo_baselines(photo, runtime.pixels_per_unit, targets)
+    base = baselines[key]["whole"]
     kind = min(base, key=base.get)
+    floor = floor_figures(float(crop_errors(tiles, baselines[key]["floor"]).mean()), baselines[key])
     axis = style_errors(render_slices(runtime, code, "axis"), targets)
     oblique = style_errors(render_slices(runtime, code, "oblique"), targets)
     return {"colour": colour_figures(rgb2lab(photo).reshape(-1, 3), tiles),
             "style": {"ours": float(ours.mean()), "ours_worst_tile": float(ours.max()),
                       "baseline": base[kind], "baseline_kind": kind, "baseline_rgb": base["rgb"],
                       "baseline_lum": base["lum"], "win": bool(ours.mean() < base[kind])},
+            "style_floor": floor,
             "diversity": float(diversity.mean()), "diversity_min": float(diversity.min()),
             "style_axis": float(axis.mean()), "style_oblique": float(oblique.mean()),
             "oblique_over_axis": float(oblique.mean() / axis.mean()), "code_length": int(code.size),
             "pattern_2d": bool(getattr(runtime, "pattern_2d", False))}
+
+
+def median_ratio(rows: list[dict], field: str) -> float | None:
+    """Median over photos of ``style_floor[field]`` (photos without one left out), or None."""
+    values = [r["style_floor"][field] for r in rows if r.get("style_floor", {}).get(field) is not None]
+    return float(np.median(values)) if values else None
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -250,6 +294,14 @@ def summarise(rows: list[dict]) -> dict:
                                            default=None),
         "oblique_over_axis_pattern_2d": sorted(r["oblique_over_axis"] for r in rows if r.get("pattern_2d")),
         "mean_style": float(np.mean([r["style"]["ours"] for r in rows])),
+        # style error over the photo's floor (issue 48): medians over photos; by-example and
+        # value noise are the model's own baselines (the same for models of one working size)
+        "median_floor_ratio": median_ratio(rows, "ratio"),
+        "median_floor_ratio_by_example": median_ratio(rows, "by_example_ratio"),
+        "median_floor_ratio_value_noise": median_ratio(rows, "value_noise_ratio"),
+        "floor_ratio_below_by_example": [sum(r["style_floor"]["error"] < r["style_floor"]["by_example_error"]
+                                             for r in rows if "style_floor" in r),
+                                         sum("style_floor" in r for r in rows)],
     }
     worst_solid = summary["max_oblique_over_axis_solid"]
     low, high = TARGET_STD
@@ -276,8 +328,45 @@ def pattern_note(summary: dict) -> str:
     return f"; lattice and stripe fits {', '.join(f'{v:.2f}' for v in ratios)}" if ratios else ""
 
 
+def floor_table(report: dict) -> list[str]:
+    """Markdown lines: style error over each photo's floor, one column per model (the
+    fit's empty when no --fits was given), by-example and value noise, and the medians."""
+    models = report["models"]
+    if not any("style_floor" in r for entry in models.values() for r in entry["photos"].values()):
+        return []
+    encoders = [label for label, entry in models.items() if entry.get("step") != "fit"]
+    fits = [label for label, entry in models.items() if entry.get("step") == "fit"]
+    columns = encoders + (fits or [None])  # None: the fit column, left empty
+    first = models[encoders[0]]  # its baselines (at its working size) fill the baseline columns
+    fmt = lambda v: "" if v is None else f"{v:.2f}"  # noqa: E731
+    lines = ["", "## Style error over the photo's own floor (issue 48)", "",
+             f"VGG Gram error of {CROP}^2 crops at the working size, divided by the photo's floor: its four "
+             f"corner crops, each against the mean Gram of the other three (mean of the four). Syntheses: the "
+             f"quadrants of the 8 tiles, each against the mean Gram of the four corners. ~1: as close to the "
+             f"photo as more of the photo is. By-example: Heitz and Neyret 2018 (eval/by_example.py, triangle "
+             f"edge {TRIANGLE_EDGE:g} px); value noise: the kind with the lower crop error."
+             + ("" if fits else " Fit: no --fits given, left empty."), "",
+             "| photo | floor | " + " | ".join(f"{c} / floor" if c else "fit / floor" for c in columns)
+             + " | by-example / floor | value noise / floor (kind) |", "|---" * (len(columns) + 4) + "|"]
+    for photo, row in first["photos"].items():
+        base = row.get("style_floor")
+        if base is None:
+            continue
+        cells = [fmt(models[c]["photos"].get(photo, {}).get("style_floor", {}).get("ratio")) if c else ""
+                 for c in columns]
+        lines.append(f"| {photo} | {base['floor']:.4f} | " + " | ".join(cells) + f" | {fmt(base['by_example_ratio'])} "
+                     f"| {fmt(base['value_noise_ratio'])} ({base['value_noise_kind']}) |")
+    medians = [fmt(models[c]["summary"].get("median_floor_ratio")) if c else "" for c in columns]
+    s = first["summary"]
+    lines.append("| **median** | | " + " | ".join(f"**{m}**" if m else "" for m in medians)
+                 + f" | **{fmt(s.get('median_floor_ratio_by_example'))}** "
+                   f"| **{fmt(s.get('median_floor_ratio_value_noise'))}** |")
+    return lines
+
+
 def to_markdown(report: dict) -> str:
-    """Summary table (one row per model), then one per-photo table per model."""
+    """Summary table (one row per model), the style error over each photo's floor, then one
+    per-photo table per model."""
     f3 = lambda values: "/".join(f"{v:.2f}" for v in values)  # noqa: E731
     mark = lambda ok: "" if ok else " **x**"  # noqa: E731
     lines = ["# Product quality (issue 14)", "", "Through encoder.onnx + sampler.onnx (worker/). Colour: CIELAB of the "
@@ -300,6 +389,7 @@ def to_markdown(report: dict) -> str:
             f"{s['min_diversity']:.3f}{mark(ok['diversity'])} | {s['oblique_over_axis']:.2f}"
             f"{mark(ok['oblique_over_axis'])} ({worst_photo(s)}{mark(ok['oblique_over_axis_worst_photo'])}"
             f"{pattern_note(s)}) | {s['mean_style']:.3f} |")
+    lines += floor_table(report)
     for label, entry in report["models"].items():
         lines += ["", f"## {label} ({entry['model_dir']}, version {entry['version']}, step {entry['step']})", "",
                   "| photo | dE76 pooled | dE2000 pooled | dE76 worst tile | std ratio pooled | std ratio worst tile "
@@ -335,7 +425,8 @@ def main(argv: list[str] | None = None) -> int:
     baselines: dict[str, dict] = {name: {} for name in images}
     report = {"settings": {"tile": TILE, "zoom": NATIVE_ZOOM, "positions": POSITIONS, "seeds": SEEDS,
                            "octaves": OCTAVES, "slice_planes": SLICE_PLANES, "plane_seed": PLANE_SEED,
-                           "layers": GATYS_LAYERS, "exemplars": str(args.exemplars)}, "models": {}}
+                           "layers": GATYS_LAYERS, "exemplars": str(args.exemplars),
+                           "floor_crop": CROP, "by_example_triangle_edge": TRIANGLE_EDGE}, "models": {}}
     for label, model_dir in zip(labels, args.model_dir):
         runtime, start = ModelRuntime(model_dir), time.perf_counter()
         rows = {name: measure_photo(runtime, image, baselines[name]) for name, image in images.items()}

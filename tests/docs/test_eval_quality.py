@@ -75,3 +75,47 @@ def test_the_worst_photo_oblique_target_leaves_out_2d_pattern_fits_and_reports_t
         {"models": {"m": {"summary": summary, "photos": {}, "model_dir": "d", "version": "v", "step": 1}}})
     # a solid that is not a 2D pattern is held to it
     assert not quality.summarise([quality_row(1.0), quality_row(1.6)])["pass"]["oblique_over_axis_worst_photo"]
+
+
+def floor_row(ratio: float, by_example: float, value_noise: float, floor: float = 0.01) -> dict:
+    """quality_row with the style-over-floor figures measure_photo adds (issue 48)."""
+    row = quality_row(1.0)
+    row["style"].update(baseline=0.2, baseline_kind="lum")  # what the per-photo tables read
+    row["diversity"] = 0.1
+    row["style_floor"] = {"floor": floor, "corner_errors": [floor] * 4, "error": ratio * floor, "ratio": ratio,
+                          "by_example_error": by_example * floor, "by_example_ratio": by_example,
+                          "value_noise_error": value_noise * floor, "value_noise_ratio": value_noise,
+                          "value_noise_kind": "lum"}
+    return row
+
+
+def test_the_summary_gives_median_ratios_over_the_floor(quality):
+    rows = [floor_row(3.0, 2.0, 40.0), floor_row(1.5, 4.0, 10.0), floor_row(9.0, 1.2, 20.0)]
+    summary = quality.summarise(rows)
+    assert summary["median_floor_ratio"] == 3.0
+    assert summary["median_floor_ratio_by_example"] == 2.0
+    assert summary["median_floor_ratio_value_noise"] == 20.0
+    assert summary["floor_ratio_below_by_example"] == [1, 3]
+    # a photo without a floor (ratio None) is left out of the median, not counted as 0
+    rows[2]["style_floor"]["ratio"] = None
+    assert quality.summarise(rows)["median_floor_ratio"] == 2.25
+    # reports from before issue 48 have no floor figures
+    assert quality.summarise([quality_row(1.0)])["median_floor_ratio"] is None
+
+
+def test_the_markdown_has_a_floor_table_with_medians_and_an_empty_fit_column(quality):
+    rows = {"bricks": floor_row(3.0, 2.0, 40.0), "gravel": floor_row(1.5, 4.0, 10.0)}
+    entry = {"summary": quality.summarise(list(rows.values())), "photos": rows, "model_dir": "d",
+             "version": "v", "step": 1}
+    markdown = quality.to_markdown({"models": {"shipped": entry}})
+    assert "| photo | floor | shipped / floor | fit / floor | by-example / floor | value noise / floor (kind) |" \
+        in markdown
+    assert "| bricks | 0.0100 | 3.00 |  | 2.00 | 40.00 (lum) |" in markdown
+    assert "| **median** | | **2.25** |  | **3.00** | **25.00** |" in markdown
+    assert "no --fits given" in markdown
+    fit = dict(entry, step="fit", photos={"bricks": floor_row(0.5, 2.0, 40.0)})
+    fit["summary"] = quality.summarise(list(fit["photos"].values()))
+    markdown = quality.to_markdown({"models": {"shipped": entry, "shipped-fit": fit}})
+    assert "| bricks | 0.0100 | 3.00 | 0.50 | 2.00 | 40.00 (lum) |" in markdown
+    assert "| gravel | 0.0100 | 1.50 |  | 4.00 | 10.00 (lum) |" in markdown
+    assert "no --fits given" not in markdown
