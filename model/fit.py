@@ -161,6 +161,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             mode="single", exemplar=str(exemplar), exemplar_as_is=bool(turned), out=run_dir, init=str(init),
             # the space's architecture, which --init requires
             variant=space_cfg.variant, dims=space_cfg.dims, short_side=space_cfg.exemplar_short_side,
+            code_size=space_cfg.code_size, encoder_width=space_cfg.encoder_width, hidden=space_cfg.hidden,
             no_nearest=not space_cfg.nearest_input, smooth=space_cfg.smooth,
             # a space trained for colour tables fits the same way: structure under the photo's colours
             colour_normalise=space_cfg.colour_blind_encoder, isotropic_transforms=space_cfg.isotropic_transforms,

@@ -91,6 +91,10 @@ class TrainConfig:
     patch: int = 96
     crop: int = 128
     short_side: int = 256
+    # Architecture of a space trained from scratch (with --init they must match its own):
+    code_size: int = ModelConfig.code_size
+    encoder_width: int = ModelConfig.encoder_width
+    hidden: int = ModelConfig.hidden
     lr: float = 5e-4
     code_lr: float = 5e-3
     transform_lr: float | None = None
@@ -155,6 +159,10 @@ def parse_args(argv=None) -> TrainConfig:
     p.add_argument("--patch", type=int, help="synthesised patch size (pixels)")
     p.add_argument("--crop", type=int, help="exemplar crop size fed to the encoder")
     p.add_argument("--short-side", type=int, help="exemplar working resolution")
+    p.add_argument("--code-size", type=int, help="length of a texture's code z (a new space; --init: its own)")
+    p.add_argument("--encoder-width", type=int,
+                   help="channels of the encoder's stem; its stages widen to 8x that (weights grow as its square)")
+    p.add_argument("--hidden", type=int, help="width of the decoder's hidden layers")
     p.add_argument("--lr", type=float)
     p.add_argument("--code-lr", type=float, help="learning rate of the codes (table or single)")
     p.add_argument("--transform-lr", type=float,
@@ -526,7 +534,8 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
     """The model, with --init's weights when given, and --init's learned code table (None
     when it has none). Draws from torch's RNG (weight init), so it comes right after seeding.
     ``mean_cell``: a lattice fit's ``lattice_mean_cell`` of its photo."""
-    model_cfg = ModelConfig(variant=cfg.variant, dims=cfg.dims, nearest_input=not cfg.no_nearest,
+    model_cfg = ModelConfig(variant=cfg.variant, dims=cfg.dims, code_size=cfg.code_size,
+                            encoder_width=cfg.encoder_width, hidden=cfg.hidden, nearest_input=not cfg.no_nearest,
                             smooth=cfg.smooth, exemplar_short_side=cfg.short_side, grain=cfg.grain,
                             grain_stretch=cfg.grain_stretch,
                             colour_blind_encoder=cfg.colour_normalise, isotropic_transforms=cfg.isotropic_transforms,
