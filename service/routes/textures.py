@@ -136,10 +136,16 @@ def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) 
         raise Problem(409, "fitted textures carry their own sampler and have no shared latent space; "
                            "interpolate the textures they were fitted from", slug="fitted-texture")
     code, colour = blend_textures(*ends, body.t, services.registry.get(a.model_version).sampler.colour_size)
+    parents = {"a": a.id, "b": b.id, "t": body.t}
+    # A refined parent's fitted sampler has a decoder of its own: two cannot be mixed, so the
+    # blend is of the codes its encoder gave (the model's space); the blend says so.
+    refined = [t.id for t in (a, b) if t.encoder_code is not None]
+    if refined:
+        parents["encoder_codes_of"] = refined
     texture = Texture(id=new_id(), name=body.name or blend_name(a.name or a.id, b.name or b.id, body.t),
                       code=code, colour=colour, colour_calibration=blend_calibration(a, b),
                       model_version=a.model_version, source="interpolate",
-                      parents={"a": a.id, "b": b.id, "t": body.t}, owner_id=auth.current_owner())
+                      parents=parents, owner_id=auth.current_owner())
     with session_scope(services.sessions) as session:
         session.add(texture)
     response.headers["Location"] = f"/v1/textures/{texture.id}"

@@ -174,6 +174,7 @@ def test_refined_upload_blends_by_its_encoder_code(refining, photo) -> None:
     assert res.status_code == 201, res.text
     assert res.json()["code"] == pytest.approx(a["code"])       # a's encoder code, not the fit's
     assert res.json()["sampler"] == "encoder" and res.json()["refinement"] is None
+    assert res.json()["parents"]["encoder_codes_of"] == [a["id"]]  # the blend says what it mixed
 
 
 def test_canceled_refinement_leaves_the_encoder_tiles_final(refining, photo) -> None:
