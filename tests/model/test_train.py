@@ -422,3 +422,11 @@ def test_a_fit_paused_after_its_interim_resumes_to_the_uninterrupted_result(tmp_
     assert resumed["step"] == whole["step"] == 6 and not resumed.get("paused")
     assert resumed["probe"]["step"] == whole["probe"]["step"]
     assert torch.allclose(resumed["code"], whole["code"], atol=1e-5)
+
+
+def test_an_interim_asks_for_one_probe_at_its_second():
+    from model.train import Interim
+
+    interim = Interim(10.0, None)
+    assert not interim.wants_probe(9.9)
+    assert interim.wants_probe(10.2) and not interim.wants_probe(10.4)  # once, then the schedule's probes
