@@ -333,6 +333,17 @@ def pick_fit(services: Services, job_id: str) -> str:
     return order[0].id if order else job_id
 
 
+def claim_fit_turn(services: Services, job_id: str, tries: int = 3) -> Claim | None:
+    """Claim the fit a fit-lane message's turn goes to (``pick_fit``); where another worker
+    claimed it first, the next in ``fit_order`` (up to ``tries``), so no turn is lost."""
+    for _ in range(tries):
+        picked = pick_fit(services, job_id)
+        claimed = claim(services, picked)
+        if claimed is not None or picked == job_id:
+            return claimed
+    return None
+
+
 def fits_waiting_for_interim(services: Services, job_id: str) -> bool:
     """Whether an upload other than ``job_id``'s waits for its refinement's first stage: a fit
     past its interim then pauses for it."""

@@ -92,11 +92,13 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
     """Run one attempt of ``job_id`` if it is queued (a fit: of the fit the lane's order puts
     first); return the state it ended in."""
     named = jobs.get(services, job_id)
-    if named is not None and named.kind == "fit":
-        job_id = jobs.pick_fit(services, job_id)
+    fit_turn = named is not None and named.kind == "fit"
+    claim = jobs.claim_fit_turn(services, job_id) if fit_turn else None
+    job_id = claim.job.id if claim is not None else job_id
     token = job_id_var.set(job_id)
     try:
-        claim = jobs.claim(services, job_id)
+        if not fit_turn:
+            claim = jobs.claim(services, job_id)
         if claim is None:
             log.info("job not claimable (already running, finished or canceled); message dropped")
             return None

@@ -142,3 +142,12 @@ def test_jobs_say_which_sampler_they_use_and_wait_for_the_refinement_when_asked(
     assert held["state"] == "succeeded" and held["attempt"] == 1
     assert held["sampler"]["kind"] == "fitted" and not held["sampler"]["refining"]
     assert held["sampler"]["version"].startswith(texture["model_version"] + "+fit.")
+
+
+def test_a_turn_whose_fit_another_worker_took_goes_to_the_next(refining) -> None:
+    _, services = refining
+    first, second = add_fit(services, None, 3), add_fit(services, None, 2)
+    assert jobs.claim(services, first) is not None  # another worker's claim, a moment earlier
+    claim = jobs.claim_fit_turn(services, first)    # this worker's message named the first
+    assert claim is not None and claim.job.id == second
+    assert jobs.claim_fit_turn(services, first) is None  # nothing queued: the turn is spent
