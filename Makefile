@@ -110,8 +110,10 @@ train-gpu:
 	$(PY) -m model.export runs/space-gpu/checkpoint.pt $(GPU_EXPORT)
 
 # make gpu-pack: for a lent GPU machine that takes 64 MiB of files and has no network (the
-# device tool): writes gpu/ (ignored by git, ~14 MiB: int8 VGG16, the training and validation
-# photos at the working resolution, docs/notes/gpu_pack.py). A fit there: python3 gpu/gpu_pack.py
+# device tool): writes gpu/ (ignored by git, ~12 MiB: int8 VGG16 (xz), the training and validation
+# photos at the working resolution, docs/notes/gpu_pack.py). GPU_CORPUS=large packs the large
+# corpus (docs/DATA.md, "Training on a lent GPU": a JPEG subset bounded to fit, and the recipe
+# gpu-large-* below); GPU_LICENCES=non-gpl leaves GPL art out. A fit there: python3 gpu/gpu_pack.py
 # fit gpu/val/PHOTO.png $$OUT/fit -- --device cuda --minutes 4. Carry gpu/ there and run, in one call:
 #   mkdir -p $$OUT/run && cp model/checkpoints/space-train.pt $$OUT/run/checkpoint.pt &&
 #   python3 gpu/gpu_pack.py train model/checkpoints/space-train.pt -- --out $$OUT/run \
@@ -119,10 +121,37 @@ train-gpu:
 # (the copy makes it resume with its Adam state); bring back $$OUT/run/checkpoint.pt, put
 # it at model/checkpoints/space-train.pt and export here. How the shipped space was made:
 # docs/notes/model-history.md, "Isotropic transforms trained".
+GPU_CORPUS ?= default
+GPU_LICENCES ?= all
+# large: 256 px short side, long side cropped to 384, JPEG 90, 4 MiB of photos (147 train photos
+# of 147 families, 8 val): tree 51.2 + pack 11.4 + slim checkpoint 2.7 MiB stay under 64.
+# A run resumes only on the pack it started with: keep these the same for all its calls.
+GPU_PACK_ARGS ?= $(if $(filter large,$(GPU_CORPUS)),--quality 90 --max-long 384 --photo-mib 4 --val 8)
 .PHONY: gpu-pack
-gpu-pack: data
+gpu-pack: $(if $(filter large,$(GPU_CORPUS)),install-test,data)
+	@test -f $(if $(filter large,$(GPU_CORPUS)),data/textures-large,data/textures)/index.json || \
+		{ echo "no corpus: make $(if $(filter large,$(GPU_CORPUS)),data-large,data) first"; exit 1; }
 	rm -rf gpu
-	$(PY) docs/notes/gpu_pack.py pack gpu
+	$(PY) docs/notes/gpu_pack.py pack gpu --corpus $(GPU_CORPUS) --licences "$(GPU_LICENCES)" $(GPU_PACK_ARGS)
+
+# A new space on the large corpus, trained from scratch on a lent GPU in calls of the device
+# tool (docs/DATA.md, "Training on a lent GPU"). make gpu-large-command prints the call: carry
+# gpu and (after the first call) runs/space-gpu-large/checkpoint.pt; it trains GPU_LARGE_MINUTES
+# and puts a slim checkpoint and the call's log in $$OUT/run. Then make gpu-large-back
+# FROM=<files_at>/run puts them in runs/space-gpu-large; the next call resumes there.
+GPU_LARGE_MINUTES ?= 8
+GPU_LARGE_ARGS ?= --code-size 16 --batch 16 --patch 256 --lr 2e-4 --warmup 200 --no-nearest --smooth --colour-normalise --isotropic-transforms --ckpt-every 500 --quiet
+.PHONY: gpu-large-command gpu-large-back gpu-large-export
+gpu-large-command:
+	@echo "carry: [\"gpu\"$$(test -f runs/space-gpu-large/checkpoint.pt && echo ', \"runs/space-gpu-large/checkpoint.pt\"')]   timeout_s: 570"
+	@echo 'mkdir -p runs/space-gpu-large $$OUT/run && PYTHONUNBUFFERED=1 python3 gpu/gpu_pack.py train -- --out runs/space-gpu-large --device cuda --minutes $(GPU_LARGE_MINUTES) $(GPU_LARGE_ARGS); python3 gpu/gpu_pack.py slim runs/space-gpu-large/checkpoint.pt $$OUT/run/checkpoint.pt; cp runs/space-gpu-large/log.jsonl $$OUT/run/'
+gpu-large-back:
+	@test -f "$(FROM)/checkpoint.pt" || { echo "FROM=<files_at>/run: the call's checkpoint.pt and log.jsonl"; exit 1; }
+	mkdir -p runs/space-gpu-large
+	cp "$(FROM)/checkpoint.pt" runs/space-gpu-large/checkpoint.pt
+	cat "$(FROM)/log.jsonl" >> runs/space-gpu-large/log-all.jsonl
+gpu-large-export: install-test
+	$(PY) -m model.export runs/space-gpu-large/checkpoint.pt runs/space-gpu-large/weights
 
 # The comparison: every variant trained as a space from scratch with the same settings and
 # the same number of steps (runs/compare/<variant>), then evaluated on the validation
