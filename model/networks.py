@@ -179,6 +179,11 @@ class Encoder(nn.Module):
 # ``_fixed_rotations``; small c for the coarse octaves (a period spans fewest of their
 # cells); alternating signs so neighbouring octaves do not share a direction.
 TILEABLE_ROTATIONS = ((1, 0, 1), (0, 1, 1), (4, 3, 5), (3, -4, 5), (12, 5, 13), (5, -12, 13), (15, 8, 17), (8, -15, 17))
+# A grain fit's octaves turn by quarter turns only (c = 1). A turn with c > 1 quantises the
+# frequency along x to multiples of c per period, and along a 16x grain every octave of a
+# 256-px tileable image wanted under half of its c (the finest: 8 cells, c = 17). Its cells are
+# long along the grain whatever the turn (the stretch comes first), as on the infinite plane.
+TILEABLE_GRAIN_ROTATIONS = ((1, 0, 1), (0, 1, 1), (-1, 0, 1), (0, -1, 1))
 
 
 def _fixed_rotations(n: int, dims: int, seed: int = 20200614) -> torch.Tensor:
@@ -449,8 +454,9 @@ class TextureField(nn.Module):
         float64 []  ->  (float64 [B,P,K,D], float64 [2,2,B,1,K]).
 
         Each octave keeps its learned volume scale and grain, turns about z by its angle
-        in ``TILEABLE_ROTATIONS`` (cos = a/c, sin = b/c), and has its frequency along x
-        and y rounded so that one period spans m = round(f L / c) >= 1 steps: a period
+        in ``TILEABLE_ROTATIONS`` (a grain fit's: ``TILEABLE_GRAIN_ROTATIONS``; cos = a/c,
+        sin = b/c), and has its frequency along x and y rounded so that one period spans
+        m = round(f L / c) >= 1 steps (>= 0 along a grain: none, constant along it): a period
         then moves the octave's lattice by the integer vectors m_x (a, b) and m_y (-b, a),
         which the noise wraps (``wrap_cells`` in model/noise.py). The rounding moves a
         frequency by at most c / (2 f L) of itself: ~6% for a 1024^2 tile (L = 4 units).
@@ -466,17 +472,26 @@ class TextureField(nn.Module):
         if self.cfg.flags.transforms:
             scale = _determinant(transforms.to(torch.float64)).abs().clamp_min(1e-12) ** (1.0 / d)
         freq = scale * torch.tensor([2.0**i for i in range(k)], dtype=torch.float64, device=dev)  # [B,K]
-        a, s, c = torch.tensor([TILEABLE_ROTATIONS[i % len(TILEABLE_ROTATIONS)] for i in range(k)],
+        turns = TILEABLE_GRAIN_ROTATIONS if self.cfg.grain else TILEABLE_ROTATIONS
+        a, s, c = torch.tensor([turns[i % len(turns)] for i in range(k)],
                                dtype=torch.float64, device=dev).unbind(-1)  # [K] each
         grain = self.world_scale.to(dev)
         x, y = points[..., 0:1], points[..., 1:2]  # [B,P,1]
         if self.warp is None:
-            steps_x = torch.clamp_min(torch.round(freq * grain[0] * period / c), 1.0)  # [B,K]
-            steps_y = torch.clamp_min(torch.round(freq * grain[1] * period / c), 1.0)
+            # Along a grain, a coarse octave may round to no step per period: it is then constant
+            # along the grain, as its cells, longer than the period, nearly are on the infinite
+            # plane. A floor of one step made them one period long and round: a 16x wood fit's
+            # 256-px tileable image had 4.2x the gradients across its grain as along it, the map 14x.
+            floor_x, floor_y = (0.0 if self.cfg.grain == "x" else 1.0), (0.0 if self.cfg.grain == "y" else 1.0)
+            steps_x = torch.clamp_min(torch.round(freq * grain[0] * period / c), floor_x)  # [B,K]
+            steps_y = torch.clamp_min(torch.round(freq * grain[1] * period / c), floor_y)
             fx, fy = (steps_x / period).unsqueeze(1), (steps_y / period).unsqueeze(1)  # [B,1,K] (x c / c)
             axes = [a * fx * x - s * fy * y, s * fx * x + a * fy * y]
-            u = torch.stack([steps_x * a, steps_x * s])  # [2,B,K]
-            v = torch.stack([-steps_y * s, steps_y * a])
+            # a wrap vector of an axis with no step only keeps the wrap basis invertible: no point
+            # moves along it (one step of the turned axis, an integer vector)
+            wrap_x, wrap_y = torch.clamp_min(steps_x, 1.0), torch.clamp_min(steps_y, 1.0)
+            u = torch.stack([wrap_x * a, wrap_x * s])  # [2,B,K]
+            v = torch.stack([-wrap_y * s, wrap_y * a])
         else:
             g = self.warp_matrix()[:2, :2] * grain[:2]  # W diag(grain), as lattice_points maps (x, y)
             n = [[torch.round(freq * g[i, j] * period / c) for j in range(2)] for i in range(2)]  # [B,K] each

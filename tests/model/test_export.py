@@ -338,3 +338,28 @@ def test_tileable_image_has_no_seam(exported):
     wrap_y = np.abs(image[0] - image[-1]).mean()
     assert columns.min() <= wrap_x <= columns.max() and rows.min() <= wrap_y <= rows.max()
     assert abs(wrap_x - columns.mean()) < 3 * columns.std() and abs(wrap_y - rows.mean()) < 3 * rows.std()
+
+
+def test_a_grain_fields_tileable_image_keeps_its_stretch_and_repeats_exactly():
+    """A 16x grain along x: the tileable 256-px image is as much longer along the grain as the
+    infinite plane (quarter-turn octaves, none of a coarse octave's steps along the grain),
+    and repeats exactly with its period."""
+    from model.networks import ModelConfig, TextureSpace
+
+    torch.manual_seed(0)
+    field = TextureSpace(ModelConfig(grain="x", grain_stretch=16.0, isotropic_transforms=True, smooth=True,
+                                     nearest_input=False)).field.eval()
+    g = (np.arange(256) + 0.5) / 256.0
+    y, x = np.meshgrid(g, g, indexing="ij")
+    points = torch.from_numpy(np.stack([x, y, np.zeros_like(x)], -1).reshape(1, -1, 3))
+    z, seed, period = torch.randn(1, 8), torch.tensor(3), torch.tensor(1.0, dtype=torch.float64)
+
+    def stretch(image):  # gradients across the grain over those along it
+        return np.abs(np.diff(image, axis=0)).mean() / np.abs(np.diff(image, axis=1)).mean()
+
+    with torch.no_grad():
+        plane = field(points, z, seed).reshape(256, 256, 3).numpy()
+        tiled = field(points, z, seed, period=period).reshape(256, 256, 3).numpy()
+        moved = field(points + torch.tensor([1.0, -2.0, 0.0], dtype=torch.float64), z, seed, period=period)
+    assert stretch(plane) > 8 and 0.6 < stretch(tiled) / stretch(plane) < 1.6  # (with turns of c up to 17: 0.3)
+    assert np.array_equal(moved.reshape(256, 256, 3).numpy(), tiled)
