@@ -31,7 +31,9 @@ from model.structure import (EVEN_BLOCK, GRAIN_STRETCH, detect_even, grain_stret
 from model.train import Interim, TrainConfig, resolve_device, resolve_precision, train
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
-DEFAULT_MINUTES = 4.0  # inside the 5-minute budget on 2 cores, with export
+# An upload's refinement is the product's latency: 90 s, with bf16 steps (``precision``) 1.7x
+# the float32 steps a 4-minute fit had (~170 of 2 x 128 px on one AMD EPYC thread).
+DEFAULT_MINUTES = 1.5
 # Learning rates of a fit: the decoder moves gently from the space's weights; the
 # per-octave transforms and the code move faster, since a new exemplar mostly needs new
 # scales, stretches (grain) and colours. At the space's own 2e-4 a 4-minute wood fit
@@ -62,10 +64,11 @@ PROBE_EVERY = 25
 # 0.052 -> 0.0032.
 PATCH = 128
 # An upload's refinement serves a first result this many seconds into its fit (``interim``):
-# the probe's best state then, if it beats the start. 60-s fits already drew the bricks' bond
-# and the floor tiles' grid (tile style error 0.111 and 0.05 against the encoder code's 0.916
-# and 1.07; model card), where a 4-minute fit otherwise shows the encoder's patches until its end.
-INTERIM_SECONDS = 60.0
+# the probe's best state then, if it beats the start. With the start, the export and the
+# colour table it is served about 20 s after the fit starts; lattice fits start on the photo's
+# mean cell, so even ~20 steps show the bond or grid the encoder's patches lack. Uploads queued
+# together each get theirs before any fit goes on (the service pauses a fit after its interim).
+INTERIM_SECONDS = 10.0
 # A lattice fit trains one patch per step (and its lattice partner, model/train.py) instead
 # of two: it needs the steps. Measured before the partners, the brick wall on one thread,
 # 60 s, best probe score (lower is better): batch 2 425 steps 0.28 (courses only), 90 s

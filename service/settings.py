@@ -23,7 +23,7 @@ JobKind = Literal[JOB_KINDS]
 #: photos) the tiles' style error was lower on 8 and the same on one, bricks 0.111 -> 0.043,
 #: granite 0.417 -> 0.339 (docs/notes/model-history.md, 2026-11-29). Fits have a queue of
 #: their own (service/queue.py), so a longer one holds up no tile, volume or bake.
-FIT_SECONDS = 240.0
+FIT_SECONDS = 90.0
 #: the model export shipped inside the package (``model/weights``)
 PACKAGED_MODEL_DIR = Path(__file__).resolve().parent.parent / "model" / "weights"
 
@@ -113,7 +113,7 @@ class Settings(BaseSettings):
         "auto", description="arithmetic of a fit's VGG loss and decoder: auto is bfloat16 on CUDA and on CPUs "
         "with native bfloat16 (AVX-512 BF16, AMX), float32 elsewhere")
     fit_interim_seconds: float = Field(
-        60.0, ge=0, description="an upload's refinement serves its fit's best state this many seconds in (if it "
+        10.0, ge=0, description="an upload's refinement serves its fit's best state this many seconds in (if it "
         "beats the encoder's code by then), until the finished fit replaces it; 0: only the finished fit")
 
     # --- HTTP ----------------------------------------------------------------------------

@@ -3,6 +3,7 @@ progress ("refining… NN%"), then reloads the map's tiles, now from the fitted 
 (new URLs, new pixels). A real server with a real 3-second fit (the train extra)."""
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -26,9 +27,10 @@ def test_upload_shows_refinement_progress_then_fitted_tiles(page, refining_serve
 
     # the encoder's tiles at once, and the refinement's progress beside them
     page.wait_for_selector("#refinement:not([hidden])")
-    assert page.text_content("#refinement").startswith("refining… ")
+    assert page.text_content("#refinement").startswith(("refining… ", "queued for refinement ("))
     page.wait_for_function(
-        "() => /^refining… \\d+%$/.test(document.getElementById('refinement').textContent)")
+        "() => /^refining… \\d+%(, final in ~\\d+ (s|min))?$/.test(document.getElementById('refinement').textContent)",
+        timeout=60_000)
     shoot(page, artifacts, "refine-1-refining")
     tile = a_drawn_tile(page)
     encoder_pixels = tile_image_pixels(page, *tile)
@@ -58,4 +60,25 @@ def test_upload_shows_refinement_progress_then_fitted_tiles(page, refining_serve
     page.reload()
     page.wait_for_function("(text) => document.getElementById('refinement').textContent === text",
                            arg="tiles from the fitted sampler" + note, timeout=60_000)
+    assert page_errors(page) == []
+
+
+def test_a_queued_refinement_shows_its_place_and_estimate_not_zero_percent(page, refining_server: str) -> None:
+    """Three uploads at once: the newest, on the map, waits behind the others; the page says
+    how many fits go first and when refined tiles come, then follows it to the end."""
+    for k in range(3):
+        res = page.request.post(f"{refining_server}/v1/textures", multipart={"image": {
+            "name": f"q{k}.png", "mimeType": "image/png", "buffer": texture_photo_png("gravel", (0.9, 0.8, 0.6))}})
+        assert res.status == 201, res.text()
+    newest = res.json()
+    page.goto(refining_server)
+    page.wait_for_selector(f'#texture-list button[data-id="{newest["id"]}"][aria-pressed="true"]')
+    page.wait_for_selector("#refinement:not([hidden])")
+    text = page.text_content("#refinement")
+    queued = re.match(r"^queued for refinement \((\d+) ahead\), refined tiles in ~\d+ (s|min), final in ~\d+ (s|min)$",
+                      text)
+    assert queued and int(queued[1]) >= 1, text   # never "refining… 0%" while it waits
+    assert "0%" not in text
+    page.wait_for_function("() => document.getElementById('refinement').dataset.state === 'succeeded'",
+                           timeout=FIT_TIMEOUT_MS)
     assert page_errors(page) == []

@@ -129,7 +129,7 @@ def test_upload_serves_its_fits_interim_until_the_fit_ends(refining, photo, fit_
 
     sys.modules["model.fit"].during_interim = during_interim
     run_fit_lane(services)
-    assert fit_calls[0]["interim_seconds"] == services.settings.fit_interim_seconds == 60.0
+    assert fit_calls[0]["interim_seconds"] == services.settings.fit_interim_seconds == 10.0
     interim_texture, tile = seen["texture"], seen["tile"]
     assert interim_texture["sampler"] == "interim" and interim_texture["has_own_sampler"]
     assert interim_texture["code"] == FAKE_INTERIM_CODE and interim_texture["refinement"]["state"] == "running"
@@ -159,7 +159,7 @@ def test_no_interim_is_asked_for_when_it_is_off_or_for_a_fit_of_a_new_texture(re
     run_fit_lane(services)
     assert fit_calls[-1]["interim"] is None
     assert client.get(f"/v1/textures/{texture['id']}").json()["sampler"] == "fitted"
-    services.settings.fit_interim_seconds = 60.0
+    services.settings.fit_interim_seconds = 10.0
     job = client.post(f"/v1/textures/{texture['id']}/fit", json={"seconds": 5}).json()  # a new texture
     run_fit_lane(services)
     assert fit_calls[-1]["interim"] is None

@@ -302,10 +302,16 @@ async function submitJob(path, init) {
   return { ...job, id };
 }
 
+// The page's jobs wait for a texture's refinement while it runs (after_refinement: the
+// server holds them until the refined sampler is served; it ignores the flag otherwise):
+// an export or bake made while an upload is refined should look like the refined tiles.
+const AFTER_REFINEMENT = true;
+
 export function startBake(textureId, meshFile, { resolution, seed, scale, format, projection }) {
   const form = new FormData();
   form.append('mesh', meshFile, meshFile.name);
-  for (const [key, value] of Object.entries({ resolution, seed, scale, format, projection })) {
+  const fields = { resolution, seed, scale, format, projection, after_refinement: AFTER_REFINEMENT };
+  for (const [key, value] of Object.entries(fields)) {
     if (value !== undefined && value !== null) form.append(key, value);
   }
   return submitJob(`textures/${textureId}/bakes`, { body: form });
@@ -314,7 +320,7 @@ export function startBake(textureId, meshFile, { resolution, seed, scale, format
 export function startVolume(textureId, params) {
   return submitJob(`textures/${textureId}/volumes`, {
     headers: { 'content-type': 'application/json' },
-    body: JSON.stringify(params),
+    body: JSON.stringify({ after_refinement: AFTER_REFINEMENT, ...params }),
   });
 }
 
@@ -323,7 +329,7 @@ export function startVolume(textureId, params) {
 export function startRegion(textureId, params) {
   return submitJob(`textures/${textureId}/regions`, {
     headers: { 'content-type': 'application/json' },
-    body: JSON.stringify(params),
+    body: JSON.stringify({ after_refinement: AFTER_REFINEMENT, ...params }),
   });
 }
 

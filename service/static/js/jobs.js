@@ -17,7 +17,7 @@ export function fraction(progress) {
   return Math.max(0, Math.min(1, p > 1 ? p / 100 : p));
 }
 
-/** What a job makes, e.g. "bake sphere.obj (glb)", "volume 64^3 (npy)", "fit 240 s". */
+/** What a job makes, e.g. "bake sphere.obj (glb)", "volume 64^3 (npy)", "fit 90 s". */
 function what(job) {
   const p = job.params || {};
   if (job.kind === 'bake') return `bake ${p.filename || 'mesh'} (${p.format || 'glb'})`;
@@ -33,7 +33,18 @@ function what(job) {
  */
 export function describe(job, nameOf = () => null) {
   if (!job.texture_id) return what(job);
-  return `${what(job)} · ${nameOf(job.texture_id) || job.texture_id.slice(0, 8)}`;
+  return `${what(job)} · ${nameOf(job.texture_id) || job.texture_id.slice(0, 8)}${samplerNote(job.sampler)}`;
+}
+
+/**
+ * What a job renders with, when its texture's refinement may still change it (job.sampler):
+ * " (waits for the refinement)", " (encoder: before the refinement)", " (interim: ...)"; else ''.
+ */
+export function samplerNote(sampler) {
+  if (!sampler) return '';
+  if (sampler.waiting_for_refinement) return ' (waits for the refinement)';
+  if (sampler.refining) return ` (${sampler.kind}: before the refinement)`;
+  return '';
 }
 
 /**

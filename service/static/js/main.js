@@ -93,7 +93,7 @@ async function sizeExemplar(texture) {
 
 // ---- refinement: an upload's fit job (TEXSPACE_AUTO_FIT) -----------------------------
 // A new upload is served from its encoder code at once; a fit job then refines the same
-// texture, which serves an interim (the fit's best state a minute in) and its own fitted
+// texture, which serves an interim (the fit's best state seconds in) and its own fitted
 // sampler once the job succeeds: the page shows the job's progress, looks for the interim
 // now and then, and reloads the map's tiles under new URLs each time (api.tileVersion).
 
@@ -105,6 +105,32 @@ function showRefinement(text = '', jobState = '') {
   $('refinement').textContent = text;
   $('refinement').hidden = !text;
   $('refinement').dataset.state = jobState;
+}
+
+/** "~40 s", "~3 min": an estimate in seconds, said roughly. */
+function roughly(seconds) {
+  return seconds < 90 ? `~${Math.max(1, Math.round(seconds))} s` : `~${Math.round(seconds / 60)} min`;
+}
+
+/**
+ * The status line of a refinement under way, from its job's last state (`job`: state,
+ * progress, stage) and the texture's `refinement` (its place in the fit lane, estimates).
+ * Queued is never shown as 0%: it says how many fits go first and when refined tiles come.
+ */
+function refinementText(job, texture) {
+  const r = texture?.refinement || {};
+  const final = r.final_eta_seconds != null ? `, final in ${roughly(r.final_eta_seconds)}` : '';
+  if (job.state === 'queued' && (job.stage === 'interim' || r.stage === 'paused')) {
+    const ahead = r.queue_position ? `; goes on after ${r.queue_position} other fit${r.queue_position > 1 ? 's' : ''}` : '; goes on next';
+    return `refining, paused: tiles from its first seconds${ahead}${final}`;
+  }
+  if (job.state === 'queued') {
+    const ahead = r.queue_position ? `${r.queue_position} ahead` : 'next';
+    const first = r.interim_eta_seconds != null ? `, refined tiles in ${roughly(r.interim_eta_seconds)}` : '';
+    return `queued for refinement (${ahead})${first}${final}`;
+  }
+  const served = texture?.sampler === 'interim' ? ': tiles from its first seconds' : '';
+  return `refining… ${Math.round(fraction(job.progress) * 100)}%${served}${final}`;
 }
 
 /** Follow the refinement of `texture` (the one on the map) while it is under way. */
@@ -120,25 +146,25 @@ function followRefinement(texture) {
     showRefinement();
     return;
   }
-  const interimNote = () => (state.current?.sampler === 'interim' ? ': tiles from its first minute' : '');
-  const refining = (job) => showRefinement(`refining… ${Math.round(fraction(job.progress) * 100)}%${interimNote()}`,
-    job.state);
-  let lookedAt = Date.now();
-  refining(refinement);
-  stopRefinement = follow({ id: refinement.job_id, state: refinement.state }, (job) => {
+  let last = { state: refinement.state, progress: refinement.progress,
+               stage: refinement.stage === 'paused' ? 'interim' : null };
+  const say = () => showRefinement(refinementText(last, state.current), last.state);
+  say();
+  // the texture again now and then: its interim, its place in the lane, fresher estimates
+  const timer = setInterval(() => {
+    if (state.current?.id !== texture.id || ENDED.has(last.state)) return;
+    reloadServed(texture.id).then((now) => { if (now && !ENDED.has(last.state)) say(); }).catch(sayError);
+  }, INTERIM_LOOK_MS);
+  const stopFollowing = follow({ id: refinement.job_id, state: refinement.state }, (job) => {
     if (state.current?.id !== texture.id) return;
+    last = job;
     if (job.state === 'succeeded') refined(texture.id);
     else if (ENDED.has(job.state)) {
-      const served = state.current.sampler === 'interim' ? "its fit's first minute" : "the encoder's code";
+      const served = state.current.sampler === 'interim' ? "its fit's first seconds" : "the encoder's code";
       showRefinement(`refinement ${job.state}: tiles from ${served}`, job.state);
-    } else {
-      refining(job);
-      if (state.current.sampler === 'encoder' && Date.now() - lookedAt >= INTERIM_LOOK_MS) {
-        lookedAt = Date.now();
-        reloadServed(texture.id).then((now) => { if (now) refining(job); }).catch(sayError);
-      }
-    }
+    } else say();
   });
+  stopRefinement = () => { clearInterval(timer); stopFollowing(); };
 }
 
 /**
@@ -439,7 +465,7 @@ $('fit-start').addEventListener('click', async () => {
   if (!requireTexture()) return;
   const source = state.current;
   const name = textureName(source);
-  const seconds = Math.max(1, Number($('fit-seconds').value) || 240);
+  const seconds = Math.max(1, Number($('fit-seconds').value) || 90);
   fitRunning = true;
   $('fit-start').disabled = true;
   showFit(`fit of ${name}: queued`, 0);
