@@ -47,6 +47,12 @@ bench: install-test
 	$(PY) bench/run.py
 	$(PY) bench/load.py   # 32 clients, 60 s, on a real `texspace serve` (loopback)
 
+# four photos uploaded at once to a fresh `texspace serve`: each one's first refined tiles
+# and final sampler, in seconds from its upload (one upload alone first, the reference)
+.PHONY: bench-refine
+bench-refine: data
+	$(PY) bench/refinement_queue.py $(BENCH_REFINE_ARGS)
+
 # the README picture: exemplars beside tiles synthesised from their codes; the shipped one
 # adds each photo's fit: make fits FIT_ARGS='--threads 1' FIT_JOBS=2 and FIGURE_ARGS='--fits runs/fits'
 readme-figure: data

@@ -55,3 +55,51 @@ def bench_probe(space: Path, repeats: int = 2, log=print) -> dict:
         f"one batch: {timings['probe_batched_s']:.2f} s (field {timings['render_batched_s']:.2f} + VGG "
         f"{timings['vgg_batched_s']:.2f})")
     return {f"fit_{k}": v for k, v in timings.items()}
+
+
+def bench_steps(space: Path, photo: Path | None = None, repeats: int = 3, steps: int = 4, log=print) -> dict:
+    """A fit's optimiser step (``model.train.train_step``: two 128-px patches, the decoder, the
+    VGG16 Gram loss, backward, Adam), float32 against bfloat16 autocast, one torch thread, the
+    two runs interleaved so that both see the same machine. The figure: bf16 / fp32 step time
+    (below 1: bf16 is faster; on CPUs without native bfloat16 ``--precision auto`` keeps fp32)."""
+    import tempfile
+
+    import torch
+    from PIL import Image
+
+    from model.train import Objective, TrainConfig, cpu_has_native_bf16, setup, train_step
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory() as folder:
+        if photo is None or not Path(photo).is_file():  # scikit-image's brick (CC0) when no photo is given
+            from skimage import data
+
+            photo = Path(folder) / "brick.png"
+            Image.fromarray(data.brick()).convert("RGB").save(photo)
+
+        def run_of(precision: str):  # noqa: ANN202
+            cfg = TrainConfig(mode="single", exemplar=str(photo), out=f"{folder}/{precision}", init=str(space),
+                              no_nearest=True, smooth=True, colour_normalise=True, isotropic_transforms=True,
+                              patch=128, batch=2, lr=1e-3, transform_lr=5e-3, warmup=20, quiet=True,
+                              precision=precision)
+            run = setup(cfg)
+            run.objective = Objective(run.images, tuple(cfg.layers.split(",")), cfg.loss, cfg.colour_weight,
+                                      cfg.colour_normalise, run.device, precision=run.precision)
+            run.model.train()
+            train_step(run)  # first-call costs (oneDNN kernels, allocations) out of the timing
+            return run
+
+        try:
+            runs = {precision: run_of(precision) for precision in ("fp32", "bf16")}
+            best = {precision: float("inf") for precision in runs}
+            for _ in range(repeats):
+                for precision, run in runs.items():
+                    best[precision] = min(best[precision], best_of(lambda: train_step(run), steps))
+        finally:
+            torch.set_num_threads(threads)
+    timings = {"fit_step_fp32_s": best["fp32"], "fit_step_bf16_s": best["bf16"],
+               "fit_native_bf16": cpu_has_native_bf16()}
+    log(f"  fit step (2 x 128 px, 1 thread): fp32 {best['fp32']:.3f} s ({1 / best['fp32']:.2f} steps/s), bf16 "
+        f"{best['bf16']:.3f} s ({1 / best['bf16']:.2f} steps/s); native bf16: {timings['fit_native_bf16']}")
+    return timings

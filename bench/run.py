@@ -138,6 +138,8 @@ def measure(only: set[str], quick: bool) -> dict:
 
     def run_fit():
         results.update(fit_probe.bench_probe(common.SHIPPED_MODEL / "space.pt", log=log))
+        photo = common.ROOT / "data" / "textures" / "val" / "vpython_granite.png"  # (make data)
+        results.update(fit_probe.bench_steps(common.SHIPPED_MODEL / "space.pt", photo, log=log))
 
     section("kernels", run_kernels)
     section("http", run_http)
@@ -205,6 +207,13 @@ def verdicts(r: dict) -> tuple[dict, list[tuple[str, str, str, str]]]:
         x = r["fit_probe_s"] / r["fit_probe_batched_s"]
         ratio("fit_probe_vs_batched", x, "<= 1.0", x <= 1.0, "fit probe, 4 planes of 256 px (1 thread)",
               f"{r['fit_probe_s']:.2f} s", f"{x:.2f} x the same in one batch {r['fit_probe_batched_s']:.2f} s")
+    if "fit_step_bf16_s" in r:
+        x = r["fit_step_bf16_s"] / r["fit_step_fp32_s"]
+        target = "<= 0.7" if r["fit_native_bf16"] else "(no native bf16: auto keeps fp32)"
+        ratio("fit_step_bf16_vs_fp32", x, target, x <= 0.7 or not r["fit_native_bf16"],
+              "fit step, 2 x 128 px, bf16 autocast (1 thread)", f"{r['fit_step_bf16_s']:.3f} s",
+              f"{x:.2f} x float32 {r['fit_step_fp32_s']:.3f} s ({1 / r['fit_step_bf16_s']:.2f} vs "
+              f"{1 / r['fit_step_fp32_s']:.2f} steps/s)")
     vp = r.get("viewport") or {}
     if "native_idle" in vp:
         last = vp["native_idle"]["last_s"]
