@@ -83,7 +83,7 @@ data: install-test
 # The opt-in large corpus (docs/DATA.md): ~2.2 GB of Debian packages fetched once into
 # the cache, photos into data/textures-large/{train,val}. Needs apt-get and dpkg-deb.
 data-large: install-test
-	$(PY) -m model.data fetch --corpus large
+	$(PY) -m model.corpus fetch
 
 train: data
 	@if [ ! -f runs/space/checkpoint.pt ] && [ -f model/checkpoints/space-train.pt ]; then \

