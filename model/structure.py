@@ -9,6 +9,8 @@ lattices are two basis vectors (ax, ay, bx, by) in pixels, x right, y down.
 * ``detect_stripes``: a repeat along one direction only (corrugated board);
 * ``detect_grain``: streaks along image x or y (wood, brushed metal);
 * ``detect_boards``: on a photo with grain, boards side by side (plank floors, decking);
+* ``detect_direction_lattice``: a 2D repeat of the direction streaks run in, not of their
+  tone (parquet: blocks of slats, up-down and left-right in a checkerboard);
 * ``detect_even``: a photo with none of these that is even at large scales (gravel, asphalt).
 """
 from __future__ import annotations
@@ -140,6 +142,39 @@ STRIPE_MIN_REPEATS = 6  # multiples within a third of the image, both signs: |a|
 # 0.64, 0.69 at one, two, three boards of 25.6 px.
 BOARD_PEAK = 0.4
 BOARD_MIN_REPEATS = 2  # multiples within a third of the image: boards at most 1/6 of it
+# Parquet (``detect_direction_lattice``): blocks of slats alternating between up-down and
+# left-right, each slat its own tone, repeat in the direction of their streaks only. Their
+# luminance correlation is the slats': synthetic parquet of 32-px blocks of 8-px slats
+# (tests/model/photos.py) peaks 0.49-0.51 at one slat across, both ways, a grid that no block
+# repeats (support 0.2 < LATTICE_SUPPORT), and reads 0.42 at the blocks' checkerboard (32,
+# 32): no lattice, no grain (as many slats run each way), nothing. Read from the structure
+# tensor of DIRECTION_BLUR px derivatives averaged over DIRECTION_WINDOW px
+# (``grain_direction_field``): on eight synthetic floors (blocks of 16-64 px, 2-8 slats,
+# noise up to 0.06, one turned 4 degrees and saved as JPEG 60) the checkerboard's peaks read
+# 0.69-0.92 at 1 / 3 px, 0.65-0.92 at 1 / 2, 0.42-0.85 at 2 / 3; at 1 / 5 the 16- and 20-px
+# blocks blur under DIRECTION_SPREAD. On the 21 packaged photos this step is reached on (no
+# lattice, grain, boards or stripes) the direction correlation has no peak of LATTICE_PEAK.
+DIRECTION_BLUR = 1.0
+DIRECTION_WINDOW = 3.0
+# Where the gradient energy is under this share of its mean the field fades to 0: flat
+# patches would otherwise read as the direction of their noise.
+DIRECTION_FLOOR = 0.1
+# The field's spread (RMS about its mean) below which the direction is taken as one: the
+# packaged wood photos and brushed metal 0.12-0.26, synthetic boards 0.19; parquet 0.43-0.71.
+DIRECTION_SPREAD = 0.3
+# A checkerboard's equal repeats read up to 0.06 apart on the synthetic floors (64 blocks in
+# view: few samples): (32, 32) px read 0.70, two blocks along 0.75, and LATTICE_TIE took the
+# lattice of every other block.
+DIRECTION_TIE = 0.1
+# Both repeats the lattice starts from must reach this on the direction correlation (the
+# synthetic parquet's read 0.69-0.92, above). On the 1,452 photos of data/textures-large,
+# with LATTICE_PEAK, the step changed what 50 photos got, among them lattices for a glowing
+# panel on black (top peak 0.57), a mosaic of wood blocks (0.33), bricks of uneven size and
+# the tile grid of black-and-white checkerboards (half their repeat); with LATTICE_STRONG, 11:
+# eight tile grids and stone running bonds whose tiles' tones hid them from the luminance
+# (0.68-0.94), a plank floor (0.63, whose large cells were already wrong), a riveted metal
+# wall and a hazard-striped band.
+DIRECTION_PEAK = LATTICE_STRONG
 # fold_lattice: how far (px) it moves each coordinate of the detected lattice, in what steps
 FOLD_REACH, FOLD_STEP = 3.0, 0.25
 
@@ -198,6 +233,13 @@ def luminance_correlation(image: np.ndarray, wrap: bool = False, within: float =
     # repeats of a faint pattern in a noisy photo read as high as in the clean one.
     noise = min(pixel_noise(luminance) ** 2 / max(float(np.mean(luminance ** 2)), 1e-12), NOISE_SHARE_MAX)
     correlation /= correlation[0, 0] * (1.0 - noise)
+    return correlation, repeat_peaks(correlation, within)
+
+
+def repeat_peaks(correlation: np.ndarray, within: float = LATTICE_REACH) -> list[tuple]:
+    """A normalised correlation's (origin at [0, 0], wrapping) repeat peaks: local maxima of
+    at least LATTICE_PEAK, at least LATTICE_MIN_OFFSET px from the origin and within
+    ``within`` of the image, as (value, length, dx, dy)."""
     height, width = correlation.shape
     dy = (np.arange(height) + height // 2) % height - height // 2  # signed offsets, origin at 0
     dx = (np.arange(width) + width // 2) % width - width // 2
@@ -205,7 +247,41 @@ def luminance_correlation(image: np.ndarray, wrap: bool = False, within: float =
     peaks = ((correlation == ndimage.maximum_filter(correlation, size=5, mode="wrap"))
              & (correlation >= LATTICE_PEAK) & (np.hypot(dx, dy) >= LATTICE_MIN_OFFSET)
              & (np.abs(dx) <= int(width * within + 1e-9)) & (np.abs(dy) <= int(height * within + 1e-9)))
-    return correlation, list(zip(correlation[peaks], np.hypot(dx[peaks], dy[peaks]), dx[peaks], dy[peaks]))
+    return list(zip(correlation[peaks], np.hypot(dx[peaks], dy[peaks]), dx[peaks], dy[peaks]))
+
+
+def grain_direction_field(image: np.ndarray) -> np.ndarray:
+    """(2, H, W) float64: the direction the photo's streaks run at each pixel as a doubled
+    angle, (cos 2t, sin 2t) of the gradient's angle t times the local coherence: the
+    structure tensor (derivatives of a DIRECTION_BLUR px Gaussian, averaged over a
+    DIRECTION_WINDOW px one) as ((xx - yy), 2 xy) / (xx + yy + DIRECTION_FLOOR x its mean).
+    Up-down streaks read (+1, 0), left-right ones (-1, 0), whatever their tone; faint
+    regions (under the floor) read near 0 rather than as the direction of their noise."""
+    luminance = rec709_luminance(image)
+    gy, gx = (ndimage.gaussian_filter(luminance, DIRECTION_BLUR, order=order) for order in ((1, 0), (0, 1)))
+    xx, xy, yy = (ndimage.gaussian_filter(v, DIRECTION_WINDOW) for v in (gx * gx, gx * gy, gy * gy))
+    energy = xx + yy
+    return np.stack([xx - yy, 2 * xy]) / (energy + DIRECTION_FLOOR * max(float(energy.mean()), 1e-20))
+
+
+def direction_correlation(image: np.ndarray, wrap: bool = False, within: float = LATTICE_REACH
+                          ) -> tuple[np.ndarray, list[tuple]] | None:
+    """As ``luminance_correlation``, of the photo's ``grain_direction_field`` (its two
+    components' autocorrelations summed, normalised to 1 at the origin): parquet's blocks
+    of slats, alternating between up-down and left-right, repeat there as a checkerboard
+    whatever each slat's tone. None where the direction does not vary (less than
+    DIRECTION_SPREAD: grain all one way)."""
+    field = grain_direction_field(image)
+    field -= field.mean(axis=(1, 2), keepdims=True)
+    if not np.sqrt(np.mean(np.sum(field ** 2, axis=0))) >= DIRECTION_SPREAD:
+        return None
+    if wrap:
+        spectrum = np.fft.fft2(field)
+        correlation = np.fft.ifft2(spectrum * np.conj(spectrum)).real.sum(axis=0)
+    else:
+        correlation = autocorrelation(field[0]) + autocorrelation(field[1])
+    correlation /= correlation[0, 0]
+    return correlation, repeat_peaks(correlation, within)
 
 
 def peak_height(correlation: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -248,10 +324,10 @@ def pixel_noise(values: np.ndarray) -> float:
     return float(np.median(np.abs(diagonal)) / 0.6745)
 
 
-def _strongest(candidates: list[tuple]) -> tuple:
-    """The shortest of the (near-)strongest peaks: not a multiple of it."""
+def _strongest(candidates: list[tuple], tie: float = LATTICE_TIE) -> tuple:
+    """The shortest of the (near-)strongest peaks (within ``tie`` of the top): not a multiple of it."""
     top = max(value for value, *_ in candidates)
-    return min((c for c in candidates if c[0] >= top - LATTICE_TIE), key=lambda c: c[1])
+    return min((c for c in candidates if c[0] >= top - tie), key=lambda c: c[1])
 
 
 def detect_lattice(image: np.ndarray) -> tuple[float, float, float, float] | None:
@@ -306,6 +382,24 @@ def detect_large_cells(image: np.ndarray) -> tuple[float, float, float, float] |
     return found
 
 
+def detect_direction_lattice(image: np.ndarray) -> tuple[float, float, float, float] | None:
+    """The lattice the direction of a photo's streaks repeats on (parquet: square blocks of
+    slats, up-down and left-right in a checkerboard, each slat its own tone), found as
+    ``detect_lattice`` finds one, on ``direction_correlation``: the smallest translations
+    that map the pattern of directions onto itself, (n, n) and (n, -n) px for blocks of n
+    px. For photos where nothing else was found (``photo_structure``). Folded as a lattice
+    of luminance is (``fold_lattice``), on the direction field: the correlation's peaks are
+    pyramids a block wide, and a seam, wrapped, tilts them (40-px synthetic blocks: 40.5 px
+    wrapped, 40.0 folded)."""
+    found = _unwrapped_found_wrapped_measured(image, functools.partial(_lattice_on, correlate=direction_correlation,
+                                                                       tie=DIRECTION_TIE, least=DIRECTION_PEAK))
+    if found is None:
+        return None
+    field = grain_direction_field(image)
+    # fold_on_lattice bins three channels: the field's two and a zero one
+    return fold_lattice(np.concatenate([field, np.zeros_like(field[:1])]).transpose(1, 2, 0), found)
+
+
 def detect_long_lattice(image: np.ndarray) -> tuple[float, float, float, float] | None:
     """A lattice with one repeat beyond LATTICE_REACH (a rug's bands of motifs: 62.7 px
     along them, 112 px across, at 256 px), looked for up to LARGE_CELL_REACH (for photos
@@ -344,25 +438,31 @@ def shortest_basis(lattice: tuple[float, float, float, float]) -> tuple[float, f
     return float(a[0]), float(a[1]), float(b[0]), float(b[1])
 
 
-def _lattice_on(image: np.ndarray, wrap: bool, within: float = LATTICE_REACH, long: bool = False
+def _lattice_on(image: np.ndarray, wrap: bool, within: float = LATTICE_REACH, long: bool = False,
+                correlate=luminance_correlation, tie: float = LATTICE_TIE, least: float = LATTICE_PEAK  # noqa: ANN001
                 ) -> tuple[float, float, float, float] | None:
     """``detect_lattice`` on the wrapped or unwrapped autocorrelation; ``long``: as
-    ``detect_long_lattice`` keeps it (one strong repeat is enough, grain or not)."""
-    measured = luminance_correlation(image, wrap, within)
+    ``detect_long_lattice`` keeps it (one strong repeat is enough, grain or not);
+    ``correlate``: of what (``luminance_correlation``, ``direction_correlation``); ``tie``:
+    how close to the strongest peak a peak counts as as strong (``_strongest``,
+    ``_finer_lattice``); ``least``: how strong the two peaks the basis starts from must be."""
+    measured = correlate(image, wrap, within)
     if measured is None or not measured[1]:
         return None
     correlation, found = measured
     # The strongest repeat first, then the strongest one at least 30 degrees from it: for a
     # running bond, one brick along the row and a few courses down (the course height
     # alone is not a repeat, the bricks shift by half a brick from one course to the next).
-    value_a, length_a, ax, ay = _strongest(found)
+    value_a, length_a, ax, ay = _strongest(found, tie)
     others = [c for c in found if abs(ax * c[3] - ay * c[2]) > 0.5 * length_a * c[1]]
     if not others:
         return None
-    value_b, _, bx, by = _strongest(others)
+    value_b, _, bx, by = _strongest(others, tie)
+    if min(value_a, value_b) < least:
+        return None
     basis, across = np.array([[ax, ay], [bx, by]], np.float64), stripe_normal(image)
     for _ in range(FINER_TIMES):  # hexagonal tiles: a lattice of every 4th one, twice as fine twice
-        finer = _finer_lattice(correlation, basis, found, across)
+        finer = _finer_lattice(correlation, basis, found, across, tie)
         if finer is basis:
             break
         basis = finer
@@ -380,13 +480,13 @@ def _lattice_on(image: np.ndarray, wrap: bool, within: float = LATTICE_REACH, lo
     return float(ax), float(ay), float(bx), float(by)
 
 
-def _finer_lattice(correlation: np.ndarray, basis: np.ndarray, peaks: list[tuple], across: np.ndarray | None
-                   ) -> np.ndarray:
+def _finer_lattice(correlation: np.ndarray, basis: np.ndarray, peaks: list[tuple], across: np.ndarray | None,
+                   tie: float = LATTICE_TIE) -> np.ndarray:
     """The lattice twice or three times as fine, where a half step of ``basis`` ((a + b) / 2,
     a / 2 or b / 2) or a third ((a +- b) / 3, a / 3, b / 3, and another point of its coset) is
     a repeat too: within 1.5 px of one of ``peaks`` (``luminance_correlation``'s local
     maxima) whose height between pixels (``peak_height``) is at least the basis's less
-    LATTICE_TIE, and, if it runs along the stripes (``across``), a peak along them, not a
+    ``tie``, and, if it runs along the stripes (``across``), a peak along them, not a
     point of their ridge (``_repeats_along_stripes``); else ``basis`` itself.
 
     The basis is the shortest of the near-strongest peaks, read at whole pixels, and
@@ -400,7 +500,7 @@ def _finer_lattice(correlation: np.ndarray, basis: np.ndarray, peaks: list[tuple
         return basis
     a, b = basis
     points = np.array([(dx, dy) for _, _, dx, dy in peaks], np.float64)
-    points = points[peak_height(correlation, points) >= peak_height(correlation, basis).min() - LATTICE_TIE]
+    points = points[peak_height(correlation, points) >= peak_height(correlation, basis).min() - tie]
     if not len(points):
         return basis
     halves = [(0.5 * (a + b), (a, 0.5 * (a + b))), (0.5 * a, (0.5 * a, b)), (0.5 * b, (a, 0.5 * b))]
@@ -774,8 +874,9 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
     on a grain photo boards (``detect_boards``, which keep the grain), on one without,
     stripes (``detect_stripes``); a lattice reaching past a third of the photo
     (``detect_long_lattice``, which drops a detected grain: a rug's bands); a leaning grain
-    (``leaning_grain``, without boards: they are looked for on the turned photo); large
-    cells (``detect_large_cells``). Boards come before stripes on a grain photo: its boards'
+    (``leaning_grain``, without boards: they are looked for on the turned photo); a lattice of
+    the direction of the streaks (``detect_direction_lattice``: parquet); large cells
+    (``detect_large_cells``). Boards come before stripes on a grain photo: its boards'
     joints are stripes too, and the stripe detector reads their repeat at any multiple
     (9.3-px synthetic boards: 28 px, three boards) and would drop the grain. ``grain``
     "x" / "y" / None and ``lattice`` None are taken as given. A photo with a lattice or
@@ -800,6 +901,8 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
             grain = None
     if asked == "auto" and grain is None and found is None:
         grain = leaning_grain(photo)
+    if lattice == "auto" and found is None and grain is None:
+        found = detect_direction_lattice(photo)
     if lattice == "auto" and found is None and grain is None:
         found = detect_large_cells(photo)
     return grain, found
