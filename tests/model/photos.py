@@ -108,3 +108,33 @@ def hexagonal_tiles(radius: float, turn_degrees: float = 0.0, size: int = 256, s
     glaze = ndimage.gaussian_filter(rng.standard_normal((size, size)), 2) / 0.14
     image = 0.7 + 0.05 * glaze - 0.35 * np.clip(2.5 - edge, 0, 1)
     return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2), tuple(float(v) for v in basis.T.ravel())
+
+
+def parquet(block: int = 32, slats: int = 4, size: int = 256, turn_degrees: float = 0.0, joint: float = 0.12,
+            noise: float = 0.02, seed: int = 0) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """Parquet seen from above: square blocks of ``block`` px in a checkerboard of slat
+    directions (slats up-down, then left-right), ``slats`` slats a block, each slat its own
+    tone with fine streaks along it, dark joints ``joint`` deep between slats and blocks,
+    the floor turned by ``turn_degrees``, in a light wood colour: (photo, lattice basis in
+    px). No two blocks are alike: only the pattern of directions repeats, on (block, block)
+    and (block, -block) turned."""
+    rng = np.random.default_rng(seed)
+    turn = np.radians(turn_degrees)
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64) - size / 2
+    u, v = x * np.cos(turn) + y * np.sin(turn), -x * np.sin(turn) + y * np.cos(turn)  # along the floor's rows
+    margin = size // block + 2  # block indices of a turned floor start below 0
+    i, j = (np.floor(w / block).astype(int) + margin for w in (u, v))
+    up_down = (i + j) % 2 == 0
+    across = np.where(up_down, u, v) % block  # across the slats, within the block
+    slat_width = block / slats
+    tone = rng.uniform(-0.08, 0.08, (2 * margin, 2 * margin, slats))[i, j, (across // slat_width).astype(int)]
+    streak = ndimage.gaussian_filter1d(rng.standard_normal((2 * margin, 2 * margin, 2 * block)), 0.7, axis=2)
+    streak = streak[i, j, (2 * across).astype(int)]
+    slat_joint = np.minimum(across % slat_width, slat_width - across % slat_width) < 0.6
+    block_joint = np.minimum(np.minimum(u % block, block - u % block), np.minimum(v % block, block - v % block)) < 0.8
+    image = 0.5 + tone + 0.04 * streak - 0.6 * joint * slat_joint - joint * block_joint
+    image = image + noise * rng.standard_normal((size, size))
+    rotation = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    lattice = (rotation @ np.array([[block, -block], [block, block]], np.float64)).T.ravel()  # rows: the vectors
+    wood = np.clip(image[..., None] * np.array([1.1, 0.85, 0.6]), 0, 1)
+    return wood, tuple(float(c) for c in lattice)

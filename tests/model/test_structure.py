@@ -13,10 +13,10 @@ from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelatio
                              grain_turn, leaning_grain, photo_lean, photo_structure, same_lattice, shortest_basis,
                              straighten)
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,  # noqa: E402
-                             detect_long_lattice, peak_height, pixel_noise,
+                             detect_direction_lattice, detect_long_lattice, peak_height, pixel_noise,
                              luminance_correlation, stripe_normal)
-from tests.model.photos import (banded_motifs, boards, corrugation, fibres, hexagonal_tiles, running_bond,  # noqa: E402
-                                streaks)
+from tests.model.photos import (banded_motifs, boards, corrugation, fibres, hexagonal_tiles, parquet,  # noqa: E402
+                                running_bond, streaks)
 from worker.colour import even_lighting  # noqa: E402
 
 
@@ -492,3 +492,69 @@ def test_photo_lean_reads_where_blobs_run_and_how_much_longer_they_are(degrees):
     assert stretch == pytest.approx(np.sqrt(68 / 13), rel=0.1)
     assert grain_tilt(photo, "x") == pytest.approx(lean, abs=0.1)
     assert photo_lean(leaning_blobs(0.0, 4.0, 4.0))[1] < 1.08
+
+
+def as_jpeg(image: np.ndarray, quality: int) -> np.ndarray:
+    """``image`` saved as a JPEG at ``quality`` and read back, as a phone delivers a photo."""
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(np.round(image * 255.0).astype(np.uint8)).save(buffer, "JPEG", quality=quality)
+    return np.asarray(Image.open(buffer), np.float32) / 255.0
+
+
+def turned_parquet_as_a_phone_takes_it() -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    photo, lattice = parquet(32, 4, turn_degrees=4.0, noise=0.03, seed=3)
+    return as_jpeg(photo, 60), lattice
+
+
+@pytest.mark.parametrize("make", [
+    lambda: parquet(32, 4),                                   # 4 slats a block
+    lambda: parquet(40, 4, seed=1),
+    lambda: parquet(64, 8, seed=5),                           # four blocks across
+    lambda: parquet(24, 2, joint=0.05, seed=2),               # basket weave: two slats, faint joints
+    lambda: parquet(32, 4, noise=0.06, seed=7),               # grainy
+    turned_parquet_as_a_phone_takes_it,                       # turned 4 degrees, noise, JPEG 60
+], ids=["32px", "40px", "64px", "basket", "noisy", "turned-jpeg"])
+def test_parquet_gets_the_lattice_of_its_blocks_directions(make):
+    """Blocks of slats, up-down and left-right in a checkerboard, each slat its own tone:
+    the luminance shows the slats' pitch, no block repeat (no lattice before
+    ``detect_direction_lattice``); the direction of the streaks repeats on (n, n) and
+    (n, -n) px for blocks of n px, and photo_structure finds that lattice within 5%."""
+    photo, truth = make()
+    evened = even_lighting(photo)
+    assert detect_grain(evened) is None                       # as many slats run each way
+    assert same_lattice(detect_direction_lattice(evened), truth, 0.05)
+    grain, lattice = photo_structure(photo)
+    assert grain is None and same_lattice(lattice, truth, 0.05), (lattice, truth)
+
+
+def test_parquet_was_missed_by_the_luminance_lattice():
+    """Why it needs the directions: the luminance correlation's strongest repeats are one
+    slat across (8 px) both ways, whose grid no block repeats (support 0.2), and the
+    blocks' checkerboard reads 0.42 there, under the slats."""
+    photo = even_lighting(parquet(32, 4)[0])
+    correlation, peaks = luminance_correlation(photo)
+    strongest = max(peaks, key=lambda peak: peak[0])
+    assert strongest[1] == pytest.approx(8.0)
+    assert detect_lattice(photo) is None and detect_stripes(photo) is None
+
+
+def test_wood_and_noise_get_no_direction_lattice(skimage_textures):
+    """Grain all one way has no pattern of directions: a plank photo stand-in keeps its
+    grain (and boards, a repeat across it only), wood without boards gets no lattice, also
+    where its grain is not asked for; stochastic photos get none."""
+    plain = boards()
+    for wood in (plain, streaks(), fibres(40, 4)):
+        assert detect_direction_lattice(even_lighting(wood)) is None
+    assert photo_structure(plain) == ("y", pytest.approx(detect_boards(even_lighting(plain), "y")))
+    assert photo_structure(streaks()) == ("y", None)
+    assert photo_structure(streaks(), grain=None) == (None, None)
+    noise = np.random.default_rng(0).uniform(0.0, 1.0, (256, 256, 3))
+    blobs = fibres(4, 4)  # isotropic blotches
+    for name, photo in (("white noise", noise), ("blobs", blobs), ("gravel", skimage_textures["gravel"]),
+                        ("grass", skimage_textures["grass"])):
+        assert detect_direction_lattice(even_lighting(photo)) is None, name
+        assert photo_structure(photo)[1] is None, name
