@@ -809,6 +809,8 @@ def photo_lean(image: np.ndarray, blur: float = GRAIN_TILT_BLUR) -> tuple[float,
     have gradients k times weaker along them)."""
     # eigenvalues ascending: the first vector is where luminance changes least, along the features
     values, vectors = np.linalg.eigh(structure_tensor(image, blur))
+    if not values[1] > 0:  # a flat photo (no gradient anywhere) leans nowhere: a stretch of 0 broke the fit
+        return 0.0, 1.0
     degrees = (np.degrees(np.arctan2(vectors[1, 0], vectors[0, 0])) + 90.0) % 180.0 - 90.0
     return float(degrees), float(np.sqrt(values[1] / max(values[0], 1e-30)))
 

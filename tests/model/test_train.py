@@ -430,3 +430,14 @@ def test_an_interim_asks_for_one_probe_at_its_second():
     interim = Interim(10.0, None)
     assert not interim.wants_probe(9.9)
     assert interim.wants_probe(10.2) and not interim.wants_probe(10.4)  # once, then the schedule's probes
+
+
+def test_a_flat_photo_leans_nowhere_and_its_warp_is_the_identity():
+    """A solid grey upload (no gradient anywhere) crashed its refinement three times with a
+    division by zero in lean_warp: its lean's stretch came out 0."""
+    from model.structure import photo_lean
+    from model.train import lean_warp
+
+    degrees, stretch = photo_lean(np.full((64, 64, 3), 0.5, np.float32))
+    assert stretch == 1.0
+    assert torch.equal(lean_warp(degrees, stretch), torch.eye(2, dtype=torch.float64))
