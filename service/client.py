@@ -257,14 +257,18 @@ class Client:
         return self.texture(texture_id)
 
     def _follow(self, job_id: str, progress: Callable[[Job], None] | None, timeout: float | None) -> Job | None:
-        """The final job from the event stream, or None when it closed before the end."""
+        """The final job from the event stream, or None when it closed before the end or
+        ``timeout`` seconds passed (a read timeout alone restarts with every keep-alive)."""
         limit = httpx.Timeout(self.http.timeout.connect, read=timeout or 60.0)
+        deadline = None if timeout is None else time.monotonic() + timeout
         with self.http.stream("GET", f"/v1/jobs/{job_id}/events", timeout=limit) as res:
             if res.status_code >= 400:
                 res.read()
                 self._raise(res)
             event = "message"
             for line in res.iter_lines():
+                if deadline is not None and time.monotonic() > deadline:
+                    return None  # wait() then reads the job once and raises TimeoutError
                 if line.startswith("event:"):
                     event = line[6:].strip()
                 elif line.startswith("data:"):

@@ -134,3 +134,24 @@ def test_wait_refined_follows_the_uploads_refinement_with_a_bar(capsys) -> None:
         assert ts.wait_refined("t1", progress=True)["sampler"] == "fitted"
     bar = capsys.readouterr().err
     assert "job f1" in bar and "paused after its interim" in bar and "10%" in bar
+
+
+def test_wait_honours_its_timeout_through_keep_alives() -> None:
+    """A stream that only keeps alive (a long job) restarted the read timeout with each
+    comment line; wait(timeout=...) must still end when its seconds are up."""
+    import time
+
+    def keep_alive():
+        for _ in range(200):  # 20 s of keep-alives
+            time.sleep(0.1)
+            yield b": keep-alive\n\n"
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/events"):
+            return httpx.Response(200, content=keep_alive(), headers={"content-type": "text/event-stream"})
+        return httpx.Response(200, json={**JOB, "state": "running", "progress": 0.5})
+
+    started = time.monotonic()
+    with client_for(handler) as ts, pytest.raises(TimeoutError):
+        ts.wait("j1", timeout=0.5)
+    assert time.monotonic() - started < 3.0
