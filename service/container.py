@@ -43,6 +43,8 @@ class Services:
     metrics: Metrics = field(default_factory=Metrics)
     tile_cache: TileCache | None = None
     worker_id: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
+    # set when this worker process begins to stop: it claims nothing from then on
+    stopping: threading.Event = field(default_factory=threading.Event)
     _registry: object | None = None
     _registry_lock: threading.Lock = field(default_factory=threading.Lock)
 

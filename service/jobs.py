@@ -267,8 +267,10 @@ def reap(services: Services) -> dict[str, int]:
 
 def release_worker(services: Services) -> list[str]:
     """On shutdown: hand this worker's running jobs back to the queue at once, instead of
-    letting their leases run out. Their threads, if they finish later, cannot record
-    anything (finish() only updates the attempt it claimed while still running)."""
+    letting their leases run out, their attempts not spent (the worker stopped, the job did not
+    fail). Their threads, if they finish later, cannot record anything (finish() only updates
+    the attempt it claimed while still running). From here on this worker claims nothing."""
+    services.stopping.set()
     with session_scope(services.sessions) as session:
         held = session.scalars(select(Job.id).where(Job.state == "running",
                                                     Job.worker_id == services.worker_id)).all()
@@ -278,7 +280,7 @@ def release_worker(services: Services) -> list[str]:
             moved = session.execute(update(Job).where(
                 Job.id == job_id, Job.state == "running", Job.worker_id == services.worker_id,
                 Job.cancel_requested.is_(False)).values(
-                state="queued", lease_expires_at=None, worker_id=None)).rowcount
+                state="queued", lease_expires_at=None, worker_id=None, attempt=Job.attempt - 1)).rowcount
         if moved == 1:
             released.append(job_id)
             enqueue(services, job_id)

@@ -90,7 +90,11 @@ class Lease:
 
 def run_job_attempt(services: Services, job_id: str) -> str | None:
     """Run one attempt of ``job_id`` if it is queued (a fit: of the fit the lane's order puts
-    first); return the state it ended in."""
+    first); return the state it ended in. A worker that is stopping claims nothing (the job
+    stays queued; the message goes back to the queue for another worker)."""
+    if services.stopping.is_set():
+        jobs.enqueue(services, job_id)
+        return None
     named = jobs.get(services, job_id)
     fit_turn = named is not None and named.kind == "fit"
     claim = jobs.claim_fit_turn(services, job_id) if fit_turn else None

@@ -359,9 +359,14 @@ def test_worker_shutdown_hands_running_jobs_back(held, photo) -> None:
     body = client.get(f"/v1/jobs/{job['id']}").json()
     assert body["state"] == "queued" and body["worker_id"] is None
     assert not jobs.finish(services, claim, "succeeded")  # the old attempt cannot record a result
+    assert body["attempt"] == 0  # handed back by a stopping worker: the attempt is not spent
+    run_next_message(services)  # the stopping worker claims nothing; the message goes back
+    body = client.get(f"/v1/jobs/{job['id']}").json()
+    assert body["state"] == "queued" and body["attempt"] == 0 and services.huey.pending_count() == 1
+    services.stopping.clear()  # (another worker, in a process of its own)
     run_next_message(services)
     body = client.get(f"/v1/jobs/{job['id']}").json()
-    assert body["state"] == "succeeded" and body["attempt"] == 2
+    assert body["state"] == "succeeded" and body["attempt"] == 1
 
 
 def test_reaper_resends_lost_messages_only(held, photo) -> None:
