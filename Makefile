@@ -53,6 +53,12 @@ bench: install-test
 bench-refine: data
 	$(PY) bench/refinement_queue.py $(BENCH_REFINE_ARGS)
 
+# the style error a fit reaches in 30, 60 and 120 s (bf16 where native) against a 240-s
+# float32 fit and the encoder code, on three validation photos (~25 minutes)
+.PHONY: bench-fit-budget
+bench-fit-budget: data
+	$(PY) bench/fit_budget.py $(BENCH_FIT_BUDGET_ARGS)
+
 # the README picture: exemplars beside tiles synthesised from their codes; the shipped one
 # adds each photo's fit: make fits FIT_ARGS='--threads 1' FIT_JOBS=2 and FIGURE_ARGS='--fits runs/fits'
 readme-figure: data

@@ -113,7 +113,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     the end. The fit goes on meanwhile; an exception from ``interim`` stops it.
     ``run_dir``: the training run's folder (default: a temporary one). A fit whose ``run_dir``
     holds a paused run continues it, with the rest of its ``minutes``.
-    ``pause()``: asked once, right after the interim is published: True stops the fit there;
+    ``pause()``: asked once, ``interim_seconds`` in (after the interim, if one is published): True stops the fit there;
     ``run_dir`` then holds its resumable state and the result is ``{'paused': True, 'steps',
     ...structure}`` (nothing exported). The service pauses an upload's fit so that the uploads
     queued behind it reach their interims first.
@@ -153,7 +153,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         write_samplers(model.field, folder)
         interim(folder, code.reshape(-1).tolist(), step, dict(structure))
     if pause is not None and interim is None:
-        raise ValueError("pause is asked after the interim: give an interim too")
+        raise ValueError("pause is asked at the interim's second: give an interim too")
     with contextlib.nullcontext(str(run_dir)) if run_dir else tempfile.TemporaryDirectory() as run_dir:
         Path(run_dir).mkdir(parents=True, exist_ok=True)
         exemplar = Path(image_path)

@@ -986,8 +986,8 @@ def mute_coarse_octaves(model: TextureSpace, count: int) -> None:
 def train(cfg: TrainConfig, progress=None, interim: Interim | None = None, pause=None) -> Path:  # noqa: ANN001
     """Run (or resume) training; ``progress(fraction)`` is called after every step.
     ``interim``: a fit's first result, published from its probe while it goes on (``Interim``;
-    single mode with ``--probe-every`` only). ``pause()``: asked once, right after the interim
-    is published; True ends the run there with a resumable checkpoint (``"paused": True``: the
+    single mode with ``--probe-every`` only). ``pause()``: asked once, at the interim's second
+    (after it is published, if it is); True ends the run there with a resumable checkpoint (``"paused": True``: the
     training state, the seconds of the budget spent, the probe's best state apart), which
     ``train`` on the same ``--out`` continues, so that queued fits can reach their interims first."""
     run = setup(cfg)
@@ -1018,9 +1018,11 @@ def train(cfg: TrainConfig, progress=None, interim: Interim | None = None, pause
                 probe.update()
                 if interim is not None and not interim.done:
                     interim.offer(probe, budget.elapsed())
-                    if interim.done and pause is not None and pause():
-                        run.paused = True
-                        break
+                # at the interim's second, published or not (a start that stays best, like the grass's,
+                # has none): a fit that went on held the uploads behind it for its whole budget
+                if due and pause is not None and pause():
+                    run.paused = True
+                    break
             if run.step % cfg.ckpt_every == 0:
                 save(run)
                 run.log.flush()

@@ -42,8 +42,9 @@ class Refinement(BaseModel):
     state: Literal[JOB_STATES]
     progress: float = Field(ge=0, le=1, description="share of the fit's time budget spent (0 while queued)")
     stage: Literal["queued", "fitting", "paused", "done"] = Field(
-        description="queued: waiting for its first turn; fitting: running; paused: its interim served, waiting "
-                    "(its state stored) for its continuation while other uploads get theirs; done: ended")
+        description="queued: waiting for its first turn; fitting: running; paused: past its interim's second (the "
+                    "interim served if it beat the encoder's code), waiting, its state stored, for its continuation "
+                    "while other uploads get theirs; done: ended")
     queue_position: int | None = Field(
         None, ge=0, description="fits the fit lane runs before this one starts (0: next, or running); "
                                 "null once it ended")

@@ -441,3 +441,21 @@ def test_a_flat_photo_leans_nowhere_and_its_warp_is_the_identity():
     degrees, stretch = photo_lean(np.full((64, 64, 3), 0.5, np.float32))
     assert stretch == 1.0
     assert torch.equal(lean_warp(degrees, stretch), torch.eye(2, dtype=torch.float64))
+
+
+def test_a_fit_pauses_at_its_interims_second_even_when_its_start_stays_best(tmp_path, brick, vgg):
+    """A start that stays best (rates 0 here; the validation grass in practice) publishes no
+    interim; the fit still pauses at the interim's second, or it held the uploads behind it
+    for its whole budget."""
+    from model.train import Interim
+
+    image = tmp_path / "brick.png"
+    Image.fromarray((brick * 255).astype(np.uint8)).save(image)
+    cfg = parse_args(["--mode", "single", "--exemplar", str(image), "--out", str(tmp_path / "run"), "--patch", "32",
+                      "--batch", "1", "--short-side", "128", "--crop", "64", "--quiet", "--layers", "relu1_1",
+                      "--steps", "6", "--lr", "0", "--code-lr", "0", "--warmup", "1", "--probe-every", "1"])
+    published, asked = [], []
+    path = train(cfg, interim=Interim(0.0, lambda *state: published.append(state)),
+                 pause=lambda: asked.append(True) or True)
+    _, ckpt = load_checkpoint(path)
+    assert published == [] and asked == [True] and ckpt["paused"] and ckpt["step"] == 1

@@ -62,10 +62,10 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
             shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "interim" / "sampler.onnx")
             interim(out_dir / "interim", FAKE_INTERIM_CODE, 25, dict(structure))
             module.during_interim()
-            if pause is not None and pause():  # as model.fit: the run's state kept in run_dir, nothing exported
-                Path(run_dir).mkdir(parents=True, exist_ok=True)
-                (Path(run_dir) / "checkpoint.pt").write_bytes(b"paused at step 25")
-                return {"paused": True, "steps": 25, **structure}
+        if pause is not None and pause():  # as model.fit, at the interim's second, published or not:
+            Path(run_dir).mkdir(parents=True, exist_ok=True)  # the run's state kept in run_dir, nothing exported
+            (Path(run_dir) / "checkpoint.pt").write_bytes(b"paused at step 25")
+            return {"paused": True, "steps": 25, **structure}
         shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
         (out_dir / "code.json").write_text(json.dumps({"code": [0.0] * 8}))
         if progress:

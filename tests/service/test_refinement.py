@@ -169,12 +169,15 @@ def test_no_interim_is_asked_for_when_it_is_off_or_for_a_fit_of_a_new_texture(re
 def test_refined_upload_blends_by_its_encoder_code(refining, photo) -> None:
     client, services = refining
     a, b = upload_photo(client, photo), upload_photo(client, photo)
-    run_fit_lane(services)                                      # a is refined, b not yet
+    run_fit_lane(services)  # a's first stage: it pauses at its interim's second, b waits for its own
+    run_fit_lane(services)  # b's first stage: nothing waits behind it, so it goes on to the end
+    run_fit_lane(services)  # a's continuation: a is refined
+    assert all(client.get(f"/v1/textures/{t['id']}").json()["sampler"] == "fitted" for t in (a, b))
     res = client.post("/v1/textures/interpolate", json={"a": a["id"], "b": b["id"], "t": 0.0})
     assert res.status_code == 201, res.text
-    assert res.json()["code"] == pytest.approx(a["code"])       # a's encoder code, not the fit's
+    assert res.json()["code"] == pytest.approx(a["code"])       # a's encoder code (its upload's), not the fit's
     assert res.json()["sampler"] == "encoder" and res.json()["refinement"] is None
-    assert res.json()["parents"]["encoder_codes_of"] == [a["id"]]  # the blend says what it mixed
+    assert res.json()["parents"]["encoder_codes_of"] == [a["id"], b["id"]]  # the blend says what it mixed
 
 
 def test_canceled_refinement_leaves_the_encoder_tiles_final(refining, photo) -> None:

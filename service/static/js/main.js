@@ -122,7 +122,8 @@ function refinementText(job, texture) {
   const final = r.final_eta_seconds != null ? `, final in ${roughly(r.final_eta_seconds)}` : '';
   if (job.state === 'queued' && (job.stage === 'interim' || r.stage === 'paused')) {
     const ahead = r.queue_position ? `; goes on after ${r.queue_position} other fit${r.queue_position > 1 ? 's' : ''}` : '; goes on next';
-    return `refining, paused: tiles from its first seconds${ahead}${final}`;
+    const served = texture?.sampler === 'interim' ? 'tiles from its first seconds' : "the encoder's tiles still best";
+    return `refining, paused: ${served}${ahead}${final}`;
   }
   if (job.state === 'queued') {
     const ahead = r.queue_position ? `${r.queue_position} ahead` : 'next';
