@@ -67,7 +67,7 @@ def test_a_queued_refinement_shows_its_place_and_estimate_not_zero_percent(page,
     """Three uploads at once: the newest, on the map, waits behind the others; the page says
     how many fits go first and when refined tiles come, then follows it to the end."""
     for k in range(3):
-        res = page.request.post(f"{refining_server}/v1/textures", multipart={"image": {
+        res = page.request.post(f"{refining_server.rstrip('/')}/v1/textures", multipart={"image": {
             "name": f"q{k}.png", "mimeType": "image/png", "buffer": texture_photo_png("gravel", (0.9, 0.8, 0.6))}})
         assert res.status == 201, res.text()
     newest = res.json()
