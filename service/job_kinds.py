@@ -166,7 +166,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
                          fit_structure(found), interim=True)
 
     in_place_interim = p.in_place and services.settings.fit_interim_seconds > 0
-    # A refinement pauses after its interim while other uploads wait for theirs (its training
+    # A refinement pauses at its interim's second while other uploads wait for theirs (its training
     # state stored); its continuation, on any worker, resumes that state with no interim of its own.
     paused_key = keys.paused_fit_key(job.id)
     run_dir = workdir / "run"
@@ -182,7 +182,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
                            pause=pause if in_place_interim and not resumed else None, run_dir=run_dir)
     if fitted.get("paused"):
         services.storage.put_file(paused_key, run_dir / "checkpoint.pt")
-        raise Paused(f"paused after its interim at step {fitted['steps']}: other uploads wait for theirs",
+        raise Paused(f"paused at its interim's second, step {fitted['steps']}: other uploads wait for theirs",
                      stage="interim")
     services.storage.delete(paused_key)
     structure = fit_structure(fitted)

@@ -167,7 +167,7 @@ class Job(Base):
     result_media_type: Mapped[str | None] = mapped_column(String(100), nullable=True)
     result_size: Mapped[int | None] = mapped_column(Integer, nullable=True)
     output_texture_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
-    # "interim": an upload's fit paused after its interim, waiting for its continuation
+    # "interim": an upload's fit paused at its interim's second, waiting for its continuation
     stage: Mapped[str | None] = mapped_column(String(16), nullable=True)
     # what it synthesised with: {"kind": "encoder" | "interim" | "fitted", "version", "key"}
     sampler: Mapped[dict | None] = mapped_column(JSON, nullable=True)
