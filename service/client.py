@@ -21,6 +21,7 @@ import json
 import os
 import re
 import time
+from urllib.parse import quote
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -73,7 +74,13 @@ class JobFailed(Exception):
 
 
 def _job_id(job: Job | str) -> str:
-    return job if isinstance(job, str) else job["id"]
+    """A job's id as one URL path segment (``_segment``)."""
+    return _segment(job if isinstance(job, str) else job["id"])
+
+
+def _segment(value: str) -> str:
+    """An id as one URL path segment: percent-encoded, so '../../v1/jobs' cannot walk the API."""
+    return quote(str(value), safe="")
 
 
 class Client:
@@ -118,7 +125,7 @@ class Client:
         return self._call("POST", "/v1/textures", files={"image": (filename, data)}, data=form).json()
 
     def texture(self, texture_id: str) -> dict[str, Any]:
-        return self._call("GET", f"/v1/textures/{texture_id}").json()
+        return self._call("GET", f"/v1/textures/{_segment(texture_id)}").json()
 
     def textures(self, *, page_size: int = 50) -> Iterator[dict[str, Any]]:
         """Every texture, newest first (follows the cursor pages)."""
@@ -131,11 +138,11 @@ class Client:
                 return
 
     def rename(self, texture_id: str, name: str) -> dict[str, Any]:
-        return self._call("PATCH", f"/v1/textures/{texture_id}", json={"name": name}).json()
+        return self._call("PATCH", f"/v1/textures/{_segment(texture_id)}", json={"name": name}).json()
 
     def delete(self, texture_id: str) -> None:
         """Delete a texture with its jobs and their files."""
-        self._call("DELETE", f"/v1/textures/{texture_id}")
+        self._call("DELETE", f"/v1/textures/{_segment(texture_id)}")
 
     def tile(self, texture_id: str, z: int, x: int, y: int, *, fmt: str = "png", seed: int = 0,
              size: int = 256, plane: str = "xy", offset: float = 0.0, exact: bool = True,
@@ -146,7 +153,7 @@ class Client:
         (header ``X-Texspace-Tile: preview``); with ``exact`` (the default) this asks again
         (If-None-Match: 304 while it is still rendering) until the exact tile arrives, at
         most ``timeout`` s (then TimeoutError); ``exact=False`` returns the preview."""
-        url = f"/v1/textures/{texture_id}/tiles/{z}/{x}/{y}.{fmt}"
+        url = f"/v1/textures/{_segment(texture_id)}/tiles/{z}/{x}/{y}.{fmt}"
         params = {"seed": seed, "size": size, "plane": plane, "offset": offset}
         res = self._call("GET", url, params=params)
         deadline, wait = time.monotonic() + timeout, 0.25
@@ -163,12 +170,12 @@ class Client:
     # --- jobs -----------------------------------------------------------------------
     def volume(self, texture_id: str, *, idempotency_key: str | None = None, **params: Any) -> Job:
         """Submit a volume job (``resolution``, ``bounds``, ``seed``, ``format``: see /docs)."""
-        return self._call("POST", f"/v1/textures/{texture_id}/volumes", json=params,
+        return self._call("POST", f"/v1/textures/{_segment(texture_id)}/volumes", json=params,
                           headers=self._key(idempotency_key)).json()
 
     def region(self, texture_id: str, *, idempotency_key: str | None = None, **params: Any) -> Job:
         """Submit a region export (``z``, ``x0``, ``y0``, ``width``, ``height``, ``format``, ...)."""
-        return self._call("POST", f"/v1/textures/{texture_id}/regions", json=params,
+        return self._call("POST", f"/v1/textures/{_segment(texture_id)}/regions", json=params,
                           headers=self._key(idempotency_key)).json()
 
     def bake(self, texture_id: str, mesh: str | os.PathLike | bytes, *, filename: str | None = None,
@@ -181,7 +188,7 @@ class Client:
         else:
             data, filename = Path(mesh).read_bytes(), filename or Path(mesh).name
         form = {k: str(v) for k, v in params.items() if v is not None}
-        return self._call("POST", f"/v1/textures/{texture_id}/bakes", files={"mesh": (filename, data)},
+        return self._call("POST", f"/v1/textures/{_segment(texture_id)}/bakes", files={"mesh": (filename, data)},
                           data=form, headers=self._key(idempotency_key)).json()
 
     def fit(self, texture_id: str, *, seconds: float | None = None, grain: str | None = "auto",
@@ -193,7 +200,7 @@ class Client:
         ``lattice``: "auto" (a repeat lattice detected from the photo) or None;
         ``even``: "auto" (an even photo's coarse octaves muted) or None;
         ``lean``: "auto" (a photo's lean, where it has no grain or lattice) or None."""
-        return self._call("POST", f"/v1/textures/{texture_id}/fit",
+        return self._call("POST", f"/v1/textures/{_segment(texture_id)}/fit",
                           json={"grain": grain, "lattice": lattice, "even": even, "lean": lean}
                           | ({} if seconds is None else {"seconds": seconds}),
                           headers=self._key(idempotency_key)).json()

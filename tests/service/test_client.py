@@ -155,3 +155,19 @@ def test_wait_honours_its_timeout_through_keep_alives() -> None:
     with client_for(handler) as ts, pytest.raises(TimeoutError):
         ts.wait("j1", timeout=0.5)
     assert time.monotonic() - started < 3.0
+
+
+def test_ids_are_one_path_segment_each() -> None:
+    """Client.texture('../../v1/jobs') read the jobs list and Client.delete('../textures/<id>')
+    deleted that texture: ids are percent-encoded into one segment."""
+    seen: list[str] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request.url.raw_path.decode())
+        return httpx.Response(200, json={**JOB, "id": "x"}) if request.method == "GET" else httpx.Response(204)
+
+    with client_for(handler) as ts:
+        ts.texture("../../v1/jobs")
+        ts.delete("../textures/abc")
+        ts.job("a/b")
+    assert seen == ["/v1/textures/..%2F..%2Fv1%2Fjobs", "/v1/textures/..%2Ftextures%2Fabc", "/v1/jobs/a%2Fb"]
