@@ -20,13 +20,14 @@ from .tables import Job, Texture
 log = logging.getLogger(__name__)
 
 
-def purge_texture(services: Services, texture_id: str) -> list[str]:
+def purge_texture(services: Services, texture_id: str) -> list[str] | None:
     """Delete the texture, cancel and delete its jobs, remove all their files.
-    Returns the ids of the jobs removed."""
+    Returns the ids of the jobs removed; None when the texture row was already gone (another
+    request deleted it first: its files are still swept, harmlessly)."""
     with session_scope(services.sessions) as session:
         job_ids = list(session.scalars(select(Job.id).where(Job.texture_id == texture_id)))
         session.execute(delete(Job).where(Job.texture_id == texture_id))
-        session.execute(delete(Texture).where(Texture.id == texture_id))
+        deleted = session.execute(delete(Texture).where(Texture.id == texture_id)).rowcount
     for job_id in job_ids:
         forget_job_files(services, job_id)
     services.storage.delete_prefix(keys.texture_prefix(texture_id))
@@ -34,7 +35,7 @@ def purge_texture(services: Services, texture_id: str) -> list[str]:
         cached.unlink(missing_ok=True)
     if job_ids:
         log.info("texture deleted with its jobs", extra={"texture_id": texture_id, "jobs": job_ids})
-    return job_ids
+    return job_ids if deleted else None
 
 
 def forget_job_files(services: Services, job_id: str) -> None:

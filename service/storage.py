@@ -85,6 +85,12 @@ class Storage:
         """Raise if the backend is unreachable."""
 
 
+def _gone_already(function, path, exc_info) -> None:  # noqa: ANN001 (shutil.rmtree's onerror)
+    """rmtree's error hook: a file or folder another delete removed first is fine; the rest raises."""
+    if not issubclass(exc_info[0], FileNotFoundError):
+        raise exc_info[1]
+
+
 class LocalStorage(Storage):
     """Files under a root folder; writes go to a temporary file then ``os.replace``."""
 
@@ -150,8 +156,11 @@ class LocalStorage(Storage):
         folder = self._path(prefix)
         if not folder.exists():
             return 0
-        count = sum(1 for p in folder.rglob("*") if p.is_file())
-        shutil.rmtree(folder)
+        try:
+            count = sum(1 for p in folder.rglob("*") if p.is_file())
+        except FileNotFoundError:  # a concurrent delete of the same prefix got there first
+            count = 0
+        shutil.rmtree(folder, onerror=_gone_already)
         return count
 
     def local_path(self, key: str) -> Path | None:

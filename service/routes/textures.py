@@ -184,7 +184,8 @@ def delete_texture(services: ServicesDep, texture_id: TextureId) -> Response:
         texture = session.get(Texture, texture_id)
         if texture is None or not auth.visible(texture):
             raise not_found("texture", texture_id)
-    purge_texture(services, texture_id)
+    if purge_texture(services, texture_id) is None:  # a concurrent DELETE took it first: one 204
+        raise not_found("texture", texture_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 

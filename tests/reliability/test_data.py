@@ -156,3 +156,31 @@ def test_failed_database_insert_leaves_no_file(held, monkeypatch) -> None:
     res = client.post("/v1/textures", files={"image": ("t.png", brick_png())})  # answered, with its request id
     assert res.status_code == 500 and res.json()["type"] == "urn:texspace:problem:internal-error"
     assert stored_files(services) == [] and row_counts(services) == (0, 0)
+
+
+def test_concurrent_deletes_of_one_texture_answer_one_204(held) -> None:
+    """Four requests deleting the same texture at once answered 500 (rmtree of a folder the
+    other purge removed) and 204 twice: now one 204, the rest 404, nothing left behind."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    services, client = held
+    before = stored_files(services)
+    for _ in range(3):
+        doomed = client.post("/v1/textures", files={"image": ("doomed.png", brick_png(64))}).json()
+        job = client.post(doomed["links"]["volumes"], json={"resolution": 8}).json()
+        run_job_attempt(services, job["id"])
+        with ThreadPoolExecutor(4) as pool:
+            codes = sorted(pool.map(lambda _: client.delete(doomed["links"]["self"]).status_code, range(4)))
+        assert codes == [204, 404, 404, 404], codes
+    assert stored_files(services) == before
+
+
+def test_a_prefix_deleted_twice_at_once_is_not_an_error(tmp_path: Path) -> None:
+    storage = LocalStorage(tmp_path)
+    for k in range(50):
+        storage.put_bytes(f"textures/t/refined/{k}/sampler.onnx", b"x")
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(4) as pool:
+        list(pool.map(lambda _: storage.delete_prefix("textures/t"), range(4)))
+    assert not (tmp_path / "textures" / "t").exists()
