@@ -127,7 +127,7 @@ def read_image(data: bytes, *, max_pixels: int, min_side: int = MIN_SIDE,
             f.write(data)
         inp = oiio.ImageInput.open(path)
         if inp is None:
-            message = oiio.geterror().strip()
+            message = _without(oiio.geterror().strip(), tmp)
             # OIIO's own bomb guards (absolute size; size claimed vs file size) fired first.
             if ("exceeds" in message and "limit" in message) or "header claims" in message:
                 raise LimitExceeded("image too large: " + " ".join(message.splitlines()[:2]))
@@ -148,7 +148,7 @@ def read_image(data: bytes, *, max_pixels: int, min_side: int = MIN_SIDE,
                 raise InvalidImage(f"unsupported channel count {c}")
             held = _take(budget, w * h) if budget is not None else 0
             try:
-                out = _decode_bands(inp, ext, spec)
+                out = _decode_bands(inp, ext, spec, tmp)
             except BaseException:
                 if held:
                     budget.give(held)
@@ -170,8 +170,14 @@ def _take(budget: PixelBudget, pixels: int) -> int:
     return held
 
 
-def _decode_bands(inp, ext: str, spec) -> np.ndarray:  # noqa: ANN001 (OIIO objects)
-    """Decode in bands of scanlines into one (H, W, 3) float32 sRGB array."""
+def _without(message: str, folder: str) -> str:
+    """A decoder's message without our temporary folder: a problem's detail shows no server path."""
+    return message.replace(os.path.join(folder, ""), "").replace(folder, "")
+
+
+def _decode_bands(inp, ext: str, spec, folder: str = "") -> np.ndarray:  # noqa: ANN001 (OIIO objects)
+    """Decode in bands of scanlines into one (H, W, 3) float32 sRGB array (``folder``: the
+    temporary one the upload was written to, cut out of error messages)."""
     w, h, c = spec.width, spec.height, spec.nchannels
     is_float = spec.format.basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
     out = np.empty((h, w, 3), dtype=np.float32)
@@ -180,7 +186,7 @@ def _decode_bands(inp, ext: str, spec) -> np.ndarray:  # noqa: ANN001 (OIIO obje
         y1 = min(h, y0 + rows)
         band = inp.read_scanlines(0, 0, spec.y + y0, spec.y + y1, 0, 0, c, "float")
         if band is None or inp.has_error:
-            raise InvalidImage(f"corrupt or truncated {ext} image: {inp.geterror().strip()}")
+            raise InvalidImage(f"corrupt or truncated {ext} image: {_without(inp.geterror().strip(), folder)}")
         band = np.asarray(band, dtype=np.float32).reshape(y1 - y0, w, c)
         out[y0:y1] = _to_srgb_rgb(band, is_float, spec.alpha_channel)
     return out

@@ -281,3 +281,16 @@ def test_working_photo_evens_only_when_asked():
     assert np.array_equal(evened, images.even_lighting(as_is))
     with pytest.raises(InvalidParameter, match="lighting must be one of as-is, even"):
         images.working_photo(photo, 96, "flat")
+
+
+def test_a_decoders_message_names_no_server_path(tmp_path) -> None:
+    """A truncated EXR's problem said 'EXR Error (/tmp/texspace-img-.../upload.exr)': the
+    temporary folder is cut out of what the client reads."""
+    path = str(tmp_path / "real.exr")
+    out = oiio.ImageOutput.create(path)
+    out.open(path, oiio.ImageSpec(32, 32, 3, oiio.HALF))
+    out.write_image(np.random.default_rng(0).random((32, 32, 3)).astype(np.float32))
+    out.close()
+    with pytest.raises(InvalidImage) as error:
+        read_image((tmp_path / "real.exr").read_bytes()[:200], max_pixels=1 << 20)
+    assert "upload.exr" in str(error.value) and "texspace-img-" not in str(error.value)
