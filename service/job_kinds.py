@@ -199,7 +199,10 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     exemplar_key = keys.exemplar_key(new_id, Path(texture.exemplar_key).name)  # own copy: outlives the parent
     services.storage.put_file(exemplar_key, original)
     with session_scope(services.sessions) as session:
-        if session.get(Texture, new_id) is None:
+        current = session.get(Job, job.id)
+        dropped = (session.get(Texture, texture.id) is None or current is None or current.state != "running"
+                   or current.attempt != job.attempt)  # the texture deleted (with its jobs) meanwhile
+        if not dropped and session.get(Texture, new_id) is None:
             session.add(Texture(id=new_id, name=f"{texture.name or texture.id} (fitted)",
                                 code=code, colour=colour, colour_calibration=COLOUR_CALIBRATION,
                                 model_version=texture.model_version,
@@ -209,6 +212,9 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
                                 exemplar_media_type=texture.exemplar_media_type,
                                 width=texture.width, height=texture.height, sampler_key=sampler_key,
                                 structure=structure, lighting=texture.lighting))
+    if dropped:  # nothing of a deleted texture survives: not its fitted child, nor the files stored for it
+        services.storage.delete_prefix(keys.texture_prefix(new_id))
+        raise Canceled(f"texture {texture.id} was deleted while it was fitted; its fit was dropped")
     return {**values, "output_texture_id": new_id}
 
 

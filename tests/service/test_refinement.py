@@ -337,3 +337,27 @@ def test_defaults(monkeypatch) -> None:
     settings = Settings()
     assert settings.auto_fit and settings.fit_threads == 1
     assert worker_lanes(settings) == ["main", "fit"]
+
+
+def test_a_texture_deleted_during_a_fit_of_it_does_not_come_back_as_its_child(refining, photo, monkeypatch) -> None:
+    """POST .../fit, then DELETE the texture while the fit exports: its fitted child appeared
+    25 s later, pointing at the deleted texture and serving its photo. Now nothing survives."""
+    client, services = refining
+    texture = upload_photo(client, photo)
+    client.post(f"/v1/jobs/{texture['refinement']['job_id']}/cancel")  # (its refinement: not this test's subject)
+    module = sys.modules["model.fit"]
+    module_fit = module.fit_exemplar
+
+    @functools.wraps(module_fit)
+    def fit_then_delete(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        written = module_fit(*args, **kwargs)
+        assert client.delete(f"/v1/textures/{texture['id']}").status_code == 204
+        return written
+
+    monkeypatch.setattr(module, "fit_exemplar", fit_then_delete)
+    job = client.post(f"/v1/textures/{texture['id']}/fit", json={"seconds": 5}).json()
+    run_fit_lane(services)
+    names = [t["name"] for t in client.get("/v1/textures").json()["items"]]
+    assert names == [] and client.get(f"/v1/jobs/{job['id']}").status_code == 404
+    root = services.storage.root
+    assert [str(p.relative_to(root)) for p in root.rglob("*") if p.is_file()] == []
