@@ -177,9 +177,10 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     def pause() -> bool:
         return jobs.fits_waiting_for_interim(services, job.id)
 
+    first_stage = in_place_interim and not resumed
     fitted = _fit_exemplar(services, texture, p, photo, out_dir, progress, should_cancel,
-                           serve_interim if in_place_interim and not resumed else None,
-                           pause=pause if in_place_interim and not resumed else None, run_dir=run_dir)
+                           serve_interim if first_stage else None, pause=pause if first_stage else None,
+                           run_dir=run_dir)
     if fitted.get("paused"):
         services.storage.put_file(paused_key, run_dir / "checkpoint.pt")
         raise Paused(f"paused at its interim's second, step {fitted['steps']}: other uploads wait for theirs",

@@ -83,6 +83,17 @@ def queue_refinement(services: Services, texture: Texture, params: dict[str, Any
         owner_var.reset(token)
 
 
+def refinement_pending(services: Services, texture: Texture) -> bool:
+    """Whether ``texture``'s in-place refinement may still replace the sampler it serves (the
+    encoder's, or the refinement's own interim): its job is neither gone nor failed nor
+    canceled (succeeded counts as pending: ``texture`` may have been read before the swap)."""
+    if not texture.refinement_may_replace_sampler():
+        return False
+    with session_scope(services.sessions) as session:
+        state = session.scalar(select(Job.state).where(Job.id == texture.refinement_job_id))
+    return state is not None and state not in ("failed", "canceled")
+
+
 def served_sampler(services: Services, texture_id: str, waiting: bool = False) -> dict[str, Any] | None:
     """What ``texture_id`` renders with now (a job's ``sampler``): ``kind`` (encoder, interim,
     fitted), ``version`` (the model's, plus ``+fit.HASH`` of its own sampler), ``refining``
@@ -90,10 +101,9 @@ def served_sampler(services: Services, texture_id: str, waiting: bool = False) -
     ``waiting_for_refinement`` (``waiting``, a job's after_refinement, and refining)."""
     with session_scope(services.sessions) as session:
         texture = session.get(Texture, texture_id)
-        if texture is None:
-            return None
-        refining = texture.refinement_may_replace_sampler() and session.scalar(
-            select(Job.state).where(Job.id == texture.refinement_job_id)) in ("queued", "running")
+    if texture is None:
+        return None
+    refining = refinement_pending(services, texture)
     key = texture.sampler_key
     kind = ("interim" if texture.sampler_interim else "fitted") if key else "encoder"
     version = texture.model_version + (f"+fit.{hashlib.sha256(key.encode()).hexdigest()[:8]}" if key else "")
@@ -302,13 +312,19 @@ def _first_stage(job: Job) -> bool:
     return bool((job.params or {}).get("in_place")) and job.stage is None
 
 
+def queued_fits(services: Services) -> list[Job]:
+    """The queued fits, oldest first."""
+    with session_scope(services.sessions) as session:
+        return list(session.scalars(select(Job).where(Job.kind == "fit", Job.state == "queued")
+                                    .order_by(Job.created_at, Job.id)))
+
+
 def fit_order(services: Services) -> list[Job]:
     """The queued fits in the order the fit lane will run them (``pick_fit``): first stages
     before the rest; within each, the tenant whose fits last ran longest ago, then the oldest."""
+    queued = queued_fits(services)
+    owners = {job.owner_id for job in queued}
     with session_scope(services.sessions) as session:
-        queued = session.scalars(select(Job).where(Job.kind == "fit", Job.state == "queued")
-                                 .order_by(Job.created_at, Job.id)).all()
-        owners = {job.owner_id for job in queued}
         last_ran = dict(session.execute(select(Job.owner_id, func.max(Job.heartbeat_at)).where(
             Job.kind == "fit", Job.heartbeat_at.is_not(None)).group_by(Job.owner_id)).all()) if queued else {}
     order: list[Job] = []
@@ -349,7 +365,7 @@ def claim_fit_turn(services: Services, job_id: str, tries: int = 3) -> Claim | N
 def fits_waiting_for_interim(services: Services, job_id: str) -> bool:
     """Whether an upload other than ``job_id``'s waits for its refinement's first stage: a fit
     past its interim then pauses for it."""
-    return any(_first_stage(job) and job.id != job_id for job in fit_order(services))
+    return any(_first_stage(job) and job.id != job_id for job in queued_fits(services))
 
 
 @dataclass

@@ -116,7 +116,7 @@ class Texture(Base):
 
     def refinement_may_replace_sampler(self) -> bool:
         """True while an in-place refinement may still give this texture another sampler: it
-        has one queued or running (``tiles_final`` asks its job) and serves the encoder's code
+        has one queued or running (``jobs.refinement_pending`` asks its job) and serves the encoder's code
         or the refinement's interim; False once it serves a final fitted sampler, or has none."""
         return bool(self.refinement_job_id) and (not self.sampler_key or self.sampler_interim)
 

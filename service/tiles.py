@@ -14,7 +14,6 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 
 import numpy as np
-from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
 
@@ -22,11 +21,11 @@ from worker.images import write_image
 from worker.errors import Busy, LimitExceeded
 from worker.tiles import NATIVE_ZOOM, exact_parent, parent_from_children, render_tile, supersample_for
 
+from . import jobs
 from .container import Services
-from .db import session_scope
 from .errors import ClientGone
 from .settings import Settings
-from .tables import Job, Texture
+from .tables import Texture
 from .tilecache import TileCache
 
 log = logging.getLogger(__name__)
@@ -333,11 +332,7 @@ def tiles_final(services: Services, texture: Texture) -> bool:
     """False while the texture's in-place refinement may still replace its sampler (the
     encoder's, or the refinement's own interim), so that its tile URLs will serve new bytes
     (under new ETags) once the job succeeds."""
-    if not texture.refinement_may_replace_sampler():
-        return True
-    with session_scope(services.sessions) as session:
-        state = session.scalar(select(Job.state).where(Job.id == texture.refinement_job_id))
-    return state is None or state in ("failed", "canceled")  # succeeded: this row was read before
+    return not jobs.refinement_pending(services, texture)
 
 
 def etag_matches(if_none_match: str | None, etag: str) -> bool:
