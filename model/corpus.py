@@ -42,7 +42,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from model.data import INDEX_FILE, SPLITS, AssetUnavailable, cache_dir, file_sha256, write_bytes_atomic
+from model.data import (INDEX_FILE, SPLITS, AssetUnavailable, cache_dir, fetch_command, file_sha256,
+                        write_bytes_atomic)
 
 DEFAULT_CORPUS_DIR = Path("data/textures-large")
 MAX_SHORT_SIDE = 512  # training works at 256; 512 keeps headroom and the corpus ~0.5 GB
@@ -563,20 +564,9 @@ def corpus_index(entries: list[dict], sources: Sequence[Source], rejected: dict,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    import argparse
-
-    parser = argparse.ArgumentParser(prog="python -m model.corpus", description="The large corpus (docs/DATA.md).")
-    commands = parser.add_subparsers(dest="command", required=True)
-    fetch = commands.add_parser("fetch", help="download, filter and split the Debian game-art material photos")
-    fetch.add_argument("--out", type=Path, default=DEFAULT_CORPUS_DIR, help="output folder")
-    args = parser.parse_args(argv)
-    try:
-        index = fetch_corpus(args.out)
-    except AssetUnavailable as error:
-        parser.exit(1, f"error: {error}\n")
-    counts = index["counts"]
-    print(f"wrote {counts['train']} train and {counts['val']} val exemplars to {args.out}")
-    return 0
+    return fetch_command(argv, "python -m model.corpus", "The large corpus (docs/DATA.md).",
+                         "download, filter and split the Debian game-art material photos", DEFAULT_CORPUS_DIR,
+                         fetch_corpus)
 
 
 if __name__ == "__main__":

@@ -349,21 +349,28 @@ def fetch_textures(out: Path = DEFAULT_DATA_DIR) -> dict:
     return index
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m model.data", description="Texture photo data for texspace.")
+def fetch_command(argv: Sequence[str] | None, prog: str, description: str, help_: str, default_out: Path,
+                  fetch) -> int:  # noqa: ANN001 (fetch(out) -> index)
+    """``PROG fetch [--out DIR]``: run ``fetch(out)`` and say how many photos it wrote; an
+    asset that cannot be had is one line on stderr and exit status 1 (model.data, model.corpus)."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
     commands = parser.add_subparsers(dest="command", required=True)
-    fetch = commands.add_parser("fetch", help="collect the 41 photos of CATALOGUE into a train/val folder "
-                                              "(the large corpus: python -m model.corpus fetch)")
-    fetch.add_argument("--out", type=Path, default=DEFAULT_DATA_DIR, help="output folder")
+    commands.add_parser("fetch", help=help_).add_argument("--out", type=Path, default=default_out,
+                                                           help="output folder")
     args = parser.parse_args(argv)
-    if args.command == "fetch":
-        try:
-            index = fetch_textures(args.out)
-        except AssetUnavailable as error:
-            parser.exit(1, f"error: {error}\n")
-        counts = index["counts"]
-        print(f"wrote {counts['train']} train and {counts['val']} val exemplars to {args.out}")
+    try:
+        index = fetch(args.out)
+    except AssetUnavailable as error:
+        parser.exit(1, f"error: {error}\n")
+    counts = index["counts"]
+    print(f"wrote {counts['train']} train and {counts['val']} val exemplars to {args.out}")
     return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return fetch_command(argv, "python -m model.data", "Texture photo data for texspace.",
+                         "collect the 41 photos of CATALOGUE into a train/val folder (the large corpus: "
+                         "python -m model.corpus fetch)", DEFAULT_DATA_DIR, fetch_textures)
 
 
 if __name__ == "__main__":
