@@ -67,7 +67,7 @@ PATCH = 128
 # the probe's best state then, if it beats the start. With the start, the export and the
 # colour table it is served about 20 s after the fit starts; lattice fits start on the photo's
 # mean cell, so even ~20 steps show the bond or grid the encoder's patches lack. Uploads queued
-# together each get theirs before any fit goes on (the service pauses a fit after its interim).
+# together each get theirs before any fit goes on (the service pauses a fit at its interim's second).
 INTERIM_SECONDS = 10.0
 # A lattice fit trains one patch per step (and its lattice partner, model/train.py) instead
 # of two: it needs the steps. Measured before the partners, the brick wall on one thread,
@@ -113,8 +113,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     the end. The fit goes on meanwhile; an exception from ``interim`` stops it.
     ``run_dir``: the training run's folder (default: a temporary one). A fit whose ``run_dir``
     holds a paused run continues it, with the rest of its ``minutes``.
-    ``pause()``: asked once, ``interim_seconds`` in (after the interim, if one is published): True stops the fit there;
-    ``run_dir`` then holds its resumable state and the result is ``{'paused': True, 'steps',
+    ``pause()``: asked once, ``interim_seconds`` in (after the interim, if one is published): True
+    stops the fit there; ``run_dir`` then holds its resumable state and the result is ``{'paused': True, 'steps',
     ...structure}`` (nothing exported). The service pauses an upload's fit so that the uploads
     queued behind it reach their interims first.
     """

@@ -447,8 +447,7 @@ class Objective:
         """VGG features of ``images``, float32 whatever the precision of the convolutions: the
         Gram matrices and their differences from the targets are taken in float32 (bfloat16's
         8-bit mantissa would round a Gram entry by up to 0.4%, the size of a good fit's error)."""
-        with torch.autocast(torch.device(self.device).type, dtype=self.precision or torch.float32,
-                            enabled=self.precision is not None):
+        with autocast(torch.device(self.device), self.precision):
             feats = self.vgg(images)
         return {name: value.float() for name, value in feats.items()}
 
@@ -501,9 +500,9 @@ def resolve_precision(name: str, device: torch.device) -> torch.dtype | None:
     return torch.bfloat16 if cpu_has_native_bf16() else None
 
 
-def autocast(run: "Run") -> torch.autocast:
-    """The run's mixed-precision context (a no-op at float32)."""
-    return torch.autocast(run.device.type, dtype=run.precision or torch.float32, enabled=run.precision is not None)
+def autocast(device: torch.device, precision: torch.dtype | None) -> torch.autocast:
+    """The mixed-precision context of ``resolve_precision``'s dtype on ``device`` (a no-op at None: float32)."""
+    return torch.autocast(device.type, dtype=precision or torch.float32, enabled=precision is not None)
 
 
 def cpu_has_native_bf16() -> bool:
@@ -771,7 +770,7 @@ def train_step(run: Run, time_done: float | None = None) -> dict[str, float]:
     if pairs:  # each patch and its lattice partner (Objective's pair contrast)
         origins = torch.cat([origins, lattice_partners(origins, cfg.lattice, run.rng)])
         axes, seeds, z, indices = axes.repeat(2, 1, 1), seeds.repeat(2), z.repeat(2, 1), np.tile(indices, 2)
-    with autocast(run):  # the decoder's matrix products (the noise is float64/int32: untouched)
+    with autocast(run.device, run.precision):  # the decoder's matrix products (the noise is float64/int32: untouched)
         synth = render_slices(model.field, z, seeds, origins.to(device), axes.to(device), cfg.patch).float()
     loss = run.objective(synth, indices, pairs=pairs)
 
@@ -828,7 +827,7 @@ class Probe:
 
     def score(self) -> float:
         """The objective on the fixed planes, at twice the training patch size."""
-        with torch.no_grad(), autocast(self.run):
+        with torch.no_grad(), autocast(self.run.device, self.run.precision):
             patches = render_slices(self.run.model.field, self.run.codes.expand(4, -1), self.seeds, self.origins,
                                     self.axes, self.run.cfg.patch * 2).float()
             return float(self.run.objective(patches, np.zeros(4, dtype=np.int64), pairs=self.pairs))
