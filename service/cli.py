@@ -187,9 +187,11 @@ class TextureSource:
             from model.fit import fit_exemplar  # torch lives in model/, imported only here
         except ImportError:
             raise CliError("--refine needs PyTorch: pip install 'texspace[train]'", code=1) from None
-        from worker.images import working_photo, write_image
+        from worker.colour_match import texture_vector
+        from worker.images import working_photo
+        from worker.runtime import TILEABLE_SAMPLER
 
-        from .job_kinds import fitted_colour
+        from .job_kinds import fit_structure, fitted_colour, photo_to_fit
 
         registry = _registry(settings)
         runtime = registry.get(settings.default_model_version)
@@ -199,10 +201,7 @@ class TextureSource:
         image = working_photo(self.image, runtime.short_side, lighting)  # as the encoding saw it
         folder = Path(tempfile.mkdtemp(prefix="texspace-refine-"))
         atexit.register(shutil.rmtree, folder, ignore_errors=True)  # the samplers are read until the end
-        photo = path
-        if lighting == "even":  # the fit sees the evened photo, as the service's does
-            photo = folder / "evened.tiff"
-            photo.write_bytes(write_image(image, "tiff", colour="srgb"))
+        photo = photo_to_fit(path, image, lighting, folder)  # as the service's fit sees it
         bar, report = _progress_bar(f"refine ({seconds:g} s)")
         with bar, warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the ONNX exporter's tracer warnings say nothing to a user
@@ -211,12 +210,8 @@ class TextureSource:
         code = json.loads((folder / "fit" / "code.json").read_text())["code"]
         self.sampler = registry.fitted_sampler(folder / "fit" / "sampler.onnx")
         colour = fitted_colour(self.sampler, code, image)
-        from worker.colour_match import texture_vector
-        from worker.runtime import TILEABLE_SAMPLER
-
         self.z, self.code = np.asarray(code, np.float32), texture_vector(code, colour)
-        self.structure = {key: fitted.get(key) for key in ("grain", "straightened", "grain_stretch", "lattice",
-                                                           "muted_octaves", "lean")}
+        self.structure = fit_structure(fitted)
         self.tileable_sampler = lambda: registry.fitted_sampler(folder / "fit" / TILEABLE_SAMPLER)
 
 

@@ -154,10 +154,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     # the fit and its colour table see the photo as its encoding did (lighting included)
     image = working_photo(read_image(original.read_bytes(), max_pixels=services.settings.max_image_pixels),
                           services.registry.get(texture.model_version).short_side, texture.lighting)
-    photo = original
-    if texture.lighting == "even":
-        photo = workdir / "evened.tiff"  # 16-bit sRGB: what model.fit reads, at its own resolution
-        photo.write_bytes(write_image(image, "tiff", colour="srgb"))
+    photo = photo_to_fit(original, image, texture.lighting, workdir)
     out_dir = workdir / "fit"
 
     def serve_interim(folder: Path, code: list[float], step: int, found: dict[str, Any]) -> None:
@@ -217,6 +214,17 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
         services.storage.delete_prefix(keys.texture_prefix(new_id))
         raise Canceled(f"texture {texture.id} was deleted while it was fitted; its fit was dropped")
     return {**values, "output_texture_id": new_id}
+
+
+def photo_to_fit(original: Path, image: np.ndarray, lighting: str, folder: Path) -> Path:
+    """The file model.fit reads: the photo as uploaded, or with ``lighting`` "even" its evened
+    working photo ``image`` as a 16-bit sRGB TIFF in ``folder`` (model.fit reads it at its own
+    resolution), so the fit sees the photo as its encoding did."""
+    if lighting != "even":
+        return original
+    photo = folder / "evened.tiff"
+    photo.write_bytes(write_image(image, "tiff", colour="srgb"))
+    return photo
 
 
 def fit_structure(found: dict[str, Any]) -> dict[str, Any]:
