@@ -10,7 +10,7 @@ running server pays for no numpy, ONNX or FastAPI import::
         png = ts.tile(texture["id"], 6, 0, 0)           # bytes of one 256 px tile
         job = ts.volume(texture["id"], resolution=64, format="exr")
         job = ts.wait(job, progress=lambda j: print(f"{j['progress']:.0%}"))
-        path = ts.download(job, "out/")                 # out/volume-....exr
+        path = ts.download(job, "out/")                 # out/brick_volume_64px_seed0.exr
 
 Every error answer (RFC 9457 problem+json) raises :class:`ApiError`; a job that ends
 failed or canceled raises :class:`JobFailed` from :meth:`Client.wait`.
@@ -21,7 +21,7 @@ import json
 import os
 import re
 import time
-from urllib.parse import quote
+from urllib.parse import quote, unquote
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -76,6 +76,16 @@ class JobFailed(Exception):
 def _job_id(job: Job | str) -> str:
     """A job's id as one URL path segment (``_segment``)."""
     return _segment(job if isinstance(job, str) else job["id"])
+
+
+def _disposition_name(header: str) -> str:
+    """The file name of a Content-Disposition header: RFC 6266's UTF-8 ``filename*`` (a
+    non-ASCII name) before the plain ASCII ``filename``; "" when it has neither."""
+    star = re.search(r"filename\*=UTF-8''([^;\s]+)", header, re.IGNORECASE)
+    if star:
+        return unquote(star[1])
+    plain = re.search(r'filename="([^"]+)"', header)
+    return plain[1] if plain else ""
 
 
 def _segment(value: str) -> str:
@@ -304,8 +314,7 @@ class Client:
             if res.status_code >= 400:
                 res.read()
                 self._raise(res)
-            found = re.search(r'filename="([^"]+)"', res.headers.get("content-disposition", ""))
-            name = Path(found[1]).name if found else f"{_job_id(job)}.bin"
+            name = Path(_disposition_name(res.headers.get("content-disposition", ""))).name or f"{_job_id(job)}.bin"
             target = Path(to) if to is not None else Path(".")
             if to is None or target.is_dir() or str(to).endswith(("/", os.sep)):
                 target.mkdir(parents=True, exist_ok=True)

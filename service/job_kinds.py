@@ -24,6 +24,7 @@ from worker.images import read_image, working_photo, write_image
 from . import jobs, keys
 from .container import Services
 from .db import session_scope
+from .download_names import bake_name, region_name, sampler_name, volume_name
 from .limits import bake_limits
 from .schemas import BakeParams, FitParams, RegionIn, VolumeIn, bake_projection
 from .tables import Job, Texture, utcnow
@@ -51,12 +52,21 @@ def _texture_to_render(services: Services, job: Job) -> Texture:
     return texture
 
 
-def _store_result(services: Services, job: Job, path: Path, fmt: str) -> dict[str, Any]:
-    filename = path.name
-    key = keys.result_key(job.id, filename)
+def _store_result(services: Services, job: Job, path: Path, fmt: str, names: tuple[str, str]) -> dict[str, Any]:
+    """Store the result file at ``path``; ``names``: its download name's stem and that stem
+    in ASCII (``service/download_names.py``), which the storage key uses. The extension is
+    the file's own (a GLB bake with extra maps becomes a zip)."""
+    shown, stored = names
+    key = keys.result_key(job.id, stored + path.suffix)
     size = services.storage.put_file(key, path)
-    return {"result_key": key, "result_filename": filename, "result_size": size,
+    return {"result_key": key, "result_filename": shown + path.suffix, "result_size": size,
             "result_media_type": media_type(fmt)}
+
+
+def _names(build: Callable[..., str], texture: Texture, **parts: Any) -> tuple[str, str]:
+    """(download name stem, its ASCII form) of a result named by ``build``."""
+    return (build(texture.name, texture.id, ext="", **parts),
+            build(texture.name, texture.id, ext="", ascii_only=True, **parts))
 
 
 def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -65,11 +75,12 @@ def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
 
     texture = _texture_to_render(services, job)
     p = VolumeIn.model_validate(job.params)
-    out_path = workdir / f"volume-{texture.id[:8]}-{p.resolution}{extension(p.format)}"
+    names = _names(volume_name, texture, resolution=p.resolution, seed=p.seed)
+    out_path = workdir / f"{names[1]}{extension(p.format)}"
     path = render_volume(services.sampler_for(texture), texture.sampling_code(), p.seed, resolution=p.resolution,
                          bounds=p.bounds, fmt=p.format, out_path=out_path,
                          progress=progress, should_cancel=should_cancel)
-    return _store_result(services, job, path, p.format)
+    return _store_result(services, job, path, p.format, names)
 
 
 def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -79,8 +90,8 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
     texture = _texture_to_render(services, job)
     p = BakeParams.model_validate(job.params)
     mesh_bytes = services.storage.get_bytes(job.input_key)
-    stem = Path(p.filename).stem or "mesh"
-    out_path = workdir / f"{stem}-baked{extension(p.format)}"
+    names = _names(bake_name, texture, mesh_filename=p.filename, resolution=p.resolution, seed=p.seed)
+    out_path = workdir / f"{names[1]}{extension(p.format)}"   # zip members are named after it
     limits = bake_limits(services.settings)
     result = bake_mesh(services.sampler_for(texture), texture.sampling_code(), p.seed, mesh_bytes=mesh_bytes,
                        filename=p.filename, resolution=p.resolution, scale=p.scale, fmt=p.format,
@@ -91,7 +102,7 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
                        projection=bake_projection(p.projection, texture.served_structure()),
                        progress=progress, should_cancel=should_cancel)
     # a GLB with a height map or a GPU texture comes back as a zip
-    return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip")
+    return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip", names)
 
 
 def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -102,7 +113,9 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
     p = RegionIn.model_validate(job.params)
     maps = tuple(p.maps)
     fmt = "zip" if maps else p.format  # with derived maps, a zip of colour + maps
-    out_path = workdir / f"region-{texture.id[:8]}-z{p.z}{extension(fmt)}"
+    names = _names(region_name, texture, z=p.z, width=p.width, height=p.height, seed=p.seed, plane=p.plane,
+                   tileable=p.tileable)
+    out_path = workdir / f"{names[1]}{extension(fmt)}"   # zip members are named after it
     limits = RegionLimits(max_pixels=services.settings.max_region_pixels,
                           max_tiles=services.settings.max_region_tiles)
     # tileable: the texture's sampler_tileable.onnx, its period the image's side
@@ -113,7 +126,7 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
                          wrap_maps=p.tileable, tileable=p.tileable,
                          pixels_per_unit=services.pixels_per_unit(texture), limits=limits,
                          progress=progress, should_cancel=should_cancel)
-    return _store_result(services, job, path, fmt)
+    return _store_result(services, job, path, fmt, names)
 
 
 def fitted_texture_id(job_id: str) -> str:
@@ -185,7 +198,9 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     services.storage.delete(paused_key)
     structure = fit_structure(fitted)
     code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
-    values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
+    values = _store_result(services, job, out_dir / "sampler.onnx", "onnx",
+                           (sampler_name(texture.name, texture.id).removesuffix(".onnx"),
+                            sampler_name(texture.name, texture.id, ascii_only=True).removesuffix(".onnx")))
     if p.in_place:
         _refine_in_place(services, job, texture, out_dir / "sampler.onnx", code, image, structure)
         return {**values, "output_texture_id": texture.id}

@@ -24,9 +24,11 @@ Steps, each reported through ``progress`` and preceded by a ``should_cancel`` ch
    fill the gutter: uncovered texels within ``padding`` of a chart copy the nearest
    covered texel, so bilinear filtering and mipmaps near seams never read background.
 5. Write atomically: GLB (written here: POSITION, NORMAL, TEXCOORD_0, PBR material, base
-   colour factor 1, embedded 8-bit sRGB PNG) or a zip of ``model.obj`` (with ``vn``) + ``model.mtl`` (``Kd 1 1 1``, ``map_Kd texture.png``) +
-   ``texture.png``. With ``exr=True`` a linear half-float ``texture.exr`` is added to the
-   OBJ zip, or written next to a GLB as ``<out_path>.exr``. ``maps`` (height, normal) and
+   colour factor 1, embedded 8-bit sRGB PNG) or a zip of ``<stem>.obj`` (with ``vn``) +
+   ``<stem>.mtl`` (``Kd 1 1 1``, ``map_Kd <stem>_basecolor.png``) + ``<stem>_basecolor.png``,
+   ``<stem>`` being the result file's own stem (``worker.files.member_stem``), so two bakes
+   extracted into one folder keep their files. With ``exr=True`` a linear half-float
+   ``<stem>_basecolor.exr`` is added to the OBJ zip, or written next to a GLB as ``<out_path>.exr``. ``maps`` (height, normal) and
    ``gpu_format`` (dds, ktx2) add derived maps and a mipmapped texture of the atlas
    (``worker/bake_outputs.py``; a GLB with more than its normal map becomes a zip).
 
@@ -61,7 +63,7 @@ from worker import atlas, raster
 from worker.bake_outputs import add_bake_outputs, check_options
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH
 from worker.errors import Canceled, InvalidMesh, InvalidParameter, LimitExceeded
-from worker.files import ZIP_TIME, atomic_output, media_type
+from worker.files import ZIP_TIME, atomic_output, media_type, member_name, member_stem
 from worker.images import png_bytes, write_image
 from worker.runtime import Sampler
 from worker.triplanar import PROJECTIONS, sample_triplanar
@@ -535,7 +537,7 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     if fmt == "glb":
         payload = glb_bytes(vertices, faces, uv, normals, png)
     else:
-        payload = _obj_zip_bytes(vertices, faces, uv, normals, png, exr_bytes)
+        payload = _obj_zip_bytes(vertices, faces, uv, normals, png, exr_bytes, member_stem(out_path))
     _atomic_write(out_path, payload)
     if exr_path is not None:
         _atomic_write(exr_path, exr_bytes)
@@ -595,23 +597,26 @@ def glb_bytes(vertices, faces, uv, normals, png: bytes) -> bytes:
                      struct.pack("<I4s", len(body), b"BIN\0"), body])
 
 
-def _obj_zip_bytes(vertices, faces, uv, normals, png: bytes, exr: bytes | None) -> bytes:
+def _obj_zip_bytes(vertices, faces, uv, normals, png: bytes, exr: bytes | None, stem: str) -> bytes:
     """OBJ with one vt and one vn per v (same indices), an MTL with Kd 1 1 1, and the
-    textures (stored: PNG and EXR are compressed already)."""
+    textures (stored: PNG and EXR are compressed already), every member named after ``stem``."""
     f = faces + 1
+    obj, mtl_name, colour = (member_name(stem, "", ".obj"), member_name(stem, "", ".mtl"),
+                             member_name(stem, "basecolor", ".png"))
     text = "".join([
-        "# texspace bake\nmtllib model.mtl\no texspace\n",
+        f"# texspace bake\nmtllib {mtl_name}\no {stem}\n",
         ("v %.9g %.9g %.9g\n" * len(vertices)) % tuple(vertices.ravel().tolist()),
         ("vt %.9g %.9g\n" * len(uv)) % tuple(uv.ravel().tolist()),
         ("vn %.6f %.6f %.6f\n" * len(normals)) % tuple(normals.ravel().tolist()),
-        "usemtl texspace\n",
+        f"usemtl {stem}\n",
         ("f %d/%d/%d %d/%d/%d %d/%d/%d\n" * len(f)) % tuple(np.repeat(f, 3, axis=1).ravel().tolist()),
     ])
-    mtl = ("newmtl texspace\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\nmap_Kd texture.png\n")
+    mtl = f"newmtl {stem}\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\nmap_Kd {colour}\n"
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as z:
-        members = [("model.obj", text.encode(), zipfile.ZIP_DEFLATED), ("model.mtl", mtl.encode(), zipfile.ZIP_DEFLATED),
-                   ("texture.png", png, zipfile.ZIP_STORED)] + ([("texture.exr", exr, zipfile.ZIP_STORED)] if exr else [])
+        members = [(obj, text.encode(), zipfile.ZIP_DEFLATED), (mtl_name, mtl.encode(), zipfile.ZIP_DEFLATED),
+                   (colour, png, zipfile.ZIP_STORED)]
+        members += [(member_name(stem, "basecolor", ".exr"), exr, zipfile.ZIP_STORED)] if exr else []
         for name, data, method in members:
             z.writestr(zipfile.ZipInfo(name, ZIP_TIME), data, compress_type=method)
     return buf.getvalue()

@@ -3,16 +3,20 @@
 Called at the end of ``worker.bake.bake_mesh`` (its write stage) with the linear atlas
 (``R x R x 3``, gutter filled). Where each output goes:
 
-* OBJ zip: members ``normal.png`` / ``height.png`` (``worker/derived_maps.py``) and
-  ``texture.dds`` / ``texture.ktx2`` (``worker/gpu_textures.py``) are added;
-  ``model.mtl`` gains ``norm normal.png`` (the PBR MTL extension Blender and others read
-  as a tangent-space normal map). ``height.png`` is not referenced from the MTL (MTL's
-  ``bump`` means a height map to some tools and a normal map to others).
+Every member is named after the result (``<stem>`` = its file's stem,
+``worker.files.member_stem``), so two bakes extracted into one folder keep their files.
+
+* OBJ zip: members ``<stem>_normal.png`` / ``<stem>_height.png`` (``worker/derived_maps.py``)
+  and ``<stem>_basecolor.dds|ktx2`` (``worker/gpu_textures.py``) are added; the MTL gains
+  ``map_Bump <stem>_normal.png`` (what Blender's OBJ importer reads as a tangent-space normal
+  map) and ``norm <stem>_normal.png`` (the PBR MTL extension other tools read). The height
+  map is not referenced from the MTL (MTL's ``bump`` is a height map to some tools and a
+  normal map to others, and the normal map holds the same relief).
 * GLB: the normal map is embedded as the material's ``normalTexture`` (glTF's own
   convention: tangent space, +Y up, which is what ``normal_map`` writes; viewers derive
   tangents from the UVs). glTF core has no height map and no DDS/KTX2 without extensions,
-  so when ``height`` or a GPU format is asked for the result becomes a zip of ``model.glb``
-  plus ``height.png`` / ``texture.dds|ktx2``.
+  so when ``height`` or a GPU format is asked for the result becomes a zip of ``<stem>.glb``
+  plus ``<stem>_height.png`` / ``<stem>_basecolor.dds|ktx2``.
 
 All rewrites are atomic (``worker/files.py``).
 """
@@ -25,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from worker.derived_maps import MAP_NAMES, derived_map_files
+from worker.derived_maps import MAP_NAMES, derived_map_files, map_file
 from worker.errors import InvalidParameter
-from worker.files import ZIP_TIME, atomic_output, extension, media_type
+from worker.files import ZIP_TIME, atomic_output, extension, media_type, member_name, member_stem
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.gpu_textures import gpu_texture_bytes
 
@@ -46,34 +50,41 @@ def add_bake_outputs(path: Path, fmt: str, image: np.ndarray, *, maps=(), gpu_fo
     """Add the requested outputs to the bake result at ``path`` (see module doc); returns the
     result's path (a GLB becomes ``<stem>.zip`` when it cannot hold everything)."""
     check_options(maps, gpu_format)
-    files = derived_map_files(image, maps, strength=strength)
+    stem = member_stem(path)
+    files = derived_map_files(image, maps, strength=strength, stem=stem)
     if gpu_format is not None:
-        files[f"texture{extension(gpu_format)}"] = gpu_texture_bytes(image, gpu_format)
+        files[member_name(stem, "basecolor", extension(gpu_format))] = gpu_texture_bytes(image, gpu_format)
     if not files:
         return path
+    normal = map_file("normal", stem)
     if fmt == "obj":
-        _rewrite_zip(path, path, files, {}, mtl_extra="norm normal.png\n" if "normal.png" in files else "")
+        mtl_extra = f"map_Bump {normal}\nnorm {normal}\n" if normal in files else ""
+        _rewrite_zip(path, path, files, {}, mtl=(member_name(stem, "", ".mtl"), mtl_extra))
         return path
     glb = path.read_bytes()
-    if "normal.png" in files:
-        glb = glb_with_normal_texture(glb, files.pop("normal.png"))
+    if normal in files:
+        glb = glb_with_normal_texture(glb, files.pop(normal))
     if not files:
         with atomic_output(path) as tmp, open(tmp, "wb") as f:
             f.write(glb)
         return path
     zip_path = path.with_suffix(".zip")
-    _rewrite_zip(None, zip_path, files, {"model.glb": glb})
+    _rewrite_zip(None, zip_path, files, {member_name(stem, "", ".glb"): glb})
     path.unlink()
     return zip_path
 
 
-def _rewrite_zip(source: Path | None, target: Path, files: dict, first: dict, mtl_extra: str = "") -> None:
+def _rewrite_zip(source: Path | None, target: Path, files: dict, first: dict,
+                 mtl: tuple[str, str] = ("", "")) -> None:
+    """Write ``target``: the members ``first``, then those of the zip ``source``, then
+    ``files``; ``mtl``: (member, lines) to append to that MTL member."""
     members = dict(first)
     if source is not None:
         with zipfile.ZipFile(source) as z:
             members.update({name: z.read(name) for name in z.namelist()})
-    if mtl_extra and "model.mtl" in members:
-        members["model.mtl"] = members["model.mtl"] + mtl_extra.encode()
+    mtl_name, mtl_extra = mtl
+    if mtl_extra and mtl_name in members:
+        members[mtl_name] = members[mtl_name] + mtl_extra.encode()
     members.update(files)
     with atomic_output(target) as tmp, zipfile.ZipFile(tmp, "w") as z:
         for name, data in members.items():

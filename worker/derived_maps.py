@@ -24,6 +24,7 @@ import numpy as np
 
 from worker.colour import LUMA_709
 from worker.errors import InvalidParameter
+from worker.files import member_name
 from worker.images import png_bytes
 
 DEFAULT_NORMAL_STRENGTH = 4.0
@@ -88,10 +89,16 @@ def normal_png(normals: np.ndarray) -> bytes:
     return png_bytes(encode_normals8(normals))
 
 
+def map_file(name: str, stem: str = "") -> str:
+    """The PNG file name of derived map ``name`` in a result named ``stem``."""
+    return member_name(stem, name, ".png") if stem else f"{name}.png"
+
+
 def derived_map_files(rgb: np.ndarray, maps, *, strength: float = DEFAULT_NORMAL_STRENGTH,
-                      wrap: bool = False) -> dict[str, bytes]:
+                      wrap: bool = False, stem: str = "") -> dict[str, bytes]:
     """{file name: PNG bytes} for the requested ``maps`` (a subset of MAP_NAMES) of a
-    linear (H, W, 3) colour image: ``height.png`` and/or ``normal.png``."""
+    linear (H, W, 3) colour image: ``<stem>_height.png`` and/or ``<stem>_normal.png``
+    (``height.png``, ``normal.png`` without a stem)."""
     unknown = set(maps) - set(MAP_NAMES)
     if unknown:
         raise InvalidParameter(f"unknown derived maps {sorted(unknown)}; choose from {MAP_NAMES}")
@@ -100,7 +107,7 @@ def derived_map_files(rgb: np.ndarray, maps, *, strength: float = DEFAULT_NORMAL
     height = height_map(rgb)
     files = {}
     if "height" in maps:
-        files["height.png"] = height_png(height)
+        files[map_file("height", stem)] = height_png(height)
     if "normal" in maps:
-        files["normal.png"] = normal_png(normal_map(height, strength, wrap=wrap))
+        files[map_file("normal", stem)] = normal_png(normal_map(height, strength, wrap=wrap))
     return files

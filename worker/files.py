@@ -11,6 +11,7 @@ types are read here, and the API's and the CLI's lists are derived from those tu
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
@@ -79,6 +80,20 @@ def extensions(formats: Iterable[str]) -> dict[str, tuple[str, ...]]:
     """Format -> every extension that names it (the first is what files are written as),
     for ``formats`` in their order."""
     return {fmt: (FORMATS[fmt].extension, *FORMATS[fmt].aliases) for fmt in formats}
+
+
+def member_stem(path: str | os.PathLike) -> str:
+    """The stem a result's zip members are named after: the result file's own stem (the
+    service names results after their texture, ``service/download_names.py``), reduced to
+    characters every unzip tool and OBJ reader takes (``mtllib``, ``map_Kd`` end at a blank),
+    so two results extracted into one folder do not overwrite each other."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", Path(path).stem).strip("-.") or "texture"
+
+
+def member_name(stem: str, role: str, ext: str) -> str:
+    """A zip member of the result ``stem``: ``<stem>_<role><ext>`` (``oak_normal.png``), or
+    ``<stem><ext>`` without a role (``oak.obj``)."""
+    return f"{stem}_{role}{ext}" if role else f"{stem}{ext}"
 
 
 @contextmanager

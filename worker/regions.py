@@ -17,8 +17,9 @@ Formats:
   averaged in linear light (``worker/gpu_textures.py``).
 
 Derived maps (``maps``: ``height`` and/or ``normal``, ``worker/derived_maps.py``): the
-result is then a zip of ``colour.<ext>`` (the image in ``fmt``) plus ``height.png`` and/or
-``normal.png``; ``wrap_maps=True`` (a tileable region) makes the normal map's gradient
+result is then a zip of ``<stem>_basecolor.<ext>`` (the image in ``fmt``) plus
+``<stem>_height.png`` and/or ``<stem>_normal.png``, ``<stem>`` being the result file's own
+(``worker.files.member_stem``); ``wrap_maps=True`` (a tileable region) makes the normal map's gradient
 wrap around the borders. GPU formats and derived maps need the whole image in memory, so
 they are limited to ``RegionLimits.max_whole_pixels``.
 
@@ -48,7 +49,7 @@ import OpenImageIO as oiio
 from worker.colour import linear_to_srgb, linear_to_srgb8
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS, derived_map_files
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
-from worker.files import ZIP_TIME, atomic_output, extension
+from worker.files import ZIP_TIME, atomic_output, extension, member_name, member_stem
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.gpu_textures import gpu_texture_bytes
 from worker.images import write_image
@@ -161,7 +162,7 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
                     raise LimitExceeded(f"{fmt} or derived maps of {width}x{height} pixels exceed "
                                         f"{limits.max_whole_pixels} pixels")
                 image = np.concatenate(list(stripes()), axis=0)
-                _write_whole(tmp, fmt, image, maps, normal_strength, wrap_maps)
+                _write_whole(tmp, fmt, image, maps, normal_strength, wrap_maps, member_stem(out_path))
             else:
                 _write_image_stripes(tmp, fmt, width, height, stripes())
     return out_path
@@ -181,9 +182,10 @@ def check_tileable(*, z: int, width: int, height: int, fmt: str, plane: str) -> 
         raise InvalidParameter("a tileable region is one image, not a pyramid")
 
 
-def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, wrap: bool) -> None:
-    """One image in memory: a GPU texture, or the zip of the colour image and its maps."""
-    files = derived_map_files(image, maps, strength=strength, wrap=wrap)   # checks maps first
+def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, wrap: bool, stem: str) -> None:
+    """One image in memory: a GPU texture, or the zip of the colour image and its maps
+    (members named after ``stem``)."""
+    files = derived_map_files(image, maps, strength=strength, wrap=wrap, stem=stem)   # checks maps first
     if not maps:
         with open(path, "wb") as f:
             f.write(gpu_texture_bytes(image, fmt))
@@ -201,8 +203,9 @@ def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, 
             if os.path.exists(colour_path):
                 os.unlink(colour_path)
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as z:   # PNG/EXR/TIFF compress
-        for name, data in {f"colour{extension(fmt)}": colour, **files}.items():
-            method = zipfile.ZIP_DEFLATED if fmt in GPU_FORMATS and name.startswith("colour") else zipfile.ZIP_STORED
+        colour_name = member_name(stem, "basecolor", extension(fmt))
+        for name, data in {colour_name: colour, **files}.items():
+            method = zipfile.ZIP_DEFLATED if fmt in GPU_FORMATS and name == colour_name else zipfile.ZIP_STORED
             z.writestr(zipfile.ZipInfo(name, ZIP_TIME), data, compress_type=method)
 
 

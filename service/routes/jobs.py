@@ -18,6 +18,7 @@ from worker.tiles import MIN_ZOOM
 
 from .. import auth, jobs, keys
 from ..db import session_scope
+from ..download_names import content_disposition
 from ..deps import JobId, PageParams, SafeText, ServicesDep, TextureId, apply_cursor, idempotency_key, page_of
 from ..errors import Problem, not_found, problem_for, problem_responses
 from ..job_kinds import torch_available
@@ -73,8 +74,8 @@ def submit_bake(
                     "convention (+Y up), embedded in a GLB as its normalTexture (with TANGENTs) or added to "
                     "the OBJ zip; height = linear luminance, height.png (a GLB result becomes a zip)")] = [],
     gpu_format: Annotated[Literal[GPU_FORMATS] | None, Form(
-        description="add a mipmapped RGBA8 sRGB texture.dds / texture.ktx2 of the atlas (a GLB result "
-                    "becomes a zip of model.glb and the textures)")] = None,
+        description="add a mipmapped RGBA8 sRGB <stem>_basecolor.dds / .ktx2 of the atlas (a GLB result "
+                    "becomes a zip of <stem>.glb and the textures; <stem>: the result's name)")] = None,
     normal_strength: Annotated[float, Form(gt=0, le=100, description="normal map: height units per "
                                                                      "pixel step")] = DEFAULT_NORMAL_STRENGTH,
     projection: Annotated[Literal[BAKE_PROJECTIONS], Form(
@@ -202,7 +203,7 @@ def get_result(services: ServicesDep, job_id: JobId) -> Response:
     if job.state != "succeeded" or not job.result_key:
         raise Problem(409, f"job {job_id} is {job.state}; the result exists once it has succeeded",
                       slug="result-not-ready")
-    headers = {"Content-Disposition": f'attachment; filename="{job.result_filename}"', **NOSNIFF}
+    headers = {"Content-Disposition": content_disposition(job.result_filename or f"{job.id}.bin"), **NOSNIFF}
     local = services.storage.local_path(job.result_key)
     if local is not None:
         return FileResponse(local, media_type=job.result_media_type, headers=headers)

@@ -88,6 +88,16 @@ def test_download_keeps_the_servers_file_name(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.exr", "volume-64.exr"]
 
 
+def test_download_prefers_the_utf8_file_name(tmp_path: Path) -> None:
+    from service.download_names import content_disposition
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(200, content=b"PNG", headers={"content-disposition": content_disposition("béton_1.png")})
+
+    with client_for(handler) as ts:
+        assert ts.download("j1", tmp_path) == tmp_path / "béton_1.png"
+
+
 def test_the_client_imports_no_numpy_onnx_or_fastapi() -> None:
     code = ("import sys, service.client; heavy = {'numpy', 'onnxruntime', 'fastapi', 'sqlalchemy', 'torch'}; "
             "print(sorted(heavy & set(sys.modules)))")

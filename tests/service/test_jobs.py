@@ -108,11 +108,15 @@ def test_bake_with_maps_and_gpu_texture(client, texture) -> None:
     job = client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     assert job["params"]["maps"] == ["height", "normal"] and job["params"]["gpu_format"] == "dds"
-    assert job["result"]["media_type"] == "application/zip" and job["result"]["filename"].endswith(".zip")
-    with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
-        assert sorted(z.namelist()) == ["height.png", "model.glb", "texture.dds"]
-        assert Image.open(io.BytesIO(z.read("height.png"))).size == (64, 64)
-        scene = trimesh.load(io.BytesIO(z.read("model.glb")), file_type="glb")
+    # named for people: texture, mesh, size, seed; the members after the result
+    stem = "brick_cube_bake_64px_seed0"
+    assert job["result"]["media_type"] == "application/zip" and job["result"]["filename"] == f"{stem}.zip"
+    res = client.get(job["links"]["result"])
+    assert res.headers["content-disposition"] == f'attachment; filename="{stem}.zip"'
+    with zipfile.ZipFile(io.BytesIO(res.content)) as z:
+        assert sorted(z.namelist()) == [f"{stem}.glb", f"{stem}_basecolor.dds", f"{stem}_height.png"]
+        assert Image.open(io.BytesIO(z.read(f"{stem}_height.png"))).size == (64, 64)
+        scene = trimesh.load(io.BytesIO(z.read(f"{stem}.glb")), file_type="glb")
     material = next(iter(scene.geometry.values())).visual.material
     assert material.normalTexture is not None and material.normalTexture.size == (64, 64)
     only_normal = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
@@ -132,7 +136,8 @@ def baked_atlas(client: TestClient, texture: dict, **form: str) -> tuple[dict, n
     job = client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
-        return job, np.asarray(Image.open(io.BytesIO(z.read("texture.png"))))
+        colour = next(name for name in z.namelist() if name.endswith("_basecolor.png"))
+        return job, np.asarray(Image.open(io.BytesIO(z.read(colour))))
 
 
 def test_bake_projection(client, texture) -> None:
@@ -342,8 +347,10 @@ def test_region_gpu_textures_and_maps(client, texture) -> None:
     assert job["state"] == "succeeded", job
     assert job["result"]["media_type"] == "application/zip"
     with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
-        assert sorted(z.namelist()) == ["colour.dds", "height.png", "normal.png"]
-        normal = np.asarray(Image.open(io.BytesIO(z.read("normal.png"))), dtype=np.float32) / 127.5 - 1
+        stem = "brick_region_z6_100x70px_seed0"
+        assert job["result"]["filename"] == f"{stem}.zip"
+        assert sorted(z.namelist()) == [f"{stem}_basecolor.dds", f"{stem}_height.png", f"{stem}_normal.png"]
+        normal = np.asarray(Image.open(io.BytesIO(z.read(f"{stem}_normal.png"))), dtype=np.float32) / 127.5 - 1
     assert normal.shape == (70, 100, 3) and np.abs(np.linalg.norm(normal, axis=-1) - 1).max() < 0.02
     for body in ({**rect, "format": "pyramid", "maps": ["height"]}, {**rect, "maps": ["gloss"]},
                  {**rect, "format": "ktx2", "width": 8192, "height": 4096}):

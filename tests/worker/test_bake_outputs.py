@@ -86,10 +86,10 @@ def test_glb_with_height_and_ktx2_becomes_a_zip(waves, meshes, tmp_path):
     result = bake(waves, meshes, tmp_path, "glb", maps=("height", "normal"), gpu_format="ktx2")
     assert result.path == tmp_path / "baked.zip" and sorted(p.name for p in tmp_path.iterdir()) == ["baked.zip"]
     with zipfile.ZipFile(result.path) as z:
-        assert sorted(z.namelist()) == ["height.png", "model.glb", "texture.ktx2"]
-        gltf, binary = glb_parts(z.read("model.glb"))
-        height = Image.open(io.BytesIO(z.read("height.png")))
-        header, levels = read_ktx2(z.read("texture.ktx2"))
+        assert sorted(z.namelist()) == ["baked.glb", "baked_basecolor.ktx2", "baked_height.png"]
+        gltf, binary = glb_parts(z.read("baked.glb"))
+        height = Image.open(io.BytesIO(z.read("baked_height.png")))
+        header, levels = read_ktx2(z.read("baked_basecolor.ktx2"))
     assert "normalTexture" in gltf["materials"][0] and height.size == (RES, RES) and height.mode.startswith("I")
     assert [lv.shape[:2][::-1] for lv in levels] == mip_sizes(RES, RES) and header["vk_format"] == 43
     base = gltf["textures"][gltf["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"]]
@@ -101,13 +101,16 @@ def test_obj_zip_gets_the_maps_and_a_dds(waves, meshes, tmp_path):
     result = bake(waves, meshes, tmp_path, "obj", maps=("height", "normal"), gpu_format="dds")
     with zipfile.ZipFile(result.path) as z:
         names = set(z.namelist())
-        mtl = z.read("model.mtl").decode()
-        z.extract("texture.dds", tmp_path / "x")
-        png = np.asarray(Image.open(io.BytesIO(z.read("texture.png"))).convert("RGB"))
-        check_normals(Image.open(io.BytesIO(z.read("normal.png"))))
-    assert {"model.obj", "model.mtl", "texture.png", "height.png", "normal.png", "texture.dds"} <= names
-    assert "map_Kd texture.png" in mtl and "norm normal.png" in mtl
-    levels = read_dds_levels(tmp_path / "x" / "texture.dds")
+        mtl = z.read("baked.mtl").decode()
+        z.extract("baked_basecolor.dds", tmp_path / "x")
+        png = np.asarray(Image.open(io.BytesIO(z.read("baked_basecolor.png"))).convert("RGB"))
+        check_normals(Image.open(io.BytesIO(z.read("baked_normal.png"))))
+    assert {"baked.obj", "baked.mtl", "baked_basecolor.png", "baked_height.png", "baked_normal.png",
+            "baked_basecolor.dds"} <= names
+    # Blender's OBJ importer reads map_Bump as the normal map; other tools read norm
+    assert "map_Kd baked_basecolor.png" in mtl and "map_Bump baked_normal.png" in mtl
+    assert "norm baked_normal.png" in mtl
+    levels = read_dds_levels(tmp_path / "x" / "baked_basecolor.dds")
     assert [lv.shape[:2][::-1] for lv in levels] == mip_sizes(RES, RES)
     assert np.array_equal(levels[0][..., :3], png)          # level 0 is the baked atlas itself
 

@@ -73,17 +73,17 @@ def test_derived_maps_come_in_a_zip_with_the_colour(runtime, code, expected, tmp
     out = render_region(runtime, code, 9, fmt=fmt, out_path=tmp_path / "r.zip", maps=("height", "normal"),
                         normal_strength=3.0, **RECT)
     with zipfile.ZipFile(out) as z:
-        assert sorted(z.namelist()) == sorted([f"colour.{fmt}", "height.png", "normal.png"])
+        assert sorted(z.namelist()) == sorted([f"r_basecolor.{fmt}", "r_height.png", "r_normal.png"])
         z.extractall(tmp_path / "x")
     if fmt == "png":
-        assert np.array_equal(np.round(read(tmp_path / "x/colour.png")[1] * 255).astype(np.uint8),
+        assert np.array_equal(np.round(read(tmp_path / "x/r_basecolor.png")[1] * 255).astype(np.uint8),
                               linear_to_srgb8(expected))
     elif fmt == "exr":
-        assert np.abs(read(tmp_path / "x/colour.exr")[1] - expected).max() < 1e-3
-    spec, height = read(tmp_path / "x/height.png")
+        assert np.abs(read(tmp_path / "x/r_basecolor.exr")[1] - expected).max() < 1e-3
+    spec, height = read(tmp_path / "x/r_height.png")
     assert (spec.width, spec.height, spec.nchannels, str(spec.format)) == (150, 70, 1, "uint16")
     assert np.abs(height[..., 0] - height_map(expected)).max() <= 1 / 65535
-    normals = decode_normals8(np.round(read(tmp_path / "x/normal.png")[1] * 255))
+    normals = decode_normals8(np.round(read(tmp_path / "x/r_normal.png")[1] * 255))
     assert normals.shape == (70, 150, 3) and np.abs(np.linalg.norm(normals, axis=-1) - 1).max() < 0.02
     assert np.abs(normals - normal_map(height_map(expected), 3.0)).max() <= 1 / 127.5 + 1e-6
     assert sorted(os.listdir(tmp_path)) == ["r.zip", "x"]
