@@ -10,6 +10,7 @@ import hashlib
 import importlib.util
 import json
 import shutil
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from worker.colour_match import COLOUR_CALIBRATION, calibrate_texture
+from worker.derived_maps import map_file, read_height_range
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, Paused
 from worker.files import extension, media_type
 from worker.images import read_image, working_photo, write_image
@@ -52,15 +54,25 @@ def _texture_to_render(services: Services, job: Job) -> Texture:
     return texture
 
 
-def _store_result(services: Services, job: Job, path: Path, fmt: str, names: tuple[str, str]) -> dict[str, Any]:
+def _store_result(services: Services, job: Job, path: Path, fmt: str, names: tuple[str, str],
+                  height_range: tuple[float, float] | None = None) -> dict[str, Any]:
     """Store the result file at ``path``; ``names``: its download name's stem and that stem
     in ASCII (``service/download_names.py``), which the storage key uses. The extension is
-    the file's own (a GLB bake with extra maps becomes a zip)."""
+    the file's own (a GLB bake with extra maps becomes a zip). ``height_range``: its height
+    map's luminance range, shown with the result."""
     shown, stored = names
     key = keys.result_key(job.id, stored + path.suffix)
     size = services.storage.put_file(key, path)
+    details = {"height_range": list(height_range)} if height_range is not None else None
     return {"result_key": key, "result_filename": shown + path.suffix, "result_size": size,
-            "result_media_type": media_type(fmt)}
+            "result_media_type": media_type(fmt), "result_details": details}
+
+
+def zipped_height_range(path: Path) -> tuple[float, float] | None:
+    """The luminance range stated in the height map of a zipped result (a region's maps), or None."""
+    with zipfile.ZipFile(path) as z:
+        height = next((name for name in z.namelist() if name.endswith(map_file("height"))), None)
+        return read_height_range(z.read(height)) if height else None
 
 
 def _names(build: Callable[..., str], texture: Texture, **parts: Any) -> tuple[str, str]:
@@ -102,7 +114,8 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
                        projection=bake_projection(p.projection, texture.served_structure()),
                        progress=progress, should_cancel=should_cancel)
     # a GLB with a height map or a GPU texture comes back as a zip
-    return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip", names)
+    return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip", names,
+                         result.height_range)
 
 
 def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -126,7 +139,7 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
                          wrap_maps=p.tileable, tileable=p.tileable,
                          pixels_per_unit=services.pixels_per_unit(texture), limits=limits,
                          progress=progress, should_cancel=should_cancel)
-    return _store_result(services, job, path, fmt, names)
+    return _store_result(services, job, path, fmt, names, zipped_height_range(path) if "height" in maps else None)
 
 
 def fitted_texture_id(job_id: str) -> str:

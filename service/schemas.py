@@ -6,7 +6,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
-from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS
+from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH, MAX_WHOLE_PIXELS
 from worker.bake import FORMATS as BAKE_FORMATS
 from worker.triplanar import PROJECTIONS
 from worker.gpu_textures import FORMATS as GPU_FORMATS
@@ -253,6 +253,10 @@ def bake_projection(requested: str, structure: dict | None) -> str:
     return "triplanar" if structure and structure.get("lattice") else "solid"
 
 
+NORMAL_STRENGTH_HELP = ("normal map: how many pixels the height map's full range rises (its gradient times this); "
+                        "the default gives a mean |xy| of 0.14-0.46 (median 0.25) on the validation photos")
+
+
 class BakeParams(BaseModel):
     """A bake job's stored parameters (the multipart form's fields, validated by the route)."""
     model_config = {"extra": "forbid"}
@@ -295,12 +299,13 @@ class RegionIn(BaseModel):
     min_zoom: int | None = Field(None, ge=MIN_ZOOM, le=MAX_ZOOM,
                                  description="pyramid: lowest zoom, at most z (default: the minimum zoom)")
     maps: list[Literal[MAP_NAMES]] = Field(
-        default_factory=list, max_length=2,
-        description="derived maps to add (not with pyramid): height = linear luminance, normal = tangent-space "
-                    "from its gradient, OpenGL convention (+Y up). The result is then a zip of colour.<ext>, "
-                    "height.png (16-bit) and/or normal.png")
-    normal_strength: float = Field(DEFAULT_NORMAL_STRENGTH, gt=0, le=100,
-                                   description="normal map: height units per pixel step (steeper with more)")
+        default_factory=list, max_length=len(MAP_NAMES),
+        description="derived maps to add (not with pyramid): height = linear luminance stretched to the 16-bit "
+                    "range (result.height_range), normal = tangent-space from its gradient, OpenGL convention "
+                    "(+Y up), roughness and ao = estimates. The result is then a zip of <stem>_basecolor.<ext> "
+                    "and <stem>_<map>.png for each")
+    normal_strength: float = Field(DEFAULT_NORMAL_STRENGTH, gt=0, le=MAX_NORMAL_STRENGTH,
+                                   description=NORMAL_STRENGTH_HELP)
     tileable: bool = Field(
         False, description="a seamlessly tiling image: square (width = height), z = 6 (the native zoom), "
                            "plane xy, one image (not pyramid); the texture is made periodic with the image's "
@@ -321,9 +326,15 @@ class RegionIn(BaseModel):
 
 
 class JobResult(BaseModel):
-    filename: str
+    filename: str = Field(description="the download name: texture, kind, size, seed, tileable "
+                                      "(oak-planks_region_z6_1024px_seed7.png)")
     media_type: str
     size: int
+    height_range: list[float] | None = Field(
+        None, min_length=2, max_length=2,
+        description="with a height map: the [min, max] Rec. 709 linear luminance its 16-bit range 0..65535 "
+                    "spans (height = min + value / 65535 * (max - min)); also in the PNG's "
+                    "texspace:height_min / texspace:height_max text")
 
 
 class JobLinks(BaseModel):
@@ -379,7 +390,8 @@ class JobOut(BaseModel):
                    progress=j.progress, attempt=j.attempt, max_attempts=j.max_attempts,
                    cancel_requested=j.cancel_requested, worker_id=j.worker_id, error=j.error,
                    result=JobResult(filename=j.result_filename, media_type=j.result_media_type,
-                                    size=j.result_size) if done else None,
+                                    size=j.result_size,
+                                    height_range=(j.result_details or {}).get("height_range")) if done else None,
                    output_texture_id=j.output_texture_id, created_at=j.created_at, started_at=j.started_at,
                    sampler=JobSampler(**j.sampler) if j.sampler else None,
                    finished_at=j.finished_at, heartbeat_at=j.heartbeat_at, lease_expires_at=j.lease_expires_at,

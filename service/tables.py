@@ -166,6 +166,8 @@ class Job(Base):
     result_filename: Mapped[str | None] = mapped_column(String(200), nullable=True)
     result_media_type: Mapped[str | None] = mapped_column(String(100), nullable=True)
     result_size: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    # {"height_range": [min, max]}: a height map's luminance range (migration 0010)
+    result_details: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     output_texture_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
     # "interim": an upload's fit paused at its interim's second, waiting for its continuation
     stage: Mapped[str | None] = mapped_column(String(16), nullable=True)

@@ -30,7 +30,8 @@ Steps, each reported through ``progress`` and preceded by a ``should_cancel`` ch
    extracted into one folder keep their files. With ``exr=True`` a linear half-float
    ``<stem>_basecolor.exr`` is added to the OBJ zip, or written next to a GLB as ``<out_path>.exr``. ``maps`` (height, normal) and
    ``gpu_format`` (dds, ktx2) add derived maps and a mipmapped texture of the atlas
-   (``worker/bake_outputs.py``; a GLB with more than its normal map becomes a zip).
+   (``worker/bake_outputs.py``: a GLB embeds normal, roughness and AO in its material and
+   becomes a zip with a height map or a GPU texture).
 
 Projection: a solid texture is one 3D material, the right thing for isotropic ones (stone,
 gravel) and for grain (wood cut from one log). A texture fitted on a 2D repeat lattice
@@ -99,6 +100,7 @@ class BakeResult:
     faces: int = 0
     vertices: int = 0
     timings: dict = field(default_factory=dict)   # seconds per stage: load, atlas, raster, sample, gutter, write
+    height_range: tuple[float, float] | None = None   # the height map's luminance (min, max), if one was made
 
 
 @dataclass
@@ -541,13 +543,15 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     _atomic_write(out_path, payload)
     if exr_path is not None:
         _atomic_write(exr_path, exr_bytes)
+    height_range = None
     if extras:
-        out_path = add_bake_outputs(out_path, fmt, image, maps=maps, gpu_format=gpu_format,
-                                    strength=normal_strength)
+        outputs = add_bake_outputs(out_path, fmt, image, maps=maps, gpu_format=gpu_format,
+                                   strength=normal_strength, mask=covered)
+        out_path, height_range = outputs.path, outputs.height_range
     timings["write"] = time.perf_counter() - clock
     report(1.0)
     return BakeResult(out_path, exr_path, uv_source, resolution, float(scale), covered,
-                      len(faces), len(vertices), timings)
+                      len(faces), len(vertices), timings, height_range)
 
 
 def glb_bytes(vertices, faces, uv, normals, png: bytes) -> bytes:

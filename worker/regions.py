@@ -16,11 +16,11 @@ Formats:
 * ``dds`` / ``ktx2``: mipmapped GPU textures, RGBA8 sRGB with the full mip chain
   averaged in linear light (``worker/gpu_textures.py``).
 
-Derived maps (``maps``: ``height`` and/or ``normal``, ``worker/derived_maps.py``): the
-result is then a zip of ``<stem>_basecolor.<ext>`` (the image in ``fmt``) plus
-``<stem>_height.png`` and/or ``<stem>_normal.png``, ``<stem>`` being the result file's own
-(``worker.files.member_stem``); ``wrap_maps=True`` (a tileable region) makes the normal map's gradient
-wrap around the borders. GPU formats and derived maps need the whole image in memory, so
+Derived maps (``maps``: any of ``height``, ``normal``, ``roughness``, ``ao``,
+``worker/derived_maps.py``): the result is then a zip of ``<stem>_basecolor.<ext>`` (the
+image in ``fmt``) plus ``<stem>_<map>.png`` for each, ``<stem>`` being the result file's own
+(``worker.files.member_stem``); ``wrap_maps=True`` (a tileable region) makes the maps'
+gradients and blurs wrap around the borders. GPU formats and derived maps need the whole image in memory, so
 they are limited to ``RegionLimits.max_whole_pixels``.
 
 Tileable (``tileable=True``, issue 18): a square image at the native zoom on the xy plane,

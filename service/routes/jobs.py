@@ -11,7 +11,7 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from worker.bake import FORMATS as BAKE_FORMATS
-from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES
+from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH
 from worker.errors import Canceled, FeatureUnavailable, LimitExceeded
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.tiles import MIN_ZOOM
@@ -23,7 +23,7 @@ from ..deps import JobId, PageParams, SafeText, ServicesDep, TextureId, apply_cu
 from ..errors import Problem, not_found, problem_for, problem_responses
 from ..job_kinds import torch_available
 from ..limits import check_mesh, check_queue_room
-from ..schemas import BAKE_PROJECTIONS, BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
+from ..schemas import BAKE_PROJECTIONS, NORMAL_STRENGTH_HELP, BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
 from ..tables import JOB_STATES, TERMINAL_STATES, Job, new_id
 from ..uploads import read_limited, safe_filename, sha256
 from .textures import NOSNIFF, load_texture
@@ -70,14 +70,17 @@ def submit_bake(
                                                                    "the mesh spans 512 exemplar pixels")] = None,
     format: Annotated[Literal[BAKE_FORMATS], Form(description="glb, or a zip of obj + mtl + png")] = "glb",
     maps: Annotated[list[Literal[MAP_NAMES]], Form(
-        description="derived maps of the atlas (repeat the field for both): normal = tangent-space, OpenGL "
+        description="derived maps of the atlas (repeat the field for each): normal = tangent-space, OpenGL "
                     "convention (+Y up), embedded in a GLB as its normalTexture (with TANGENTs) or added to "
-                    "the OBJ zip; height = linear luminance, height.png (a GLB result becomes a zip)")] = [],
+                    "the OBJ zip; roughness, ao = estimates, in a GLB its metallicRoughnessTexture (G) and "
+                    "occlusionTexture (R), in the OBJ zip MTL map_Pr and a comment; height = linear luminance "
+                    "stretched to 16 bits, <stem>_height.png (a GLB result becomes a zip; its range: "
+                    "result.height_range)")] = [],
     gpu_format: Annotated[Literal[GPU_FORMATS] | None, Form(
         description="add a mipmapped RGBA8 sRGB <stem>_basecolor.dds / .ktx2 of the atlas (a GLB result "
                     "becomes a zip of <stem>.glb and the textures; <stem>: the result's name)")] = None,
-    normal_strength: Annotated[float, Form(gt=0, le=100, description="normal map: height units per "
-                                                                     "pixel step")] = DEFAULT_NORMAL_STRENGTH,
+    normal_strength: Annotated[float, Form(gt=0, le=MAX_NORMAL_STRENGTH,
+                                           description=NORMAL_STRENGTH_HELP)] = DEFAULT_NORMAL_STRENGTH,
     projection: Annotated[Literal[BAKE_PROJECTIONS], Form(
         description="solid: the solid texture at each surface point; triplanar: the texture's xy plane "
                     "projected along x, y and z, blended by the surface normal; auto: triplanar for a "

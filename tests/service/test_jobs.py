@@ -111,6 +111,7 @@ def test_bake_with_maps_and_gpu_texture(client, texture) -> None:
     # named for people: texture, mesh, size, seed; the members after the result
     stem = "brick_cube_bake_64px_seed0"
     assert job["result"]["media_type"] == "application/zip" and job["result"]["filename"] == f"{stem}.zip"
+    assert len(job["result"]["height_range"]) == 2
     res = client.get(job["links"]["result"])
     assert res.headers["content-disposition"] == f'attachment; filename="{stem}.zip"'
     with zipfile.ZipFile(io.BytesIO(res.content)) as z:
@@ -123,6 +124,7 @@ def test_bake_with_maps_and_gpu_texture(client, texture) -> None:
                               data={"resolution": "64", "maps": "normal"})
     done = client.get(only_normal.json()["links"]["self"]).json()
     assert done["state"] == "succeeded" and done["result"]["media_type"] == "model/gltf-binary"
+    assert done["result"]["height_range"] is None
     bad = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)}, data={"maps": "gloss"})
     assert bad.status_code == 422
 
@@ -342,14 +344,20 @@ def test_region_gpu_textures_and_maps(client, texture) -> None:
     assert ktx["result"]["media_type"] == "image/ktx2" and ktx["result"]["filename"].endswith(".ktx2")
     header, levels = read_ktx2(client.get(ktx["links"]["result"]).content)
     assert (header["width"], header["height"], header["levels"]) == (100, 70, 7) and levels[-1].shape == (1, 1, 4)
-    res = client.post(texture["links"]["regions"], json={**rect, "format": "dds", "maps": ["height", "normal"]})
+    res = client.post(texture["links"]["regions"], json={**rect, "format": "dds",
+                                                         "maps": ["height", "normal", "roughness", "ao"]})
     job = client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     assert job["result"]["media_type"] == "application/zip"
+    low, high = job["result"]["height_range"]          # the luminance the 16-bit height map spans
+    assert 0 <= low < high <= 1
     with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
         stem = "brick_region_z6_100x70px_seed0"
         assert job["result"]["filename"] == f"{stem}.zip"
-        assert sorted(z.namelist()) == [f"{stem}_basecolor.dds", f"{stem}_height.png", f"{stem}_normal.png"]
+        assert sorted(z.namelist()) == [f"{stem}_{name}" for name in ("ao.png", "basecolor.dds", "height.png",
+                                                                       "normal.png", "roughness.png")]
+        height = np.asarray(Image.open(io.BytesIO(z.read(f"{stem}_height.png"))))
+        assert (height.min(), height.max()) == (0, 65535)
         normal = np.asarray(Image.open(io.BytesIO(z.read(f"{stem}_normal.png"))), dtype=np.float32) / 127.5 - 1
     assert normal.shape == (70, 100, 3) and np.abs(np.linalg.norm(normal, axis=-1) - 1).max() < 0.02
     for body in ({**rect, "format": "pyramid", "maps": ["height"]}, {**rect, "maps": ["gloss"]},

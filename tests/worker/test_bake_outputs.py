@@ -14,7 +14,7 @@ from PIL import Image
 from tests.worker.gpu_readers import read_dds_levels, read_ktx2
 from worker.bake import bake_mesh
 from worker.bake_outputs import vertex_tangents
-from worker.derived_maps import decode_normals8
+from worker.derived_maps import ROUGHNESS_RANGE, decode_normals8, read_height_range
 from worker.errors import InvalidParameter
 from worker.gpu_textures import mip_sizes
 
@@ -115,9 +115,51 @@ def test_obj_zip_gets_the_maps_and_a_dds(waves, meshes, tmp_path):
     assert np.array_equal(levels[0][..., :3], png)          # level 0 is the baked atlas itself
 
 
+def test_glb_material_uses_roughness_and_occlusion(waves, meshes, tmp_path):
+    """Every embedded map has its glTF slot: roughness in G and occlusion in R of one ORM
+    image (metallic 0 in B); trimesh reads the same slots back."""
+    import trimesh
+
+    result = bake(waves, meshes, tmp_path, "glb", maps=("ao", "normal", "roughness"))
+    assert result.path == tmp_path / "baked.glb" and result.height_range is None   # no zip: all embedded
+    gltf, binary = glb_parts(result.path.read_bytes())
+    material = gltf["materials"][0]
+    pbr = material["pbrMetallicRoughness"]
+    orm_index = pbr["metallicRoughnessTexture"]["index"]
+    assert material["occlusionTexture"]["index"] == orm_index and "normalTexture" in material
+    assert (pbr["metallicFactor"], pbr["roughnessFactor"]) == (0.0, 1.0)
+    orm = np.asarray(image_of(gltf, binary, gltf["textures"][orm_index]["source"]).convert("RGB"))
+    covered = result.covered
+    occlusion, roughness, metallic = (orm[..., k][covered] / 255 for k in range(3))
+    assert orm.shape == (RES, RES, 3) and (metallic == 0).all()
+    assert ((roughness >= ROUGHNESS_RANGE[0] - 1 / 255) & (roughness <= ROUGHNESS_RANGE[1] + 1 / 255)).all()
+    assert 0 <= occlusion.min() and occlusion.max() <= 1 and occlusion.mean() > 0.5 and occlusion.std() > 0
+    scene = trimesh.load(result.path, file_type="glb")
+    loaded = next(iter(scene.geometry.values())).visual.material
+    assert loaded.metallicRoughnessTexture is not None and loaded.occlusionTexture is not None
+    only_ao = bake(waves, meshes, tmp_path / "ao", "glb", maps=("ao",))
+    ao_material = glb_parts(only_ao.path.read_bytes())[0]["materials"][0]
+    assert "occlusionTexture" in ao_material and "metallicRoughnessTexture" not in ao_material["pbrMetallicRoughness"]
+
+
+def test_obj_mtl_names_roughness_and_ao_and_the_height_range(waves, meshes, tmp_path):
+    result = bake(waves, meshes, tmp_path, "obj", maps=("ao", "height", "roughness"))
+    with zipfile.ZipFile(result.path) as z:
+        mtl = z.read("baked.mtl").decode()
+        height = z.read("baked_height.png")
+        roughness = np.asarray(Image.open(io.BytesIO(z.read("baked_roughness.png"))))
+        ao = np.asarray(Image.open(io.BytesIO(z.read("baked_ao.png"))))
+    assert "map_Pr baked_roughness.png" in mtl and "map_ao baked_ao.png" in mtl.split("# ")[-1]
+    assert roughness.shape == ao.shape == (RES, RES) and roughness.dtype == ao.dtype == np.uint8
+    low, high = result.height_range
+    assert read_height_range(height) == pytest.approx((low, high)) and 0 <= low < high <= 1
+    codes = np.asarray(Image.open(io.BytesIO(height)))[result.covered]
+    assert (codes.min(), codes.max()) == (0, 65535)          # the covered texels use the full range
+
+
 def test_bad_options_are_refused_before_baking(waves, meshes, tmp_path):
     with pytest.raises(InvalidParameter):
-        bake(waves, meshes, tmp_path, "glb", maps=("roughness",))
+        bake(waves, meshes, tmp_path, "glb", maps=("gloss",))
     with pytest.raises(InvalidParameter):
         bake(waves, meshes, tmp_path, "obj", gpu_format="astc")
     assert waves.calls == [] and list(tmp_path.iterdir()) == []

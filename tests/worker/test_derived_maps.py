@@ -7,7 +7,9 @@ from PIL import Image
 
 from tests.worker.gpu_readers import read_dds_levels, read_ktx2
 from worker.colour import linear_to_srgb8
-from worker.derived_maps import (decode_normals8, derived_map_files, height_map, normal_map)
+from worker.derived_maps import (AO_RADII, ROUGHNESS_RANGE, ambient_occlusion, decode_normals8, derived_map_files,
+                                 derived_maps, height_map, luminance, normal_map, read_height_range,
+                                 roughness_map)
 from worker.errors import InvalidParameter
 from worker.gpu_textures import dds_bytes, ktx2_bytes, mip_chain, mip_sizes
 
@@ -18,11 +20,21 @@ def image():
     return rng.random((37, 64, 3)).astype(np.float32)       # odd height: fractional mip weights
 
 
-def test_height_is_the_linear_luminance(image):
-    h = height_map(image)
-    assert h.shape == (37, 64) and h.dtype == np.float32
-    assert np.allclose(h, 0.2126 * image[..., 0] + 0.7152 * image[..., 1] + 0.0722 * image[..., 2], atol=1e-6)
-    assert height_map(np.ones((2, 2, 3)))[0, 0] == pytest.approx(1.0)
+def test_height_is_the_linear_luminance_stretched_over_its_range(image):
+    y = 0.2126 * image[..., 0] + 0.7152 * image[..., 1] + 0.0722 * image[..., 2]
+    assert np.allclose(luminance(image), y, atol=1e-6)
+    dim = 0.2 + 0.1 * image                                  # luminance 0.2..0.3: 10% of the range
+    h, (low, high) = height_map(dim)
+    assert h.shape == (37, 64) and h.dtype == np.float32 and (h.min(), h.max()) == (0.0, 1.0)
+    assert (low, high) == pytest.approx((luminance(dim).min(), luminance(dim).max()))
+    assert np.allclose(low + h * (high - low), luminance(dim), atol=1e-6)
+    assert np.array_equal(height_map(np.ones((2, 2, 3)))[0], np.zeros((2, 2)))     # flat: all 0
+    # a bake's atlas: the range of the covered texels only, the black background clipped to 0
+    mask = np.zeros((37, 64), bool)
+    mask[5:30, 10:50] = True
+    atlas = np.where(mask[..., None], dim, 0.0)
+    h, (low, _) = height_map(atlas, mask)
+    assert low == pytest.approx(luminance(dim)[mask].min()) and h[~mask].max() == 0 and h[mask].max() == 1
 
 
 def test_normals_are_unit_and_follow_the_opengl_convention():
@@ -41,7 +53,7 @@ def test_normals_are_unit_and_follow_the_opengl_convention():
 
 
 def test_wrapped_normals_tile(image):
-    h = height_map(image)
+    h = luminance(image)
     wrapped = normal_map(h, wrap=True)
     shifted = normal_map(np.roll(h, (5, 9), axis=(0, 1)), wrap=True)
     assert np.allclose(np.roll(wrapped, (5, 9), axis=(0, 1)), shifted, atol=1e-6)   # no border
@@ -50,20 +62,66 @@ def test_wrapped_normals_tile(image):
 
 
 def test_map_files_read_back(image):
-    files = derived_map_files(image, ("height", "normal"), strength=2.0)
+    dim = 0.1 + 0.2 * image
+    files = derived_map_files(dim, ("height", "normal"), strength=2.0)
     height = Image.open(io.BytesIO(files["height.png"]))
     normal = Image.open(io.BytesIO(files["normal.png"]))
     assert height.size == normal.size == (64, 37) and normal.mode == "RGB"
-    h16 = np.asarray(height, dtype=np.float64) / 65535
-    assert np.abs(h16 - height_map(image)).max() <= 0.5 / 65535 + 1e-7
+    codes = np.asarray(height)
+    assert (codes.min(), codes.max()) == (0, 65535)                      # the full 16-bit range
+    low, high = read_height_range(files["height.png"])                   # stated in the file (tEXt)
+    assert (float(height.info["texspace:height_min"]), float(height.info["texspace:height_max"])) == (low, high)
+    assert np.abs(low + codes / 65535 * (high - low) - luminance(dim)).max() <= (high - low) / 65535
     n = decode_normals8(np.asarray(normal))
     assert np.abs(np.linalg.norm(n, axis=-1) - 1).max() < 0.02          # unit length up to 8-bit codes
-    assert np.abs(n - normal_map(height_map(image), 2.0)).max() <= 1 / 127.5 + 1e-6
+    assert np.abs(n - normal_map(height_map(dim)[0], 2.0)).max() <= 1 / 127.5 + 1e-6
     assert set(derived_map_files(image, ("normal",))) == {"normal.png"} and derived_map_files(image, ()) == {}
+    assert set(derived_map_files(image, ("ao", "roughness"), stem="oak")) == {"oak_ao.png", "oak_roughness.png"}
     with pytest.raises(InvalidParameter):
-        derived_map_files(image, ("roughness",))
+        derived_map_files(image, ("gloss",))
     with pytest.raises(InvalidParameter):
         normal_map(np.zeros((4, 4)), strength=0)
+
+
+def test_default_normals_are_not_flat_on_a_dim_low_contrast_texture():
+    """A photo of concrete spans 27% of the luminance range; stretched, its normal map at the
+    default strength tilts as much as a full-contrast one (mean |xy| 0.14 on the real photo)."""
+    rng = np.random.default_rng(3)
+    field = np.cumsum(np.cumsum(rng.standard_normal((128, 128)), axis=0), axis=1)   # smooth relief
+    field = (field - field.min()) / np.ptp(field)
+    grey = np.repeat((0.24 + 0.27 * field)[..., None], 3, axis=2).astype(np.float32)
+    tilt = np.hypot(*derived_maps(grey, ("normal",)).arrays["normal"][..., :2].transpose(2, 0, 1)).mean()
+    full = np.repeat(field[..., None], 3, axis=2).astype(np.float32)
+    full_tilt = np.hypot(*derived_maps(full, ("normal",)).arrays["normal"][..., :2].transpose(2, 0, 1)).mean()
+    assert tilt == pytest.approx(full_tilt, rel=1e-3)
+
+
+def test_roughness_reads_fine_detail():
+    rng = np.random.default_rng(5)
+    flat = np.full((64, 64, 3), 0.4, np.float32)
+    busy = np.clip(0.4 + 0.3 * rng.standard_normal((64, 64, 1)), 0, 1).repeat(3, axis=2).astype(np.float32)
+    smooth, rough = roughness_map(flat), roughness_map(busy)
+    assert smooth.dtype == np.float32 and smooth.shape == (64, 64)
+    assert np.allclose(smooth, ROUGHNESS_RANGE[0]) and np.median(rough) == pytest.approx(ROUGHNESS_RANGE[1])
+    assert ((rough >= ROUGHNESS_RANGE[0]) & (rough <= ROUGHNESS_RANGE[1])).all()
+    # not stretched per image: a faint texture stays smoother than a busy one
+    faint = (0.4 + 0.05 * (busy - 0.4)).astype(np.float32)
+    assert ROUGHNESS_RANGE[0] < np.median(roughness_map(faint)) < np.median(rough) - 0.2
+    assert np.allclose(roughness_map(busy, wrap=True), np.roll(roughness_map(np.roll(busy, 7, axis=1), wrap=True),
+                                                               -7, axis=1), atol=1e-5)
+
+
+def test_ambient_occlusion_darkens_hollows_only():
+    h = np.ones((96, 96), np.float32)
+    h[40:56, 40:56] = 0.0                                   # a square pit
+    ao = ambient_occlusion(h)
+    assert ao.dtype == np.float32 and 0 <= ao.min() and ao.max() <= 1
+    assert ao[48, 48] < 0.9 and ao[10, 10] == pytest.approx(1.0)          # its floor is shadowed, the plain not
+    assert ao[40, 40] < 0.2 and ao[40, 40] < ao[40, 48] < ao[48, 48]      # most in its corners, then by its walls
+    pillar = ambient_occlusion(1 - h)
+    assert pillar[48, 48] == pytest.approx(1.0) and pillar[48, 38] < 0.95   # its top is open, its foot not
+    assert np.allclose(ambient_occlusion(np.full((8, 8), 0.5)), 1.0)
+    assert len(AO_RADII) >= 4
 
 
 def test_mip_chain_sizes_and_linear_light_averages(image):

@@ -9,7 +9,7 @@ import pytest
 
 from tests.worker.gpu_readers import read_dds_levels, read_ktx2
 from worker.colour import linear_to_srgb, linear_to_srgb8
-from worker.derived_maps import decode_normals8, height_map, normal_map
+from worker.derived_maps import decode_normals8, height_map, normal_map, read_height_range
 from worker.gpu_textures import mip_chain
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
 from worker.images import write_image
@@ -82,10 +82,12 @@ def test_derived_maps_come_in_a_zip_with_the_colour(runtime, code, expected, tmp
         assert np.abs(read(tmp_path / "x/r_basecolor.exr")[1] - expected).max() < 1e-3
     spec, height = read(tmp_path / "x/r_height.png")
     assert (spec.width, spec.height, spec.nchannels, str(spec.format)) == (150, 70, 1, "uint16")
-    assert np.abs(height[..., 0] - height_map(expected)).max() <= 1 / 65535
+    stretched, height_range = height_map(expected)
+    assert np.abs(height[..., 0] - stretched).max() <= 1 / 65535
+    assert read_height_range((tmp_path / "x/r_height.png").read_bytes()) == pytest.approx(height_range)
     normals = decode_normals8(np.round(read(tmp_path / "x/r_normal.png")[1] * 255))
     assert normals.shape == (70, 150, 3) and np.abs(np.linalg.norm(normals, axis=-1) - 1).max() < 0.02
-    assert np.abs(normals - normal_map(height_map(expected), 3.0)).max() <= 1 / 127.5 + 1e-6
+    assert np.abs(normals - normal_map(stretched, 3.0)).max() <= 1 / 127.5 + 1e-6
     assert sorted(os.listdir(tmp_path)) == ["r.zip", "x"]
 
 
