@@ -88,6 +88,19 @@ def _disposition_name(header: str) -> str:
     return plain[1] if plain else ""
 
 
+def _form_value(value: Any) -> str:
+    """One multipart form value as the server reads it (booleans as true / false)."""
+    return ("true" if value else "false") if isinstance(value, bool) else str(value)
+
+
+def _form_fields(params: dict[str, Any]) -> dict[str, str | list[str]]:
+    """Form fields of keyword arguments: a list or tuple (``maps=["height", "normal"]``)
+    becomes the field repeated once per item, which is how the API takes list fields; None
+    leaves the field out (the server's default)."""
+    return {key: [_form_value(v) for v in value] if isinstance(value, (list, tuple)) else _form_value(value)
+            for key, value in params.items() if value is not None}
+
+
 def _segment(value: str) -> str:
     """An id as one URL path segment: percent-encoded, so '../../v1/jobs' cannot walk the API."""
     return quote(str(value), safe="")
@@ -192,14 +205,14 @@ class Client:
              idempotency_key: str | None = None, **params: Any) -> Job:
         """Submit a bake of a mesh file (OBJ, PLY, STL, GLB; bytes need ``filename``):
         ``resolution``, ``seed``, ``scale``, ``format`` (glb or obj), ``projection`` (auto,
-        solid or triplanar), and the other form fields of openapi.yaml."""
+        solid or triplanar), ``maps`` (a list: ``["height", "normal", "roughness", "ao"]``),
+        ``normal_strength``, ``after_refinement`` and the other form fields of openapi.yaml."""
         if isinstance(mesh, bytes):
             data, filename = mesh, filename or "mesh.obj"
         else:
             data, filename = Path(mesh).read_bytes(), filename or Path(mesh).name
-        form = {k: str(v) for k, v in params.items() if v is not None}
         return self._call("POST", f"/v1/textures/{_segment(texture_id)}/bakes", files={"mesh": (filename, data)},
-                          data=form, headers=self._key(idempotency_key)).json()
+                          data=_form_fields(params), headers=self._key(idempotency_key)).json()
 
     def fit(self, texture_id: str, *, seconds: float | None = None, grain: str | None = "auto",
             lattice: str | None = "auto", even: str | None = "auto", lean: str | None = "auto",

@@ -181,3 +181,19 @@ def test_ids_are_one_path_segment_each() -> None:
         ts.delete("../textures/abc")
         ts.job("a/b")
     assert seen == ["/v1/textures/..%2F..%2Fv1%2Fjobs", "/v1/textures/..%2Ftextures%2Fabc", "/v1/jobs/a%2Fb"]
+
+
+def test_bake_sends_list_fields_the_app_accepts(client, texture, tmp_path: Path) -> None:
+    """Against the app itself: ``maps=[...]`` is the form field repeated (a str of the list
+    answered 422), booleans are true / false, and the download is named after the bake."""
+    mesh = Path(__file__).resolve().parents[1] / "data" / "meshes" / "cube.obj"
+    with Client("http://testserver", transport=client._transport) as ts:
+        job = ts.bake(texture["id"], mesh, resolution=64, maps=["height", "normal"], after_refinement=False,
+                      normal_strength=6.0)
+        assert job["params"]["maps"] == ["height", "normal"] and job["params"]["normal_strength"] == 6.0
+        done = ts.wait(job, timeout=60)
+        assert done["result"]["filename"] == "brick_cube_bake_64px_seed0.zip"
+        assert ts.download(done, tmp_path).name == "brick_cube_bake_64px_seed0.zip"
+        with pytest.raises(ApiError) as info:
+            ts.bake(texture["id"], mesh, maps=["gloss"])
+    assert info.value.status == 422
