@@ -54,6 +54,9 @@ BAKE_EXTENSIONS = extensions(BAKE_FORMATS)
 TILEABLE_EXTENSIONS = extensions(f for f in REGION_FORMATS if f != "pyramid")
 SHADER_EXTENSIONS = extensions(LANGUAGES)
 VOLUME_EXTENSIONS = extensions(VOLUME_FORMATS)
+#: the files ``upload`` takes from a folder: the photo formats the API reads
+UPLOAD_EXTENSIONS = frozenset(ext for exts in extensions(("png", "jpeg", "tiff", "exr", "webp", "gif", "bmp")).values()
+                              for ext in exts) | {".jpeg"}
 #: refusals of the input (exit 2); every other domain error is a failure of the work (exit 1)
 INPUT_ERRORS = ("InvalidImage", "InvalidMesh", "InvalidParameter", "LimitExceeded")
 
@@ -437,13 +440,66 @@ def cmd_keys(args: argparse.Namespace, settings: Settings) -> None:
         print(f"revoked {args.key_id}")
 
 
+def upload_files(paths: list[str]) -> list[Path]:
+    """The image files named by ``paths``: each file as given, each folder's image files
+    (by extension, ``UPLOAD_EXTENSIONS``; not its subfolders) in name order."""
+    found: list[Path] = []
+    for given in paths:
+        path = Path(given)
+        if path.is_dir():
+            found += sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in UPLOAD_EXTENSIONS)
+        elif path.is_file():
+            found.append(path)
+        else:
+            raise CliError(f"{given}: no such file or folder")
+    return found
+
+
+def _api_client(url: str, api_key: str | None, timeout: float):  # noqa: ANN202 (service.client.Client)
+    """The HTTP client ``upload`` talks to the server with (tests give it the app's transport)."""
+    from .client import Client
+
+    return Client(url, api_key=api_key, timeout=timeout)
+
+
+def cmd_upload(args: argparse.Namespace, settings: Settings) -> None:
+    """``texspace upload IMAGE|FOLDER ...``: upload photos to a running server one after
+    another, a status line per file as each ends; exit 1 when any failed."""
+    import httpx
+
+    from .client import ApiError
+
+    files = upload_files(args.images)
+    if not files:
+        raise CliError(f"no image files ({', '.join(sorted(UPLOAD_EXTENSIONS))}) in {' '.join(args.images)}")
+    if args.name is not None and len(files) > 1:
+        raise CliError("--name names one upload; with several files each is named after its file")
+    url = args.url or os.environ.get("TEXSPACE_URL") or f"http://127.0.0.1:{settings.port}"
+    failed = 0
+    with _api_client(url, args.api_key or os.environ.get("TEXSPACE_API_KEY"), args.timeout) as ts:
+        for number, path in enumerate(files, 1):
+            where = f"[{number}/{len(files)}] {path}"
+            try:
+                texture = ts.upload(path, name=args.name, lighting=args.lighting)
+            except ApiError as exc:
+                failed += 1
+                print(f"{where}: failed: {_one_line(exc)}", flush=True)
+            except httpx.TransportError as exc:
+                raise CliError(f"cannot reach the server at {url} ({_one_line(exc)}); {number - 1} of "
+                               f"{len(files)} uploaded (TEXSPACE_URL or --url names the server)", code=1) from None
+            else:
+                print(f"{where}: texture {texture['id']} ({texture.get('name') or path.name})", flush=True)
+    if failed:
+        raise CliError(f"{failed} of {len(files)} uploads failed", code=1)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from worker.tiles import MAX_TILE_SIZE, MAX_ZOOM, MIN_TILE_SIZE, MIN_ZOOM, NATIVE_ZOOM
 
     fields = Settings.model_fields
     parser = Parser(prog="texspace", formatter_class=HelpFormatter,
-                    description="processes (api, worker, serve, migrate, reencode, recolour) and offline tools (encode, tile, "
-                                "volume, bake, tileable, shader) that work without a server",
+                    description="processes (api, worker, serve, migrate, reencode, recolour), offline tools (encode, tile, "
+                                "volume, bake, tileable, shader) that work without a server, and upload (to a server)",
                     epilog="An error is one line on stderr; exit status 2: bad input, 1: the work failed.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -559,6 +615,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="must agree with -o's extension (default: from -o's extension, else glsl)")
     lighting_arg(p)
     refine_arg(p)
+
+    p = proc("upload", cmd_upload, "upload photos (files, or every image in a folder) to a running server, one "
+                                   "after another, a line per file; exit 1 when any failed")
+    p.add_argument("images", nargs="+", metavar="IMAGE", help="image files or folders of them (required)")
+    p.add_argument("--url", help="the server (default: TEXSPACE_URL, else http://127.0.0.1:TEXSPACE_PORT)")
+    p.add_argument("--api-key", dest="api_key", help="for a server with API keys on (default: TEXSPACE_API_KEY)")
+    p.add_argument("--name", help="the texture's name, for a single file (default: its file name)")
+    p.add_argument("--timeout", type=ranged(float, 0, 3600, above=True), default=300.0,
+                   help="seconds per upload (an upload is encoded before it answers)")
+    lighting_arg(p)
 
     p = proc("keys", cmd_keys, "API keys: create, list, revoke")
     actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
