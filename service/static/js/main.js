@@ -319,24 +319,64 @@ $('load-more').addEventListener('click', () => loadTextures(true));
 $('show-blends').addEventListener('change', renderLibrary);
 $('texture-search').addEventListener('input', renderLibrary);
 
-async function upload(file) {
-  if (!file) return;
-  if (!file.type.startsWith('image/')) { say(`${file.name} is not an image`, true); return; }
-  const name = $('upload-name').value.trim() || file.name.replace(/\.[^.]+$/, '');
-  say(`Encoding ${file.name}...`);
-  try {
-    const texture = await api.uploadTexture(file, name, $('upload-even-lighting').checked ? 'even' : 'as-is');
-    state.textures = [texture, ...state.textures.filter((t) => t.id !== texture.id)];
-    renderLibrary();
-    say(`Uploaded ${texture.name || texture.id}.`);
-    $('upload-name').value = '';
-    await showTexture(texture);
-  } catch (error) {
-    sayError(error);
-  }
+/** One line of the upload queue: the file's name and its state (waiting, encoding, done, failed). */
+function queueItem(file) {
+  const item = document.createElement('li');
+  item.innerHTML = '<span class="file"></span> <span class="state"></span>';
+  item.querySelector('.file').textContent = file.name;
+  item.querySelector('.file').title = file.name;
+  const set = (stateName, text) => {
+    item.dataset.state = stateName;
+    item.querySelector('.state').textContent = text;
+  };
+  set('waiting', 'waiting');
+  return { item, set };
 }
 
-wireDropZone($('drop-zone'), $('upload-file'), upload);
+/**
+ * Upload photos one after another (each is encoded before the next starts, so the server's
+ * encoder is not asked for several at once), a line per file in the upload queue; the
+ * library lists each as it is done, and the last one uploaded is shown. The name field
+ * names a single photo; with several, each is named after its file.
+ */
+async function uploadAll(files) {
+  const typed = $('upload-name').value.trim();
+  const lighting = $('upload-even-lighting').checked ? 'even' : 'as-is';
+  const queue = files.map((file) => ({ file, ...queueItem(file) }));
+  $('upload-queue').replaceChildren(...queue.map((q) => q.item));
+  $('upload-queue').hidden = false;
+  let last = null;
+  let failed = 0;
+  for (const [index, { file, set }] of queue.entries()) {
+    if (!file.type.startsWith('image/')) {
+      failed += 1;
+      set('failed', 'not an image');
+      continue;
+    }
+    const name = (files.length === 1 && typed) || file.name.replace(/\.[^.]+$/, '');
+    set('encoding', 'encoding...');
+    say(files.length > 1 ? `Encoding ${index + 1} of ${files.length}: ${file.name}...` : `Encoding ${file.name}...`);
+    try {
+      const texture = await api.uploadTexture(file, name, lighting);
+      state.textures = [texture, ...state.textures.filter((t) => t.id !== texture.id)];
+      renderLibrary();
+      set('done', 'uploaded');
+      last = texture;
+    } catch (error) {
+      failed += 1;
+      set('failed', error instanceof api.ApiError ? `error ${error.status}: ${error.message}` : String(error.message || error));
+      if (error instanceof api.ApiError && error.status === 401) { askForKey(); break; }
+    }
+  }
+  if (last) $('upload-name').value = '';
+  const done = queue.filter((q) => q.item.dataset.state === 'done').length;
+  if (files.length === 1 && last) say(`Uploaded ${last.name || last.id}.`);
+  else if (files.length === 1) say(`${files[0].name}: ${queue[0].item.querySelector('.state').textContent}`, true);
+  else say(`Uploaded ${done} of ${files.length}${failed ? `; ${failed} failed` : ''}.`, failed > 0);
+  if (last) await showTexture(last);
+}
+
+wireDropZone($('drop-zone'), $('upload-file'), uploadAll);
 
 // ---- interpolation -------------------------------------------------------------------
 
