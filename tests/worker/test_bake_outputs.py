@@ -171,15 +171,15 @@ VALIDATOR_DIR = os.environ.get("TEXSPACE_GLTF_VALIDATOR_DIR")   # as in test_bak
 @pytest.mark.skipif(not (VALIDATOR_DIR and shutil.which("node")),
                     reason="Khronos glTF validator not installed (npm install gltf-validator; "
                            "set TEXSPACE_GLTF_VALIDATOR_DIR to that folder)")
-def test_normal_mapped_glb_passes_the_khronos_validator(waves, meshes, tmp_path):
-    """0 errors and 0 warnings: with the TANGENT attribute there is no
-    MESH_PRIMITIVE_GENERATED_TANGENT_SPACE warning."""
+def test_material_mapped_glb_passes_the_khronos_validator(waves, meshes, tmp_path):
+    """0 errors and 0 warnings with normal, roughness and occlusion maps: with the TANGENT
+    attribute there is no MESH_PRIMITIVE_GENERATED_TANGENT_SPACE warning."""
     script = ("const v=require('gltf-validator');const fs=require('fs');"
               "v.validateBytes(new Uint8Array(fs.readFileSync(process.argv[1])))"
               ".then(r=>console.log(JSON.stringify(r.issues)))")
     for name in ("bunny.obj", "bunny_uv.obj", "textured_sphere_smooth.obj"):
         result = bake_mesh(waves, None, 0, mesh_bytes=(meshes / name).read_bytes(), filename=name, resolution=64,
-                           out_path=tmp_path / f"{name}.glb", maps=("normal",))
+                           out_path=tmp_path / f"{name[:-4]}.glb", maps=("ao", "normal", "roughness"))
         out = subprocess.run(["node", "-e", script, str(result.path)], cwd=VALIDATOR_DIR, capture_output=True,
                              text=True, timeout=120, check=True)
         issues = json.loads(out.stdout)
