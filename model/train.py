@@ -877,11 +877,14 @@ class Interim:
     def __init__(self, seconds: float, publish):  # noqa: ANN001
         self.seconds, self.publish, self.done, self.asked = float(seconds), publish, False, False
 
-    def wants_probe(self, elapsed: float) -> bool:
-        """True once, at the first step ``seconds`` in: a probe then, off the probe's schedule,
-        so the interim comes at its second and not up to ``--probe-every`` steps later (25
-        steps are 12 s of a CPU fit)."""
-        if self.done or self.asked or elapsed < self.seconds:
+    def due(self, elapsed: float) -> bool:
+        """True once, at the first step ``seconds`` in, published or not: a probe then, off the
+        probe's schedule, if none has published yet (so the interim comes at its second and not
+        up to ``--probe-every`` steps later: 25 steps are 12 s of a CPU fit), and the fit's pause
+        asked then. A scheduled probe that started just before the second publishes after it;
+        the step after it is still due, or that fit never paused and held the uploads behind it
+        for its whole budget."""
+        if self.asked or elapsed < self.seconds:
             return False
         self.asked = True
         return True
@@ -1012,16 +1015,16 @@ def train(cfg: TrainConfig, progress=None, interim: Interim | None = None, pause
             run.log.write(log_line(run, stats))
             if progress is not None:
                 progress(fraction)
-            due = interim is not None and interim.wants_probe(budget.elapsed())
-            if probe is not None and (run.step % cfg.probe_every == 0 or due):
+            due = interim is not None and interim.due(budget.elapsed())
+            if probe is not None and (run.step % cfg.probe_every == 0 or (due and not interim.done)):
                 probe.update()
                 if interim is not None and not interim.done:
                     interim.offer(probe, budget.elapsed())
-                # at the interim's second, published or not (a start that stays best, like the grass's,
-                # has none): a fit that went on held the uploads behind it for its whole budget
-                if due and pause is not None and pause():
-                    run.paused = True
-                    break
+            # at the interim's second, published or not (a start that stays best, like the grass's,
+            # has none): a fit that went on held the uploads behind it for its whole budget
+            if due and pause is not None and pause():
+                run.paused = True
+                break
             if run.step % cfg.ckpt_every == 0:
                 save(run)
                 run.log.flush()

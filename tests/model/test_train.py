@@ -428,8 +428,23 @@ def test_an_interim_asks_for_one_probe_at_its_second():
     from model.train import Interim
 
     interim = Interim(10.0, None)
-    assert not interim.wants_probe(9.9)
-    assert interim.wants_probe(10.2) and not interim.wants_probe(10.4)  # once, then the schedule's probes
+    assert not interim.due(9.9)
+    assert interim.due(10.2) and not interim.due(10.4)  # once, then the schedule's probes
+
+
+def test_an_interim_published_by_a_probe_that_straddles_its_second_is_still_due_once():
+    """A scheduled probe that starts at 9.x s publishes after 10 s; the next step is still the
+    interim's second for the pause, or that fit never paused (seen: a 90-s fit held the lane
+    for all 90 s when its 25th step came just before the tenth second)."""
+    from types import SimpleNamespace
+
+    from model.train import Interim
+
+    interim = Interim(10.0, lambda *state: None)
+    assert not interim.due(9.6)
+    interim.offer(SimpleNamespace(best={"step": 25}, lend_best=lambda use: None), 12.1)
+    assert interim.done
+    assert interim.due(12.6) and not interim.due(13.1)
 
 
 def test_a_flat_photo_leans_nowhere_and_its_warp_is_the_identity():
