@@ -46,7 +46,7 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
         existing = find_by_idempotency_key(services, idempotency_key)
         if existing is not None:
             return same_request(existing, fingerprint), False
-    check_queue_room(services)  # back-pressure: 503 + Retry-After when full
+    check_queue_room(services, kind)  # back-pressure: 503 (full) or 429 (the tenant's share) + Retry-After
     sampler = (served_sampler(services, texture_id, waiting=bool(params.get("after_refinement")))
                if texture_id and kind != "fit" else None)
     job = Job(id=job_id or new_id(), kind=kind, texture_id=texture_id, params=params, input_key=input_key,
@@ -68,19 +68,62 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
     return get(services, job.id), True
 
 
-def queue_refinement(services: Services, texture: Texture, params: dict[str, Any]) -> None:
+def queue_refinement(services: Services, texture: Texture, params: dict[str, Any]) -> bool:
     """Submit an upload's in-place refinement (job id: ``texture.refinement_job_id``), owned
-    by the texture's owner. It never fails the caller: with the queue full, the texture
-    simply keeps its encoder code."""
+    by the texture's owner; True if queued. It never fails the caller: with the fit queue or
+    its owner's share of it full, the refinement is deferred (``Texture.refinement_deferred``:
+    the texture says so and serves the encoder's code until ``queue_deferred_refinements``
+    queues it); with any other error the texture keeps its encoder code, unrefined."""
     token = owner_var.set(texture.owner_id)
     try:
+        if not texture.refinement_deferred and owner_has_deferred(services, texture.owner_id):
+            # first come, first refined: a new upload does not take the room an older deferred one waits for
+            raise Problem(429, "earlier uploads of this tenant wait for room in the fit queue", slug="queue-share-used")
         submit(services, kind="fit", texture_id=texture.id, params=params, job_id=texture.refinement_job_id)
+        deferred, queued = None, True
+    except Problem as exc:
+        full = exc.slug in ("queue-full", "queue-share-used")
+        log.warning("refinement %s: %s", "deferred" if full else "not queued", exc.detail,
+                    extra={"texture_id": texture.id})
+        deferred, queued = (params if full else None), False
     except Exception as exc:
-        log.warning("texture not refined: %s", getattr(exc, "detail", exc), extra={"texture_id": texture.id})
-        with session_scope(services.sessions) as session:
-            session.execute(update(Texture).where(Texture.id == texture.id).values(refinement_job_id=None))
+        log.warning("texture not refined: %s", exc, extra={"texture_id": texture.id})
+        deferred, queued = None, False
     finally:
         owner_var.reset(token)
+    if not queued:
+        values = {"refinement_deferred": deferred} if deferred else {"refinement_job_id": None}
+        with session_scope(services.sessions) as session:
+            session.execute(update(Texture).where(Texture.id == texture.id).values(**values))
+    elif texture.refinement_deferred:
+        with session_scope(services.sessions) as session:
+            session.execute(update(Texture).where(Texture.id == texture.id).values(refinement_deferred=None))
+    return queued
+
+
+def owner_has_deferred(services: Services, owner: str | None) -> bool:
+    """Whether an upload of ``owner`` waits with a deferred refinement."""
+    with session_scope(services.sessions) as session:
+        return session.scalar(select(Texture.id).where(
+            Texture.refinement_deferred.is_not(None),
+            Texture.owner_id.is_(None) if owner is None else Texture.owner_id == owner).limit(1)) is not None
+
+
+def queue_deferred_refinements(services: Services, batch: int = 50) -> int:
+    """Queue deferred refinements while their fit queue has room, oldest upload first; an
+    owner whose share is still full is skipped until a later pass. Returns how many were queued."""
+    with session_scope(services.sessions) as session:
+        waiting = session.scalars(select(Texture).where(Texture.refinement_deferred.is_not(None))
+                                  .order_by(Texture.created_at, Texture.id).limit(batch)).all()
+    queued, full = 0, set()
+    for texture in waiting:
+        if texture.owner_id in full:
+            continue
+        if queue_refinement(services, texture, texture.refinement_deferred):
+            queued += 1
+        else:
+            full.add(texture.owner_id)
+    return queued
 
 
 def refinement_pending(services: Services, texture: Texture) -> bool:
@@ -89,6 +132,8 @@ def refinement_pending(services: Services, texture: Texture) -> bool:
     canceled (succeeded counts as pending: ``texture`` may have been read before the swap)."""
     if not texture.refinement_may_replace_sampler():
         return False
+    if texture.refinement_deferred:
+        return True  # queued by the reaper as the fit queue frees
     with session_scope(services.sessions) as session:
         state = session.scalar(select(Job.state).where(Job.id == texture.refinement_job_id))
     return state is not None and state not in ("failed", "canceled")
@@ -240,7 +285,7 @@ def reap(services: Services) -> dict[str, int]:
     """Re-queue running jobs whose lease expired (or fail them after max attempts), and
     re-send queued jobs whose message may have been lost. Safe to run in many processes."""
     now = utcnow()
-    counts = {"requeued": 0, "failed": 0, "resent": 0}
+    counts = {"requeued": 0, "failed": 0, "resent": 0, "refinements": queue_deferred_refinements(services)}
     with session_scope(services.sessions) as session:
         expired = session.scalars(select(Job).where(Job.state == "running",
                                                     Job.lease_expires_at < now)).all()

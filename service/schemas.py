@@ -41,8 +41,10 @@ class Refinement(BaseModel):
     job_id: str
     state: Literal[JOB_STATES]
     progress: float = Field(ge=0, le=1, description="share of the fit's time budget spent (0 while queued)")
-    stage: Literal["queued", "fitting", "paused", "done"] = Field(
-        description="queued: waiting for its first turn; fitting: running; paused: past its interim's second (the "
+    stage: Literal["deferred", "queued", "fitting", "paused", "done"] = Field(
+        description="deferred: not queued yet, the fit queue (or its owner's share of it) was full at upload; it is "
+                    "queued as room frees, oldest upload first (its job does not exist until then); "
+                    "queued: waiting for its first turn; fitting: running; paused: past its interim's second (the "
                     "interim served if it beat the encoder's code), waiting, its state stored, for its continuation "
                     "while other uploads get theirs; done: ended")
     queue_position: int | None = Field(
@@ -64,6 +66,12 @@ class Refinement(BaseModel):
                    queue_position=wait.get("position"),
                    interim_eta_seconds=_rounded(wait.get("interim_eta_seconds")),
                    final_eta_seconds=_rounded(wait.get("final_eta_seconds")))
+
+
+    @classmethod
+    def deferred(cls, texture: Texture) -> "Refinement":
+        """A refinement waiting for room in the fit queue (``Texture.refinement_deferred``)."""
+        return cls(job_id=texture.refinement_job_id or "", state="queued", progress=0.0, stage="deferred")
 
 
 def _rounded(seconds: float | None) -> float | None:
@@ -139,7 +147,8 @@ class TextureOut(BaseModel):
         return cls(id=t.id, name=t.name, code=t.code, colour=t.colour, model_version=t.model_version, source=t.source,
                    parents=t.parents, width=t.width, height=t.height, has_own_sampler=bool(t.sampler_key),
                    sampler=("interim" if t.sampler_interim else "fitted") if t.sampler_key else "encoder",
-                   refinement=Refinement.of(refinement, wait) if refinement is not None else None,
+                   refinement=(Refinement.of(refinement, wait) if refinement is not None
+                               else Refinement.deferred(t) if t.refinement_deferred and t.refinement_job_id else None),
                    structure=Structure(**t.served_structure()) if t.served_structure() else None,
                    lighting=t.lighting or "as-is",
                    created_at=t.created_at, updated_at=t.updated_at,

@@ -98,6 +98,12 @@ class Settings(BaseSettings):
     max_attempts: int = Field(3, ge=1)
     max_queued_jobs: int = Field(1000, ge=1, description="back-pressure: submissions beyond this many "
                                  "queued jobs get 503 + Retry-After")
+    max_queued_fits: int = Field(100, ge=1, description="back-pressure on the fit lane, counted apart from the "
+                                 "other jobs: uploads beyond this many queued fits defer their refinement (queued as "
+                                 "room frees), fit requests get 503 + Retry-After")
+    tenant_queue_share: float = Field(0.5, gt=0, le=1, description="the share of max_queued_jobs and of "
+                                      "max_queued_fits one tenant (API key) may fill, with API keys on: beyond it 429 + "
+                                      "Retry-After, an upload's refinement deferred")
     queue_full_retry_after_seconds: int = Field(30, ge=1)
     worker_kinds: Annotated[list[JobKind], NoDecode] = Field(
         default_factory=lambda: list(JOB_KINDS), description="job kinds this worker process runs, comma-separated; "

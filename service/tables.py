@@ -84,6 +84,10 @@ class Texture(Base):
     # An upload's in-place refinement (TEXSPACE_AUTO_FIT): the fit job, and the encoder's code
     # in the model's latent space, kept when the job replaces code and sampler_key (blends use it).
     refinement_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    # The params of a refinement not yet queued, because the fit lane's queue or the owner's
+    # share of it was full at upload (``jobs.queue_deferred_refinements`` queues it as room
+    # frees, oldest upload first); None once queued, or when none was deferred.
+    refinement_deferred: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     encoder_code: Mapped[list | None] = mapped_column(JSON, nullable=True)
     # The colour table the sampler applies last (worker/colour_match.py): the photo's colour
     # statistics matched to this texture's sampler. None: the identity table (rows from

@@ -98,7 +98,7 @@ def submit_bake(
     if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:
         return accepted(response, jobs.same_request(existing, fingerprint), False)
     check_mesh(services.settings, data, filename)  # a bad mesh is refused now, nothing stored
-    check_queue_room(services)
+    check_queue_room(services, "bake")
     job_id = new_id()
     input_key = keys.job_input_key(job_id, filename)
     services.storage.put_bytes(input_key, data)

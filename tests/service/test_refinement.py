@@ -266,10 +266,10 @@ def test_model_without_checkpoint_is_not_refined(refining, photo) -> None:
 
 def test_full_queue_does_not_fail_the_upload(refining, photo) -> None:
     client, services = refining
-    services.settings.max_queued_jobs = 1
+    services.settings.max_queued_fits = 1
     first, second = upload_photo(client, photo), upload_photo(client, photo)
     assert first["refinement"]["state"] == "queued"
-    assert second["refinement"] is None                         # the queue was full: not refined
+    assert second["refinement"]["stage"] == "deferred"          # the fit queue was full: refined later
     assert len(client.get("/v1/jobs").json()["items"]) == 1
 
 

@@ -147,6 +147,17 @@ function followRefinement(texture) {
     showRefinement();
     return;
   }
+  if (refinement.stage === 'deferred') { // no job yet: look again until the reaper queues it
+    showRefinement("refinement deferred: the fit queue is full; it is queued as room frees (the encoder's tiles until then)", 'queued');
+    const timer = setInterval(() => {
+      if (state.current?.id !== texture.id) return;
+      reloadServed(texture.id).then((now) => {
+        if (now && now.refinement?.stage !== 'deferred') followRefinement(now);
+      }).catch(sayError);
+    }, INTERIM_LOOK_MS);
+    stopRefinement = () => clearInterval(timer);
+    return;
+  }
   let last = { state: refinement.state, progress: refinement.progress,
                stage: refinement.stage === 'paused' ? 'interim' : null };
   const say = () => showRefinement(refinementText(last, state.current), last.state);
