@@ -132,7 +132,7 @@ train-gpu:
 #     --device cuda --minutes 7.5 GPU_ARGS...
 # (the copy makes it resume with its Adam state); bring back $$OUT/run/checkpoint.pt, put
 # it at model/checkpoints/space-train.pt and export here. How the shipped space was made:
-# docs/notes/model-history.md, "Isotropic transforms trained".
+# the model card's "The shipped space".
 GPU_CORPUS ?= default
 GPU_LICENCES ?= all
 # large: 256 px short side, long side cropped to 384, JPEG 90, 4 MiB of photos (147 train photos

@@ -256,7 +256,7 @@ def main(argv=None):
                    help="learning rates: falling to 10%% over --minutes (default), or constant")
     p.add_argument("--spectrum", type=float, default=0.0,
                    help="weight of the luminance spectrum loss, times the photo's Gram magnitude (0: off; "
-                        "docs/notes/model-history.md, 2026-11-27 evening)")
+                        "off by default: closer spectra, but grass and lattice fits got worse)")
     p.add_argument("--even", choices=["auto", "none"], default="auto",
                    help="auto (default): a photo even at large scales (model.structure.detect_even, no grain "
                         "or lattice) is fitted with its coarse noise octaves muted; none: never")
