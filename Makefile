@@ -220,9 +220,9 @@ evaluate: data
 structure: data
 	$(PY) docs/eval/structure.py --data data/textures --out docs/eval/structure
 
-# Product-level quality (issue 14): colour (CIELAB), style against colour-matched value
+# Product-level quality: colour (CIELAB), style against colour-matched value
 # noise, diversity and oblique / axis slices, all through encoder.onnx + sampler.onnx as
-# the service serves them; style over each photo's own floor (issue 48, eval/style_floor.py)
+# the service serves them; style over each photo's own floor (eval/style_floor.py)
 # for the tiles, by-example noise (eval/by_example.py) and value noise, with medians.
 # Another export side by side: QUALITY_ARGS='--model-dir DIR --label NAME'; fits: '--fits runs/fits'.
 QUALITY_ARGS ?=

@@ -4,7 +4,7 @@
 
 Starts from the space's encoder code for IMAGE and its decoder, then optimises the
 code, the translator (so the per-octave transforms) and the decoder for this one
-exemplar. Writes OUTDIR/sampler.onnx (DESIGN.md Contract 1, same inputs and outputs
+exemplar. Writes OUTDIR/sampler.onnx (docs/ARCHITECTURE.md, Contract 1, same inputs and outputs
 as the shipped sampler), OUTDIR/code.json (the code to feed it), OUTDIR/manifest.json
 and OUTDIR/fit.pt (weights and code, for ``model.evaluate``). The worker runs this as
 the ``fit`` job where torch is installed. What regular structure the fit builds in (grain,

@@ -1,4 +1,4 @@
-"""Export -> ONNX Runtime: the sampler contract (DESIGN.md Contract 1) and torch parity."""
+"""Export -> ONNX Runtime: the sampler contract (docs/ARCHITECTURE.md, Contract 1) and torch parity."""
 from __future__ import annotations
 
 import json

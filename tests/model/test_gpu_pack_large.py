@@ -1,4 +1,4 @@
-"""docs/notes/gpu_pack.py's corpus choice (issue 48): the licence filter, the family round
+"""docs/notes/gpu_pack.py's corpus choice: the licence filter, the family round
 robin and the size-bounded photo writing, on synthetic photos; and model.train's flags for a
 new space's architecture (--code-size, --encoder-width, --hidden)."""
 from __future__ import annotations

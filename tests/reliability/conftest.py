@@ -41,7 +41,7 @@ def row_counts(services: Services) -> tuple[int, int]:
 @pytest.fixture(scope="module", params=["sqlite", "postgresql"])
 def database_url(request) -> Iterator[str | None]:
     """None (the embedded SQLite default), or a fresh PostgreSQL database dropped afterwards
-    (skipped, saying why, where no server answers): hostile cases run on both (issue 19)."""
+    (skipped, saying why, where no server answers): hostile cases run on both."""
     if request.param == "sqlite":
         yield None
         return

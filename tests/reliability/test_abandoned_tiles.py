@@ -1,4 +1,4 @@
-"""Tiles whose client has gone (issue 15), against a real ``texspace api``: a map abandons
+"""Tiles whose client has gone, against a real ``texspace api``: a map abandons
 tiles on every pan; queued ones must not render and a rendering one must stop."""
 from __future__ import annotations
 

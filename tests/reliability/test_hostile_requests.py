@@ -1,4 +1,4 @@
-"""Hostile requests (issue 19): each gets the exact 4xx it deserves, never a 500, on the
+"""Hostile requests: each gets the exact 4xx it deserves, never a 500, on the
 embedded SQLite database and on PostgreSQL (which refuses NUL in text and enforces
 varchar lengths); the service stays healthy after each. PostgreSQL cases are skipped,
 saying why, where no server answers."""

@@ -1,4 +1,4 @@
-"""Progressive zoom-out (issue 15, the default): a cold zoomed-out tile is answered at once
+"""Progressive zoom-out (the default): a cold zoomed-out tile is answered at once
 with a preview at a native tile's cost, and the exact (supersampled) tile, rendered behind
 it, replaces it: revalidating the preview gives 304 until then, the exact tile after."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Interactive tiles (issue 15): the bounded tile queue (503 + Retry-After), tiles whose
+"""Interactive tiles before batch jobs: the bounded tile queue (503 + Retry-After), tiles whose
 client has gone, parents built from cached children, bounded zoom-out, worker priority."""
 from __future__ import annotations
 

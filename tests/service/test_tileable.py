@@ -1,4 +1,4 @@
-"""Tileable regions through the API (issue 18): the option, its 422 and 409 refusals, and
+"""Tileable regions through the API: the option, its 422 and 409 refusals, and
 fitted textures (whose fit stores a tileable sampler beside its sampler).
 
 The fit is a stand-in ``model.fit`` (as in test_fit_grain.py) that writes the shipped
