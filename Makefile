@@ -62,16 +62,16 @@ bench-fit-budget: data
 # the README picture: exemplars beside tiles synthesised from their codes; the shipped one
 # adds each photo's fit: make fits FIT_ARGS='--threads 1' FIT_JOBS=2 and FIGURE_ARGS='--fits runs/fits'
 readme-figure: data
-	$(PY) docs/make_readme_figure.py docs/images/exemplar-and-tile.png $(FIGURE_ARGS)
+	$(PY) -m eval.readme_figure docs/images/exemplar-and-tile.png $(FIGURE_ARGS)
 
 # the model card's wood picture: a default-length grain fit on the three axis planes
 grain-figure: data
 	$(PY) -m model.fit data/textures/val/miniworld_wood_1.png runs/fits-grain/miniworld_wood_1 --grain y
-	$(PY) docs/make_grain_figure.py
+	$(PY) -m eval.grain_figure
 
 triplanar-figure: data
 	$(PY) -m model.fit data/textures/val/miniworld_brick_wall_1.png runs/fits/miniworld_brick_wall_1 --minutes 1 --threads 1
-	$(PY) docs/make_triplanar_figure.py
+	$(PY) -m eval.triplanar_figure
 
 clean-data:
 	rm -rf $(TEXSPACE_DATA_DIR)
@@ -123,7 +123,7 @@ train-gpu:
 
 # make gpu-pack: for a lent GPU machine that takes 64 MiB of files and has no network (the
 # device tool): writes gpu/ (ignored by git, ~12 MiB: int8 VGG16 (xz), the training and validation
-# photos at the working resolution, docs/notes/gpu_pack.py). GPU_CORPUS=large packs the large
+# photos at the working resolution, eval/gpu_pack.py). GPU_CORPUS=large packs the large
 # corpus (docs/DATA.md, "Training on a lent GPU": a JPEG subset bounded to fit, and the recipe
 # gpu-large-* below); GPU_LICENCES=non-gpl leaves GPL art out. A fit there: python3 gpu/gpu_pack.py
 # fit gpu/val/PHOTO.png $$OUT/fit -- --device cuda --minutes 4. Carry gpu/ there and run, in one call:
@@ -144,7 +144,7 @@ gpu-pack: $(if $(filter large,$(GPU_CORPUS)),install-test,data)
 	@test -f $(if $(filter large,$(GPU_CORPUS)),data/textures-large,data/textures)/index.json || \
 		{ echo "no corpus: make $(if $(filter large,$(GPU_CORPUS)),data-large,data) first"; exit 1; }
 	rm -rf gpu
-	$(PY) docs/notes/gpu_pack.py pack gpu --corpus $(GPU_CORPUS) --licences "$(GPU_LICENCES)" $(GPU_PACK_ARGS)
+	$(PY) -m eval.gpu_pack pack gpu --corpus $(GPU_CORPUS) --licences "$(GPU_LICENCES)" $(GPU_PACK_ARGS)
 
 # A new space on the large corpus, trained from scratch on a lent GPU in calls of the device
 # tool (docs/DATA.md, "Training on a lent GPU"). make gpu-large-command prints the call: carry
@@ -218,7 +218,7 @@ evaluate: data
 # on crops, turns and close-ups cut from them: the reference to diff after a detector change.
 .PHONY: structure
 structure: data
-	$(PY) docs/eval/structure.py --data data/textures --out docs/eval/structure
+	$(PY) -m eval.structure --data data/textures --out docs/eval/structure
 
 # Product-level quality: colour (CIELAB), style against colour-matched value
 # noise, diversity and oblique / axis slices, all through encoder.onnx + sampler.onnx as
@@ -228,7 +228,7 @@ structure: data
 QUALITY_ARGS ?=
 .PHONY: quality tune-by-example
 quality: data
-	$(PY) docs/eval/quality.py --model-dir model/weights --label shipped $(QUALITY_ARGS) \
+	$(PY) -m eval.quality --model-dir model/weights --label shipped $(QUALITY_ARGS) \
 		--exemplars data/textures/val --out docs/eval/quality
 
 # The by-example baseline's triangle edge: its style error over the floor per edge, per photo

@@ -1,7 +1,7 @@
 """Product-level quality protocol: what a user gets from an upload, measured.
 
     make quality
-    python docs/eval/quality.py --model-dir model/weights [--model-dir DIR --label NAME ...] \
+    python -m eval.quality --model-dir model/weights [--model-dir DIR --label NAME ...] \
         --exemplars data/textures/val --out docs/eval/quality
 
 Everything goes through the product path, never through torch models: the photo is
@@ -73,9 +73,8 @@ from worker.images import encode_texture, read_image, resize_short_side
 from worker.runtime import ModelRuntime, SamplerSession
 from worker.tiles import NATIVE_ZOOM, render_tile
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for eval/ (not installed)
-from eval.by_example import TRIANGLE_EDGE, by_example_tile, gaussianise  # noqa: E402
-from eval.style_floor import CROP, crop_errors, photo_floor, style_ratio, vgg_features  # noqa: E402
+from eval.by_example import TRIANGLE_EDGE, by_example_tile, gaussianise
+from eval.style_floor import CROP, crop_errors, photo_floor, style_ratio, vgg_features
 
 TILE = 256
 POSITIONS = ((0, 0), (1, 0), (0, 1), (1, 1))  # tile (x, y) at native zoom

@@ -1,23 +1,17 @@
-"""docs/eval/quality.py: the value-noise baseline (pure numpy; no model, no VGG run)."""
+"""eval/quality.py: the value-noise baseline (pure numpy; no model, no VGG run)."""
 from __future__ import annotations
-
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-pytest.importorskip("torch", reason="docs/eval/quality.py imports model/ (the train extra)")
-
-SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "eval" / "quality.py"
+pytest.importorskip("torch", reason="eval/quality.py imports model/ (the train extra)")
 
 
 @pytest.fixture(scope="module")
 def quality():
-    spec = importlib.util.spec_from_file_location("eval_quality", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    import eval.quality
+
+    return eval.quality
 
 
 def test_value_noise_is_deterministic_per_seed(quality):
