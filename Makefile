@@ -77,9 +77,14 @@ clean-data:
 	rm -rf $(TEXSPACE_DATA_DIR)
 
 # --- the model (torch, the train extra) --------------------------------------------
-# make train resumes runs/space (seeded from the committed checkpoint when present),
-# stops after TRAIN_STEPS steps in total, then exports to model/weights/.
+# make train resumes runs/space, stops after TRAIN_STEPS steps in total, then exports to
+# model/weights/. An empty runs/space is seeded from TRAIN_INIT when that file exists, a full
+# training checkpoint (weights, Adam state, code table) resumed as it is: by default the run
+# the shipped space was exported from (make shipped-checkpoint gets it from git history).
+# Without one the run starts from the shipped weights (--init model/weights/space.pt:
+# Adam and the code table start afresh).
 TRAIN_STEPS ?= 20000
+TRAIN_INIT ?= $(SHIPPED_CHECKPOINT)
 TRAIN_ARGS ?= --patch 64 --batch 4 --lr 2e-4 --warmup 200 --no-nearest --smooth --colour-normalise --isotropic-transforms --threads 2 --ckpt-every 100
 .PHONY: data data-large train export evaluate
 
@@ -92,24 +97,36 @@ data-large: install-test
 	$(PY) -m model.corpus fetch
 
 train: data
-	@if [ ! -f runs/space/checkpoint.pt ] && [ -f model/checkpoints/space-train.pt ]; then \
-		mkdir -p runs/space && cp model/checkpoints/space-train.pt runs/space/checkpoint.pt; fi
-	$(PY) -m model.train --out runs/space --steps $(TRAIN_STEPS) $(TRAIN_ARGS)
+	@if [ ! -f runs/space/checkpoint.pt ] && [ -f "$(TRAIN_INIT)" ]; then \
+		mkdir -p runs/space && cp "$(TRAIN_INIT)" runs/space/checkpoint.pt; fi
+	$(PY) -m model.train --out runs/space --init model/weights/space.pt --steps $(TRAIN_STEPS) $(TRAIN_ARGS)
 	$(PY) -m model.export runs/space/checkpoint.pt model/weights
 
 export: install-test
 	$(PY) -m model.export runs/space/checkpoint.pt model/weights
+
+# The shipped space's full training checkpoint (16 MiB with its Adam state) is not in the
+# tree (docs/ARCHITECTURE.md, "What git holds"): this writes it from the last commit that
+# had it, where the history is at hand.
+SHIPPED_CHECKPOINT := runs/space-train.pt
+.PHONY: shipped-checkpoint
+shipped-checkpoint: $(SHIPPED_CHECKPOINT)
+$(SHIPPED_CHECKPOINT):
+	mkdir -p $(dir $@)
+	git show "$$(git rev-list -n 1 HEAD -- model/checkpoints/space-train.pt)^:model/checkpoints/space-train.pt" > $@.tmp
+	mv $@.tmp $@
 
 # make train-gpu: the same space on a CUDA GPU, in bounded calls. Each call resumes
 # runs/space-gpu for GPU_MINUTES of steps (default 9, so that one call with its start and
 # export fits a 10-minute command limit; call again to go on), then exports to GPU_EXPORT
 # (runs/space-gpu/weights; GPU_EXPORT=model/weights ships it). An empty runs/space-gpu is
 # seeded from GPU_INIT, a full training checkpoint (weights, Adam state, code table; not an
-# exported space.pt): by default the run that model/weights/space.pt was exported from.
+# exported space.pt): by default the run that model/weights/space.pt was exported from
+# (make shipped-checkpoint).
 # It installs nothing: the install targets keep torch CPU-only, so PY must be a Python whose
 # torch sees CUDA, with data/textures (make data) and the VGG16 cache (python -m model.vgg
 # fetch, TEXSPACE_CACHE_DIR) already in place.
-GPU_INIT ?= model/checkpoints/space-train.pt
+GPU_INIT ?= $(SHIPPED_CHECKPOINT)
 GPU_MINUTES ?= 9
 GPU_STEPS ?= 100000
 GPU_EXPORT ?= runs/space-gpu/weights
@@ -127,16 +144,16 @@ train-gpu:
 # corpus (docs/DATA.md, "Training on a lent GPU": a JPEG subset bounded to fit, and the recipe
 # gpu-large-* below); GPU_LICENCES=non-gpl leaves GPL art out. A fit there: python3 gpu/gpu_pack.py
 # fit gpu/val/PHOTO.png $$OUT/fit -- --device cuda --minutes 4. Carry gpu/ there and run, in one call:
-#   mkdir -p $$OUT/run && cp model/checkpoints/space-train.pt $$OUT/run/checkpoint.pt &&
-#   python3 gpu/gpu_pack.py train model/checkpoints/space-train.pt -- --out $$OUT/run \
+#   mkdir -p $$OUT/run && cp runs/space-train.pt $$OUT/run/checkpoint.pt &&
+#   python3 gpu/gpu_pack.py train runs/space-train.pt -- --out $$OUT/run \
 #     --device cuda --minutes 7.5 GPU_ARGS...
-# (the copy makes it resume with its Adam state); bring back $$OUT/run/checkpoint.pt, put
-# it at model/checkpoints/space-train.pt and export here. How the shipped space was made:
+# carrying runs/space-train.pt too (make shipped-checkpoint; the copy makes it resume with its
+# Adam state); bring back $$OUT/run/checkpoint.pt, put it at runs/space-train.pt and export here. How the shipped space was made:
 # the model card's "The shipped space".
 GPU_CORPUS ?= default
 GPU_LICENCES ?= all
 # large: 256 px short side, long side cropped to 384, JPEG 90, 4 MiB of photos (147 train photos
-# of 147 families, 8 val): tree 51.2 + pack 11.4 + slim checkpoint 2.7 MiB stay under 64.
+# of 147 families, 8 val): tree ~33 + pack 11.4 + slim checkpoint 2.7 MiB stay under 64.
 # A run resumes only on the pack it started with: keep these the same for all its calls.
 GPU_PACK_ARGS ?= $(if $(filter large,$(GPU_CORPUS)),--quality 90 --max-long 384 --photo-mib 4 --val 8)
 .PHONY: gpu-pack
