@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 
 from .procs import Cluster, base_env
 

@@ -20,10 +20,10 @@ from PIL import Image
 
 from service.context import build_services
 from service.main import create_app
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
+from tests.reliability.helpers import BAD, PROBLEM, database_settings, make_settings, row_counts, stored_files
 from worker import images
 
-from .conftest import BAD, PROBLEM, database_settings, make_settings, row_counts, stored_files
 from .procs import Cluster, base_env
 
 RSS_LIMIT = 1_500_000_000  # bytes: a worker on a small machine stays under 1.5 GB

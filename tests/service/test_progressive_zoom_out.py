@@ -11,7 +11,7 @@ import pytest
 from service import tiles as service_tiles
 from worker.tiles import NATIVE_ZOOM
 
-from tests.service.conftest import tile_url
+from tests.service.helpers import tile_url
 
 N = NATIVE_ZOOM
 SIZE = {"size": 64}

@@ -16,7 +16,7 @@ from worker.errors import Busy
 from worker.images import write_image
 from worker.tiles import NATIVE_ZOOM, render_tile
 
-from tests.service.conftest import tile_url
+from tests.service.helpers import tile_url
 
 
 def run_async(coroutine) -> None:  # noqa: ANN001

@@ -23,7 +23,7 @@ from service.context import build_services
 from service.db import session_scope
 from service.main import create_app
 from service.tables import Texture
-from tests.service.conftest import upload_photo
+from tests.service.helpers import upload_photo
 from worker.errors import FeatureUnavailable
 
 MODEL_DIR = Path(__file__).resolve().parents[2] / "model" / "weights"
