@@ -81,10 +81,11 @@ clean-data:
 # model/weights/. An empty runs/space is seeded from TRAIN_INIT when that file exists, a full
 # training checkpoint (weights, Adam state, code table) resumed as it is: by default the run
 # the shipped space was exported from (make shipped-checkpoint gets it from git history).
-# Without one the run starts from the shipped weights (--init model/weights/space.pt:
-# Adam and the code table start afresh).
+# Without one the run starts from TRAIN_WEIGHTS, the shipped weights by default (--init:
+# Adam and the code table start afresh); TRAIN_WEIGHTS= (empty) trains a space from scratch.
 TRAIN_STEPS ?= 20000
 TRAIN_INIT ?= $(SHIPPED_CHECKPOINT)
+TRAIN_WEIGHTS ?= model/weights/space.pt
 TRAIN_ARGS ?= --patch 64 --batch 4 --lr 2e-4 --warmup 200 --no-nearest --smooth --colour-normalise --isotropic-transforms --threads 2 --ckpt-every 100
 .PHONY: data data-large train export evaluate
 
@@ -99,7 +100,7 @@ data-large: install-test
 train: data
 	@if [ ! -f runs/space/checkpoint.pt ] && [ -f "$(TRAIN_INIT)" ]; then \
 		mkdir -p runs/space && cp "$(TRAIN_INIT)" runs/space/checkpoint.pt; fi
-	$(PY) -m model.train --out runs/space --init model/weights/space.pt --steps $(TRAIN_STEPS) $(TRAIN_ARGS)
+	$(PY) -m model.train --out runs/space $(if $(TRAIN_WEIGHTS),--init $(TRAIN_WEIGHTS)) --steps $(TRAIN_STEPS) $(TRAIN_ARGS)
 	$(PY) -m model.export runs/space/checkpoint.pt model/weights
 
 export: install-test
