@@ -2,7 +2,7 @@
 
     python -m model.export CHECKPOINT [OUTDIR]      # OUTDIR defaults to model/weights/
 
-writes ``encoder.onnx``, ``sampler.onnx`` (DESIGN.md Contract 1) and ``manifest.json``.
+writes ``encoder.onnx``, ``sampler.onnx`` (docs/ARCHITECTURE.md, Contract 1) and ``manifest.json``.
 The sampler graph holds the hash noise itself, so any ONNX runtime reproduces a texture
 from (z, seed) without our code.
 """

@@ -377,7 +377,8 @@ class Objective:
 
     ``spectrum_weight`` (``--spectrum``) adds, per patch, that weight times the exemplar's Gram
     magnitude (``gram_energy``) times its ``spectrum_loss``: the radially averaged luminance
-    spectrum against the photo's (docs/notes/model-history.md, 2026-11-27 evening; off by default).
+    spectrum against the photo's (off by default: it brought the spectra closer, but grass fits got
+    worse in 3 of 3 and lattice fits were hurt; docs/DECISIONS.md, "Tried, not adopted").
     """
 
     def __init__(self, images: list[np.ndarray], layers: tuple[str, ...], kind: str, colour_weight: float = 0.0,

@@ -1,4 +1,4 @@
-"""Job lifecycle on the job table (DESIGN.md Contract 3): submit, claim, lease, finish,
+"""Job lifecycle on the job table (docs/ARCHITECTURE.md, Contract 3): submit, claim, lease, finish,
 cancel, reap. Every state change is a conditional UPDATE, so racing API processes,
 workers and reapers can never move a job twice.
 """

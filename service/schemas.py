@@ -281,7 +281,7 @@ RASTER_LIMIT = COORD_LIMIT * MAX_TILE_SIZE  # the raster window worker/tiles.py 
 
 
 class RegionIn(BaseModel):
-    """A large 2D export of the infinite plane (issue 5), rendered by a job."""
+    """A large 2D export of the infinite plane, rendered by a job."""
 
     model_config = {"extra": "forbid"}
     after_refinement: bool = Field(

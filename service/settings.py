@@ -19,10 +19,10 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 JOB_KINDS = ("volume", "bake", "region", "fit")
 JobKind = Literal[JOB_KINDS]
 #: a fit's time budget unless one is asked for: an upload's refinement and ``POST .../fit``.
-#: 4 minutes, as ``model.fit``'s own default: against 60 s (one thread, seed 0, 9 validation
-#: photos) the tiles' style error was lower on 8 and the same on one, bricks 0.111 -> 0.043,
-#: granite 0.417 -> 0.339 (docs/notes/model-history.md, 2026-11-29). Fits have a queue of
-#: their own (service/queue.py), so a longer one holds up no tile, volume or bake.
+#: 90 s: bf16 steps buy back most of a 4-minute float32 fit (9 validation photos: geometric
+#: mean 1.07x its style error) for four uploads' finals in ~400 s instead of ~17 minutes
+#: (docs/DECISIONS.md, "An upload's fit is 90 s"). Fits have a queue of their own
+#: (service/queue.py), so a longer one holds up no tile, volume or bake.
 FIT_SECONDS = 90.0
 #: the model export shipped inside the package (``model/weights``)
 PACKAGED_MODEL_DIR = Path(__file__).resolve().parent.parent / "model" / "weights"

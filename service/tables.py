@@ -1,6 +1,6 @@
 """Database tables (SQLAlchemy 2 declarative). Alembic migrations mirror this file.
 
-The job row is the truth about every job (DESIGN.md Contract 3); the queue only
+The job row is the truth about every job (docs/ARCHITECTURE.md, Contract 3); the queue only
 carries job ids.
 """
 from __future__ import annotations
@@ -80,7 +80,7 @@ class Texture(Base):
     width: Mapped[int | None] = mapped_column(Integer, nullable=True)
     height: Mapped[int | None] = mapped_column(Integer, nullable=True)
     sampler_key: Mapped[str | None] = mapped_column(String(300), nullable=True)
-    owner_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)  # API key id (issue 6)
+    owner_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)  # the API key id; NULL when keys are disabled
     # An upload's in-place refinement (TEXSPACE_AUTO_FIT): the fit job, and the encoder's code
     # in the model's latent space, kept when the job replaces code and sampler_key (blends use it).
     refinement_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
@@ -177,7 +177,7 @@ class Job(Base):
     sampler: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     idempotency_key: Mapped[str | None] = mapped_column(String(200), unique=True, nullable=True)
     request_hash: Mapped[str | None] = mapped_column(String(64), nullable=True)
-    owner_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)  # API key id (issue 6)
+    owner_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)  # the API key id; NULL when keys are disabled
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
     started_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
     finished_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
@@ -185,7 +185,7 @@ class Job(Base):
 
 
 class ApiKey(Base):
-    """API keys (issue 6). Only a hash of the key is stored."""
+    """API keys: tenants. Only a hash of the key is stored."""
 
     __tablename__ = "api_keys"
 

@@ -1,8 +1,12 @@
 """Plain helpers shared by several test folders (fixtures live in the conftests)."""
 from __future__ import annotations
 
+import contextlib
+import io
+import os
 import subprocess
-from collections.abc import Callable, Iterable
+import uuid
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +15,51 @@ from PIL import Image
 
 from service import spawn
 from worker.decode import working_shape
+
+PG_ADMIN_URL = os.environ.get("TEXSPACE_TEST_PG_URL", "postgresql://postgres@127.0.0.1:5432/test")
+REDIS_URL = os.environ.get("TEXSPACE_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
+
+
+@contextlib.contextmanager
+def fresh_postgres_database(prefix: str = "texspace_test") -> Iterator[str]:
+    """The URL of a new, empty database on the local PostgreSQL server, dropped on exit;
+    a skip saying why when the server does not answer."""
+    import psycopg  # a dependency: a missing one fails; only an absent server skips
+    try:
+        admin = psycopg.connect(PG_ADMIN_URL, autocommit=True, connect_timeout=3)
+    except psycopg.Error as exc:
+        pytest.skip(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {exc}")
+    name = f"{prefix}_{uuid.uuid4().hex[:10]}"
+    admin.execute(f'CREATE DATABASE "{name}"')
+    try:
+        yield PG_ADMIN_URL.rsplit("/", 1)[0] + "/" + name
+    finally:
+        admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+        admin.close()
+
+
+def brick_png(size: int = 96, rgba: bool = False) -> bytes:
+    """A real texture photo (scikit-image's CC0 brick wall), cropped small for speed."""
+    from skimage import data
+
+    grey = data.brick()[:size, :size]
+    rgb = np.stack([grey, (grey * 0.8).astype(np.uint8), (grey * 0.6).astype(np.uint8)], axis=-1)
+    if rgba:
+        rgb = np.concatenate([rgb, np.full(grey.shape + (1,), 200, np.uint8)], axis=-1)
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, "PNG")
+    return buf.getvalue()
+
+
+def shaded_png() -> bytes:
+    """The brick photo under a light falling off to the right (0.4x at the far side)."""
+    from worker.colour import linear_to_srgb8, srgb_to_linear
+
+    rgb = np.asarray(Image.open(io.BytesIO(brick_png(128))).convert("RGB"), np.float32) / 255
+    shade = np.linspace(1.0, 0.4, rgb.shape[1], dtype=np.float32)[None, :, None]
+    buf = io.BytesIO()
+    Image.fromarray(linear_to_srgb8(srgb_to_linear(rgb) * shade)).save(buf, "PNG")
+    return buf.getvalue()
 
 
 def wait_ready(base_url: str, procs: Iterable[subprocess.Popen], timeout: float, *,

@@ -168,7 +168,7 @@ def test_worker_leaves_import_only_each_other_numpy_openimageio_and_pillow() -> 
 
 
 def test_model_reads_photos_with_the_upload_reader() -> None:
-    """model/ decodes exemplars through worker.decode (issue 19: one reader for upload, fit,
+    """model/ decodes exemplars through worker.decode (one reader for upload, fit,
     training and evaluation); Pillow opens files only where ``fetch`` converts the packaged
     source images into the PNG data set (model/data.py: _read_source)."""
     readers = [str(path.relative_to(ROOT)) for name, path in modules("model").items()

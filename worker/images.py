@@ -44,7 +44,8 @@ from worker.runtime import ModelRuntime
 OUTPUT_FORMATS = ("png", "webp", "jpeg", "exr", "tiff")
 # How an upload's photo is lit: "as-is" (taken as it is) or "even" (its smooth shading divided
 # out first: ``even_lighting``). Photo-sourced textures often carry a light falloff; without
-# evening, a shaded photo's tiles show its light and dark sides as blotches (docs/notes).
+# evening, a shaded photo's tiles show its light and dark sides as blotches (a grass photo's
+# style error 0.014 -> 0.053; evened 0.030). Off by default: evening flattens a material's own tone.
 LIGHTING = ("as-is", "even")
 _budget: PixelBudget | None = None
 

@@ -22,7 +22,7 @@ result is then a zip of ``colour.<ext>`` (the image in ``fmt``) plus ``height.pn
 wrap around the borders. GPU formats and derived maps need the whole image in memory, so
 they are limited to ``RegionLimits.max_whole_pixels``.
 
-Tileable (``tileable=True``, issue 18): a square image at the native zoom on the xy plane,
+Tileable (``tileable=True``): a square image at the native zoom on the xy plane,
 rendered by the texture's tileable sampler with period ``width / pixels_per_unit`` world
 units, so the image repeats exactly: tiled 2 x 2 it has no seam (the column after the last
 is the first). The sampler rounds each octave's frequency so that a whole number of its

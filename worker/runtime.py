@@ -1,4 +1,4 @@
-"""ONNX Runtime sessions for the exported model (DESIGN.md Contract 1).
+"""ONNX Runtime sessions for the exported model (docs/ARCHITECTURE.md, Contract 1).
 
 Load once, then arrays in, arrays out:
 
@@ -7,7 +7,7 @@ Load once, then arrays in, arrays out:
 * ``ModelRuntime(model_dir)``: manifest + encoder + sampler of one model version, plus
   its tileable sampler (``sampler_tileable.onnx``), opened on first use.
 * ``PeriodicSampler(session, period)``: a tileable sampler with its period bound, so it
-  is a ``Sampler`` like the others (tileable regions, issue 18).
+  is a ``Sampler`` like the others (tileable regions).
 * ``ModelRegistry(folders)``: every model version found under some folders, side by
   side, keyed by manifest ``version``, plus an LRU of extra sampler sessions for
   fitted textures.
@@ -264,7 +264,7 @@ class ModelRuntime:
 
     @property
     def tileable_path(self) -> Path | None:
-        """The export's tileable sampler file, None if it has none (exported before issue 18)."""
+        """The export's tileable sampler file, None if it has none (an older export)."""
         name = self.manifest.get("tileable_sampler")
         path = self.model_dir / Path(str(name)).name if name else None
         return path if path is not None and path.is_file() else None

@@ -1,4 +1,4 @@
-"""Infinite 2D tiles of a texture (DESIGN.md Contract 2, docs/ARCHITECTURE.md "World space").
+"""Infinite 2D tiles of a texture (docs/ARCHITECTURE.md, Contract 2 and "World space").
 
 Zoom ``z`` has ``pixels_per_unit * 2 ** (z - NATIVE_ZOOM)`` raster pixels per world unit,
 so at ``NATIVE_ZOOM`` one tile pixel is one exemplar pixel (at the model's working

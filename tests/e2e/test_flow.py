@@ -13,7 +13,7 @@ import pytest
 import trimesh
 from PIL import Image
 
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow, pytest.mark.timeout(600)]
 MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"

@@ -1,13 +1,13 @@
-"""Export -> ONNX Runtime: the sampler contract (DESIGN.md Contract 1) and torch parity."""
+"""Export -> ONNX Runtime: the sampler contract (docs/ARCHITECTURE.md, Contract 1) and torch parity."""
 from __future__ import annotations
 
 import json
 
 import numpy as np
+import onnxruntime as ort
 import pytest
 
 torch = pytest.importorskip("torch")
-ort = pytest.importorskip("onnxruntime")
 
 from model.colour import apply_colour, colour_size, identity_colour  # noqa: E402
 from model.export import MAX_IR_VERSION, export_model  # noqa: E402

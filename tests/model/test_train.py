@@ -265,7 +265,7 @@ def test_parse_args_gives_the_train_config_of_the_flags(capsys):
 
 
 def test_train_reads_as_one_short_story():
-    # issue 16.6: setup, resume, steps, probe and save are named pieces; train() only tells the run
+    # setup, resume, steps, probe and save are named pieces; train() only tells the run
     assert len(inspect.getsource(train).splitlines()) < 60
 
 

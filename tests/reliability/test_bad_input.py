@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from .conftest import BAD, PROBLEM, row_counts, stored_files
+from tests.reliability.helpers import BAD, PROBLEM, row_counts, stored_files
 
 # file -> (status, problem slug or None, a word the detail must contain)
 IMAGES = {

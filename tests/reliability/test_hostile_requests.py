@@ -1,4 +1,4 @@
-"""Hostile requests (issue 19): each gets the exact 4xx it deserves, never a 500, on the
+"""Hostile requests: each gets the exact 4xx it deserves, never a 500, on the
 embedded SQLite database and on PostgreSQL (which refuses NUL in text and enforces
 varchar lengths); the service stays healthy after each. PostgreSQL cases are skipped,
 saying why, where no server answers."""
@@ -17,9 +17,9 @@ from service.deps import public_base_url
 from service.logs import request_id_var
 from service.purge import purge_texture
 from service.tables import Job, new_id
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
+from tests.reliability.helpers import PROBLEM
 
-from .conftest import PROBLEM
 from .test_bad_input import assert_still_serving
 
 
@@ -210,7 +210,6 @@ REGIONS = {
 
 @pytest.mark.parametrize("name", sorted(REGIONS))
 def test_region_is_validated_at_submission(client, services, texture, name: str) -> None:
-    pytest.importorskip("OpenImageIO")
     fields, status, word = REGIONS[name]
     body = {"z": 6, "x0": 0, "y0": 0, "width": 64, "height": 64} | fields
     with services.sessions() as session:
@@ -224,7 +223,6 @@ def test_region_is_validated_at_submission(client, services, texture, name: str)
 
 
 def test_small_pyramid_is_accepted(client, texture) -> None:
-    pytest.importorskip("OpenImageIO")
     res = client.post(f"/v1/textures/{texture['id']}/regions",
                       json={"z": 6, "min_zoom": 5, "x0": 0, "y0": 0, "width": 64, "height": 64, "format": "pyramid"})
     assert res.status_code == 202, res.text

@@ -11,9 +11,8 @@ from fastapi.testclient import TestClient
 
 from service.context import build_services
 from service.main import create_app
-from tests.service.conftest import brick_png
-
-from .conftest import BAD, PROBLEM, make_settings, row_counts, stored_files
+from tests.helpers import brick_png
+from tests.reliability.helpers import BAD, PROBLEM, make_settings, row_counts, stored_files
 
 CHUNK = 64 * 1024
 

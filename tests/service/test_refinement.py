@@ -22,7 +22,7 @@ from service.queue import worker_lanes
 from service.settings import Settings
 from service.tables import Texture
 from service.tiles import CACHE_CONTROL, REFINING_CACHE_CONTROL
-from tests.service.conftest import upload_photo
+from tests.service.helpers import upload_photo
 
 from .test_fit_grain import FAKE_LATTICE, FAKE_INTERIM_CODE, MODEL_DIR, fake_fit_module
 

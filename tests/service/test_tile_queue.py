@@ -1,4 +1,4 @@
-"""Interactive tiles (issue 15): the bounded tile queue (503 + Retry-After), tiles whose
+"""Interactive tiles before batch jobs: the bounded tile queue (503 + Retry-After), tiles whose
 client has gone, parents built from cached children, bounded zoom-out, worker priority."""
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from worker.errors import Busy
 from worker.images import write_image
 from worker.tiles import NATIVE_ZOOM, render_tile
 
-from tests.service.conftest import tile_url
+from tests.service.helpers import tile_url
 
 
 def run_async(coroutine) -> None:  # noqa: ANN001
