@@ -9,7 +9,7 @@ import pytest
 from service import jobs, limits
 from service.auth import owner_var
 from service.errors import Problem
-from tests.service.conftest import upload_photo
+from tests.service.helpers import upload_photo
 
 from .test_fit_lane import add_fit, drain_fit_lane, fit_calls  # noqa: F401 (fixtures)
 from .test_refinement import refining  # noqa: F401 (fixture)
