@@ -4,6 +4,8 @@
   is a 422 / 413 problem at once (and nothing is stored) instead of a failed job later.
 * ``check_queue_room``: back-pressure. When ``max_queued_jobs`` jobs already wait, new
   submissions get ``503`` with ``Retry-After`` instead of growing the queue without bound.
+* ``check_free_space``: the local folders the service writes to have ``min_free_bytes``
+  free (``/readyz`` asks, so a load balancer stops sending work before writes fail).
 
 Byte limits on request bodies are enforced while the body streams in
 (``service/middleware.py``); image pixel limits are read from the header before decoding
@@ -11,9 +13,12 @@ Byte limits on request bodies are enforced while the body streams in
 """
 from __future__ import annotations
 
+import shutil
+
 from sqlalchemy import func, select
 
 from worker.bake import BakeLimits, load_mesh
+from worker.errors import InsufficientStorage
 
 from .container import Services
 from .db import session_scope
@@ -48,3 +53,20 @@ def check_queue_room(services: Services) -> None:
         raise Problem(503, f"{waiting} jobs are already queued (limit {settings.max_queued_jobs}); "
                            f"retry in {retry} s", slug="queue-full", title="The job queue is full",
                       headers={"Retry-After": str(retry)})
+
+
+def check_free_space(settings: Settings) -> None:
+    """Raise InsufficientStorage when the volume of the data folder (SQLite database and
+    queue, job scratch, caches) or of the local storage folder has less than
+    ``min_free_bytes`` free (0: no check)."""
+    minimum = settings.min_free_bytes
+    if not minimum:
+        return
+    folders = {"data folder": settings.data_dir}
+    if settings.storage_backend == "local":
+        folders["storage folder"] = settings.resolved_storage_dir
+    for what, folder in folders.items():
+        free = shutil.disk_usage(folder).free
+        if free < minimum:
+            raise InsufficientStorage(f"the {what}'s volume has {free / 2**20:.1f} MiB free, under "
+                                      f"TEXSPACE_MIN_FREE_BYTES ({minimum / 2**20:.1f} MiB)")
