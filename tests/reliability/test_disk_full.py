@@ -67,6 +67,11 @@ def fail_statements(services, starting: str, when=lambda: True):  # noqa: ANN001
     return lambda: event.remove(services.engine, "before_cursor_execute", refuse)
 
 
+def no_folders_below_the_top(services) -> bool:  # noqa: ANN001
+    root = services.storage.root
+    return [p for p in root.rglob("*") if p.parent != root] == []
+
+
 def assert_storage_full(res) -> None:  # noqa: ANN001
     assert res.status_code == 507 and res.headers["content-type"] == PROBLEM, res.text
     body = res.json()
@@ -85,6 +90,7 @@ def test_an_upload_whose_file_cannot_be_written_is_507_and_leaves_nothing(held, 
     assert_storage_full(client.post("/v1/textures", files={"image": ("t.png", brick_png())}))
     monkeypatch.undo()
     assert stored_files(services) == [] and row_counts(services) == rows
+    assert no_folders_below_the_top(services)  # no empty textures/<id>/ left either
 
 
 def test_an_upload_whose_row_cannot_be_written_is_507_and_leaves_nothing(held) -> None:
@@ -95,6 +101,7 @@ def test_an_upload_whose_row_cannot_be_written_is_507_and_leaves_nothing(held) -
     finally:
         restore()
     assert stored_files(services) == [] and row_counts(services) == rows
+    assert no_folders_below_the_top(services)
     assert client.post("/v1/textures", files={"image": ("t.png", brick_png())}).status_code == 201  # space back
 
 
