@@ -25,7 +25,7 @@ from ..limits import check_mesh, check_queue_room
 from ..schemas import BAKE_PROJECTIONS, BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
 from ..tables import JOB_STATES, TERMINAL_STATES, Job, new_id
 from ..uploads import read_limited, safe_filename, sha256
-from .textures import NOSNIFF, load_texture
+from .textures import NOSNIFF, checked_text, load_texture
 
 router = APIRouter(tags=["jobs"])
 IdempotencyKey = Annotated[str | None, Depends(idempotency_key)]
@@ -86,6 +86,7 @@ def submit_bake(
                     "with the refined sampler; false: bake now with what the texture serves")] = False,
 ) -> JobOut:
     """UV-unwrap a mesh and bake the solid texture into its atlas (a job)."""
+    checked_text(mesh.filename or "", "mesh filename")  # a NUL is refused, as in an upload's name, not cleaned
     load_texture(services, texture_id)
     if resolution > services.settings.max_bake_resolution:
         raise LimitExceeded(f"resolution {resolution} exceeds the limit of {services.settings.max_bake_resolution}")
