@@ -3,10 +3,9 @@
 Retry policy: domain errors (bad mesh, limits, ...) are final, since a re-run would fail
 the same way, and so is a write that failed for space (a full disk or database,
 ``errors.storage_full``) until an operator frees some; unexpected errors re-queue until
-``max_attempts``; a worker killed
-outright is noticed by the reaper when its lease expires. A kind that raises ``Paused``
-(an upload's fit at its interim's second, while other uploads wait) goes back to the queue
-without using an attempt, its progress kept.
+``max_attempts``; a worker killed outright is noticed by the reaper when its lease
+expires. A kind that raises ``Paused`` (an upload's fit at its interim's second, while
+other uploads wait) goes back to the queue without using an attempt, its progress kept.
 
 Fit-lane messages are turns: the lane runs the fit ``jobs.pick_fit`` chooses, whichever
 queued fit the message names.

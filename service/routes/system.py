@@ -10,10 +10,10 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from .. import db, queue
-from ..limits import check_free_space
 from ..db import session_scope
 from ..deps import ServicesDep
 from ..errors import problem_responses
+from ..limits import check_free_space
 from ..schemas import Health, ModelList, ModelOut
 from ..tables import ModelVersion
 
