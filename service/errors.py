@@ -6,7 +6,9 @@ as a problem document with a useful ``detail``.
 """
 from __future__ import annotations
 
+import errno
 import logging
+import sqlite3
 from http import HTTPStatus
 from typing import Any
 
@@ -40,6 +42,7 @@ ERROR_TABLE: dict[type[Exception], tuple[int, str, str]] = {
     domain.Canceled: (409, "canceled", "The job was canceled"),
     domain.ModelNotFound: (503, "model-unavailable", "The texture's model is not loaded"),
     domain.Busy: (503, "busy", "The service is busy; retry later"),
+    domain.InsufficientStorage: (507, "insufficient-storage", "The server's storage is full"),
     domain.ModelInvalid: (500, "model-invalid", "A model export is broken"),
     domain.FeatureUnavailable: (501, "feature-unavailable", "This feature is not installed"),
     domain.TexspaceError: (400, "bad-request", "The request cannot be processed"),
@@ -73,10 +76,46 @@ def not_found(what: str, ident: str) -> Problem:
     return Problem(404, f"{what} {ident!r} does not exist", slug="not-found")
 
 
+STORAGE_FULL_DETAIL = ("the server's storage is full, so nothing was stored; deleting textures frees "
+                       "space, or retry once an operator has added some")
+_FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
+_NO_SPACE = "No space left on device"  # strerror(ENOSPC), in the messages of writers that drop the errno
+_SQLITE_FULL = "database or disk is full"  # SQLITE_FULL's message
+_POSTGRES_DISK_FULL = "53100"  # SQLSTATE disk_full
+
+
+def storage_full(exc: BaseException) -> domain.InsufficientStorage | None:
+    """The domain error ``exc`` stands for when a write failed for lack of space, else None.
+
+    Space errors come from everywhere a byte is written, so they are recognised here, on
+    the way out, through the chain of causes (SQLAlchemy keeps the driver's error as
+    ``orig``): an OSError with ENOSPC or EDQUOT (or its message, from writers such as
+    OpenImageIO that drop the errno), SQLite's "database or disk is full" (the database
+    and the SQLite queue) and PostgreSQL's disk_full. Their messages name server paths;
+    the problem says what happened instead.
+    """
+    seen, pending = set(), [exc]
+    while pending:
+        error = pending.pop()
+        if error is None or id(error) in seen:
+            continue
+        seen.add(id(error))
+        if isinstance(error, domain.InsufficientStorage):
+            return error
+        if (isinstance(error, OSError) and (error.errno in _FULL_ERRNOS or _NO_SPACE in str(error))
+                or isinstance(error, sqlite3.OperationalError) and _SQLITE_FULL in str(error)
+                or getattr(error, "sqlstate", None) == _POSTGRES_DISK_FULL):
+            return domain.InsufficientStorage(STORAGE_FULL_DETAIL)
+        pending += [getattr(error, "orig", None), error.__cause__, error.__context__]
+    return None
+
+
 def problem_for(exc: BaseException) -> Problem:
     """The problem a domain (or unexpected) exception stands for."""
     if isinstance(exc, Problem):
         return exc
+    if not isinstance(exc, domain.TexspaceError):
+        exc = storage_full(exc) or exc
     for cls in type(exc).__mro__:
         if cls in ERROR_TABLE:
             status, slug, title = ERROR_TABLE[cls]

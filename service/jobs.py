@@ -290,11 +290,13 @@ def reap(services: Services) -> dict[str, int]:
         expired = session.scalars(select(Job).where(Job.state == "running",
                                                     Job.lease_expires_at < now)).all()
     for job in expired:
-        if job.cancel_requested or job.attempt >= job.max_attempts:
-            state = "canceled" if job.cancel_requested else "failed"
+        if job.cancel_requested:  # the cancel is what ends it, not the attempts spent
+            error = problem_for(Canceled("canceled; its worker stopped (lease expired) before it ended the job"))
+            values = {"state": "canceled", "finished_at": now, "error": error.to_dict(), "lease_expires_at": None}
+        elif job.attempt >= job.max_attempts:
             error = Problem(500, f"worker lost the job {job.attempt} time(s) (lease expired); giving up after "
-                            f"{job.max_attempts}", slug="lease-expired", title="The worker stopped").to_dict()
-            values = {"state": state, "finished_at": now, "error": error, "lease_expires_at": None}
+                            f"{job.max_attempts}", slug="lease-expired", title="The worker stopped")
+            values = {"state": "failed", "finished_at": now, "error": error.to_dict(), "lease_expires_at": None}
         else:
             values = {"state": "queued", "lease_expires_at": None, "worker_id": None}
         with session_scope(services.sessions) as session:

@@ -6,6 +6,8 @@
   fits: they have a lane and a limit of their own) already wait, new submissions get ``503``
   with ``Retry-After`` instead of growing the queue without bound; a tenant holding its share
   of either (``tenant_queue_share``) gets ``429``.
+* ``check_free_space``: the local folders the service writes to have ``min_free_bytes``
+  free (``/readyz`` asks, so a load balancer stops sending work before writes fail).
 
 Byte limits on request bodies are enforced while the body streams in
 (``service/middleware.py``); image pixel limits are read from the header before decoding
@@ -14,10 +16,12 @@ Byte limits on request bodies are enforced while the body streams in
 from __future__ import annotations
 
 import math
+import shutil
 
 from sqlalchemy import func, select
 
 from worker.bake import BakeLimits, load_mesh
+from worker.errors import InsufficientStorage
 
 from .auth import current_owner
 from .container import Services
@@ -76,3 +80,20 @@ def check_queue_room(services: Services, kind: str) -> None:
         raise Problem(429, f"you already have {mine} {what} queued, your share of the queue ({share} of {limit}); "
                            f"retry in {retry} s, as they finish", slug="queue-share-used",
                       title="Your share of the job queue is used", headers={"Retry-After": retry})
+
+
+def check_free_space(settings: Settings) -> None:
+    """Raise InsufficientStorage when the volume of the data folder (SQLite database and
+    queue, job scratch, caches) or of the local storage folder has less than
+    ``min_free_bytes`` free (0: no check)."""
+    minimum = settings.min_free_bytes
+    if not minimum:
+        return
+    folders = {"data folder": settings.data_dir}
+    if settings.storage_backend == "local":
+        folders["storage folder"] = settings.resolved_storage_dir
+    for what, folder in folders.items():
+        free = shutil.disk_usage(folder).free
+        if free < minimum:
+            raise InsufficientStorage(f"the {what}'s volume has {free / 2**20:.1f} MiB free, under "
+                                      f"TEXSPACE_MIN_FREE_BYTES ({minimum / 2**20:.1f} MiB)")

@@ -99,8 +99,12 @@ class RequestContextMiddleware:
         except Exception as exc:  # here, not in Starlette's outer handler: the id is still ours
             if status["sent"]:
                 raise
-            error_log.exception("unhandled error on %s %s", method, scope["path"])
-            await problem_response(problem_for(exc), Request(scope))(scope, receive, send_with_id)
+            problem = problem_for(exc)
+            if problem.status == 507:  # a full disk is the operator's to fix, not a bug: no traceback
+                error_log.warning("storage full on %s %s: %s", method, scope["path"], exc)
+            else:
+                error_log.exception("unhandled error on %s %s", method, scope["path"])
+            await problem_response(problem, Request(scope))(scope, receive, send_with_id)
         finally:
             route = scope.get("route")
             route_path = getattr(route, "path", None) or "unmatched"

@@ -1,10 +1,11 @@
 """Running one job attempt: claim, heartbeat thread, call the job kind, record the end.
 
 Retry policy: domain errors (bad mesh, limits, ...) are final, since a re-run would fail
-the same way; unexpected errors re-queue until ``max_attempts``; a worker killed
-outright is noticed by the reaper when its lease expires. A kind that raises ``Paused``
-(an upload's fit at its interim's second, while other uploads wait) goes back to the queue
-without using an attempt, its progress kept.
+the same way, and so is a write that failed for space (a full disk or database,
+``errors.storage_full``) until an operator frees some; unexpected errors re-queue until
+``max_attempts``; a worker killed outright is noticed by the reaper when its lease
+expires. A kind that raises ``Paused`` (an upload's fit at its interim's second, while
+other uploads wait) goes back to the queue without using an attempt, its progress kept.
 
 Fit-lane messages are turns: the lane runs the fit ``jobs.pick_fit`` chooses, whichever
 queued fit the message names.
@@ -20,7 +21,7 @@ from worker.errors import Canceled, Paused, TexspaceError
 
 from . import jobs
 from .container import Services
-from .errors import problem_for
+from .errors import problem_for, storage_full
 from .job_kinds import KINDS
 from .logs import job_id_var
 from .purge import forget_job_files
@@ -128,12 +129,17 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
             state, values = "canceled", {"error": problem_for(exc).to_dict()}
         except TexspaceError as exc:
             state, values = "failed", {"error": problem_for(exc).to_dict()}
-        except Exception as exc:  # unexpected: retry while attempts remain
-            log.exception("job attempt crashed")
-            problem = problem_for(exc).to_dict()
-            problem["detail"] = f"{type(exc).__name__}: {exc}"
-            retry = claim.attempt < claim.job.max_attempts
-            state, values = ("queued" if retry else "failed"), {"error": problem}
+        except Exception as exc:
+            full = storage_full(exc)
+            if full is not None:  # the same write fails again until space is freed: not retried
+                log.warning("job failed: storage full (%s)", exc)
+                state, values = "failed", {"error": problem_for(full).to_dict()}
+            else:  # unexpected: retry while attempts remain
+                log.exception("job attempt crashed")
+                problem = problem_for(exc).to_dict()
+                problem["detail"] = f"{type(exc).__name__}: {exc}"
+                retry = claim.attempt < claim.job.max_attempts
+                state, values = ("queued" if retry else "failed"), {"error": problem}
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
         if jobs.finish(services, claim, state, **values):

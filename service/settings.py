@@ -53,6 +53,8 @@ class Settings(BaseSettings):
     s3_access_key: str | None = None
     s3_secret_key: str | None = None
     s3_region: str = "us-east-1"
+    min_free_bytes: int = Field(64 * 2**20, ge=0, description="/readyz answers 503 when the data folder's "
+                                "volume, or the local storage folder's, has less free space than this (0: not checked)")
 
     # --- models ----------------------------------------------------------------------
     model_dirs: Annotated[list[Path], NoDecode] = Field(

@@ -39,6 +39,7 @@ from worker.colour_match import calibrate_texture
 from worker.decode import (MIN_SIDE, PixelBudget, encoder_crops, resize_short_side,
                            sniff_format)  # noqa: F401 (sniff_format: API)
 from worker.errors import InvalidParameter
+from worker.files import IMAGE_DATETIME
 from worker.runtime import ModelRuntime
 
 OUTPUT_FORMATS = ("png", "webp", "jpeg", "exr", "tiff")
@@ -186,6 +187,7 @@ def _write_oiio(pixels: np.ndarray, ext: str, dtype: str, attrs: dict[str, str])
     """Write (H, W, 3) pixels through OIIO to a temp file and return its bytes."""
     h, w, c = pixels.shape
     spec = oiio.ImageSpec(w, h, c, dtype)
+    spec.attribute("DateTime", IMAGE_DATETIME)
     for key, value in attrs.items():
         spec.attribute(key, value)
     with tempfile.TemporaryDirectory(prefix="texspace-out-") as tmp:

@@ -48,7 +48,7 @@ import OpenImageIO as oiio
 from worker.colour import linear_to_srgb, linear_to_srgb8
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS, derived_map_files
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
-from worker.files import ZIP_TIME, atomic_output, extension
+from worker.files import IMAGE_DATETIME, ZIP_TIME, atomic_output, extension
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.gpu_textures import gpu_texture_bytes
 from worker.images import write_image
@@ -217,6 +217,7 @@ def _write_image_stripes(path: str, fmt: str, width: int, height: int, stripes) 
         return
     spec = oiio.ImageSpec(width, height, 3, "uint16" if fmt == "tiff" else "half")
     spec.attribute("compression", "zip")
+    spec.attribute("DateTime", IMAGE_DATETIME)
     spec.tile_width = spec.tile_height = BLOCK
     out = oiio.ImageOutput.create(path)
     if out is None or not out.open(path, spec):

@@ -154,6 +154,8 @@ class SamplerSession:
         if self.colour_size:
             colour = (np.ascontiguousarray(code[:, self.code_size:]) if code.shape[1] > self.code_size
                       else self._identity_colour)
+            # Fitted samplers exported before 2026-12-02 took z and colour with the same rows
+            # only (a shared table beside per-point codes failed there); they are still stored.
             if per_point and len(colour) == 1:
                 colour = np.broadcast_to(colour, (len(points), self.colour_size))
         seed_arr = np.full(self._seed_shape, int(seed), dtype=np.int64)

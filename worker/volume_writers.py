@@ -51,7 +51,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from worker.colour import linear_to_srgb8
-from worker.files import ZIP_TIME
+from worker.files import IMAGE_DATETIME, ZIP_TIME
 from worker.vdb import write_vdb
 
 FORMATS = ("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb")  # extensions: worker.files
@@ -115,6 +115,7 @@ class OiioPagesWriter(VolumeWriter):
             spec = oiio.ImageSpec(n, n, 3, "float")
             spec.attribute("compression", "zip")
             spec.attribute("name", f"slice_{k:04d}")
+            spec.attribute("DateTime", IMAGE_DATETIME)
             meta = volume_metadata(n, bounds, k)
             if exr:   # OpenEXR attributes cannot be doubles: float32 vectors + the exact JSON
                 for name, value in (("boundsMin", bounds[0]), ("boundsMax", bounds[1]), ("voxelSize", step)):

@@ -25,7 +25,7 @@ from ..limits import check_mesh, check_queue_room
 from ..schemas import BAKE_PROJECTIONS, BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
 from ..tables import JOB_STATES, TERMINAL_STATES, Job, new_id
 from ..uploads import read_limited, safe_filename, sha256
-from .textures import NOSNIFF, load_texture
+from .textures import NOSNIFF, checked_text, load_texture
 
 router = APIRouter(tags=["jobs"])
 IdempotencyKey = Annotated[str | None, Depends(idempotency_key)]
@@ -45,7 +45,7 @@ def _submit(services, response: Response, kind: str, texture_id: str, params: di
     return accepted(response, job, created)
 
 
-@router.post("/v1/textures/{texture_id}/volumes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503))
+@router.post("/v1/textures/{texture_id}/volumes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503, 507))
 def submit_volume(services: ServicesDep, response: Response, texture_id: TextureId, body: VolumeIn,
                   key: IdempotencyKey) -> JobOut:
     """Render an N x N x N block of the solid texture (a job)."""
@@ -56,7 +56,7 @@ def submit_volume(services: ServicesDep, response: Response, texture_id: Texture
     return _submit(services, response, "volume", texture_id, body.model_dump(), key)
 
 
-@router.post("/v1/textures/{texture_id}/bakes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503))
+@router.post("/v1/textures/{texture_id}/bakes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503, 507))
 def submit_bake(
     services: ServicesDep,
     response: Response,
@@ -86,6 +86,7 @@ def submit_bake(
                     "with the refined sampler; false: bake now with what the texture serves")] = False,
 ) -> JobOut:
     """UV-unwrap a mesh and bake the solid texture into its atlas (a job)."""
+    checked_text(mesh.filename or "", "mesh filename")  # a NUL is refused, as in an upload's name, not cleaned
     load_texture(services, texture_id)
     if resolution > services.settings.max_bake_resolution:
         raise LimitExceeded(f"resolution {resolution} exceeds the limit of {services.settings.max_bake_resolution}")
@@ -113,7 +114,8 @@ def submit_bake(
     return accepted(response, job, created)
 
 
-@router.post("/v1/textures/{texture_id}/fit", **ACCEPTED, responses=problem_responses(404, 409, 413, 422, 501, 503))
+@router.post("/v1/textures/{texture_id}/fit", **ACCEPTED,
+             responses=problem_responses(404, 409, 413, 422, 501, 503, 507))
 def submit_fit(services: ServicesDep, response: Response, texture_id: TextureId, key: IdempotencyKey,
                body: FitIn | None = None) -> JobOut:
     """Optimise a sampler for this one exemplar (needs the torch extra on the workers)."""
@@ -129,7 +131,7 @@ def submit_fit(services: ServicesDep, response: Response, texture_id: TextureId,
 
 
 @router.post("/v1/textures/{texture_id}/regions", **ACCEPTED,
-             responses=problem_responses(404, 409, 413, 422, 501, 503))
+             responses=problem_responses(404, 409, 413, 422, 501, 503, 507))
 def submit_region(services: ServicesDep, response: Response, texture_id: TextureId, body: RegionIn,
                   key: IdempotencyKey) -> JobOut:
     """Render a large rectangle of the infinite plane to one image (a job); ``tileable``: a
@@ -185,7 +187,7 @@ def get_job(services: ServicesDep, job_id: JobId) -> JobOut:
     return JobOut.of(load_job(services, job_id))
 
 
-@router.post("/v1/jobs/{job_id}/cancel", **ACCEPTED, responses=problem_responses(404, 409))
+@router.post("/v1/jobs/{job_id}/cancel", **ACCEPTED, responses=problem_responses(404, 409, 507))
 def cancel_job(services: ServicesDep, response: Response, job_id: JobId) -> JobOut:
     """Cancel: a queued job at once; a running one stops at its next slab (poll the job)."""
     load_job(services, job_id)  # 404 for another tenant's job

@@ -49,7 +49,7 @@ def load_texture(services, texture_id: str) -> Texture:  # noqa: ANN001
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=TextureOut,
-             responses=problem_responses(413, 422, 503))
+             responses=problem_responses(413, 422, 503, 507))
 def create_texture(
     services: ServicesDep,
     response: Response,
@@ -123,7 +123,7 @@ def list_textures(services: ServicesDep, page: Annotated[PageParams, Depends()])
 
 
 @router.post("/interpolate", status_code=status.HTTP_201_CREATED, response_model=TextureOut,
-             responses=problem_responses(404, 409, 422))
+             responses=problem_responses(404, 409, 422, 507))
 def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) -> TextureOut:
     """A new texture whose code is (1 - t) a + t b, in the latent space of a and b's model."""
     a, b = load_texture(services, body.a), load_texture(services, body.b)
@@ -165,7 +165,7 @@ def get_texture(services: ServicesDep, texture_id: TextureId) -> TextureOut:
     return texture_out(services, load_texture(services, texture_id))
 
 
-@router.patch("/{texture_id}", response_model=TextureOut, responses=problem_responses(404, 422))
+@router.patch("/{texture_id}", response_model=TextureOut, responses=problem_responses(404, 422, 507))
 def patch_texture(services: ServicesDep, texture_id: TextureId, body: TexturePatch) -> TextureOut:
     """Rename a texture (its code, and so its tiles, never change)."""
     with session_scope(services.sessions) as session:
@@ -177,7 +177,8 @@ def patch_texture(services: ServicesDep, texture_id: TextureId, body: TexturePat
     return texture_out(services, texture)
 
 
-@router.delete("/{texture_id}", status_code=status.HTTP_204_NO_CONTENT, responses=problem_responses(404))
+@router.delete("/{texture_id}", status_code=status.HTTP_204_NO_CONTENT,
+               responses=problem_responses(404, 507))
 def delete_texture(services: ServicesDep, texture_id: TextureId) -> Response:
     """Delete the texture, cancel and delete its jobs, and remove all their stored files."""
     with session_scope(services.sessions) as session:

@@ -288,6 +288,25 @@ def test_reaper_requeues_expired_lease_then_fails(held, photo) -> None:
     assert services.huey.pending_count() == services.settings.max_attempts - 1
 
 
+def test_reaper_ends_a_canceled_job_whose_worker_died_as_canceled(held, photo) -> None:
+    # The cancel ends it, whatever attempts are left: its error said "giving up after 3"
+    # while its state was canceled.
+    client, services = held
+    job = submit_volume(client, upload(client, photo))
+    services.huey.flush()
+    assert jobs.claim(services, job["id"]).attempt == 1  # a worker takes it ...
+    assert client.post(f"/v1/jobs/{job['id']}/cancel").json()["cancel_requested"]
+    with services.sessions.begin() as session:  # ... and dies before it sees the cancel
+        session.execute(update(Job).where(Job.id == job["id"]).values(
+            lease_expires_at=dt.datetime.now(dt.timezone.utc) - dt.timedelta(seconds=1)))
+    jobs.reap(services)
+    body = client.get(f"/v1/jobs/{job['id']}").json()
+    assert body["state"] == "canceled" and body["attempt"] == 1
+    assert body["error"]["type"] == "urn:texspace:problem:canceled", body["error"]
+    assert "canceled" in body["error"]["detail"] and "giving up" not in body["error"]["detail"]
+    assert services.huey.pending_count() == 0
+
+
 def test_requeued_job_runs_to_success(held, photo) -> None:
     client, services = held
     job = submit_volume(client, upload(client, photo))
