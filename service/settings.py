@@ -67,6 +67,9 @@ class Settings(BaseSettings):
     max_mesh_bytes: int = Field(64 * 2**20, ge=1024)
     max_mesh_faces: int = Field(200_000, ge=1)
     max_mesh_vertices: int = Field(200_000, ge=3)
+    max_mesh_nodes: int = Field(4096, ge=1, description="nodes of a GLB's scene, and its mesh primitives (each "
+                                "costs the flattening ~0.3 ms: 4,096 about 1 s)")
+    max_mesh_depth: int = Field(64, ge=1, description="levels of a GLB's node tree")
     max_tile_size: int = Field(1024, ge=16)
     max_tile_samples: int = Field(4 * 2**20, ge=64 * 64, description="sampler calls of one tile: "
                                   "(size x supersampling factor)^2, the factor 2^(6 - z) capped at 4")
