@@ -126,8 +126,8 @@ class Settings(BaseSettings):
                                          "built without sampling (0: off)")
     tile_workers: int = Field(2, ge=1, description="cold tiles one API process renders at once (each over "
                               "the sampler's threads); the others wait in order")
-    tile_queue_depth: int = Field(64, ge=0, description="cold tiles that may wait for a render; beyond, "
-                                  "503 + Retry-After")
+    tile_queue_depth: int = Field(64, ge=0, description="cold tiles that may wait for a render, in units "
+                                  "of a 256 px native tile's samples (a 512 px tile is 4); beyond, 503 + Retry-After")
     tile_queue_max_wait_seconds: float = Field(2.0, gt=0, description="a cold tile whose estimated wait "
                                                "for a render is longer gets 503 + Retry-After at once")
     tile_zoom_out: Literal["progressive", "supersample", "bounded"] = Field(
