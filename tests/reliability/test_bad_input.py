@@ -130,11 +130,11 @@ def test_costly_glb_is_refused_from_its_json(client, module_services, texture, n
     make, status, slug, word = COSTLY_GLBS[name]
     data = make()
     before_files, before_rows = stored_files(module_services), row_counts(module_services)
-    started = time.monotonic()
+    started = time.process_time()     # CPU seconds of this process (client and app): not slowed by neighbours
     res = client.post(texture["links"]["bakes"], files={"mesh": (name, data)}, data={"resolution": "32"})
-    elapsed = time.monotonic() - started
+    elapsed = time.process_time() - started
     assert_problem(res, status, slug, word)
-    assert elapsed < 1.0, f"{elapsed:.2f} s"
+    assert elapsed < 1.0, f"{elapsed:.2f} s of CPU"
     tracemalloc.start()    # again, traced (tracing slows allocations several times over)
     try:
         again = client.post(texture["links"]["bakes"], files={"mesh": (name, data)}, data={"resolution": "32"})

@@ -18,12 +18,13 @@ from worker.mesh_size import MAX_GLTF_JSON_BYTES, check_mesh_size
 
 
 def refused_quickly(data: bytes, ext: str, limits: BakeLimits, error: type, match: str) -> None:
-    """``read_mesh`` raises ``error`` within 1 s, and with a tracemalloc peak under 100 MB
-    (measured in a second call: tracing slows allocations several times over)."""
-    started = time.perf_counter()
+    """``read_mesh`` raises ``error`` within 1 s of CPU (a shared machine's neighbours do not
+    count), and with a tracemalloc peak under 100 MB (measured in a second call: tracing
+    slows allocations several times over)."""
+    started = time.process_time()
     with pytest.raises(error, match=match):
         read_mesh(data, f"mesh.{ext}", limits)
-    elapsed = time.perf_counter() - started
+    elapsed = time.process_time() - started
     tracemalloc.start()
     try:
         with pytest.raises(error, match=match):
@@ -45,10 +46,10 @@ def test_a_deep_node_chain_is_refused_from_the_json():
 def test_a_hundred_thousand_instances_are_refused_from_the_json():
     data = instanced_glb(100_000)
     refused_quickly(data, "glb", BakeLimits(), LimitExceeded, "has 100001 nodes, limit is 4096")
-    started = time.perf_counter()
+    started = time.process_time()
     with pytest.raises(LimitExceeded, match=r"scene places 400000 faces \(100000 mesh instances\), limit is 200000"):
         read_mesh(data, "mesh.glb", BakeLimits(max_nodes=200_000, max_faces=200_000))
-    assert time.perf_counter() - started < 1.0
+    assert time.process_time() - started < 1.0
 
 
 def test_instanced_faces_count_every_placement():
@@ -116,10 +117,10 @@ def test_a_tree_within_the_limits_flattens_as_trimesh_does():
 
 def test_a_deep_chain_within_raised_limits_flattens_in_linear_time():
     """1,000 levels: a fraction of a second (trimesh's own flattening took minutes)."""
-    started = time.perf_counter()
+    started = time.process_time()
     mesh = read_mesh(chained_glb(1000), "chain.glb", BakeLimits(max_depth=1000))
     assert len(mesh.faces) == 4000 and mesh.vertices[:, 0].max() == pytest.approx(501)
-    assert time.perf_counter() - started < 5.0
+    assert time.process_time() - started < 5.0
 
 
 def test_obj_ply_stl_counts_come_from_lines_and_headers():
