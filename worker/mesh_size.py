@@ -18,8 +18,8 @@ milliseconds what would otherwise hold a thread for minutes or take gigabytes:
   ASCII file's ``endfacet`` lines.
 
 Peak memory is the JSON chunk's objects, bounded by ``MAX_GLTF_JSON_BYTES`` and
-``MAX_GLTF_JSON_CONTAINERS`` (a JSON array or object costs ~60-250 bytes for its 2-3
-bytes of text); the other formats allocate nothing.
+``MAX_GLTF_JSON_CONTAINERS``; the other formats allocate next to nothing. Scenes within
+the limits are flattened in linear time (``worker.bake._world_transforms``).
 """
 from __future__ import annotations
 
@@ -30,11 +30,12 @@ from typing import Any
 
 from worker.errors import InvalidMesh, LimitExceeded
 
-#: a GLB's JSON chunk larger than this is refused before it is parsed (a 10,000-node
-#: scene's JSON is ~2 MB; buffers live in the binary chunk)
-MAX_GLTF_JSON_BYTES = 8 << 20
-#: arrays and objects (counted as ``[`` and ``{`` bytes) a GLB's JSON may hold: what keeps
-#: the parse of an 8 MB chunk well under 100 MB
+#: a GLB's JSON chunk larger than this is refused before it is parsed (4,096 nodes with
+#: names and matrices and 4,096 primitives' accessors take ~2 MB; buffers live in the
+#: binary chunk). Parsed, 4 MB of the costliest JSON (short strings) peaks at ~55 MB.
+MAX_GLTF_JSON_BYTES = 4 << 20
+#: arrays and objects (counted as ``[`` and ``{`` bytes) a GLB's JSON may hold: each costs
+#: 60-250 bytes parsed for its 2-3 bytes of text
 MAX_GLTF_JSON_CONTAINERS = 1 << 18
 #: glTF primitive modes trimesh reads as triangles: TRIANGLES (faces = n / 3) and
 #: TRIANGLE_STRIP (n - 2); points, lines and fans give no faces

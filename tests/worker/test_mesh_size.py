@@ -95,6 +95,19 @@ def test_json_that_would_take_too_much_memory_is_refused_unparsed():
         refused_quickly(data, "glb", BakeLimits(), LimitExceeded, match)
 
 
+def test_the_costliest_json_within_the_limits_parses_under_100_mb():
+    """Short strings cost the most per byte parsed (~13x): a chunk of them at the size limit."""
+    text = b'{"extras":[' + b'"ab",' * ((MAX_GLTF_JSON_BYTES - 20) // 5) + b'"ab"]}'
+    data = b"glTF" + struct.pack("<II", 2, 20 + len(text)) + struct.pack("<I4s", len(text), b"JSON") + text
+    tracemalloc.start()
+    try:
+        check_mesh_size(data, "glb", BakeLimits())
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 100 * 2**20, f"{peak / 2**20:.0f} MB"
+
+
 def test_a_tree_within_the_limits_flattens_as_trimesh_does():
     """Each placement turned by its node's transform (rotations, scales, mirrors that flip
     the winding) in the order trimesh's ``to_mesh`` gives, which multiplies every path anew."""
