@@ -11,7 +11,7 @@ import uuid
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect, Request
 
-from .errors import Problem, problem_for, problem_response
+from .errors import Problem, log_unhandled, problem_for, problem_response
 from .logs import request_id_var
 from .metrics import Metrics
 
@@ -100,10 +100,7 @@ class RequestContextMiddleware:
             if status["sent"]:
                 raise
             problem = problem_for(exc)
-            if problem.status == 507:  # a full disk is the operator's to fix, not a bug: no traceback
-                error_log.warning("storage full on %s %s: %s", method, scope["path"], exc)
-            else:
-                error_log.exception("unhandled error on %s %s", method, scope["path"])
+            log_unhandled(error_log, problem, exc, method, scope["path"])
             await problem_response(problem, Request(scope))(scope, receive, send_with_id)
         finally:
             route = scope.get("route")

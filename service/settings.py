@@ -69,6 +69,9 @@ class Settings(BaseSettings):
     max_mesh_bytes: int = Field(64 * 2**20, ge=1024)
     max_mesh_faces: int = Field(200_000, ge=1)
     max_mesh_vertices: int = Field(200_000, ge=3)
+    max_mesh_nodes: int = Field(4096, ge=1, description="nodes of a GLB's scene, and its mesh primitives (each "
+                                "costs the flattening ~0.3 ms: 4,096 about 1 s)")
+    max_mesh_depth: int = Field(64, ge=1, description="levels of a GLB's node tree")
     max_tile_size: int = Field(1024, ge=16)
     max_tile_samples: int = Field(4 * 2**20, ge=64 * 64, description="sampler calls of one tile: "
                                   "(size x supersampling factor)^2, the factor 2^(6 - z) capped at 4")
@@ -131,8 +134,8 @@ class Settings(BaseSettings):
                                          "built without sampling (0: off)")
     tile_workers: int = Field(2, ge=1, description="cold tiles one API process renders at once (each over "
                               "the sampler's threads); the others wait in order")
-    tile_queue_depth: int = Field(64, ge=0, description="cold tiles that may wait for a render; beyond, "
-                                  "503 + Retry-After")
+    tile_queue_depth: int = Field(64, ge=0, description="cold tiles that may wait for a render, in units "
+                                  "of a 256 px native tile's samples (a 512 px tile is 4); beyond, 503 + Retry-After")
     tile_queue_max_wait_seconds: float = Field(2.0, gt=0, description="a cold tile whose estimated wait "
                                                "for a render is longer gets 503 + Retry-After at once")
     tile_zoom_out: Literal["progressive", "supersample", "bounded"] = Field(
