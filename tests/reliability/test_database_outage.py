@@ -15,7 +15,7 @@ from sqlalchemy import create_engine
 from service.db import make_engine
 from service.errors import DATABASE_RETRY_AFTER_SECONDS
 
-from .conftest import PROBLEM
+from tests.reliability.helpers import PROBLEM
 
 
 @contextmanager

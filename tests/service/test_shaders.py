@@ -96,7 +96,7 @@ def test_waiting_callers_are_bounded_and_served_in_turn() -> None:
 
 def test_textures_with_one_code_keep_their_own_names(client, photo, generations) -> None:
     """Two uploads of one photo share code and ETag, not text: each names its own function."""
-    from tests.service.conftest import upload_photo
+    from tests.service.helpers import upload_photo
 
     first, second = upload_photo(client, photo), upload_photo(client, photo)
     texts = [client.get(f"/v1/textures/{t['id']}/shader.glsl").text for t in (first, second)]
