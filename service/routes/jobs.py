@@ -73,7 +73,7 @@ def submit_bake(
                     "convention (+Y up), embedded in a GLB as its normalTexture (with TANGENTs) or added to "
                     "the OBJ zip; height = linear luminance, height.png (a GLB result becomes a zip)")] = [],
     gpu_format: Annotated[Literal[GPU_FORMATS] | None, Form(
-        description="add a mipmapped RGBA8 sRGB texture.dds / texture.ktx2 of the atlas (a GLB result "
+        description="add a mipmapped texture.dds (BC1) / texture.ktx2 (RGBA8 sRGB) of the atlas (a GLB result "
                     "becomes a zip of model.glb and the textures)")] = None,
     normal_strength: Annotated[float, Form(gt=0, le=100, description="normal map: height units per "
                                                                      "pixel step")] = DEFAULT_NORMAL_STRENGTH,

@@ -1,5 +1,5 @@
 """Readers for the GPU texture files the tests check: DDS through OpenImageIO (every mip
-level), KTX2 by the KTX 2.0 specification (no KTX library installs here; the files were
+level, BC blocks decoded), KTX2 by the KTX 2.0 specification (no KTX library installs here; the files were
 also checked once with the KhronosGroup-listed ``ktx-parse`` 1.1.0 reader)."""
 from __future__ import annotations
 
@@ -20,6 +20,18 @@ def read_dds_levels(path) -> list[np.ndarray]:
         levels.append(inp.read_image(0, len(levels), 0, 4, "uint8"))
     inp.close()
     return levels
+
+
+def assert_block_compressed_close(got: np.ndarray, want: np.ndarray, mean: float, worst: int) -> None:
+    """BC1 / BC3 keep each 4 x 4 block's colours on a line between two 5:6:5 end points:
+    ``got`` (h, w, 3) uint8 is near, not equal to, ``want``: mean and largest absolute code
+    error bounded, and, over levels of 4 blocks or more, no brightness drift (each channel's
+    mean within 3 codes; one 5-bit end point alone can be 4 codes off)."""
+    diff = np.abs(got.astype(np.int16) - want.astype(np.int16))
+    assert diff.mean() < mean and diff.max() <= worst, (diff.mean(), diff.max())
+    if got.shape[0] * got.shape[1] >= 64:
+        drift = np.abs(got.mean(axis=(0, 1)) - want.mean(axis=(0, 1)))
+        assert drift.max() < 3, (got.shape, drift)
 
 
 def read_ktx2(data: bytes) -> tuple[dict, list[np.ndarray]]:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests.worker.gpu_readers import read_dds_levels, read_ktx2
+from tests.worker.gpu_readers import assert_block_compressed_close, read_dds_levels, read_ktx2
 from worker.bake import bake_mesh
 from worker.bake_outputs import vertex_tangents
 from worker.derived_maps import decode_normals8
@@ -109,7 +109,9 @@ def test_obj_zip_gets_the_maps_and_a_dds(waves, meshes, tmp_path):
     assert "map_Kd texture.png" in mtl and "norm normal.png" in mtl
     levels = read_dds_levels(tmp_path / "x" / "texture.dds")
     assert [lv.shape[:2][::-1] for lv in levels] == mip_sizes(RES, RES)
-    assert np.array_equal(levels[0][..., :3], png)          # level 0 is the baked atlas itself
+    # level 0 is the baked atlas itself, in BC1 blocks; blocks across a chart's edge hold
+    # three colours (chart, padding, background) that one line cannot, hence the worst case
+    assert_block_compressed_close(levels[0][..., :3], png, mean=16, worst=255)
 
 
 def test_bad_options_are_refused_before_baking(waves, meshes, tmp_path):
