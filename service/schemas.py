@@ -288,7 +288,7 @@ class RegionIn(BaseModel):
     plane: Literal[PLANES] = "xy"
     offset: float = Field(0.0, ge=-1e9, le=1e9)
     format: Literal[REGION_FORMATS] = Field(
-        "png", description="png: 8-bit sRGB; tiff: tiled 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
+        "png", description="png: 8-bit sRGB; tiff: scanline 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
                            "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json; dds: BC1 (legacy DXT1 "
                            "header); ktx2: RGBA8 sRGB; GPU textures with the full mip chain (averaged in linear light)")
     size: int = Field(256, ge=64, le=1024, description="pyramid tile size")
