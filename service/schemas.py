@@ -181,10 +181,10 @@ class VolumeIn(BaseModel):
     seed: Seed = 0
     format: Literal[VOLUME_FORMATS] = Field(
         "npy", description="npy: float32 linear RGB [N,N,N,3] in (z, y, x) order; exr / tiff: one z slice per "
-                           "part / page, with bounds and voxel size in each header; raw: zip of raw float32 + "
+                           "part / page (EXR: one Blender layer per slice), with bounds and voxel size in each header; raw: zip of raw float32 + "
                            "JSON header; nrrd; dds volume; flipbook: one PNG with the slices in a grid (Unity 3D "
-                           "texture import); vdb: OpenVDB, one float RGB (vec3s) grid 'Cd' placed by the bounds "
-                           "(Blender, Houdini)")
+                           "texture import); vdb: OpenVDB, a float RGB (vec3s) grid 'Cd' and a float grid "
+                           "'density' (luminance) placed by the bounds (Blender, Houdini)")
 
     @field_validator("bounds")
     @classmethod

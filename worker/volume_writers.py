@@ -10,14 +10,18 @@ Layouts:
 * ``npy``: float32 linear, shape (N, N, N, 3), C order. Header written first, slabs
   appended (the file is a valid .npy when closed; ``np.load(..., mmap_mode='r')`` works).
 * ``exr``: multi-part OpenEXR, one part per z slice named ``slice_0000``...; float32
-  linear RGB, zip compression. Part k holds slice z = k. Every part's header carries the
+  linear RGB, zip compression. Part k holds slice z = k in channels
+  ``slice_0000.Combined.R`` / ``.G`` / ``.B``: the layer.pass.channel names of a
+  multilayer EXR, so Blender shows one layer per slice (bare ``R``, ``G``, ``B`` in every
+  part made Blender 3.4 refuse the file: "too many channels in one pass"). Every part's header carries the
   volume's placement: ``boundsMin``, ``boundsMax``, ``voxelSize`` (v3f, world units; x, y,
   z), ``sliceIndex`` (int k), ``sliceZ`` (float, world z of the slice's voxel centres) and
   ``texspace:volume`` (string, JSON of ``volume_metadata``: the same values in double
   precision, ``resolution``, axis order, colour). OpenEXR has no double attributes.
 * ``tiff``: multi-page TIFF, one page per z slice (page k = slice z = k); float32 linear
   RGB, zip compression; each page's ImageDescription is the JSON of ``volume_metadata``.
-* ``vdb``: OpenVDB (``worker/vdb.py``): one vec3s grid ``Cd`` (linear RGB), voxel
+* ``vdb``: OpenVDB (``worker/vdb.py``): a vec3s grid ``Cd`` (linear RGB) and a float
+  grid ``density`` (the colour's linear luminance, what Blender renders a volume by), voxel
   (i, j, k) = x, y, z index, transform ``ScaleTranslateMap`` from the bounds (index
   (i, j, k) maps to the voxel centre). Slabs are spooled to a temporary raw file beside
   the output (VDB stores x-major blocks, the volume arrives z-slice by z-slice) and
@@ -115,6 +119,8 @@ class OiioPagesWriter(VolumeWriter):
             spec = oiio.ImageSpec(n, n, 3, "float")
             spec.attribute("compression", "zip")
             spec.attribute("name", f"slice_{k:04d}")
+            if exr:
+                spec.channelnames = tuple(f"slice_{k:04d}.Combined.{c}" for c in "RGB")
             meta = volume_metadata(n, bounds, k)
             if exr:   # OpenEXR attributes cannot be doubles: float32 vectors + the exact JSON
                 for name, value in (("boundsMin", bounds[0]), ("boundsMax", bounds[1]), ("voxelSize", step)):
