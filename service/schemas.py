@@ -290,7 +290,7 @@ class RegionIn(BaseModel):
     format: Literal[REGION_FORMATS] = Field(
         "png", description="png: 8-bit sRGB; tiff: scanline 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
                            "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json; dds: BC1 (legacy DXT1 "
-                           "header); ktx2: RGBA8 sRGB; GPU textures with the full mip chain (averaged in linear light)")
+                           "header); ktx2: Basis Universal UASTC + Zstandard; GPU textures with the full mip chain (averaged in linear light)")
     size: int = Field(256, ge=64, le=1024, description="pyramid tile size")
     min_zoom: int | None = Field(None, ge=MIN_ZOOM, le=MAX_ZOOM,
                                  description="pyramid: lowest zoom, at most z (default: the minimum zoom)")

@@ -13,7 +13,7 @@ Formats:
   ``min_zoom`` to ``z`` (the tiles covering the rectangle at each level, each rendered exactly like the tile
   endpoint, so the bytes match it) plus ``tilejson.json`` (TileJSON 3.0.0, xyz scheme,
   plus a ``texspace`` object with the box and tile size).
-* ``dds`` / ``ktx2``: mipmapped GPU textures (DDS: BC1 blocks) with the full mip chain
+* ``dds`` / ``ktx2``: mipmapped GPU textures (BC1 blocks / Basis Universal UASTC) with the full mip chain
   averaged in linear light (``worker/gpu_textures.py``).
 
 Derived maps (``maps``: ``height`` and/or ``normal``, ``worker/derived_maps.py``): the
