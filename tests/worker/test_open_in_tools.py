@@ -320,6 +320,21 @@ def test_exr_volume_slices_open_in_blender(waves, tmp_path):
         assert np.abs(got - reference[int(layer[-4:])]).max() < 1e-6
 
 
+def test_dds_volume_opens_in_iinfo_and_imagemagick(waves, tmp_path):
+    require("iinfo", "openimageio-tools")
+    identify = require("identify", "imagemagick")
+    convert = shutil.which("magick") or shutil.which("convert-im6.q16") or require("convert", "imagemagick")
+    reference = np.load(render_volume(waves, CODE, 0, resolution=N, bounds=BOUNDS, fmt="npy",
+                                      out_path=tmp_path / "v.npy"))
+    path = render_volume(waves, CODE, 0, resolution=N, bounds=BOUNDS, fmt="dds", out_path=tmp_path / "v.dds")
+    assert f"{N} x   {N} x   {N}, 4 channel, volume uint8 dds" in run("iinfo", path)
+    # ImageMagick (a 2D tool, like OpenImageIO's DDS reader) decodes slice 0: exactly
+    assert run(identify, "-format", "%m %w %h\\n", path).split("\n")[0] == f"DDS {N} {N}"
+    raw = subprocess.run([convert, str(path), "-depth", "8", "rgba:-"], capture_output=True, check=True).stdout
+    got = np.frombuffer(raw, np.uint8)[:N * N * 4].reshape(N, N, 4)
+    assert np.array_equal(got[..., :3], linear_to_srgb8(reference[0])) and (got[..., 3] == 255).all()
+
+
 VDB_REPORT = """
 bpy.ops.object.volume_import(filepath=ARGS[0])
 volume = bpy.context.active_object.data

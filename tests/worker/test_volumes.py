@@ -135,9 +135,10 @@ def test_every_format_reads_back_equal_to_npy(runtime, code, reference, tmp_path
         magic, size, flags, height, width, pitch, depth = struct.unpack_from("<4s6I", raw)
         assert (magic, size, height, width, depth, pitch) == (b"DDS ", 124, N, N, N, 4 * N)
         assert flags & 0x800000 and struct.unpack_from("<I", raw, 112)[0] & 0x200000  # DEPTH, caps2 VOLUME
-        assert raw[84:88] == b"DX10" and struct.unpack_from("<2I", raw, 128) == (29, 4)     # sRGB RGBA8, 3D
-        texels = np.frombuffer(raw, np.uint8, offset=148).reshape(N, N, N, 4)
-        assert np.array_equal(texels[..., :3], linear_to_srgb8(reference)) and (texels[..., 3] == 255).all()
+        # legacy pixel format: DDPF_RGB | DDPF_ALPHAPIXELS, 32 bits A8R8G8B8, bytes B G R A
+        assert struct.unpack_from("<2I4s5I", raw, 76) == (32, 0x41, bytes(4), 32, 0xFF0000, 0xFF00, 0xFF, 0xFF000000)
+        texels = np.frombuffer(raw, np.uint8, offset=128).reshape(N, N, N, 4)
+        assert np.array_equal(texels[..., 2::-1], linear_to_srgb8(reference)) and (texels[..., 3] == 255).all()
         # OpenImageIO recognises it as an RGBA volume (its reader returns slice 0 only).
         spec = oiio.ImageInput.open(str(out)).spec()
         assert (spec.width, spec.height, spec.depth, spec.nchannels) == (N, N, N, 4)
