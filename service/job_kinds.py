@@ -90,7 +90,7 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
                        maps=tuple(p.maps), gpu_format=p.gpu_format, normal_strength=p.normal_strength,
                        projection=bake_projection(p.projection, texture.served_structure()),
                        progress=progress, should_cancel=should_cancel)
-    # a GLB with a height map or a GPU texture comes back as a zip
+    # a GLB with a height map or a DDS comes back as a zip (a KTX2 goes inside the GLB)
     return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip")
 
 

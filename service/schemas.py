@@ -190,10 +190,10 @@ class VolumeIn(BaseModel):
     seed: Seed = 0
     format: Literal[VOLUME_FORMATS] = Field(
         "npy", description="npy: float32 linear RGB [N,N,N,3] in (z, y, x) order; exr / tiff: one z slice per "
-                           "part / page, with bounds and voxel size in each header; raw: zip of raw float32 + "
+                           "part / page (EXR: one Blender layer per slice), with bounds and voxel size in each header; raw: zip of raw float32 + "
                            "JSON header; nrrd; dds volume; flipbook: one PNG with the slices in a grid (Unity 3D "
-                           "texture import); vdb: OpenVDB, one float RGB (vec3s) grid 'Cd' placed by the bounds "
-                           "(Blender, Houdini)")
+                           "texture import); vdb: OpenVDB, a float RGB (vec3s) grid 'Cd' and a float grid "
+                           "'density' (luminance) placed by the bounds (Blender, Houdini)")
 
     @field_validator("bounds")
     @classmethod
@@ -297,9 +297,9 @@ class RegionIn(BaseModel):
     plane: Literal[PLANES] = "xy"
     offset: float = Field(0.0, ge=-1e9, le=1e9)
     format: Literal[REGION_FORMATS] = Field(
-        "png", description="png: 8-bit sRGB; tiff: tiled 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
-                           "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json; dds / ktx2: RGBA8 sRGB "
-                           "GPU texture with the full mip chain (averaged in linear light)")
+        "png", description="png: 8-bit sRGB; tiff: scanline 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
+                           "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json; dds: BC1 (legacy DXT1 "
+                           "header); ktx2: Basis Universal UASTC + Zstandard; GPU textures with the full mip chain (averaged in linear light)")
     size: int = Field(256, ge=64, le=1024, description="pyramid tile size")
     min_zoom: int | None = Field(None, ge=MIN_ZOOM, le=MAX_ZOOM,
                                  description="pyramid: lowest zoom, at most z (default: the minimum zoom)")

@@ -73,8 +73,8 @@ def submit_bake(
                     "convention (+Y up), embedded in a GLB as its normalTexture (with TANGENTs) or added to "
                     "the OBJ zip; height = linear luminance, height.png (a GLB result becomes a zip)")] = [],
     gpu_format: Annotated[Literal[GPU_FORMATS] | None, Form(
-        description="add a mipmapped RGBA8 sRGB texture.dds / texture.ktx2 of the atlas (a GLB result "
-                    "becomes a zip of model.glb and the textures)")] = None,
+        description="add a mipmapped texture.dds (BC1) / texture.ktx2 (Basis Universal UASTC) of the atlas; a GLB "
+                    "embeds the KTX2 (KHR_texture_basisu, PNG fallback), with dds it becomes a zip")] = None,
     normal_strength: Annotated[float, Form(gt=0, le=100, description="normal map: height units per "
                                                                      "pixel step")] = DEFAULT_NORMAL_STRENGTH,
     projection: Annotated[Literal[BAKE_PROJECTIONS], Form(

@@ -119,6 +119,14 @@ def test_bake_with_maps_and_gpu_texture(client, texture) -> None:
                               data={"resolution": "64", "maps": "normal"})
     done = client.get(only_normal.json()["links"]["self"]).json()
     assert done["state"] == "succeeded" and done["result"]["media_type"] == "model/gltf-binary"
+    # a KTX2 goes inside the GLB (KHR_texture_basisu): the result stays a GLB
+    with_ktx2 = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                            data={"resolution": "64", "gpu_format": "ktx2"})
+    done = client.get(with_ktx2.json()["links"]["self"]).json()
+    assert done["state"] == "succeeded" and done["result"]["media_type"] == "model/gltf-binary"
+    glb = client.get(done["links"]["result"]).content
+    gltf = json.loads(glb[20:20 + int.from_bytes(glb[12:16], "little")])
+    assert gltf["extensionsUsed"] == ["KHR_texture_basisu"] and gltf["images"][-1]["mimeType"] == "image/ktx2"
     bad = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)}, data={"maps": "gloss"})
     assert bad.status_code == 422
 
