@@ -1,7 +1,7 @@
 """A small Python client for the texspace HTTP API (needs only httpx and the stdlib).
 
-It imports nothing else from the service, so a script or notebook that talks to a
-running server pays for no numpy, ONNX or FastAPI import::
+Of the service it imports only the job vocabulary (standard library), so a script or
+notebook that talks to a running server pays for no numpy, ONNX or FastAPI import::
 
     from service.client import Client
 
@@ -28,7 +28,8 @@ from typing import Any
 
 import httpx
 
-TERMINAL = ("succeeded", "failed", "canceled")
+from .vocabulary import TERMINAL_STATES, JobState
+
 #: the response header of a zoomed-out tile's preview (openapi.yaml, getTile)
 PREVIEW_HEADER = "X-Texspace-Tile"
 Job = dict[str, Any]
@@ -45,7 +46,7 @@ class _ProgressBar:
 
     def update(self, job: Job) -> None:
         self.bar.n = round(100 * float(job.get("progress", 0.0)), 1)
-        stage = "paused after its interim" if job.get("stage") == "interim" and job.get("state") == "queued" else None
+        stage = "paused after its interim" if job.get("stage") == "interim" and job.get("state") == JobState.QUEUED else None
         self.bar.set_postfix_str(stage or job.get("state", ""), refresh=False)
         self.bar.refresh()
 
@@ -246,9 +247,9 @@ class Client:
                 end = None
             if end is None:
                 now = self.job(job_id)
-                end = now if now["state"] in TERMINAL else None
+                end = now if now["state"] in TERMINAL_STATES else None
             if end is not None:
-                if end["state"] != "succeeded":
+                if end["state"] != JobState.SUCCEEDED:
                     raise JobFailed(end)
                 return end
 
@@ -280,7 +281,7 @@ class Client:
                     event = line[6:].strip()
                 elif line.startswith("data:"):
                     data = json.loads(line[5:].strip())
-                    if event in TERMINAL:
+                    if event in TERMINAL_STATES:
                         return data
                     if progress is not None:
                         progress(data)

@@ -16,8 +16,9 @@ from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
 from worker.volume_writers import FORMATS as VOLUME_FORMATS
 
 from .deps import SafeText
-from .settings import FIT_SECONDS, JOB_KINDS
-from .tables import JOB_STATES, TERMINAL_STATES, Job, Texture
+from .settings import FIT_SECONDS
+from .tables import Job, Texture
+from .vocabulary import TERMINAL_STATES, JobKind, JobState
 
 CODE_SIZE = 8
 Seed = Annotated[int, Field(ge=0, le=2**31 - 1, description="texture instance; same seed, same texture")]
@@ -39,7 +40,7 @@ class Refinement(BaseModel):
     texture serve its own fitted sampler (same id and URLs, new tile bytes and ETags)."""
 
     job_id: str
-    state: Literal[JOB_STATES]
+    state: JobState
     progress: float = Field(ge=0, le=1, description="share of the fit's time budget spent (0 while queued)")
     stage: Literal["deferred", "queued", "fitting", "paused", "done"] = Field(
         description="deferred: not queued yet, the fit queue (or its owner's share of it) was full at upload; it is "
@@ -60,7 +61,7 @@ class Refinement(BaseModel):
     @classmethod
     def of(cls, job: Job, wait: dict | None = None) -> "Refinement":
         wait = wait or {}
-        stage = ("done" if job.state in TERMINAL_STATES else "fitting" if job.state == "running"
+        stage = ("done" if job.state in TERMINAL_STATES else "fitting" if job.state == JobState.RUNNING
                  else "paused" if job.stage else "queued")
         return cls(job_id=job.id, state=job.state, progress=job.progress, stage=stage,
                    queue_position=wait.get("position"),
@@ -71,7 +72,7 @@ class Refinement(BaseModel):
     @classmethod
     def deferred(cls, texture: Texture) -> "Refinement":
         """A refinement waiting for room in the fit queue (``Texture.refinement_deferred``)."""
-        return cls(job_id=texture.refinement_job_id or "", state="queued", progress=0.0, stage="deferred")
+        return cls(job_id=texture.refinement_job_id or "", state=JobState.QUEUED, progress=0.0, stage="deferred")
 
 
 def _rounded(seconds: float | None) -> float | None:
@@ -358,8 +359,8 @@ class JobSampler(BaseModel):
 
 class JobOut(BaseModel):
     id: str
-    kind: Literal[JOB_KINDS]
-    state: Literal[JOB_STATES]
+    kind: JobKind
+    state: JobState
     texture_id: str | None
     params: dict[str, Any]
     progress: float = Field(ge=0, le=1)
@@ -383,7 +384,7 @@ class JobOut(BaseModel):
     @classmethod
     def of(cls, j: Job) -> "JobOut":
         base = f"/v1/jobs/{j.id}"
-        done = j.state == "succeeded" and j.result_key
+        done = j.state == JobState.SUCCEEDED and j.result_key
         return cls(id=j.id, kind=j.kind, state=j.state, texture_id=j.texture_id, params=j.params,
                    progress=j.progress, attempt=j.attempt, max_attempts=j.max_attempts,
                    cancel_requested=j.cancel_requested, worker_id=j.worker_id, error=j.error,

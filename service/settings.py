@@ -14,10 +14,8 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-#: the job kinds (the one list: tables, schemas and routes use it); a worker may run only
-#: some (``worker_kinds``)
-JOB_KINDS = ("volume", "bake", "region", "fit")
-JobKind = Literal[JOB_KINDS]
+from .vocabulary import JobKind
+
 #: a fit's time budget unless one is asked for: an upload's refinement and ``POST .../fit``.
 #: 90 s: bf16 steps buy back most of a 4-minute float32 fit (9 validation photos: geometric
 #: mean 1.07x its style error) for four uploads' finals in ~400 s instead of ~17 minutes
@@ -108,7 +106,7 @@ class Settings(BaseSettings):
                                       "Retry-After, an upload's refinement deferred")
     queue_full_retry_after_seconds: int = Field(30, ge=1)
     worker_kinds: Annotated[list[JobKind], NoDecode] = Field(
-        default_factory=lambda: list(JOB_KINDS), description="job kinds this worker process runs, comma-separated; "
+        default_factory=lambda: list(JobKind), description="job kinds this worker process runs, comma-separated; "
         "fits have a queue of their own (volume, bake and region share the other: list all three or none)")
 
     # --- per-exemplar fits (the train extra) ------------------------------------------
@@ -192,8 +190,8 @@ class Settings(BaseSettings):
 
     @field_validator("worker_kinds")
     @classmethod
-    def _whole_queues(cls, value: list[str]) -> list[str]:
-        shared = set(JOB_KINDS) - {"fit"}  # one queue carries these (service/queue.py)
+    def _whole_queues(cls, value: list[JobKind]) -> list[JobKind]:
+        shared = set(JobKind) - {JobKind.FIT}  # one queue carries these (service/queue.py)
         if not value:
             raise ValueError("name at least one job kind")
         if 0 < len(shared & set(value)) < len(shared):

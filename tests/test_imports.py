@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: lowest first; a module may import its own layer or those below, never one above
 LAYERS = (
-    ("settings and container", {"service.settings", "service.container"}),
+    ("settings and container", {"service.vocabulary", "service.settings", "service.container"}),
     ("domain", {"service.auth", "service.jobs", "service.limits", "service.purge", "service.job_kinds"}),
     ("process wiring", {"service.context", "service.runner", "service.processes"}),
     ("CLI", {"service.cli"}),
