@@ -300,7 +300,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
 def _store_tileable(services: Services, sampler_key: str, fit_dir: Path) -> None:
     """Store the fit's tileable sampler beside its sampler (``tileable_key``), where
     tileable regions look for it; a model.fit from before tileable textures writes none."""
-    from worker.runtime import TILEABLE_SAMPLER
+    from worker.contract import TILEABLE_SAMPLER
 
     path = fit_dir / TILEABLE_SAMPLER
     if path.is_file():

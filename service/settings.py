@@ -14,6 +14,9 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from worker.contract import (MAX_BAKE_RESOLUTION, MAX_TILE_SIZE, MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION,
+                             MIN_TILE_SIZE, MIN_VOLUME_RESOLUTION)
+
 from .vocabulary import JobKind
 
 #: a fit's time budget unless one is asked for: an upload's refinement and ``POST .../fit``.
@@ -22,6 +25,8 @@ from .vocabulary import JobKind
 #: (docs/DECISIONS.md, "An upload's fit is 90 s"). Fits have a queue of their own
 #: (service/queue.py), so a longer one holds up no tile, volume or bake.
 FIT_SECONDS = 90.0
+#: the longest fit any server may allow (``max_fit_seconds`` is its own limit, at most this)
+MAX_FIT_SECONDS = 3600.0
 #: the model export shipped inside the package (``model/weights``)
 PACKAGED_MODEL_DIR = Path(__file__).resolve().parent.parent / "model" / "weights"
 
@@ -67,7 +72,7 @@ class Settings(BaseSettings):
     max_mesh_bytes: int = Field(64 * 2**20, ge=1024)
     max_mesh_faces: int = Field(200_000, ge=1)
     max_mesh_vertices: int = Field(200_000, ge=3)
-    max_tile_size: int = Field(1024, ge=16)
+    max_tile_size: int = Field(MAX_TILE_SIZE, ge=MIN_TILE_SIZE, le=MAX_TILE_SIZE)
     max_tile_samples: int = Field(4 * 2**20, ge=64 * 64, description="sampler calls of one tile: "
                                   "(size x supersampling factor)^2, the factor 2^(6 - z) capped at 4")
     decode_budget_pixels: int = Field(64 * 2**20, ge=64 * 64, description="pixels the API's decoded "
@@ -76,16 +81,16 @@ class Settings(BaseSettings):
                                        "room in the decode budget, then gets 503 + Retry-After")
     decode_max_waiting: int = Field(4, ge=0, description="uploads that may wait for decode room at once "
                                     "(each holds a thread and its bytes); one more gets 503 + Retry-After")
-    max_region_pixels: int = Field(8192 * 8192, ge=64 * 64)
+    max_region_pixels: int = Field(64 * 2**20, ge=64 * 64)
     max_region_tiles: int = Field(4096, ge=1)
-    max_volume_resolution: int = Field(256, ge=2)
-    max_bake_resolution: int = Field(4096, ge=16)
+    max_volume_resolution: int = Field(256, ge=MIN_VOLUME_RESOLUTION, le=MAX_VOLUME_RESOLUTION)
+    max_bake_resolution: int = Field(4096, ge=MIN_BAKE_RESOLUTION, le=MAX_BAKE_RESOLUTION)
     atlas_cache_dir: Path | None = Field(None, description="UV atlases of baked meshes, per mesh content, so a "
                                          "second bake of a mesh skips xatlas; default data_dir/cache/atlas")
     atlas_cache_bytes: int = Field(512 * 2**20, ge=0, description="size bound of atlas_cache_dir (least "
                                    "recently used entries go first); 0 disables the cache")
     fit_seconds: float = Field(FIT_SECONDS, gt=0, description="time budget of an upload's automatic refinement")
-    max_fit_seconds: float = Field(900.0, gt=0)
+    max_fit_seconds: float = Field(900.0, gt=0, le=MAX_FIT_SECONDS)
 
     # --- jobs --------------------------------------------------------------------------
     workers: int = Field(2, ge=1, description="huey worker threads per worker process")

@@ -11,6 +11,7 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from worker.bake import FORMATS as BAKE_FORMATS
+from worker.contract import MAX_BAKE_RESOLUTION, MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES
 from worker.errors import Canceled, FeatureUnavailable, LimitExceeded
 from worker.gpu_textures import FORMATS as GPU_FORMATS
@@ -64,7 +65,8 @@ def submit_bake(
     texture_id: TextureId,
     key: IdempotencyKey,
     mesh: Annotated[UploadFile, File(description="OBJ, PLY, STL or GLB mesh (by file extension)")],
-    resolution: Annotated[int, Form(ge=16, le=8192, description="texture atlas side in pixels")] = 1024,
+    resolution: Annotated[int, Form(ge=MIN_BAKE_RESOLUTION, le=MAX_BAKE_RESOLUTION,
+                                     description="texture atlas side in pixels")] = 1024,
     seed: Annotated[int, Form(ge=0, le=2**31 - 1)] = 0,
     scale: Annotated[float | None, Form(gt=0, le=1e6, description="world units per mesh unit; default: "
                                                                    "the mesh spans 512 exemplar pixels")] = None,
