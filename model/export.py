@@ -23,13 +23,13 @@ from torch import nn
 
 from model.colour import KNOTS, apply_colour, colour_size, identity_colour
 from model.networks import TextureField, TextureSpace, load_checkpoint
+from worker.contract import TILEABLE_SAMPLER
 
 OPSET = 18  # BitwiseAnd / BitwiseXor need 18; onnxruntime 1.31 reads it
 MAX_IR_VERSION = 13  # onnxruntime 1.31 refuses newer IR
 DEFAULT_OUTDIR = Path(__file__).resolve().parent / "weights"
 ENCODER_INPUT_SIZE = 128
 ENCODER_INPUT_RANGE = [-1.0, 1.0]
-TILEABLE_SAMPLER = "sampler_tileable.onnx"  # file name beside sampler.onnx, also in a fit's folder
 _SHIFT_DOMAIN = "texspace"  # placeholder op domain, gone from the written file
 
 

@@ -34,6 +34,7 @@ from .db import session_scope
 from .errors import Problem
 from .settings import Settings
 from .tables import Job
+from .vocabulary import JobKind, JobState
 
 
 def bake_limits(settings: Settings) -> BakeLimits:
@@ -101,7 +102,7 @@ def check_mesh(settings: Settings, data: bytes, filename: str) -> None:
 def queued_jobs(services: Services, *, fits: bool = False, owner: str | None = None,
                 tenant: bool = False) -> int:
     """Queued jobs of the fit lane (``fits``) or of the other one; of ``owner`` only with ``tenant``."""
-    where = [Job.state == "queued", (Job.kind == "fit") if fits else (Job.kind != "fit")]
+    where = [Job.state == JobState.QUEUED, (Job.kind == JobKind.FIT) if fits else (Job.kind != JobKind.FIT)]
     if tenant:
         where.append(Job.owner_id.is_(None) if owner is None else Job.owner_id == owner)
     with session_scope(services.sessions) as session:
@@ -120,7 +121,7 @@ def check_queue_room(services: Services, kind: str) -> None:
     the caller's tenant (``auth.current_owner``, with API keys on) holds its share of that
     limit, so one tenant's burst leaves room for the others."""
     settings = services.settings
-    fits = kind == "fit"
+    fits = kind == JobKind.FIT
     limit = settings.max_queued_fits if fits else settings.max_queued_jobs
     what = "fits" if fits else "jobs"
     retry = str(settings.queue_full_retry_after_seconds)

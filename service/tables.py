@@ -15,10 +15,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from worker.colour_match import texture_vector
 
-#: the job states (the one list: schemas, routes and metrics use it; the kinds are
-#: settings.JOB_KINDS)
-JOB_STATES = ("queued", "running", "succeeded", "failed", "canceled")
-TERMINAL_STATES = frozenset({"succeeded", "failed", "canceled"})
+from .vocabulary import JobState
 
 
 def utcnow() -> dt.datetime:
@@ -152,9 +149,9 @@ class Job(Base):
     __tablename__ = "jobs"
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
-    kind: Mapped[str] = mapped_column(String(16))
+    kind: Mapped[str] = mapped_column(String(16))  # a JobKind
     texture_id: Mapped[str | None] = mapped_column(String(32), index=True, nullable=True)
-    state: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    state: Mapped[str] = mapped_column(String(16), default=JobState.QUEUED, index=True)  # a JobState
     params: Mapped[dict] = mapped_column(JSON, default=dict)
     input_key: Mapped[str | None] = mapped_column(String(300), nullable=True)
     attempt: Mapped[int] = mapped_column(Integer, default=0)

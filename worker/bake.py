@@ -60,6 +60,7 @@ import numpy as np
 import trimesh
 from worker import atlas, raster
 from worker.bake_outputs import add_bake_outputs, check_options
+from worker.contract import MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH
 from worker.errors import Canceled, InvalidMesh, InvalidParameter, LimitExceeded
 from worker.files import ZIP_TIME, atomic_output, media_type
@@ -510,8 +511,8 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     """
     if fmt not in FORMATS:
         raise InvalidParameter(f"bake format must be 'glb' or 'obj', got {fmt!r}")
-    if not 16 <= resolution <= limits.max_resolution:
-        raise LimitExceeded(f"texture resolution must be in [16, {limits.max_resolution}]")
+    if not MIN_BAKE_RESOLUTION <= resolution <= limits.max_resolution:
+        raise LimitExceeded(f"texture resolution must be in [{MIN_BAKE_RESOLUTION}, {limits.max_resolution}]")
     if projection not in PROJECTIONS:
         raise InvalidParameter(f"projection must be one of {PROJECTIONS}, got {projection!r}")
     check_options(maps, gpu_format)

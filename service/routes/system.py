@@ -1,4 +1,4 @@
-"""Health, readiness, metrics and the list of model versions."""
+"""Health, readiness, metrics, the list of model versions and the limits in force."""
 from __future__ import annotations
 
 import logging
@@ -14,7 +14,7 @@ from ..db import session_scope
 from ..deps import ServicesDep
 from ..errors import problem_responses
 from ..limits import check_free_space
-from ..schemas import Health, ModelList, ModelOut
+from ..schemas import Health, Limits, ModelList, ModelOut
 from ..tables import ModelVersion
 
 router = APIRouter(tags=["system"])
@@ -76,3 +76,11 @@ def list_models(services: ServicesDep) -> ModelList:
                                   pixels_per_unit=runtime.pixels_per_unit, manifest=runtime.manifest)
     return ModelList(items=sorted(items.values(), key=lambda m: (not m.default, not m.loaded, m.version)),
                      default=registry.default.version)
+
+
+@router.get("/v1/limits", response_model=Limits)
+def get_limits(services: ServicesDep) -> Limits:
+    """The limits in force: upload and mesh sizes, tile sizes and planes, volume, bake and
+    region bounds, a fit's default and longest time budget. The page and the Python client
+    read them here instead of copying numbers."""
+    return Limits.of(services.settings)

@@ -25,6 +25,7 @@ from ..shaders import shader_etag, shader_source
 from ..tables import Job, Texture, blend_calibration, new_id, utcnow
 from ..tiles import etag_matches
 from ..uploads import read_limited
+from ..vocabulary import JobState
 
 router = APIRouter(prefix="/v1/textures", tags=["textures"])
 log = logging.getLogger(__name__)
@@ -103,7 +104,7 @@ def texture_outs(services, textures: list[Texture]) -> list[TextureOut]:  # noqa
     if job_ids:
         with session_scope(services.sessions) as session:
             found = {j.id: j for j in session.scalars(select(Job).where(Job.id.in_(job_ids)))}
-    waiting = [job for job in found.values() if job.state in ("queued", "running")]
+    waiting = [job for job in found.values() if job.state in (JobState.QUEUED, JobState.RUNNING)]
     lane = jobs.fit_lane(services) if waiting else None  # read once for the whole page
     waits = {job.id: jobs.refinement_wait(services, job, lane) for job in waiting}
     return [TextureOut.of(t, found.get(t.refinement_job_id or ""), waits.get(t.refinement_job_id or ""))

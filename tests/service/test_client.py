@@ -171,3 +171,17 @@ def test_ids_are_one_path_segment_each() -> None:
         ts.delete("../textures/abc")
         ts.job("a/b")
     assert seen == ["/v1/textures/..%2F..%2Fv1%2Fjobs", "/v1/textures/..%2Ftextures%2Fabc", "/v1/jobs/a%2Fb"]
+
+
+def test_limits_are_the_servers_read_once() -> None:
+    """limits() asks GET /v1/limits once per client and answers the server's numbers."""
+    served = {"max_tile_size": 512, "planes": ["xy", "xz", "yz"], "fit_seconds": 45.0, "max_fit_seconds": 600.0}
+    calls: list[str] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        calls.append(request.url.path)
+        return httpx.Response(200, json=served)
+
+    with client_for(handler) as ts:
+        assert ts.limits() == served and ts.limits()["fit_seconds"] == 45.0
+    assert calls == ["/v1/limits"]
