@@ -62,24 +62,30 @@ bench-fit-budget: data
 # the README picture: exemplars beside tiles synthesised from their codes; the shipped one
 # adds each photo's fit: make fits FIT_ARGS='--threads 1' FIT_JOBS=2 and FIGURE_ARGS='--fits runs/fits'
 readme-figure: data
-	$(PY) docs/make_readme_figure.py docs/images/exemplar-and-tile.png $(FIGURE_ARGS)
+	$(PY) -m eval.readme_figure docs/images/exemplar-and-tile.png $(FIGURE_ARGS)
 
 # the model card's wood picture: a default-length grain fit on the three axis planes
 grain-figure: data
 	$(PY) -m model.fit data/textures/val/miniworld_wood_1.png runs/fits-grain/miniworld_wood_1 --grain y
-	$(PY) docs/make_grain_figure.py
+	$(PY) -m eval.grain_figure
 
 triplanar-figure: data
 	$(PY) -m model.fit data/textures/val/miniworld_brick_wall_1.png runs/fits/miniworld_brick_wall_1 --minutes 1 --threads 1
-	$(PY) docs/make_triplanar_figure.py
+	$(PY) -m eval.triplanar_figure
 
 clean-data:
 	rm -rf $(TEXSPACE_DATA_DIR)
 
 # --- the model (torch, the train extra) --------------------------------------------
-# make train resumes runs/space (seeded from the committed checkpoint when present),
-# stops after TRAIN_STEPS steps in total, then exports to model/weights/.
+# make train resumes runs/space, stops after TRAIN_STEPS steps in total, then exports to
+# model/weights/. An empty runs/space is seeded from TRAIN_INIT when that file exists, a full
+# training checkpoint (weights, Adam state, code table) resumed as it is: by default the run
+# the shipped space was exported from (make shipped-checkpoint gets it from git history).
+# Without one the run starts from TRAIN_WEIGHTS, the shipped weights by default (--init:
+# Adam and the code table start afresh); TRAIN_WEIGHTS= (empty) trains a space from scratch.
 TRAIN_STEPS ?= 20000
+TRAIN_INIT ?= $(SHIPPED_CHECKPOINT)
+TRAIN_WEIGHTS ?= model/weights/space.pt
 TRAIN_ARGS ?= --patch 64 --batch 4 --lr 2e-4 --warmup 200 --no-nearest --smooth --colour-normalise --isotropic-transforms --threads 2 --ckpt-every 100
 .PHONY: data data-large train export evaluate
 
@@ -92,24 +98,36 @@ data-large: install-test
 	$(PY) -m model.corpus fetch
 
 train: data
-	@if [ ! -f runs/space/checkpoint.pt ] && [ -f model/checkpoints/space-train.pt ]; then \
-		mkdir -p runs/space && cp model/checkpoints/space-train.pt runs/space/checkpoint.pt; fi
-	$(PY) -m model.train --out runs/space --steps $(TRAIN_STEPS) $(TRAIN_ARGS)
+	@if [ ! -f runs/space/checkpoint.pt ] && [ -f "$(TRAIN_INIT)" ]; then \
+		mkdir -p runs/space && cp "$(TRAIN_INIT)" runs/space/checkpoint.pt; fi
+	$(PY) -m model.train --out runs/space $(if $(TRAIN_WEIGHTS),--init $(TRAIN_WEIGHTS)) --steps $(TRAIN_STEPS) $(TRAIN_ARGS)
 	$(PY) -m model.export runs/space/checkpoint.pt model/weights
 
 export: install-test
 	$(PY) -m model.export runs/space/checkpoint.pt model/weights
+
+# The shipped space's full training checkpoint (16 MiB with its Adam state) is not in the
+# tree (docs/ARCHITECTURE.md, "What git holds"): this writes it from the last commit that
+# had it, where the history is at hand.
+SHIPPED_CHECKPOINT := runs/space-train.pt
+.PHONY: shipped-checkpoint
+shipped-checkpoint: $(SHIPPED_CHECKPOINT)
+$(SHIPPED_CHECKPOINT):
+	mkdir -p $(dir $@)
+	git show "$$(git rev-list -n 1 HEAD -- model/checkpoints/space-train.pt)^:model/checkpoints/space-train.pt" > $@.tmp
+	mv $@.tmp $@
 
 # make train-gpu: the same space on a CUDA GPU, in bounded calls. Each call resumes
 # runs/space-gpu for GPU_MINUTES of steps (default 9, so that one call with its start and
 # export fits a 10-minute command limit; call again to go on), then exports to GPU_EXPORT
 # (runs/space-gpu/weights; GPU_EXPORT=model/weights ships it). An empty runs/space-gpu is
 # seeded from GPU_INIT, a full training checkpoint (weights, Adam state, code table; not an
-# exported space.pt): by default the run that model/weights/space.pt was exported from.
+# exported space.pt): by default the run that model/weights/space.pt was exported from
+# (make shipped-checkpoint).
 # It installs nothing: the install targets keep torch CPU-only, so PY must be a Python whose
 # torch sees CUDA, with data/textures (make data) and the VGG16 cache (python -m model.vgg
 # fetch, TEXSPACE_CACHE_DIR) already in place.
-GPU_INIT ?= model/checkpoints/space-train.pt
+GPU_INIT ?= $(SHIPPED_CHECKPOINT)
 GPU_MINUTES ?= 9
 GPU_STEPS ?= 100000
 GPU_EXPORT ?= runs/space-gpu/weights
@@ -123,20 +141,20 @@ train-gpu:
 
 # make gpu-pack: for a lent GPU machine that takes 64 MiB of files and has no network (the
 # device tool): writes gpu/ (ignored by git, ~12 MiB: int8 VGG16 (xz), the training and validation
-# photos at the working resolution, docs/notes/gpu_pack.py). GPU_CORPUS=large packs the large
+# photos at the working resolution, eval/gpu_pack.py). GPU_CORPUS=large packs the large
 # corpus (docs/DATA.md, "Training on a lent GPU": a JPEG subset bounded to fit, and the recipe
 # gpu-large-* below); GPU_LICENCES=non-gpl leaves GPL art out. A fit there: python3 gpu/gpu_pack.py
 # fit gpu/val/PHOTO.png $$OUT/fit -- --device cuda --minutes 4. Carry gpu/ there and run, in one call:
-#   mkdir -p $$OUT/run && cp model/checkpoints/space-train.pt $$OUT/run/checkpoint.pt &&
-#   python3 gpu/gpu_pack.py train model/checkpoints/space-train.pt -- --out $$OUT/run \
+#   mkdir -p $$OUT/run && cp runs/space-train.pt $$OUT/run/checkpoint.pt &&
+#   python3 gpu/gpu_pack.py train runs/space-train.pt -- --out $$OUT/run \
 #     --device cuda --minutes 7.5 GPU_ARGS...
-# (the copy makes it resume with its Adam state); bring back $$OUT/run/checkpoint.pt, put
-# it at model/checkpoints/space-train.pt and export here. How the shipped space was made:
-# docs/notes/model-history.md, "Isotropic transforms trained".
+# carrying runs/space-train.pt too (make shipped-checkpoint; the copy makes it resume with its
+# Adam state); bring back $$OUT/run/checkpoint.pt, put it at runs/space-train.pt and export here. How the shipped space was made:
+# the model card's "The shipped space".
 GPU_CORPUS ?= default
 GPU_LICENCES ?= all
 # large: 256 px short side, long side cropped to 384, JPEG 90, 4 MiB of photos (147 train photos
-# of 147 families, 8 val): tree 51.2 + pack 11.4 + slim checkpoint 2.7 MiB stay under 64.
+# of 147 families, 8 val): tree ~33 + pack 11.4 + slim checkpoint 2.7 MiB stay under 64.
 # A run resumes only on the pack it started with: keep these the same for all its calls.
 GPU_PACK_ARGS ?= $(if $(filter large,$(GPU_CORPUS)),--quality 90 --max-long 384 --photo-mib 4 --val 8)
 .PHONY: gpu-pack
@@ -144,7 +162,7 @@ gpu-pack: $(if $(filter large,$(GPU_CORPUS)),install-test,data)
 	@test -f $(if $(filter large,$(GPU_CORPUS)),data/textures-large,data/textures)/index.json || \
 		{ echo "no corpus: make $(if $(filter large,$(GPU_CORPUS)),data-large,data) first"; exit 1; }
 	rm -rf gpu
-	$(PY) docs/notes/gpu_pack.py pack gpu --corpus $(GPU_CORPUS) --licences "$(GPU_LICENCES)" $(GPU_PACK_ARGS)
+	$(PY) -m eval.gpu_pack pack gpu --corpus $(GPU_CORPUS) --licences "$(GPU_LICENCES)" $(GPU_PACK_ARGS)
 
 # A new space on the large corpus, trained from scratch on a lent GPU in calls of the device
 # tool (docs/DATA.md, "Training on a lent GPU"). make gpu-large-command prints the call: carry
@@ -218,17 +236,17 @@ evaluate: data
 # on crops, turns and close-ups cut from them: the reference to diff after a detector change.
 .PHONY: structure
 structure: data
-	$(PY) docs/eval/structure.py --data data/textures --out docs/eval/structure
+	$(PY) -m eval.structure --data data/textures --out docs/eval/structure
 
-# Product-level quality (issue 14): colour (CIELAB), style against colour-matched value
+# Product-level quality: colour (CIELAB), style against colour-matched value
 # noise, diversity and oblique / axis slices, all through encoder.onnx + sampler.onnx as
-# the service serves them; style over each photo's own floor (issue 48, eval/style_floor.py)
+# the service serves them; style over each photo's own floor (eval/style_floor.py)
 # for the tiles, by-example noise (eval/by_example.py) and value noise, with medians.
 # Another export side by side: QUALITY_ARGS='--model-dir DIR --label NAME'; fits: '--fits runs/fits'.
 QUALITY_ARGS ?=
 .PHONY: quality tune-by-example
 quality: data
-	$(PY) docs/eval/quality.py --model-dir model/weights --label shipped $(QUALITY_ARGS) \
+	$(PY) -m eval.quality --model-dir model/weights --label shipped $(QUALITY_ARGS) \
 		--exemplars data/textures/val --out docs/eval/quality
 
 # The by-example baseline's triangle edge: its style error over the floor per edge, per photo

@@ -13,7 +13,6 @@ table and merges it into bench/out/results.json under ``fit_budget``.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import subprocess
 import sys
@@ -30,11 +29,10 @@ PHOTOS = ("miniworld_brick_wall_1.png", "vpython_granite.png", "miniworld_wood_1
 
 
 def quality_module():
-    """docs/eval/quality.py, the protocol ``make quality`` runs (a script, not a package)."""
-    spec = importlib.util.spec_from_file_location("texspace_quality", ROOT / "docs" / "eval" / "quality.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """eval/quality.py, the protocol ``make quality`` runs (imported late: it needs torch)."""
+    import eval.quality
+
+    return eval.quality
 
 
 def fit(photo: Path, out: Path, seconds: float, precision: str) -> dict:

@@ -66,7 +66,7 @@ def bench_mesh(target_faces: int = 100_000) -> tuple[bytes, int]:
     then the faces of one side (centroid x below a quantile) once more, so the face
     count lands near ``target_faces``; vertices are displaced along their normals by a
     smooth pseudo-random field. Irregular on purpose: xatlas segfaults on a perfectly
-    regular subdivided icosphere (ASSETS.md).
+    regular icosphere subdivided 6 times.
     """
     import trimesh
     from trimesh import remesh

@@ -275,7 +275,7 @@ def model_config(model_dir: Path) -> dict:
 def colour_stage_cost(model_dir: Path, threads: int, chunk: int, rounds: int = 5, log=print) -> dict | None:
     """The sampler with its colour stage against the same weights exported without it.
 
-    Issue 14's budget: the colour table may cost the sampler at most 10%. Both graphs run
+    The budget: the colour table may cost the sampler at most 10% (every tile pays it). Both graphs run
     through worker/runtime at the same setting, alternated ``rounds`` times so a change in
     the shared machine's load hits both; returns their medians. None without torch.
     """

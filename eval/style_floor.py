@@ -1,4 +1,4 @@
-"""The style error a photo scores against itself (its floor), and syntheses over it (issue 48).
+"""The style error a photo scores against itself (its floor), and syntheses over it.
 
 A Gram error means little on its own: a busy photo (gravel, a grill) scores errors in the
 tens against anything, a bland one (concrete) hundredths. Parts of the photo itself do not

@@ -4,7 +4,7 @@
     make tune-by-example
     python -m eval.tune_by_example --exemplars data/textures/val --out docs/eval/quality/by_example_tuning.md
 
-The tiles are the quality protocol's (``docs/eval/quality.py``): 256 px at plane pixels
+The tiles are the quality protocol's (``eval/quality.py``): 256 px at plane pixels
 (x, y) * 256 for (x, y) in {0, 1}^2, seeds 1 and 2, the photo at the working size (short
 side 256: one plane pixel per photo pixel).
 """
@@ -23,7 +23,7 @@ from worker.images import read_image, resize_short_side
 
 EDGES = (16.0, 24.0, 32.0, 48.0, 64.0, 80.0, 96.0)
 TILE, SHORT_SIDE, MAX_PIXELS = 256, 256, 1 << 26
-POSITIONS, SEEDS = ((0, 0), (1, 0), (0, 1), (1, 1)), (1, 2)  # as docs/eval/quality.py
+POSITIONS, SEEDS = ((0, 0), (1, 0), (0, 1), (1, 1)), (1, 2)  # as eval/quality.py
 
 
 def ratios(photo: np.ndarray, edges: tuple[float, ...]) -> tuple[float, list[float | None]]:

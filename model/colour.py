@@ -1,4 +1,4 @@
-"""Per-texture colouring: the last stage of the sampler (DESIGN.md Contract 1, ``colour``).
+"""Per-texture colouring: the last stage of the sampler (docs/ARCHITECTURE.md, Contract 1, ``colour``).
 
 The decoder's raw output carries the texture's *structure*; its colours come from the
 texture's own colour table, computed from the photo when it is encoded

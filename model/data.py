@@ -1,7 +1,7 @@
 """Texture photos for training and evaluation, and fetching offline assets from PyPI.
 
 No texture data set is installable here, but three packages carry real texture
-photographs (../shared/ASSETS.md section 2). ``python -m model.data fetch`` downloads
+photographs (scikit-image, vpython, miniworld: the model card's credits). ``python -m model.data fetch`` downloads
 the two wheels with pip (sha256-checked, cached under ``cache_dir()``), reads only the
 image files listed in ``CATALOGUE``, converts them to RGB PNG and writes
 

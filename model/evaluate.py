@@ -221,7 +221,7 @@ def summarise(results: Sequence[dict]) -> dict:
 
 
 def checks(results: Sequence[dict]) -> dict:
-    """The issue's acceptance figures, per label: the lowest diversity over exemplars and
+    """The acceptance figures (the model card's targets), per label: the lowest diversity over exemplars and
     domains, oblique / axis mean style error, and for every ``X-fit`` label the exemplars
     where the fit's style error beats X's (encoder code) in each domain."""
     by_label: dict[str, list[dict]] = {}

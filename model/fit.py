@@ -4,7 +4,7 @@
 
 Starts from the space's encoder code for IMAGE and its decoder, then optimises the
 code, the translator (so the per-octave transforms) and the decoder for this one
-exemplar. Writes OUTDIR/sampler.onnx (DESIGN.md Contract 1, same inputs and outputs
+exemplar. Writes OUTDIR/sampler.onnx (docs/ARCHITECTURE.md, Contract 1, same inputs and outputs
 as the shipped sampler), OUTDIR/code.json (the code to feed it), OUTDIR/manifest.json
 and OUTDIR/fit.pt (weights and code, for ``model.evaluate``). The worker runs this as
 the ``fit`` job where torch is installed. What regular structure the fit builds in (grain,
@@ -256,7 +256,7 @@ def main(argv=None):
                    help="learning rates: falling to 10%% over --minutes (default), or constant")
     p.add_argument("--spectrum", type=float, default=0.0,
                    help="weight of the luminance spectrum loss, times the photo's Gram magnitude (0: off; "
-                        "docs/notes/model-history.md, 2026-11-27 evening)")
+                        "off by default: closer spectra, but grass and lattice fits got worse)")
     p.add_argument("--even", choices=["auto", "none"], default="auto",
                    help="auto (default): a photo even at large scales (model.structure.detect_even, no grain "
                         "or lattice) is fitted with its coarse noise octaves muted; none: never")

@@ -6,7 +6,7 @@ of that layer's Gram matrix (128x128 crops at short side 256; ``measure_layer_sc
 reproduces the table). Gram magnitudes differ by ~1e8 between layers, and by ~1000x
 between photos of the same layer: normalising by each photo's own Gram (per-photo
 weights) made bland photos dominate a shared decoder and collapsed a prototype to
-flat grey (../shared/ASSETS.md section 6). A fixed, corpus-level constant per layer
+flat grey (a prototype, 18 minutes in). A fixed, corpus-level constant per layer
 balances the layers without ever re-weighting one photo against another: a
 high-contrast photo simply has a larger loss, as it should.
 

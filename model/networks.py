@@ -81,7 +81,7 @@ class ModelConfig:
     # None. The decoder then also reads the point's phase on that lattice, sin and cos of
     # 2 pi k u for k = 1..lattice_harmonics per lattice axis. Noise octaves have no period,
     # and a decoder fed only noise drew bricks as irregular patches; with the phases a 60-s
-    # fit draws rows of bricks (docs/notes/regular-structure.md).
+    # fit draws rows of bricks (docs/DECISIONS.md, "Lattice phases and the mean repeat cell").
     lattice: tuple[float, float, float, float] | None = None
     lattice_harmonics: int = 4
     # The photo's mean repeat cell (``lattice_mean_cell``, a fit measures it): its size in

@@ -186,7 +186,7 @@ FOLD_REACH, FOLD_STEP = 3.0, 0.25
 # wall 0.041, the validation grass 0.073, granite 0.061, wood 0.15-0.44. A fit of an even
 # photo mutes the noise octaves whose cells are EVEN_BLOCK px or larger (model.fit): the
 # validation gravel's tiles otherwise keep blotches of 35-100 px with 3-6x the photo's
-# power there (docs/notes/model-history.md, 2026-11-27 evening).
+# power there (docs/DECISIONS.md, "Even photos mute their coarse octaves").
 EVEN_BLOCK = 32
 EVEN_SHARE = 0.03
 

@@ -377,7 +377,8 @@ class Objective:
 
     ``spectrum_weight`` (``--spectrum``) adds, per patch, that weight times the exemplar's Gram
     magnitude (``gram_energy``) times its ``spectrum_loss``: the radially averaged luminance
-    spectrum against the photo's (docs/notes/model-history.md, 2026-11-27 evening; off by default).
+    spectrum against the photo's (off by default: it brought the spectra closer, but grass fits got
+    worse in 3 of 3 and lattice fits were hurt; docs/DECISIONS.md, "Tried, not adopted").
     """
 
     def __init__(self, images: list[np.ndarray], layers: tuple[str, ...], kind: str, colour_weight: float = 0.0,
@@ -815,11 +816,14 @@ class Probe:
             origins = torch.cat([origins[:2], lattice_partners(origins[:2], cfg.lattice, rng)])
             seeds = seeds[:2].repeat(2)
         self.origins, self.axes, self.seeds = origins.to(run.device), axes.to(run.device), seeds.to(run.device)
-        self.best_score, self.best = self.score(), self.snapshot()
-        self.log(self.best_score)
-        saved = run.probe_best  # a resumed pause: the best state before it, if it beats this one
-        if saved is not None and saved["score"] <= self.best_score:
+        saved = run.probe_best
+        if saved is not None:  # a resumed pause starts from the best state before it, without a score:
+            # one costs 1.2-1.6 s of the fit lane, and the state it would score was scored at the pause
+            # or is a few steps from the last scored one (the next scheduled probe scores it)
             self.best_score, self.best = saved["score"], {key: saved[key] for key in ("model", "code", "step")}
+        else:
+            self.best_score, self.best = self.score(), self.snapshot()
+            self.log(self.best_score)
 
     def saved_best(self) -> dict:
         """The best state and its score, for a paused fit's checkpoint."""
@@ -877,11 +881,14 @@ class Interim:
     def __init__(self, seconds: float, publish):  # noqa: ANN001
         self.seconds, self.publish, self.done, self.asked = float(seconds), publish, False, False
 
-    def wants_probe(self, elapsed: float) -> bool:
-        """True once, at the first step ``seconds`` in: a probe then, off the probe's schedule,
-        so the interim comes at its second and not up to ``--probe-every`` steps later (25
-        steps are 12 s of a CPU fit)."""
-        if self.done or self.asked or elapsed < self.seconds:
+    def due(self, elapsed: float) -> bool:
+        """True once, at the first step ``seconds`` in, published or not: a probe then, off the
+        probe's schedule, if none has published yet (so the interim comes at its second and not
+        up to ``--probe-every`` steps later: 25 steps are 12 s of a CPU fit), and the fit's pause
+        asked then. A scheduled probe that started just before the second publishes after it;
+        the step after it is still due, or that fit never paused and held the uploads behind it
+        for its whole budget."""
+        if self.asked or elapsed < self.seconds:
             return False
         self.asked = True
         return True
@@ -1005,6 +1012,7 @@ def train(cfg: TrainConfig, progress=None, interim: Interim | None = None, pause
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
     budget = Budget(cfg, run.step, run.budget_spent if cfg.mode == "single" else 0.0)
     run.model.train()
+    ended = False  # the loop ran out or was stopped, rather than raising (a canceled fit's progress hook)
     try:
         while budget.left(run.step) and not stop.is_set():
             stats = train_step(run, budget.time_done() if cfg.decay_by_time else None)
@@ -1012,24 +1020,25 @@ def train(cfg: TrainConfig, progress=None, interim: Interim | None = None, pause
             run.log.write(log_line(run, stats))
             if progress is not None:
                 progress(fraction)
-            due = interim is not None and interim.wants_probe(budget.elapsed())
-            if probe is not None and (run.step % cfg.probe_every == 0 or due):
+            due = interim is not None and interim.due(budget.elapsed())
+            if probe is not None and (run.step % cfg.probe_every == 0 or (due and not interim.done)):
                 probe.update()
                 if interim is not None and not interim.done:
                     interim.offer(probe, budget.elapsed())
-                # at the interim's second, published or not (a start that stays best, like the grass's,
-                # has none): a fit that went on held the uploads behind it for its whole budget
-                if due and pause is not None and pause():
-                    run.paused = True
-                    break
+            # at the interim's second, published or not (a start that stays best, like the grass's,
+            # has none): a fit that went on held the uploads behind it for its whole budget
+            if due and pause is not None and pause():
+                run.paused = True
+                break
             if run.step % cfg.ckpt_every == 0:
                 save(run)
                 run.log.flush()
+        ended = True
     finally:
         budget.close()
         if run.paused:
             run.budget_spent, run.probe_best = budget.elapsed(), probe.saved_best()
-        elif probe is not None:
+        elif probe is not None and ended:  # (a fit that raised ends now: no last score for a result nobody takes)
             if run.step % cfg.probe_every:  # the state after the last score
                 probe.update()
             run.probe = probe.restore_best()

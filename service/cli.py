@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from worker.bake import FORMATS as BAKE_FORMATS
+from worker.contract import MAX_BAKE_RESOLUTION, MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION, MIN_VOLUME_RESOLUTION
 from worker.files import extensions
 from worker.images import LIGHTING
 from worker.regions import FORMATS as REGION_FORMATS
@@ -36,7 +37,7 @@ from . import auth, db, processes
 from .context import build_services
 from .logs import setup_logging
 from .schemas import BAKE_PROJECTIONS, bake_projection
-from .settings import FIT_SECONDS, Settings
+from .settings import FIT_SECONDS, MAX_FIT_SECONDS, Settings
 from .tables import Texture
 
 log = logging.getLogger(__name__)
@@ -45,9 +46,9 @@ log = logging.getLogger(__name__)
 #: settings lower the upper ends further, as they do for the API
 SEED_MAX = 2**31 - 1
 OFFSET_LIMIT = 1e9
-VOLUME_RESOLUTION = (2, 1024)
-BAKE_RESOLUTION = (16, 8192)
 SCALE_MAX = 1e6
+#: the longest `upload --timeout`, seconds per photo: a wait of this client, no server limit
+UPLOAD_WAIT_MAX = 60.0 * 60
 #: output formats by extension (tile: the tile route's; bake: obj is a zip of obj + mtl + png)
 TILE_EXTENSIONS = extensions(TILE_FORMATS)
 BAKE_EXTENSIONS = extensions(BAKE_FORMATS)
@@ -192,7 +193,7 @@ class TextureSource:
             raise CliError("--refine needs PyTorch: pip install 'texspace[train]'", code=1) from None
         from worker.colour_match import texture_vector
         from worker.images import working_photo
-        from worker.runtime import TILEABLE_SAMPLER
+        from worker.contract import TILEABLE_SAMPLER
 
         from .job_kinds import fit_structure, fitted_colour, photo_to_fit
 
@@ -542,7 +543,7 @@ def build_parser() -> argparse.ArgumentParser:
     lighting_arg(p)
 
     def refine_arg(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--refine", nargs="?", type=ranged(float, 0, 3600, above=True), const=FIT_SECONDS,
+        p.add_argument("--refine", nargs="?", type=ranged(float, 0, MAX_FIT_SECONDS, above=True), const=FIT_SECONDS,
                        metavar="SECONDS", help="an image file: fit it first, as an upload's refinement is, for "
                        f"SECONDS ({FIT_SECONDS:g} when not given), with a progress bar; needs the train extra "
                        "(PyTorch) (default: no fit, the encoder's code at once)")
@@ -577,8 +578,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = proc("volume", cmd_volume, "render a solid N^3 block of an image file or stored texture id")
     p.add_argument("texture", help="IMAGE file or TEXTURE_ID (required)")
     texture_args(p, "volume", VOLUME_EXTENSIONS, "volume-N")
-    p.add_argument("--resolution", type=ranged(int, *VOLUME_RESOLUTION), default=64,
-                   help=f"voxels per side N, {VOLUME_RESOLUTION[0]}..TEXSPACE_MAX_VOLUME_RESOLUTION "
+    p.add_argument("--resolution", type=ranged(int, MIN_VOLUME_RESOLUTION, MAX_VOLUME_RESOLUTION), default=64,
+                   help=f"voxels per side N, {MIN_VOLUME_RESOLUTION}..TEXSPACE_MAX_VOLUME_RESOLUTION "
                         f"({fields['max_volume_resolution'].default} unless set)")
     p.add_argument("--bounds", type=ranged(float, -OFFSET_LIMIT, OFFSET_LIMIT), nargs=6,
                    default=[0.0, 0.0, 0.0, 1.0, 1.0, 1.0], metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
@@ -588,8 +589,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mesh", help="OBJ, PLY, STL or GLB mesh file (by extension; required)")
     p.add_argument("--texture", required=True, help="IMAGE file or TEXTURE_ID (required)")
     texture_args(p, "bake", BAKE_EXTENSIONS, "MESH-baked")
-    p.add_argument("--resolution", type=ranged(int, *BAKE_RESOLUTION), default=1024,
-                   help=f"texture atlas side in pixels, {BAKE_RESOLUTION[0]}..TEXSPACE_MAX_BAKE_RESOLUTION "
+    p.add_argument("--resolution", type=ranged(int, MIN_BAKE_RESOLUTION, MAX_BAKE_RESOLUTION), default=1024,
+                   help=f"texture atlas side in pixels, {MIN_BAKE_RESOLUTION}..TEXSPACE_MAX_BAKE_RESOLUTION "
                         f"({fields['max_bake_resolution'].default} unless set)")
     p.add_argument("--scale", type=ranged(float, 0, SCALE_MAX, above=True),
                    help="world units per mesh unit (default: the mesh spans 512 exemplar pixels)")
@@ -622,7 +623,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--url", help="the server (default: TEXSPACE_URL, else http://127.0.0.1:TEXSPACE_PORT)")
     p.add_argument("--api-key", dest="api_key", help="for a server with API keys on (default: TEXSPACE_API_KEY)")
     p.add_argument("--name", help="the texture's name, for a single file (default: its file name)")
-    p.add_argument("--timeout", type=ranged(float, 0, 3600, above=True), default=300.0,
+    p.add_argument("--timeout", type=ranged(float, 0, UPLOAD_WAIT_MAX, above=True), default=300.0,
                    help="seconds per upload (an upload is encoded before it answers)")
     lighting_arg(p)
 

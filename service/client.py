@@ -1,7 +1,7 @@
 """A small Python client for the texspace HTTP API (needs only httpx and the stdlib).
 
-It imports nothing else from the service, so a script or notebook that talks to a
-running server pays for no numpy, ONNX or FastAPI import::
+Of the service it imports only the job vocabulary (standard library), so a script or
+notebook that talks to a running server pays for no numpy, ONNX or FastAPI import::
 
     from service.client import Client
 
@@ -28,7 +28,8 @@ from typing import Any
 
 import httpx
 
-TERMINAL = ("succeeded", "failed", "canceled")
+from .vocabulary import TERMINAL_STATES, JobState
+
 #: the response header of a zoomed-out tile's preview (openapi.yaml, getTile)
 PREVIEW_HEADER = "X-Texspace-Tile"
 Job = dict[str, Any]
@@ -45,7 +46,7 @@ class _ProgressBar:
 
     def update(self, job: Job) -> None:
         self.bar.n = round(100 * float(job.get("progress", 0.0)), 1)
-        stage = "paused after its interim" if job.get("stage") == "interim" and job.get("state") == "queued" else None
+        stage = "paused after its interim" if job.get("stage") == "interim" and job.get("state") == JobState.QUEUED else None
         self.bar.set_postfix_str(stage or job.get("state", ""), refresh=False)
         self.bar.refresh()
 
@@ -115,6 +116,7 @@ class Client:
         headers = {"X-API-Key": api_key} if api_key else {}
         self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout,
                                  transport=transport)
+        self._limits: dict[str, Any] | None = None
 
     def close(self) -> None:
         self.http.close()
@@ -134,6 +136,14 @@ class Client:
     @staticmethod
     def _key(idempotency_key: str | None) -> dict[str, str]:
         return {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+
+    def limits(self) -> dict[str, Any]:
+        """The server's limits (``GET /v1/limits``: upload bytes and pixels, tile sizes and
+        planes, volume and bake resolutions, a fit's default and longest budget, ...), read
+        once per client: the server's own numbers, never copies of them."""
+        if self._limits is None:
+            self._limits = self._call("GET", "/v1/limits").json()
+        return self._limits
 
     # --- textures -------------------------------------------------------------------
     def upload(self, image: str | os.PathLike | bytes, *, name: str | None = None,
@@ -170,7 +180,8 @@ class Client:
     def tile(self, texture_id: str, z: int, x: int, y: int, *, fmt: str = "png", seed: int = 0,
              size: int = 256, plane: str = "xy", offset: float = 0.0, exact: bool = True,
              timeout: float = 300.0) -> bytes:
-        """The bytes of tile (z, x, y) in ``fmt`` (png, webp, exr).
+        """The bytes of tile (z, x, y) in ``fmt`` (png, webp, exr); ``size`` in pixels and ``plane``
+        within the server's ``limits()`` (``min_tile_size``..``max_tile_size``, ``planes``).
 
         A zoomed-out tile the server does not hold yet may come first as a preview
         (header ``X-Texspace-Tile: preview``); with ``exact`` (the default) this asks again
@@ -218,7 +229,8 @@ class Client:
             lattice: str | None = "auto", even: str | None = "auto", lean: str | None = "auto",
             idempotency_key: str | None = None) -> Job:
         """Submit a fit (needs the train extra on the workers): refines the texture's sampler.
-        ``seconds``: its time budget (None: the server's default, 240);
+        ``seconds``: its time budget (None: the server's default, ``limits()["fit_seconds"]``;
+        at most ``limits()["max_fit_seconds"]``);
         ``grain``: "x", "y", "auto" (detected from the photo) or None (isotropic);
         ``lattice``: "auto" (a repeat lattice detected from the photo) or None;
         ``even``: "auto" (an even photo's coarse octaves muted) or None;
@@ -269,9 +281,9 @@ class Client:
                 end = None
             if end is None:
                 now = self.job(job_id)
-                end = now if now["state"] in TERMINAL else None
+                end = now if now["state"] in TERMINAL_STATES else None
             if end is not None:
-                if end["state"] != "succeeded":
+                if end["state"] != JobState.SUCCEEDED:
                     raise JobFailed(end)
                 return end
 
@@ -303,7 +315,7 @@ class Client:
                     event = line[6:].strip()
                 elif line.startswith("data:"):
                     data = json.loads(line[5:].strip())
-                    if event in TERMINAL:
+                    if event in TERMINAL_STATES:
                         return data
                     if progress is not None:
                         progress(data)

@@ -51,7 +51,7 @@ def public_base_url(request: Request, services: Services) -> str:
 
 @dataclass
 class TileParams:
-    """Where and how to render one tile (DESIGN.md Contract 2)."""
+    """Where and how to render one tile (docs/ARCHITECTURE.md, Contract 2)."""
 
     seed: Annotated[int, Query(ge=0, le=2**31 - 1, description="texture instance")] = 0
     size: Annotated[int, Query(ge=MIN_TILE_SIZE, le=MAX_TILE_SIZE, description="tile side in pixels")] = 256

@@ -30,6 +30,7 @@ from .download_names import bake_name, region_name, sampler_name, volume_name
 from .limits import bake_limits
 from .schemas import BakeParams, FitParams, RegionIn, VolumeIn, bake_projection
 from .tables import Job, Texture, utcnow
+from .vocabulary import JobKind, JobState
 
 Progress = Callable[[float], None]
 ShouldCancel = Callable[[], bool]
@@ -113,7 +114,7 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
                        maps=tuple(p.maps), gpu_format=p.gpu_format, normal_strength=p.normal_strength,
                        projection=bake_projection(p.projection, texture.served_structure()),
                        progress=progress, should_cancel=should_cancel)
-    # a GLB with a height map or a GPU texture comes back as a zip
+    # a GLB with a height map or a DDS comes back as a zip (a KTX2 goes inside the GLB)
     return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip", names,
                          result.height_range)
 
@@ -226,7 +227,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     services.storage.put_file(exemplar_key, original)
     with session_scope(services.sessions) as session:
         current = session.get(Job, job.id)
-        dropped = (session.get(Texture, texture.id) is None or current is None or current.state != "running"
+        dropped = (session.get(Texture, texture.id) is None or current is None or current.state != JobState.RUNNING
                    or current.attempt != job.attempt)  # the texture deleted (with its jobs) meanwhile
         if not dropped and session.get(Texture, new_id) is None:
             session.add(Texture(id=new_id, name=f"{texture.name or texture.id} (fitted)",
@@ -311,7 +312,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
         current = session.get(Job, job.id)
         row = session.get(Texture, texture.id)
         moved = row is not None and row.model_version != texture.model_version
-        if current is None or current.state != "running" or current.attempt != job.attempt or row is None or moved:
+        if current is None or current.state != JobState.RUNNING or current.attempt != job.attempt or row is None or moved:
             services.storage.delete_prefix(folder)  # no row names it: leave no file behind
             local.unlink(missing_ok=True)
             if moved:  # texspace reencode moved it on (and queued a refinement of its own)
@@ -327,7 +328,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
 def _store_tileable(services: Services, sampler_key: str, fit_dir: Path) -> None:
     """Store the fit's tileable sampler beside its sampler (``tileable_key``), where
     tileable regions look for it; a model.fit from before tileable textures writes none."""
-    from worker.runtime import TILEABLE_SAMPLER
+    from worker.contract import TILEABLE_SAMPLER
 
     path = fit_dir / TILEABLE_SAMPLER
     if path.is_file():
@@ -344,6 +345,6 @@ def fitted_colour(sampler, code: list[float], image: np.ndarray) -> list[float] 
     return [float(v) for v in colour] or None
 
 
-KINDS: dict[str, Callable[..., dict[str, Any]]] = {
-    "volume": run_volume, "bake": run_bake, "region": run_region, "fit": run_fit,
+KINDS: dict[JobKind, Callable[..., dict[str, Any]]] = {
+    JobKind.VOLUME: run_volume, JobKind.BAKE: run_bake, JobKind.REGION: run_region, JobKind.FIT: run_fit,
 }

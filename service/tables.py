@@ -1,6 +1,6 @@
 """Database tables (SQLAlchemy 2 declarative). Alembic migrations mirror this file.
 
-The job row is the truth about every job (DESIGN.md Contract 3); the queue only
+The job row is the truth about every job (docs/ARCHITECTURE.md, Contract 3); the queue only
 carries job ids.
 """
 from __future__ import annotations
@@ -15,10 +15,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 from worker.colour_match import texture_vector
 
-#: the job states (the one list: schemas, routes and metrics use it; the kinds are
-#: settings.JOB_KINDS)
-JOB_STATES = ("queued", "running", "succeeded", "failed", "canceled")
-TERMINAL_STATES = frozenset({"succeeded", "failed", "canceled"})
+from .vocabulary import JobState
 
 
 def utcnow() -> dt.datetime:
@@ -80,10 +77,14 @@ class Texture(Base):
     width: Mapped[int | None] = mapped_column(Integer, nullable=True)
     height: Mapped[int | None] = mapped_column(Integer, nullable=True)
     sampler_key: Mapped[str | None] = mapped_column(String(300), nullable=True)
-    owner_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)  # API key id (issue 6)
+    owner_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)  # the API key id; NULL when keys are disabled
     # An upload's in-place refinement (TEXSPACE_AUTO_FIT): the fit job, and the encoder's code
     # in the model's latent space, kept when the job replaces code and sampler_key (blends use it).
     refinement_job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    # The params of a refinement not yet queued, because the fit lane's queue or the owner's
+    # share of it was full at upload (``jobs.queue_deferred_refinements`` queues it as room
+    # frees, oldest upload first); None once queued, or when none was deferred.
+    refinement_deferred: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     encoder_code: Mapped[list | None] = mapped_column(JSON, nullable=True)
     # The colour table the sampler applies last (worker/colour_match.py): the photo's colour
     # statistics matched to this texture's sampler. None: the identity table (rows from
@@ -148,9 +149,9 @@ class Job(Base):
     __tablename__ = "jobs"
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
-    kind: Mapped[str] = mapped_column(String(16))
+    kind: Mapped[str] = mapped_column(String(16))  # a JobKind
     texture_id: Mapped[str | None] = mapped_column(String(32), index=True, nullable=True)
-    state: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    state: Mapped[str] = mapped_column(String(16), default=JobState.QUEUED, index=True)  # a JobState
     params: Mapped[dict] = mapped_column(JSON, default=dict)
     input_key: Mapped[str | None] = mapped_column(String(300), nullable=True)
     attempt: Mapped[int] = mapped_column(Integer, default=0)
@@ -175,7 +176,7 @@ class Job(Base):
     sampler: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     idempotency_key: Mapped[str | None] = mapped_column(String(200), unique=True, nullable=True)
     request_hash: Mapped[str | None] = mapped_column(String(64), nullable=True)
-    owner_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)  # API key id (issue 6)
+    owner_id: Mapped[str | None] = mapped_column(String(32), nullable=True, index=True)  # the API key id; NULL when keys are disabled
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
     started_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
     finished_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
@@ -183,7 +184,7 @@ class Job(Base):
 
 
 class ApiKey(Base):
-    """API keys (issue 6). Only a hash of the key is stored."""
+    """API keys: tenants. Only a hash of the key is stored."""
 
     __tablename__ = "api_keys"
 

@@ -7,7 +7,7 @@ circle), and:
   those, the CLI at the top;
 * ``worker/`` never imports ``service/``; ``model/`` never imports ``service/``, and of
   ``worker/`` only the leaves (``WORKER_LEAVES``: the one image reader, the sRGB curves, the
-  domain errors), which import nothing of the project but each other and no onnxruntime,
+  domain errors, the names and bounds the parts agree on), which import nothing of the project but each other and no onnxruntime,
   scikit-image or torch, so that training reads photos exactly as an upload is read;
 * torch is imported only under ``model/`` (the service and the worker run on ONNX).
 """
@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: lowest first; a module may import its own layer or those below, never one above
 LAYERS = (
-    ("settings and container", {"service.settings", "service.container"}),
+    ("settings and container", {"service.vocabulary", "service.settings", "service.container"}),
     ("domain", {"service.auth", "service.jobs", "service.limits", "service.purge", "service.job_kinds"}),
     ("process wiring", {"service.context", "service.runner", "service.processes"}),
     ("CLI", {"service.cli"}),
@@ -30,7 +30,7 @@ LAYERS = (
 
 
 #: modules of worker/ that model/ may import: numpy / OpenImageIO / Pillow / stdlib, and each other
-WORKER_LEAVES = {"worker.decode", "worker.colour", "worker.errors"}
+WORKER_LEAVES = {"worker.decode", "worker.colour", "worker.errors", "worker.contract"}
 LEAF_THIRD_PARTY = {"numpy", "OpenImageIO", "PIL"}
 
 
@@ -168,7 +168,7 @@ def test_worker_leaves_import_only_each_other_numpy_openimageio_and_pillow() -> 
 
 
 def test_model_reads_photos_with_the_upload_reader() -> None:
-    """model/ decodes exemplars through worker.decode (issue 19: one reader for upload, fit,
+    """model/ decodes exemplars through worker.decode (one reader for upload, fit,
     training and evaluation); Pillow opens files only where ``fetch`` converts the packaged
     source images into the PNG data set (model/data.py: _read_source)."""
     readers = [str(path.relative_to(ROOT)) for name, path in modules("model").items()

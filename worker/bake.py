@@ -2,7 +2,8 @@
 
 Steps, each reported through ``progress`` and preceded by a ``should_cancel`` check:
 
-1. Load with trimesh (OBJ, PLY, STL, GLB/glTF binary; ``process=False`` so seam
+1. Check the file's header (``worker/mesh_size.py``: counts, a GLB's node tree), then load
+   with trimesh (OBJ, PLY, STL, GLB/glTF binary; ``process=False`` so seam
    vertices stay split; an OBJ of plain ``v``/``f`` lines by ``read_plain_obj``, the same
    arrays faster) and validate: parse errors, no faces, non-finite vertices or
    coordinates beyond +-``MAX_COORDINATE``, out-of-range indices, all-degenerate faces -> InvalidMesh; face/vertex counts over
@@ -28,10 +29,10 @@ Steps, each reported through ``progress`` and preceded by a ``should_cancel`` ch
    ``<stem>.mtl`` (``Kd 1 1 1``, ``map_Kd <stem>_basecolor.png``) + ``<stem>_basecolor.png``,
    ``<stem>`` being the result file's own stem (``worker.files.member_stem``), so two bakes
    extracted into one folder keep their files. With ``exr=True`` a linear half-float
-   ``<stem>_basecolor.exr`` is added to the OBJ zip, or written next to a GLB as ``<out_path>.exr``. ``maps`` (height, normal) and
-   ``gpu_format`` (dds, ktx2) add derived maps and a mipmapped texture of the atlas
-   (``worker/bake_outputs.py``: a GLB embeds normal, roughness and AO in its material and
-   becomes a zip with a height map or a GPU texture).
+   ``<stem>_basecolor.exr`` is added to the OBJ zip, or written next to a GLB as ``<out_path>.exr``. ``maps`` (height,
+   normal, roughness, ao) and ``gpu_format`` (dds, ktx2) add derived maps and a mipmapped texture of the
+   atlas (``worker/bake_outputs.py``: a GLB embeds normal, roughness and AO in its material and a KTX2 as
+   its base colour's KHR_texture_basisu source, and becomes a zip with a height map or a DDS).
 
 Projection: a solid texture is one 3D material, the right thing for isotropic ones (stone,
 gravel) and for grain (wood cut from one log). A texture fitted on a 2D repeat lattice
@@ -62,10 +63,12 @@ import numpy as np
 import trimesh
 from worker import atlas, raster
 from worker.bake_outputs import add_bake_outputs, check_options
+from worker.contract import MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH
 from worker.errors import Canceled, InvalidMesh, InvalidParameter, LimitExceeded
 from worker.files import ZIP_TIME, atomic_output, media_type, member_name, member_stem
 from worker.images import png_bytes, write_image
+from worker.mesh_size import check_mesh_size
 from worker.runtime import Sampler
 from worker.triplanar import PROJECTIONS, sample_triplanar
 
@@ -84,6 +87,8 @@ MAX_COORDINATE = 1e9
 class BakeLimits:
     max_faces: int = 500_000
     max_vertices: int = 500_000
+    max_nodes: int = 4096            # a GLB's nodes, and its mesh primitives (worker/mesh_size.py)
+    max_depth: int = 64              # levels of a GLB's node tree
     max_resolution: int = 4096
     atlas_timeout: float = 120.0
     atlas_memory_bytes: int = 2 << 30
@@ -119,6 +124,7 @@ def read_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
         raise InvalidMesh(f"unsupported mesh type {ext!r}; use one of {sorted(MESH_TYPES)}")
     if not mesh_bytes:
         raise InvalidMesh("empty mesh upload (0 bytes)")
+    check_mesh_size(mesh_bytes, ext, limits)     # from the header, before any parse
     plain = read_plain_obj(mesh_bytes) if ext == "obj" else None
     if plain is not None:
         (vertices, faces), uv, normals = plain, None, None
@@ -270,23 +276,51 @@ def load_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
 
 def _as_mesh(loaded):
     """(one Trimesh, the file's own vertex normals (V, 3) or None). A scene is flattened
-    as trimesh's ``to_mesh`` does (which drops normals); normals are kept for a scene of
-    one geometry, turned by its node's transform."""
+    as trimesh's ``to_mesh`` does (which drops normals), with each node's transform from
+    ``_world_transforms``; normals are kept for a scene of one geometry, turned by its
+    node's transform."""
     if isinstance(loaded, trimesh.Trimesh):
         return loaded, (loaded.vertex_normals if "vertex_normals" in loaded._cache else None)
     if not isinstance(loaded, trimesh.Scene):        # e.g. a point cloud: an empty mesh, "no faces"
         loaded = trimesh.Scene(loaded)
-    mesh = loaded.to_mesh()
+    world = _world_transforms(loaded.graph)
+    placed = []
+    for node in loaded.graph.nodes_geometry:
+        geometry = loaded.geometry[loaded.graph.transforms.node_data[node]["geometry"]]
+        if isinstance(geometry, trimesh.Trimesh):     # points and lines are dropped, as to_mesh does
+            placed.append(geometry.copy().apply_transform(world[node]))
+    mesh = trimesh.util.concatenate(placed)
     normals = None
     if len(loaded.graph.nodes_geometry) == 1:
         node = loaded.graph.nodes_geometry[0]
-        transform, name = loaded.graph[node]
-        geometry = loaded.geometry[name]
+        geometry = loaded.geometry[loaded.graph.transforms.node_data[node]["geometry"]]
         if "vertex_normals" in geometry._cache and len(geometry.vertices) == len(mesh.vertices):
-            linear = np.asarray(transform, dtype=np.float64)[:3, :3]
+            linear = world[node][:3, :3]
             if abs(np.linalg.det(linear)) > 1e-300:
                 normals = geometry.vertex_normals @ np.linalg.inv(linear)  # inverse transpose, row vectors
     return mesh, normals
+
+
+def _world_transforms(graph) -> dict:
+    """Each frame of a trimesh scene graph -> its (4, 4) float64 transform from the base
+    frame: one product per edge, parents first. (trimesh's ``graph[node]`` multiplies each
+    node's whole path anew, choosing the order by numpy's O(depth^3) chain search: 22
+    minutes for a 5,000-node chain.) Raises ValueError for a node off the tree."""
+    children: dict = {}
+    for (parent, child), edge in graph.transforms.edge_data.items():
+        children.setdefault(parent, []).append((child, edge.get("matrix")))
+    world = {graph.base_frame: np.eye(4)}
+    stack = [graph.base_frame]
+    while stack:
+        parent = stack.pop()
+        for child, matrix in children.get(parent, ()):
+            if child not in world:                  # a forest: one parent each
+                world[child] = world[parent] if matrix is None else world[parent] @ np.asarray(matrix, np.float64)
+                stack.append(child)
+    missing = [node for node in graph.nodes_geometry if node not in world]
+    if missing:
+        raise ValueError(f"scene node {missing[0]!r} is not connected to the scene's root")
+    return world
 
 
 def _unit_normals(normals, count: int) -> np.ndarray | None:
@@ -481,8 +515,8 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     """
     if fmt not in FORMATS:
         raise InvalidParameter(f"bake format must be 'glb' or 'obj', got {fmt!r}")
-    if not 16 <= resolution <= limits.max_resolution:
-        raise LimitExceeded(f"texture resolution must be in [16, {limits.max_resolution}]")
+    if not MIN_BAKE_RESOLUTION <= resolution <= limits.max_resolution:
+        raise LimitExceeded(f"texture resolution must be in [{MIN_BAKE_RESOLUTION}, {limits.max_resolution}]")
     if projection not in PROJECTIONS:
         raise InvalidParameter(f"projection must be one of {PROJECTIONS}, got {projection!r}")
     check_options(maps, gpu_format)

@@ -20,9 +20,11 @@ their files. Where each output goes:
   attribute; roughness and AO are packed into one embedded "ORM" PNG (R = occlusion, G =
   roughness, B = metallic 0), set as the ``occlusionTexture`` (R) and the
   ``metallicRoughnessTexture`` (G, B; ``metallicFactor`` 0, ``roughnessFactor`` 1) for the
-  maps asked for. glTF core has no height map and no DDS/KTX2 without extensions, so when
-  ``height`` or a GPU format is asked for the result becomes a zip of ``<stem>.glb`` plus
-  ``<stem>_height.png`` / ``<stem>_basecolor.dds|ktx2``.
+  maps asked for. A KTX2 texture is embedded too, as the base colour's
+  ``KHR_texture_basisu`` source (``glb_with_basisu_texture``): viewers that know the
+  extension load the KTX2, others (Blender 3.4) the PNG beside it. glTF has no height map
+  and no DDS, so when ``height`` or ``dds`` is asked for the result becomes a zip of
+  ``<stem>.glb`` plus ``<stem>_height.png`` / ``<stem>_basecolor.dds``.
 
 All rewrites are atomic (``worker/files.py``).
 """
@@ -85,6 +87,9 @@ def add_bake_outputs(path: Path, fmt: str, image: np.ndarray, *, maps=(), gpu_fo
     if embedded:
         glb = glb_with_material_maps(glb, normal=derived.arrays.get("normal"),
                                      roughness=derived.arrays.get("roughness"), ao=derived.arrays.get("ao"))
+    ktx2 = member_name(stem, "basecolor", extension("ktx2"))
+    if ktx2 in files:
+        glb = glb_with_basisu_texture(glb, files.pop(ktx2))
     if not files:
         with atomic_output(path) as tmp, open(tmp, "wb") as f:
             f.write(glb)
@@ -190,18 +195,7 @@ def glb_with_material_maps(glb: bytes, *, normal: np.ndarray | None = None, roug
     ``roughness`` and ``ao`` (R, R) 0..1 packed into one ORM PNG, the
     ``metallicRoughnessTexture`` and / or ``occlusionTexture``. Each image is appended to the
     binary chunk as a new bufferView, image and texture (the base colour's sampler reused)."""
-    magic, version, length = struct.unpack_from("<3I", glb)
-    json_len, json_type = struct.unpack_from("<2I", glb, 12)
-    if magic != GLB_MAGIC or version != 2 or json_type != JSON_CHUNK:
-        raise ValueError("not a glTF 2.0 binary")
-    gltf = json.loads(glb[20:20 + json_len])
-    at = 20 + json_len
-    binary = b""
-    if at < length:
-        bin_len, bin_type = struct.unpack_from("<2I", glb, at)
-        if bin_type != BIN_CHUNK:
-            raise ValueError("second GLB chunk is not BIN")
-        binary = glb[at + 8:at + 8 + bin_len]
+    gltf, binary = _glb_split(glb)
     views = gltf.setdefault("bufferViews", [])
 
     def append(data: bytes, **extra) -> int:
@@ -244,7 +238,50 @@ def glb_with_material_maps(glb: bytes, *, normal: np.ndarray | None = None, roug
                 pbr.update(metallicRoughnessTexture={"index": index}, metallicFactor=0.0, roughnessFactor=1.0)
     binary += b"\0" * (-len(binary) % 4)
     gltf.setdefault("buffers", [{}])[0]["byteLength"] = len(binary)
+    return _glb_join(gltf, binary)
+
+
+def glb_with_basisu_texture(glb: bytes, ktx2: bytes) -> bytes:
+    """The GLB with ``ktx2`` (Basis Universal, ``worker.gpu_textures.ktx2_bytes``) appended
+    to its binary chunk as an ``image/ktx2`` image and named by every base-colour texture's
+    ``KHR_texture_basisu`` extension. The texture keeps its PNG ``source`` as the fallback,
+    so the extension is used, not required: every glTF loader still opens the file."""
+    gltf, binary = _glb_split(glb)
+    binary += b"\0" * (-len(binary) % 4)
+    gltf.setdefault("bufferViews", []).append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(ktx2)})
+    binary += ktx2 + b"\0" * (-len(ktx2) % 4)
+    gltf.setdefault("buffers", [{}])[0]["byteLength"] = len(binary)
+    gltf.setdefault("images", []).append({"bufferView": len(gltf["bufferViews"]) - 1,
+                                          "mimeType": media_type("ktx2"), "name": "base colour (KTX2)"})
+    colour = {m["pbrMetallicRoughness"]["baseColorTexture"]["index"] for m in gltf.get("materials", [])
+              if "baseColorTexture" in m.get("pbrMetallicRoughness", {})}
+    for index in sorted(colour):
+        gltf["textures"][index].setdefault("extensions", {})["KHR_texture_basisu"] = {
+            "source": len(gltf["images"]) - 1}
+    used = gltf.setdefault("extensionsUsed", [])
+    if colour and "KHR_texture_basisu" not in used:
+        used.append("KHR_texture_basisu")
+    return _glb_join(gltf, binary)
+
+
+def _glb_split(glb: bytes) -> tuple[dict, bytes]:
+    """(glTF JSON, BIN chunk) of a glTF 2.0 binary."""
+    magic, version, length = struct.unpack_from("<3I", glb)
+    json_len, json_type = struct.unpack_from("<2I", glb, 12)
+    if magic != GLB_MAGIC or version != 2 or json_type != JSON_CHUNK:
+        raise ValueError("not a glTF 2.0 binary")
+    at, binary = 20 + json_len, b""
+    if at < length:
+        bin_len, bin_type = struct.unpack_from("<2I", glb, at)
+        if bin_type != BIN_CHUNK:
+            raise ValueError("second GLB chunk is not BIN")
+        binary = glb[at + 8:at + 8 + bin_len]
+    return json.loads(glb[20:20 + json_len]), binary
+
+
+def _glb_join(gltf: dict, binary: bytes) -> bytes:
     text = json.dumps(gltf, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 4)
+    binary += b"\0" * (-len(binary) % 4)
     body = struct.pack("<2I", len(text), JSON_CHUNK) + text + struct.pack("<2I", len(binary), BIN_CHUNK) + binary
     return struct.pack("<3I", GLB_MAGIC, 2, 12 + len(body)) + body

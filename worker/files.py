@@ -1,5 +1,5 @@
 """Result files: the one table of the formats texspace writes (file extension and media
-type by format name), the fixed time stamped on zip members, and atomic writing (under a
+type by format name), the fixed time stamped on zip members and images, and atomic writing (under a
 temporary name in the target folder, renamed into place only when complete, so readers
 never see half a file and a re-run simply overwrites).
 
@@ -20,6 +20,9 @@ from pathlib import Path
 
 #: the time of every zip member: fixed, so identical content gives identical zips
 ZIP_TIME = (2020, 1, 1, 0, 0, 0)
+#: the same time as the ``DateTime`` of every image OpenImageIO writes (EXR ``capDate``,
+#: TIFF DateTime), which it would otherwise stamp with the time of writing
+IMAGE_DATETIME = "{:04d}:{:02d}:{:02d} {:02d}:{:02d}:{:02d}".format(*ZIP_TIME)
 #: the media type of bytes whose format is not in the table
 OCTET_STREAM = "application/octet-stream"
 

@@ -6,14 +6,14 @@ exactly those of the tiles covering it (same sampling and anti-aliasing).
 
 Formats:
 
-* ``tiff``: tiled TIFF (256 x 256 tiles), 16-bit sRGB, zip compression, via OpenImageIO.
+* ``tiff``: scanline (strip) TIFF, 16-bit sRGB, zip compression, via OpenImageIO.
 * ``exr``: tiled OpenEXR, half-float linear, zip compression, via OpenImageIO.
 * ``png``: 8-bit sRGB, written by a streaming encoder (one row of tiles in memory).
 * ``pyramid``: a zip of ``{z}/{x}/{y}.png`` tiles of ``size`` pixels for every zoom from
   ``min_zoom`` to ``z`` (the tiles covering the rectangle at each level, each rendered exactly like the tile
   endpoint, so the bytes match it) plus ``tilejson.json`` (TileJSON 3.0.0, xyz scheme,
   plus a ``texspace`` object with the box and tile size).
-* ``dds`` / ``ktx2``: mipmapped GPU textures, RGBA8 sRGB with the full mip chain
+* ``dds`` / ``ktx2``: mipmapped GPU textures (BC1 blocks / Basis Universal UASTC) with the full mip chain
   averaged in linear light (``worker/gpu_textures.py``).
 
 Derived maps (``maps``: any of ``height``, ``normal``, ``roughness``, ``ao``,
@@ -23,7 +23,7 @@ image in ``fmt``) plus ``<stem>_<map>.png`` for each, ``<stem>`` being the resul
 gradients and blurs wrap around the borders. GPU formats and derived maps need the whole image in memory, so
 they are limited to ``RegionLimits.max_whole_pixels``.
 
-Tileable (``tileable=True``, issue 18): a square image at the native zoom on the xy plane,
+Tileable (``tileable=True``): a square image at the native zoom on the xy plane,
 rendered by the texture's tileable sampler with period ``width / pixels_per_unit`` world
 units, so the image repeats exactly: tiled 2 x 2 it has no seam (the column after the last
 is the first). The sampler rounds each octave's frequency so that a whole number of its
@@ -49,7 +49,7 @@ import OpenImageIO as oiio
 from worker.colour import linear_to_srgb, linear_to_srgb8
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS, derived_map_files
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
-from worker.files import ZIP_TIME, atomic_output, extension, member_name, member_stem
+from worker.files import IMAGE_DATETIME, ZIP_TIME, atomic_output, extension, member_name, member_stem
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.gpu_textures import gpu_texture_bytes
 from worker.images import write_image
@@ -59,7 +59,7 @@ from worker.tiles import (MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM, render_tile, render_w
 from worker.volume_writers import PngStream
 
 FORMATS = ("png", "exr", "tiff", "pyramid") + GPU_FORMATS  # extensions: worker.files
-BLOCK = 256                  # pixels per side of one sampler call / one TIFF or EXR tile
+BLOCK = 256                  # pixels per side of one sampler call / one EXR tile
 
 
 @dataclass(frozen=True)
@@ -220,16 +220,24 @@ def _write_image_stripes(path: str, fmt: str, width: int, height: int, stripes) 
         return
     spec = oiio.ImageSpec(width, height, 3, "uint16" if fmt == "tiff" else "half")
     spec.attribute("compression", "zip")
-    spec.tile_width = spec.tile_height = BLOCK
+    spec.attribute("DateTime", IMAGE_DATETIME)
+    if fmt == "exr":
+        spec.tile_width = spec.tile_height = BLOCK
+    # TIFF stays in strips: Blender 3.4 (Debian 12) shows a tiled 16-bit TIFF as coloured
+    # stripes, and every TIFF reader knows strips
     out = oiio.ImageOutput.create(path)
     if out is None or not out.open(path, spec):
         raise OSError(f"OpenImageIO cannot open {path}: {oiio.geterror()}")
     try:
         for k, stripe in enumerate(stripes):
-            pixels = (linear_to_srgb(stripe) * 65535 + 0.5).astype(np.uint16) if fmt == "tiff" \
-                else stripe.astype(np.float16)
             y = k * BLOCK
-            if not out.write_tiles(0, width, y, y + len(stripe), 0, 1, np.ascontiguousarray(pixels)):
+            if fmt == "tiff":
+                pixels = (linear_to_srgb(stripe) * 65535 + 0.5).astype(np.uint16)
+                written = out.write_scanlines(y, y + len(stripe), 0, np.ascontiguousarray(pixels))
+            else:
+                written = out.write_tiles(0, width, y, y + len(stripe), 0, 1,
+                                          np.ascontiguousarray(stripe.astype(np.float16)))
+            if not written:
                 raise OSError(f"OpenImageIO failed writing rows {y}..{y + len(stripe)}: {out.geterror()}")
     finally:
         out.close()

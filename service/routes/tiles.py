@@ -1,4 +1,4 @@
-"""Tiles of the infinite plane (DESIGN.md Contract 2) and their TileJSON."""
+"""Tiles of the infinite plane (docs/ARCHITECTURE.md, Contract 2) and their TileJSON."""
 from __future__ import annotations
 
 from typing import Annotated

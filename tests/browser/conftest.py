@@ -10,22 +10,14 @@ import re
 import subprocess
 import sys
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 
-from service import spawn
-from tests.conftest import free_port
+from tests.browser.helpers import CHROMIUM, CHROMIUM_FLAGS, serve
 
-CHROMIUM = Path("/usr/bin/chromium")
 ARTIFACTS = Path(__file__).resolve().parents[1] / "artifacts" / "browser"
 REPO = Path(__file__).resolve().parents[2]
-CHROMIUM_FLAGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-]
-SERVER_START_TIMEOUT_S = 60
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -44,21 +36,6 @@ def artifacts() -> Path:
     return ARTIFACTS
 
 
-@contextmanager
-def _serve(data_dir: Path, log: Path, env: dict[str, str]) -> Iterator[str]:
-    """``texspace serve`` on a free loopback port; yields its URL (the page's), stops it afterwards."""
-    port = free_port()
-    log.write_bytes(b"")  # this run's log only
-    process = spawn.spawn(["serve", "--host", "127.0.0.1", "--port", str(port)], env, log)
-    url = f"http://127.0.0.1:{port}/"
-    try:
-        spawn.wait_ready(url.rstrip("/"), [process], SERVER_START_TIMEOUT_S, path="/", name="texspace serve",
-                         output=lambda: log.read_text(errors="replace"))
-        yield url
-    finally:
-        spawn.stop([process])
-
-
 @pytest.fixture(scope="session")
 def base_url(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> Iterator[str]:
     """URL of a running texspace service (API + page at /)."""
@@ -68,7 +45,7 @@ def base_url(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> Itera
         return
     data_dir = tmp_path_factory.mktemp("texspace-data")
     env = {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir), "TEXSPACE_AUTO_FIT": "false"}
-    with _serve(data_dir, artifacts / "server.log", env) as url:
+    with serve(data_dir, artifacts / "server.log", env) as url:
         yield url
 
 
@@ -83,7 +60,7 @@ def keyed_server(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> I
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=True)
     key = re.search(r"^key: +(\S+)$", made.stdout, re.M)
     assert key, f"no key in the output of texspace keys create:\n{made.stdout}\n{made.stderr}"
-    with _serve(data_dir, artifacts / "server-keyed.log", env) as url:
+    with serve(data_dir, artifacts / "server-keyed.log", env) as url:
         yield url, key[1]
 
 
@@ -95,7 +72,7 @@ def refining_server(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -
     data_dir = tmp_path_factory.mktemp("texspace-refining-data")
     env = {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir), "TEXSPACE_AUTO_FIT": "true",
            "TEXSPACE_FIT_SECONDS": "3"}
-    with _serve(data_dir, artifacts / "server-refining.log", env) as url:
+    with serve(data_dir, artifacts / "server-refining.log", env) as url:
         yield url
 
 

@@ -6,10 +6,22 @@ import base64
 import io
 import re
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
+
+from service import spawn
+from service.spawn import free_port
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_FLAGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+]
+SERVER_START_TIMEOUT_S = 60
 
 TILE_URL = re.compile(r"/v1/textures/(?P<id>[0-9a-f-]+)/tiles/(?P<z>-?\d+)/(?P<x>-?\d+)/(?P<y>-?\d+)\.png\?(?P<query>.*)$")
 BAKE_TIMEOUT_MS = 240_000
@@ -133,3 +145,18 @@ def upload(page, name: str, png: bytes, *, drop: bool = False) -> str:
     texture_id = done.value.json()["id"]
     page.wait_for_selector(f'#texture-list button[data-id="{texture_id}"][aria-pressed="true"]')
     return texture_id
+
+
+@contextmanager
+def serve(data_dir: Path, log: Path, env: dict[str, str]) -> Iterator[str]:
+    """``texspace serve`` on a free loopback port; yields its URL (the page's), stops it afterwards."""
+    port = free_port()
+    log.write_bytes(b"")  # this run's log only
+    process = spawn.spawn(["serve", "--host", "127.0.0.1", "--port", str(port)], env, log)
+    url = f"http://127.0.0.1:{port}/"
+    try:
+        spawn.wait_ready(url.rstrip("/"), [process], SERVER_START_TIMEOUT_S, path="/", name="texspace serve",
+                         output=lambda: log.read_text(errors="replace"))
+        yield url
+    finally:
+        spawn.stop([process])

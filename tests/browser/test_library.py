@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import _serve
+from tests.browser.helpers import serve
 from .helpers import page_errors, shoot, texture_photo_png, upload
 
 pytestmark = [pytest.mark.browser, pytest.mark.e2e, pytest.mark.slow]
@@ -25,7 +25,7 @@ def base_url(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> Itera
     the page tests' server, whose job list they count."""
     data_dir = tmp_path_factory.mktemp("texspace-library-data")
     env = {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir), "TEXSPACE_AUTO_FIT": "false"}
-    with _serve(data_dir, artifacts / "server-library.log", env) as url:
+    with serve(data_dir, artifacts / "server-library.log", env) as url:
         yield url
 
 

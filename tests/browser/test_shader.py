@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.browser.conftest import CHROMIUM, CHROMIUM_FLAGS
+from tests.browser.helpers import CHROMIUM, CHROMIUM_FLAGS
 from tests.browser.helpers import texture_photo_png
 from worker import shader
 from worker.colour_match import texture_vector

@@ -18,7 +18,8 @@ import httpx
 import pytest
 
 from service import spawn
-from tests.conftest import PG_ADMIN_URL, REDIS_URL, free_port
+from service.spawn import free_port
+from tests.helpers import PG_ADMIN_URL, REDIS_URL
 from tests.helpers import wait_ready
 
 READY_TIMEOUT = 120.0
@@ -74,7 +75,7 @@ def embedded(tmp_path_factory) -> Iterator[Deployment]:
 
 def _postgres_database() -> tuple[str, callable]:
     """A fresh database on the local server, and a function that drops it."""
-    psycopg = pytest.importorskip("psycopg")
+    import psycopg  # a dependency: a missing one fails; only an absent server skips
     try:
         admin = psycopg.connect(PG_ADMIN_URL, autocommit=True, connect_timeout=3)
     except psycopg.Error as exc:
@@ -90,7 +91,7 @@ def _postgres_database() -> tuple[str, callable]:
 
 
 def _require_redis() -> None:
-    redis = pytest.importorskip("redis")
+    import redis  # a dependency: a missing one fails; only an absent server skips
     try:
         redis.Redis.from_url(REDIS_URL, socket_connect_timeout=3).ping()
     except redis.RedisError as exc:

@@ -11,7 +11,7 @@ import pytest
 from PIL import Image
 
 from service.client import ApiError, Client
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow, pytest.mark.timeout(600)]
 MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"

@@ -1,13 +1,13 @@
-"""Export -> ONNX Runtime: the sampler contract (DESIGN.md Contract 1) and torch parity."""
+"""Export -> ONNX Runtime: the sampler contract (docs/ARCHITECTURE.md, Contract 1) and torch parity."""
 from __future__ import annotations
 
 import json
 
 import numpy as np
+import onnxruntime as ort
 import pytest
 
 torch = pytest.importorskip("torch")
-ort = pytest.importorskip("onnxruntime")
 
 from model.colour import apply_colour, colour_size, identity_colour  # noqa: E402
 from model.export import MAX_IR_VERSION, export_model  # noqa: E402
@@ -106,6 +106,25 @@ def test_colour_stage_matches_torch_shared_and_per_point(exported):
     per_point = run(session, points, np.repeat(z, len(points), axis=0), 3, tables)
     ref = apply_colour(raw[0][:, None], torch.from_numpy(tables))[:, 0].numpy()
     assert np.abs(per_point - ref).max() < 1e-4
+
+
+@pytest.mark.parametrize("name", ["sampler.onnx", "sampler_tileable.onnx"])
+def test_z_and_colour_rows_pair_freely(exported, name):
+    # Contract 1: z [1|P] and colour [1|P] in any pairing give [P,3] and the shared form's
+    # pixels (a fit exports its samplers with this code, so each fitted texture keeps it).
+    _, _, _, out = exported
+    session = ort.InferenceSession(str(out / name), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(9)
+    n = 500
+    feed = {"points": rng.random((n, 3)) * 6, "seed": np.asarray(2, np.int64)}
+    if name != "sampler.onnx":
+        feed["period"] = np.asarray(3.0)
+    z, table = rng.standard_normal((1, 8)).astype(np.float32), random_colour_tables(rng, 1)
+    shared = session.run(None, feed | {"z": z, "colour": table})[0]
+    for z_rows, colour_rows in [(1, n), (n, 1), (n, n)]:
+        rgb = session.run(None, feed | {"z": np.repeat(z, z_rows, axis=0),
+                                        "colour": np.repeat(table, colour_rows, axis=0)})[0]
+        assert rgb.shape == (n, 3) and np.array_equal(rgb, shared), (z_rows, colour_rows)
 
 
 def test_bit_identical_across_runs_and_batch_splits(exported):

@@ -5,12 +5,12 @@ import json
 from pathlib import Path
 
 import numpy as np
+import onnxruntime as ort
 from scipy import ndimage
 import pytest
 from PIL import Image
 
 torch = pytest.importorskip("torch")
-ort = pytest.importorskip("onnxruntime")
 
 from model.export import export_model  # noqa: E402
 from model.fit import fit_exemplar  # noqa: E402

@@ -1,4 +1,4 @@
-"""The noise function: statistics, determinism, infinity (issue 2's checks)."""
+"""The noise function: statistics, determinism, infinity (tiles far out look like tiles at 0)."""
 from __future__ import annotations
 
 import numpy as np

@@ -265,7 +265,7 @@ def test_parse_args_gives_the_train_config_of_the_flags(capsys):
 
 
 def test_train_reads_as_one_short_story():
-    # issue 16.6: setup, resume, steps, probe and save are named pieces; train() only tells the run
+    # setup, resume, steps, probe and save are named pieces; train() only tells the run
     assert len(inspect.getsource(train).splitlines()) < 60
 
 
@@ -428,8 +428,23 @@ def test_an_interim_asks_for_one_probe_at_its_second():
     from model.train import Interim
 
     interim = Interim(10.0, None)
-    assert not interim.wants_probe(9.9)
-    assert interim.wants_probe(10.2) and not interim.wants_probe(10.4)  # once, then the schedule's probes
+    assert not interim.due(9.9)
+    assert interim.due(10.2) and not interim.due(10.4)  # once, then the schedule's probes
+
+
+def test_an_interim_published_by_a_probe_that_straddles_its_second_is_still_due_once():
+    """A scheduled probe that starts at 9.x s publishes after 10 s; the next step is still the
+    interim's second for the pause, or that fit never paused (seen: a 90-s fit held the lane
+    for all 90 s when its 25th step came just before the tenth second)."""
+    from types import SimpleNamespace
+
+    from model.train import Interim
+
+    interim = Interim(10.0, lambda *state: None)
+    assert not interim.due(9.6)
+    interim.offer(SimpleNamespace(best={"step": 25}, lend_best=lambda use: None), 12.1)
+    assert interim.done
+    assert interim.due(12.6) and not interim.due(13.1)
 
 
 def test_a_flat_photo_leans_nowhere_and_its_warp_is_the_identity():
@@ -459,3 +474,26 @@ def test_a_fit_pauses_at_its_interims_second_even_when_its_start_stays_best(tmp_
                  pause=lambda: asked.append(True) or True)
     _, ckpt = load_checkpoint(path)
     assert published == [] and asked == [True] and ckpt["paused"] and ckpt["step"] == 1
+
+
+def test_a_fit_canceled_from_its_progress_hook_stops_without_a_last_score(tmp_path, brick, vgg):
+    """A cancel (the service's progress hook raises) ends the fit at once: no last probe and
+    no best state restored for a result nobody takes (they held a canceled fit 3-5 s more)."""
+    image = tmp_path / "brick.png"
+    Image.fromarray((brick * 255).astype(np.uint8)).save(image)
+    out = tmp_path / "run"
+    cfg = parse_args(["--mode", "single", "--exemplar", str(image), "--out", str(out), "--patch", "32", "--batch", "1",
+                      "--short-side", "128", "--crop", "64", "--quiet", "--layers", "relu1_1", "--steps", "20",
+                      "--warmup", "1", "--probe-every", "10"])
+    steps = []
+
+    def progress(fraction):  # noqa: ANN001, ANN202
+        steps.append(fraction)
+        if len(steps) == 3:
+            raise KeyboardInterrupt("canceled")
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, progress=progress)
+    scores = [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines() if "probe" in line]
+    assert scores == [0]  # the start's score only
+    _, ckpt = load_checkpoint(out / "checkpoint.pt")
+    assert ckpt["step"] == 3 and ckpt.get("probe") is None

@@ -13,7 +13,7 @@ from pathlib import Path
 import httpx
 
 from service import spawn
-from tests.conftest import free_port
+from service.spawn import free_port
 from tests.helpers import wait_ready
 
 FAST_JOBS = {  # short leases so a killed worker's job comes back within seconds

@@ -1,4 +1,4 @@
-"""Tiles whose client has gone (issue 15), against a real ``texspace api``: a map abandons
+"""Tiles whose client has gone, against a real ``texspace api``: a map abandons
 tiles on every pan; queued ones must not render and a rendering one must stop."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 
 from .procs import Cluster, base_env
 

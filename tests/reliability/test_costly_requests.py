@@ -1,4 +1,4 @@
-"""Requests that cost far more than they look (issue 19), against a real ``texspace api``
+"""Requests that cost far more than they look, against a real ``texspace api``
 on the embedded SQLite database and on PostgreSQL (conftest: ``database_url``): the worst
 upload shapes stay under 1.5 GB of API memory, a maximal tile does not hold up small ones,
 slow or lying clients lose their connection, and an upload that finds no room in the
@@ -20,13 +20,13 @@ from PIL import Image
 
 from service.context import build_services
 from service.main import create_app
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
+from tests.reliability.helpers import BAD, PROBLEM, database_settings, make_settings, row_counts, stored_files
 from worker import images
 
-from .conftest import BAD, PROBLEM, database_settings, make_settings, row_counts, stored_files
 from .procs import Cluster, base_env
 
-RSS_LIMIT = 1_500_000_000  # bytes: "1.5 GB" (issue 19)
+RSS_LIMIT = 1_500_000_000  # bytes: a worker on a small machine stays under 1.5 GB
 
 
 def png(width: int, height: int, channels: int = 3) -> bytes:

@@ -14,9 +14,8 @@ from service.context import build_services
 from service.main import create_app
 from service.runner import run_job_attempt
 from service.storage import LocalStorage
-from tests.service.conftest import brick_png
-
-from .conftest import BAD, make_settings, row_counts, stored_files
+from tests.helpers import brick_png
+from tests.reliability.helpers import BAD, make_settings, row_counts, stored_files
 
 
 @pytest.fixture

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 
 from .procs import Cluster, base_env, wait_job
 

@@ -15,9 +15,8 @@ from schemathesis import checks
 
 from service.context import build_services
 from service.main import create_app
-from tests.service.conftest import brick_png
-
-from .conftest import database_settings, make_settings
+from tests.helpers import brick_png
+from tests.reliability.helpers import database_settings, make_settings
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 SPEC = Path(__file__).resolve().parents[2] / "openapi.yaml"

@@ -1,4 +1,4 @@
-"""Hostile requests (issue 19): each gets the exact 4xx it deserves, never a 500, on the
+"""Hostile requests: each gets the exact 4xx it deserves, never a 500, on the
 embedded SQLite database and on PostgreSQL (which refuses NUL in text and enforces
 varchar lengths); the service stays healthy after each. PostgreSQL cases are skipped,
 saying why, where no server answers."""
@@ -17,9 +17,9 @@ from service.deps import public_base_url
 from service.logs import request_id_var
 from service.purge import purge_texture
 from service.tables import Job, new_id
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
+from tests.reliability.helpers import BAD, PROBLEM
 
-from .conftest import PROBLEM
 from .test_bad_input import assert_still_serving
 
 
@@ -54,17 +54,18 @@ def assert_validation_problem(res, word: str = "") -> None:
 BAD_CHARS = ["\x00", "\x1b", "\x7f", "\u0085"]
 
 
-def raw_upload(filename: str) -> bytes:
+def raw_upload(filename: str, field: str = "image", body: bytes | None = None) -> bytes:
     """A multipart upload whose filename holds the raw characters (httpx would escape them)."""
-    return (b'--b\r\nContent-Disposition: form-data; name="image"; filename="' + filename.encode() +
-            b'"\r\nContent-Type: image/png\r\n\r\n' + brick_png() + b"\r\n--b--\r\n")
+    body = brick_png() if body is None else body
+    return (f'--b\r\nContent-Disposition: form-data; name="{field}"; filename="'.encode() + filename.encode() +
+            b'"\r\nContent-Type: application/octet-stream\r\n\r\n' + body + b"\r\n--b--\r\n")
 
 
 @pytest.mark.parametrize("char", BAD_CHARS, ids=["nul", "esc", "del", "nel"])
 @pytest.mark.parametrize("where", ["texture path", "job path", "exemplar path", "tile path", "tilejson path",
                                    "texture_id filter", "patch path", "patch name", "upload filename",
                                    "upload name", "interpolate name", "interpolate id", "cursor", "region path",
-                                   "delete path", "events path"])
+                                   "delete path", "events path", "bake filename"])
 def test_control_characters_are_refused_at_the_edge(client, services, texture, where: str, char: str) -> None:
     bad = f"ab{char}cd"
     quoted = bad.encode().hex()  # percent-encode every byte, NUL included
@@ -91,6 +92,10 @@ def test_control_characters_are_refused_at_the_edge(client, services, texture, w
                                            json={"z": 6, "x0": 0, "y0": 0, "width": 64, "height": 64}),
         "delete path": lambda: client.delete(f"/v1/textures/{path_id}"),
         "events path": lambda: client.get(f"/v1/jobs/{path_id}/events"),
+        # was cleaned to "ab_cd.obj" and baked: refused like an upload's filename instead
+        "bake filename": lambda: client.post(f"/v1/textures/{tid}/bakes", content=raw_upload(
+            bad + ".obj", "mesh", (BAD / "cube.obj").read_bytes()),
+            headers={"content-type": "multipart/form-data; boundary=b"}),
     }
     with services.sessions() as session:
         before = session.query(Job).count()
@@ -210,7 +215,6 @@ REGIONS = {
 
 @pytest.mark.parametrize("name", sorted(REGIONS))
 def test_region_is_validated_at_submission(client, services, texture, name: str) -> None:
-    pytest.importorskip("OpenImageIO")
     fields, status, word = REGIONS[name]
     body = {"z": 6, "x0": 0, "y0": 0, "width": 64, "height": 64} | fields
     with services.sessions() as session:
@@ -224,7 +228,6 @@ def test_region_is_validated_at_submission(client, services, texture, name: str)
 
 
 def test_small_pyramid_is_accepted(client, texture) -> None:
-    pytest.importorskip("OpenImageIO")
     res = client.post(f"/v1/textures/{texture['id']}/regions",
                       json={"z": 6, "min_zoom": 5, "x0": 0, "y0": 0, "width": 64, "height": 64, "format": "pyramid"})
     assert res.status_code == 202, res.text

@@ -15,8 +15,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.conftest import PG_ADMIN_URL, free_port
-from tests.service.conftest import brick_png
+from service.spawn import free_port
+from tests.helpers import PG_ADMIN_URL, brick_png
 
 from .procs import Cluster, base_env, wait_job
 
@@ -60,7 +60,6 @@ class OwnRedis:
 def own_redis(tmp_path: Path):
     if shutil.which("redis-server") is None:
         pytest.skip("redis-server is not installed")
-    pytest.importorskip("redis")
     server = OwnRedis(tmp_path)
     server.start()
     try:

@@ -15,9 +15,8 @@ from service.cli import main as cli_main
 from service.context import Services, build_services
 from service.main import create_app
 from service.tables import ApiKey, Job, Texture
-from tests.service.conftest import brick_png
-
-from .conftest import PROBLEM, database_settings, make_settings
+from tests.helpers import brick_png
+from tests.reliability.helpers import PROBLEM, database_settings, make_settings
 
 
 @pytest.fixture(scope="module")

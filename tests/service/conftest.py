@@ -2,44 +2,18 @@
 (huey immediate mode), SQLite and local storage in a temporary folder."""
 from __future__ import annotations
 
-import io
 import os
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from PIL import Image
 
 from service.context import Services, build_services
 from service.main import create_app
 from service.settings import Settings
-from tests.conftest import fresh_postgres_database
-
-
-def brick_png(size: int = 96, rgba: bool = False) -> bytes:
-    """A real texture photo (scikit-image's CC0 brick wall), cropped small for speed."""
-    from skimage import data
-
-    grey = data.brick()[:size, :size]
-    rgb = np.stack([grey, (grey * 0.8).astype(np.uint8), (grey * 0.6).astype(np.uint8)], axis=-1)
-    if rgba:
-        rgb = np.concatenate([rgb, np.full(grey.shape + (1,), 200, np.uint8)], axis=-1)
-    buf = io.BytesIO()
-    Image.fromarray(rgb).save(buf, "PNG")
-    return buf.getvalue()
-
-
-def shaded_png() -> bytes:
-    """The brick photo under a light falling off to the right (0.4x at the far side)."""
-    from worker.colour import linear_to_srgb8, srgb_to_linear
-
-    rgb = np.asarray(Image.open(io.BytesIO(brick_png(128))).convert("RGB"), np.float32) / 255
-    shade = np.linspace(1.0, 0.4, rgb.shape[1], dtype=np.float32)[None, :, None]
-    buf = io.BytesIO()
-    Image.fromarray(linear_to_srgb8(srgb_to_linear(rgb) * shade)).save(buf, "PNG")
-    return buf.getvalue()
+from tests.helpers import brick_png, fresh_postgres_database
+from tests.service.helpers import upload_photo
 
 
 @pytest.fixture(scope="session")
@@ -76,18 +50,6 @@ def services(settings: Settings) -> Iterator[Services]:
 def client(services: Services) -> Iterator[TestClient]:
     with TestClient(create_app(services=services)) as client:
         yield client
-
-
-def upload_photo(client: TestClient, photo: bytes, **form: str) -> dict:
-    """POST a PNG to /v1/textures (``form``: e.g. name=...); the 201 answer's texture."""
-    res = client.post("/v1/textures", files={"image": ("brick.png", photo, "image/png")}, data=form)
-    assert res.status_code == 201, res.text
-    return res.json()
-
-
-def tile_url(texture: dict, z: int, x: int, y: int, fmt: str = "png") -> str:
-    """The API path of tile (z, x, y) of an uploaded texture."""
-    return f"/v1/textures/{texture['id']}/tiles/{z}/{x}/{y}.{fmt}"
 
 
 @pytest.fixture

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from service.cli import build_parser, main
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 
 MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"
 REPO = Path(__file__).resolve().parents[2]

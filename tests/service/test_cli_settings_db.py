@@ -16,7 +16,7 @@ from service.cli import main
 from service.db import migrate
 from service.settings import PACKAGED_MODEL_DIR, Settings
 from service.tables import Base
-from tests.service.conftest import brick_png, shaded_png
+from tests.helpers import brick_png, shaded_png
 
 MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"
 

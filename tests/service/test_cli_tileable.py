@@ -10,7 +10,7 @@ from PIL import Image
 
 from service.cli import main
 from service.settings import Settings
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 from tests.service.test_cli_errors import refused, tree
 
 

@@ -197,3 +197,17 @@ def test_bake_sends_list_fields_the_app_accepts(client, texture, tmp_path: Path)
         with pytest.raises(ApiError) as info:
             ts.bake(texture["id"], mesh, maps=["gloss"])
     assert info.value.status == 422
+
+
+def test_limits_are_the_servers_read_once() -> None:
+    """limits() asks GET /v1/limits once per client and answers the server's numbers."""
+    served = {"max_tile_size": 512, "planes": ["xy", "xz", "yz"], "fit_seconds": 45.0, "max_fit_seconds": 600.0}
+    calls: list[str] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        calls.append(request.url.path)
+        return httpx.Response(200, json=served)
+
+    with client_for(handler) as ts:
+        assert ts.limits() == served and ts.limits()["fit_seconds"] == 45.0
+    assert calls == ["/v1/limits"]

@@ -265,7 +265,7 @@ def test_fit_of_an_evened_texture_sees_the_photo_as_its_encoding_did(fit_client,
     resolution (16-bit TIFF; model.fit reads it with the service's reader), its colour table
     made from the same; the texture keeps the photo that was sent."""
     from worker.images import read_image, working_photo
-    from tests.service.conftest import shaded_png
+    from tests.helpers import shaded_png
 
     shaded = shaded_png()
     created = fit_client.post("/v1/textures", files={"image": ("shaded.png", shaded, "image/png")},

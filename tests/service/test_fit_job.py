@@ -12,7 +12,6 @@ pytestmark = pytest.mark.slow
 
 def test_fit_job_makes_a_texture_with_its_own_sampler(client, texture) -> None:
     pytest.importorskip("torch", reason="fitting needs the train extra")
-    pytest.importorskip("model.fit", reason="model/fit.py not present yet")
     res = client.post(texture["links"]["fit"], json={"seconds": 3})
     assert res.status_code == 202, res.text
     job = client.get(res.json()["links"]["self"]).json()

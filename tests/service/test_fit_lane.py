@@ -16,7 +16,7 @@ import pytest
 from service import jobs, keys
 from service.db import session_scope
 from service.tables import Job, utcnow
-from tests.service.conftest import upload_photo
+from tests.service.helpers import upload_photo
 
 from .test_refinement import refining, run_fit_lane  # noqa: F401 (fixtures)
 from .test_fit_grain import FAKE_INTERIM_CODE

@@ -125,6 +125,17 @@ def test_bake_with_maps_and_gpu_texture(client, texture) -> None:
     done = client.get(only_normal.json()["links"]["self"]).json()
     assert done["state"] == "succeeded" and done["result"]["media_type"] == "model/gltf-binary"
     assert done["result"]["height_range"] is None
+    # a KTX2 goes inside the GLB (KHR_texture_basisu) beside the material maps: the result stays a GLB
+    with_ktx2 = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                            data={"resolution": "64", "maps": ["normal", "roughness"], "gpu_format": "ktx2"})
+    done = client.get(with_ktx2.json()["links"]["self"]).json()
+    assert done["state"] == "succeeded" and done["result"]["media_type"] == "model/gltf-binary"
+    assert done["result"]["filename"] == f"{stem}.glb"
+    glb = client.get(done["links"]["result"]).content
+    gltf = json.loads(glb[20:20 + int.from_bytes(glb[12:16], "little")])
+    assert gltf["extensionsUsed"] == ["KHR_texture_basisu"] and gltf["images"][-1]["mimeType"] == "image/ktx2"
+    assert {"normalTexture", "pbrMetallicRoughness"} <= set(gltf["materials"][0])
+    assert "metallicRoughnessTexture" in gltf["materials"][0]["pbrMetallicRoughness"]
     bad = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)}, data={"maps": "gloss"})
     assert bad.status_code == 422
 
@@ -293,6 +304,25 @@ def test_reaper_requeues_expired_lease_then_fails(held, photo) -> None:
     body = client.get(f"/v1/jobs/{job['id']}").json()
     assert body["state"] == "failed" and "lease expired" in body["error"]["detail"]
     assert services.huey.pending_count() == services.settings.max_attempts - 1
+
+
+def test_reaper_ends_a_canceled_job_whose_worker_died_as_canceled(held, photo) -> None:
+    # The cancel ends it, whatever attempts are left: its error said "giving up after 3"
+    # while its state was canceled.
+    client, services = held
+    job = submit_volume(client, upload(client, photo))
+    services.huey.flush()
+    assert jobs.claim(services, job["id"]).attempt == 1  # a worker takes it ...
+    assert client.post(f"/v1/jobs/{job['id']}/cancel").json()["cancel_requested"]
+    with services.sessions.begin() as session:  # ... and dies before it sees the cancel
+        session.execute(update(Job).where(Job.id == job["id"]).values(
+            lease_expires_at=dt.datetime.now(dt.timezone.utc) - dt.timedelta(seconds=1)))
+    jobs.reap(services)
+    body = client.get(f"/v1/jobs/{job['id']}").json()
+    assert body["state"] == "canceled" and body["attempt"] == 1
+    assert body["error"]["type"] == "urn:texspace:problem:canceled", body["error"]
+    assert "canceled" in body["error"]["detail"] and "giving up" not in body["error"]["detail"]
+    assert services.huey.pending_count() == 0
 
 
 def test_requeued_job_runs_to_success(held, photo) -> None:

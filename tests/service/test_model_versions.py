@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 from service.context import build_services
 from service.main import create_app
 from service.settings import PACKAGED_MODEL_DIR, Settings
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 
 
 def second_model(folder: Path) -> Path:

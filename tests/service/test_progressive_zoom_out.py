@@ -1,4 +1,4 @@
-"""Progressive zoom-out (issue 15, the default): a cold zoomed-out tile is answered at once
+"""Progressive zoom-out (the default): a cold zoomed-out tile is answered at once
 with a preview at a native tile's cost, and the exact (supersampled) tile, rendered behind
 it, replaces it: revalidating the preview gives 304 until then, the exact tile after."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 from service import tiles as service_tiles
 from worker.tiles import NATIVE_ZOOM
 
-from tests.service.conftest import tile_url
+from tests.service.helpers import tile_url
 
 N = NATIVE_ZOOM
 SIZE = {"size": 64}

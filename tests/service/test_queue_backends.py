@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 
 from service.context import build_services
 from service.main import create_app
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 
 
 @pytest.fixture(params=["sqlite", "redis", "postgres"])

@@ -19,7 +19,7 @@ from service.main import create_app
 from service.recolour import recolour_textures, stale_colour_textures, warn_if_stale
 from service.settings import Settings
 from service.tables import Texture
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 from tests.service.test_model_versions import second_model
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures, calibrate_texture, identity_colour
 from worker.images import encode_texture, read_image, working_photo

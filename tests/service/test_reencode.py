@@ -17,7 +17,7 @@ from service.main import create_app
 from service.reencode import reencode_textures
 from service.settings import PACKAGED_MODEL_DIR, Settings
 from service.tables import Job, Texture
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 from tests.service.test_model_versions import second_model
 from worker.colour_match import blend_textures
 from worker.images import encode_texture, read_image

@@ -8,7 +8,8 @@ import OpenImageIO as oiio
 import pytest
 from PIL import Image
 
-from tests.service.conftest import brick_png, shaded_png, upload_photo
+from tests.helpers import brick_png, shaded_png
+from tests.service.helpers import upload_photo
 
 PROBLEM = "application/problem+json"
 

@@ -1,4 +1,4 @@
-"""Tileable regions through the API (issue 18): the option, its 422 and 409 refusals, and
+"""Tileable regions through the API: the option, its 422 and 409 refusals, and
 fitted textures (whose fit stores a tileable sampler beside its sampler).
 
 The fit is a stand-in ``model.fit`` (as in test_fit_grain.py) that writes the shipped
@@ -23,7 +23,7 @@ from service.context import build_services
 from service.db import session_scope
 from service.main import create_app
 from service.tables import Texture
-from tests.service.conftest import upload_photo
+from tests.service.helpers import upload_photo
 from worker.errors import FeatureUnavailable
 
 MODEL_DIR = Path(__file__).resolve().parents[2] / "model" / "weights"

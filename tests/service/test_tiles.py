@@ -9,7 +9,7 @@ from PIL import Image
 
 from worker.tiles import MAX_ZOOM, NATIVE_ZOOM
 
-from tests.service.conftest import tile_url
+from tests.service.helpers import tile_url
 
 
 def test_png_tile_decodes_with_right_size(client, texture) -> None:

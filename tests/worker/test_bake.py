@@ -282,7 +282,7 @@ def test_cancel_ends_the_atlas_child(waves, meshes, tmp_path, atlas_fault):
     assert time.monotonic() - started < 10
 
 
-# --- vertex normals (issue 18: meshes that shade well) ---------------------------------
+# --- vertex normals (meshes that shade well) --------------------------------------------
 
 def glb_json_and_arrays(path):
     """The glTF JSON of a GLB and its accessors as numpy arrays (float32 / uint32 only)."""

@@ -7,7 +7,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from tests.worker.gpu_readers import read_dds_levels, read_ktx2
+from tests.worker.gpu_readers import assert_block_compressed_close, read_dds_levels, read_ktx2
 from worker.colour import linear_to_srgb, linear_to_srgb8
 from worker.derived_maps import decode_normals8, height_map, normal_map, read_height_range
 from worker.gpu_textures import mip_chain
@@ -51,7 +51,7 @@ def test_single_image_formats(runtime, code, expected, tmp_path, fmt, tolerance)
     if fmt == "png":
         assert np.array_equal(np.round(pixels * 255).astype(np.uint8), linear_to_srgb8(expected))
     elif fmt == "tiff":
-        assert spec.tile_width == 256 and np.abs(pixels - linear_to_srgb(expected)).max() < tolerance
+        assert spec.tile_width == 0 and np.abs(pixels - linear_to_srgb(expected)).max() < tolerance   # strips
     else:
         assert np.abs(pixels - expected).max() < tolerance
     assert os.listdir(tmp_path) == [f"r.{fmt}"]
@@ -64,7 +64,8 @@ def test_gpu_formats_carry_the_mip_chain(runtime, code, expected, tmp_path, fmt)
     sizes = [(70, 150), (35, 75), (17, 37), (8, 18), (4, 9), (2, 4), (1, 2), (1, 1)]
     assert [lv.shape[:2] for lv in levels] == sizes
     for got, want in zip(levels, mip_chain(expected)):
-        assert np.array_equal(got[..., :3], linear_to_srgb8(want))
+        # BC1 / UASTC blocks: near, not equal
+        assert_block_compressed_close(got[..., :3], linear_to_srgb8(want), mean=6, worst=64)
     assert os.listdir(tmp_path) == [f"r.{fmt}"]
 
 

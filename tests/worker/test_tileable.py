@@ -1,4 +1,4 @@
-"""Tileable regions (issue 18): the image repeats exactly, so tiled 2 x 2 it has no seam.
+"""Tileable regions: the image repeats exactly, so tiled 2 x 2 it has no seam.
 
 Seam statistic: the mean |difference| between neighbouring columns (rows), for each of the
 N - 1 interior lines of the image and for the wrap (last column against the first, which is
@@ -87,7 +87,7 @@ def test_tileable_256_has_no_seam(runtime, vector, tmp_path):
 
 @pytest.mark.slow
 def test_tileable_2048_has_no_seam(runtime, vector, tmp_path):
-    """Done-when of issue 18: a tileable 2048^2 export tiled 2 x 2 has no detectable seam."""
+    """The product promise: a tileable 2048^2 export tiled 2 x 2 has no detectable seam."""
     scores = check_seamless(runtime, vector, tmp_path, 2048, seeds=[0])
     print("seam z-scores (columns, rows):", scores["tileable"], "plain:", scores["plain"])
     print("linear mean / std, tileable vs plain:", scores["stats"])

@@ -173,7 +173,7 @@ def test_far_tiles_look_like_near_tiles(tile, x, y):
     assert len(np.unique(far.reshape(-1, 3), axis=0)) > far.shape[0] * far.shape[1] // 2
 
 
-# --- parents from children, bounded zoom-out (issue 15) -------------------------------------
+# --- parents from children, bounded zoom-out ------------------------------------------------
 
 @pytest.mark.parametrize("levels", [1, 2])
 def test_parent_from_children_is_bit_identical(runtime, code, tile, levels):

@@ -1,4 +1,4 @@
-"""owners: textures and jobs belong to the API key that created them (issue 6)
+"""owners: textures and jobs belong to the API key that created them
 
 Revision ID: 0002
 Revises: 0001

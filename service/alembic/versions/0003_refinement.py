@@ -1,4 +1,4 @@
-"""refinement: an upload's in-place fit job and the encoder's code it replaces (issue 14)
+"""refinement: an upload's in-place fit job and the encoder's code it replaces
 
 Revision ID: 0003
 Revises: 0002

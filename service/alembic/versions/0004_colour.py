@@ -1,4 +1,4 @@
-"""colour: each texture's colour table, and the one of its encoder code (issue 14)
+"""colour: each texture's colour table, and the one of its encoder code
 
 Revision ID: 0004
 Revises: 0003

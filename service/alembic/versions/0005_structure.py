@@ -1,4 +1,4 @@
-"""structure: what a fit found in the photo and built in (grain axis, repeat lattice) (issue 14)
+"""structure: what a fit found in the photo and built in (grain axis, repeat lattice)
 
 Revision ID: 0005
 Revises: 0004

@@ -1,4 +1,4 @@
-"""lighting: whether a texture's photo is encoded and fitted with its shading evened out (issue 14)
+"""lighting: whether a texture's photo is encoded and fitted with its shading evened out
 
 Revision ID: 0006
 Revises: 0005

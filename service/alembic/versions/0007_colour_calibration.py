@@ -1,4 +1,4 @@
-"""colour_calibration: the recipe a texture's colour tables were made by (issue 14)
+"""colour_calibration: the recipe a texture's colour tables were made by
 
 Rows from before it hold NULL: their tables are of an unknown (older) recipe, and
 ``texspace recolour`` computes them again.

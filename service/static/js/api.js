@@ -355,6 +355,18 @@ export async function cancelJob(id) {
   return (await request(`jobs/${id}/cancel`, { method: 'POST' })).body;
 }
 
+let limits = null;
+
+/**
+ * The server's limits (GET /v1/limits: tile sizes and planes, volume and bake resolutions,
+ * a fit's default and longest budget, ...), fetched once: the page reads its numbers here
+ * instead of copying them. A failed fetch is asked again next time.
+ */
+export function getLimits() {
+  limits ||= request('limits').then(({ body }) => body, (error) => { limits = null; throw error; });
+  return limits;
+}
+
 /** `{items: [{version, manifest, ...}], default}` */
 export async function listModels() {
   return (await request('models')).body;

@@ -92,7 +92,7 @@ def images() -> dict[str, bytes]:
                                    lossless=True),
         "bomb_60000x60000.png": png_bomb(),
         # under the pixel limit, but the upscale of the short side to the working size had
-        # no bound: 45.8 GiB tried (issue 19); 16 x 16,000 cost 10-25 s and +800 MB
+        # no bound: it tried to allocate 45.8 GiB; 16 x 16,000 cost 10-25 s and +800 MB
         "thin_16x1000000.png": thin_png(16, 1_000_000),
         "strip_16x16000.png": thin_png(16, 16_000),
     }

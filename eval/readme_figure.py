@@ -1,7 +1,7 @@
 """The README's picture: exemplar photos beside tiles synthesised from their codes.
 
     make readme-figure      # needs `make data` (the photos) and the shipped model
-    python docs/make_readme_figure.py [OUT] [--fits DIR]
+    python -m eval.readme_figure [OUT] [--fits DIR]
 
 Each row: the exemplar at the model's working resolution (256 px crop) | native-zoom
 tile 6/0/0 (256 px) at seed 1 | the same tile at seed 2, all through the service's own

@@ -4,15 +4,15 @@
 was stretched over (the same numbers as its PNG's ``texspace:height_min`` / ``_max`` text).
 NULL for results without one.
 
-Revision ID: 0010
-Revises: 0009
+Revision ID: 0011
+Revises: 0010
 Create Date: 2026-12-02
 """
 import sqlalchemy as sa
 from alembic import op
 
-revision = "0010"
-down_revision = "0009"
+revision = "0011"
+down_revision = "0010"
 branch_labels = None
 depends_on = None
 

@@ -1,6 +1,6 @@
 """Training on a lent GPU machine that takes at most 64 MiB of files and has no network.
 
-    python docs/notes/gpu_pack.py pack gpu [OPTIONS]          # here (make gpu-pack): writes gpu/
+    python -m eval.gpu_pack pack gpu [OPTIONS]                # here (make gpu-pack): writes gpu/
     python3 gpu/gpu_pack.py train [CHECKPOINT] -- TRAIN_ARGS  # there: model.train with the packed files
     python3 gpu/gpu_pack.py slim CHECKPOINT OUT               # there: the run's checkpoint, small enough to come back
     python3 gpu/gpu_pack.py fit PHOTO OUTDIR -- FIT_ARGS      # there: model.fit (add --device cuda)
@@ -30,8 +30,8 @@ RNG states kept), 2.8 MB for the shipped architecture instead of 16.7: a full ch
 does not fit beside the tree, the VGG and the photos. A resumed slim run restarts Adam's
 moments (as ``--init`` does) and goes on from its step. ``fit`` runs ``model.fit`` (its
 CLI) with the same VGG weights; a fit writes ``fit.pt`` before its ONNX export. The shipped
-space's two calls: docs/notes/model-history.md, "Isotropic transforms trained"; the large
-corpus's recipe: docs/DATA.md, "Training on a lent GPU".
+space's runs: the model card's "The shipped space"; the large corpus's recipe: docs/DATA.md,
+"Training on a lent GPU".
 """
 from __future__ import annotations
 

@@ -1,24 +1,18 @@
-"""docs/eval/structure.py: its degraded copies and how a run is summarised (no packaged
+"""eval/structure.py: its degraded copies and how a run is summarised (no packaged
 photos needed: a synthetic tile grid stands in)."""
 from __future__ import annotations
-
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-pytest.importorskip("torch", reason="docs/eval/structure.py imports model/ (the train extra)")
-
-SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "eval" / "structure.py"
+pytest.importorskip("torch", reason="eval/structure.py imports model/ (the train extra)")
 
 
 @pytest.fixture(scope="module")
 def structure():
-    spec = importlib.util.spec_from_file_location("eval_structure", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    import eval.structure
+
+    return eval.structure
 
 
 def test_shading_darkens_the_corners_and_ramps_across(structure):

@@ -1,7 +1,7 @@
-"""Product-level quality protocol (issue 14): what a user gets from an upload, measured.
+"""Product-level quality protocol: what a user gets from an upload, measured.
 
     make quality
-    python docs/eval/quality.py --model-dir model/weights [--model-dir DIR --label NAME ...] \
+    python -m eval.quality --model-dir model/weights [--model-dir DIR --label NAME ...] \
         --exemplars data/textures/val --out docs/eval/quality
 
 Everything goes through the product path, never through torch models: the photo is
@@ -30,7 +30,7 @@ model's working resolution, short side ``exemplar_short_side``):
   independent per channel (``rgb``) and luminance-only (``lum``: one noise scaled per
   channel); the one with the lower error on that photo is the baseline (the stronger
   one; its name is reported). Win: ours < baseline. Target: wins on >= 80% of photos;
-* style over the photo's floor (issue 48, ``eval/style_floor.py``): the same Gram error on
+* style over the photo's floor (``eval/style_floor.py``): the same Gram error on
   128^2 crops at the working size. The photo's floor: each of its four corner crops against
   the mean Gram of the other three, averaged. A synthesis's error: each quadrant of each of
   the 8 tiles against the mean Gram of the four corner crops, averaged. Ratio = error /
@@ -73,9 +73,8 @@ from worker.images import encode_texture, read_image, resize_short_side
 from worker.runtime import ModelRuntime, SamplerSession
 from worker.tiles import NATIVE_ZOOM, render_tile
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for eval/ (not installed)
-from eval.by_example import TRIANGLE_EDGE, by_example_tile, gaussianise  # noqa: E402
-from eval.style_floor import CROP, crop_errors, photo_floor, style_ratio, vgg_features  # noqa: E402
+from eval.by_example import TRIANGLE_EDGE, by_example_tile, gaussianise
+from eval.style_floor import CROP, crop_errors, photo_floor, style_ratio, vgg_features
 
 TILE = 256
 POSITIONS = ((0, 0), (1, 0), (0, 1), (1, 1))  # tile (x, y) at native zoom
@@ -294,7 +293,7 @@ def summarise(rows: list[dict]) -> dict:
                                            default=None),
         "oblique_over_axis_pattern_2d": sorted(r["oblique_over_axis"] for r in rows if r.get("pattern_2d")),
         "mean_style": float(np.mean([r["style"]["ours"] for r in rows])),
-        # style error over the photo's floor (issue 48): medians over photos; by-example and
+        # style error over the photo's floor (a ratio comparable across photos): medians over photos; by-example and
         # value noise are the model's own baselines (the same for models of one working size)
         "median_floor_ratio": median_ratio(rows, "ratio"),
         "median_floor_ratio_by_example": median_ratio(rows, "by_example_ratio"),
@@ -339,7 +338,7 @@ def floor_table(report: dict) -> list[str]:
     columns = encoders + (fits or [None])  # None: the fit column, left empty
     first = models[encoders[0]]  # its baselines (at its working size) fill the baseline columns
     fmt = lambda v: "" if v is None else f"{v:.2f}"  # noqa: E731
-    lines = ["", "## Style error over the photo's own floor (issue 48)", "",
+    lines = ["", "## Style error over the photo's own floor", "",
              f"VGG Gram error of {CROP}^2 crops at the working size, divided by the photo's floor: its four "
              f"corner crops, each against the mean Gram of the other three (mean of the four). Syntheses: the "
              f"quadrants of the 8 tiles, each against the mean Gram of the four corners. ~1: as close to the "
@@ -369,7 +368,7 @@ def to_markdown(report: dict) -> str:
     per-photo table per model."""
     f3 = lambda values: "/".join(f"{v:.2f}" for v in values)  # noqa: E731
     mark = lambda ok: "" if ok else " **x**"  # noqa: E731
-    lines = ["# Product quality (issue 14)", "", "Through encoder.onnx + sampler.onnx (worker/). Colour: CIELAB of the "
+    lines = ["# Product quality", "", "Through encoder.onnx + sampler.onnx (worker/). Colour: CIELAB of the "
              "photo vs native-zoom tiles (x, y in {0,1}, seeds 1, 2). Std ratio: tile / photo, L/a/b. Style: VGG Gram "
              "error, ours vs the stronger colour-matched value-noise baseline. Targets: dE76 < 5, std ratio in "
              "[0.7, 1.4], wins >= 80%, diversity > 0, oblique / axis <= 1.5 (pooled over photos, and the "

@@ -1,4 +1,4 @@
-"""docs/notes/gpu_pack.py's corpus choice (issue 48): the licence filter, the family round
+"""eval/gpu_pack.py's corpus choice: the licence filter, the family round
 robin and the size-bounded photo writing, on synthetic photos; and model.train's flags for a
 new space's architecture (--code-size, --encoder-width, --hidden)."""
 from __future__ import annotations
@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def gpu_pack():
-    spec = importlib.util.spec_from_file_location("gpu_pack_large", ROOT / "docs" / "notes" / "gpu_pack.py")
+    spec = importlib.util.spec_from_file_location("gpu_pack_large", ROOT / "eval" / "gpu_pack.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

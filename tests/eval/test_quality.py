@@ -1,23 +1,17 @@
-"""docs/eval/quality.py: the value-noise baseline (pure numpy; no model, no VGG run)."""
+"""eval/quality.py: the value-noise baseline (pure numpy; no model, no VGG run)."""
 from __future__ import annotations
-
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-pytest.importorskip("torch", reason="docs/eval/quality.py imports model/ (the train extra)")
-
-SCRIPT = Path(__file__).resolve().parents[2] / "docs" / "eval" / "quality.py"
+pytest.importorskip("torch", reason="eval/quality.py imports model/ (the train extra)")
 
 
 @pytest.fixture(scope="module")
 def quality():
-    spec = importlib.util.spec_from_file_location("eval_quality", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    import eval.quality
+
+    return eval.quality
 
 
 def test_value_noise_is_deterministic_per_seed(quality):
@@ -78,7 +72,7 @@ def test_the_worst_photo_oblique_target_leaves_out_2d_pattern_fits_and_reports_t
 
 
 def floor_row(ratio: float, by_example: float, value_noise: float, floor: float = 0.01) -> dict:
-    """quality_row with the style-over-floor figures measure_photo adds (issue 48)."""
+    """quality_row with the style-over-floor figures measure_photo adds."""
     row = quality_row(1.0)
     row["style"].update(baseline=0.2, baseline_kind="lum")  # what the per-photo tables read
     row["diversity"] = 0.1
@@ -99,7 +93,7 @@ def test_the_summary_gives_median_ratios_over_the_floor(quality):
     # a photo without a floor (ratio None) is left out of the median, not counted as 0
     rows[2]["style_floor"]["ratio"] = None
     assert quality.summarise(rows)["median_floor_ratio"] == 2.25
-    # reports from before issue 48 have no floor figures
+    # reports from before the floor was measured have no floor figures
     assert quality.summarise([quality_row(1.0)])["median_floor_ratio"] is None
 
 

@@ -1,4 +1,4 @@
-"""docs/notes/gpu_pack.py's stand-in for worker.decode, used on a GPU machine without
+"""eval/gpu_pack.py's stand-in for worker.decode, used on a GPU machine without
 OpenImageIO: it must give model.data every name it imports, and the same pixels.
 
 A missing name there costs a lent GPU machine's start (a call once died on
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-pytest.importorskip("torch", reason="docs/notes/gpu_pack.py imports torch (the train extra)")
+pytest.importorskip("torch", reason="eval/gpu_pack.py imports torch (the train extra)")
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -36,7 +36,7 @@ def stand_in(monkeypatch, real):
     monkeypatch.delitem(sys.modules, "worker.decode")
     monkeypatch.setitem(sys.modules, "OpenImageIO", sys.modules["OpenImageIO"])
     monkeypatch.setattr(worker, "decode", real)
-    spec = importlib.util.spec_from_file_location("gpu_pack", ROOT / "docs" / "notes" / "gpu_pack.py")
+    spec = importlib.util.spec_from_file_location("gpu_pack", ROOT / "eval" / "gpu_pack.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     module._pillow_reader()

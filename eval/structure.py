@@ -1,9 +1,9 @@
 """What ``model.structure.photo_structure`` finds, on the packaged photos and on photos cut
-and turned from them as a user might take them: the reference the notes' structure figures
-come from, to diff after a change to a detector.
+and turned from them as a user might take them: the reference to diff after a change to a
+detector (docs/DECISIONS.md's structure figures come from it).
 
     make structure
-    python docs/eval/structure.py --out docs/eval/structure
+    python -m eval.structure --out docs/eval/structure
 
 Every photo is read as a fit reads it (``model.data.load_exemplar``: short side 256,
 unquantised). Cut-outs are taken from the photo at that size, rounded to 8 bits (as a saved
@@ -46,8 +46,7 @@ from model.structure import photo_structure, same_lattice, straighten
 from worker.decode import read_image
 from worker.images import resize_short_side
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository, for its test photos
-from tests.model.photos import hexagonal_tiles  # noqa: E402
+from tests.model.photos import hexagonal_tiles  # the synthetic tilings the tests use too
 
 SHORT_SIDE = 256
 CROP_SIDES, CROP_OFFSETS = (100, 128, 160, 200, 230), (0, 37)
@@ -148,7 +147,7 @@ def measure(data: Path) -> dict[str, list[dict]]:
 
 def to_markdown(rows: dict[str, list[dict]]) -> str:
     lines = ["# What model/structure.py finds", "",
-             "`make structure` (docs/eval/structure.py). Lattices in px at the working resolution (ax, ay, bx, by; x right, "
+             "`make structure` (eval/structure.py). Lattices in px at the working resolution (ax, ay, bx, by; x right, "
              "y down); close-ups, hexagonal tiles: right when the same lattice as the truth to a twentieth of a step; turns: "
              "the upright photo's lattice turned, to 0.08 of a step.", ""]
     def right(section: str) -> str:
