@@ -4,8 +4,8 @@ xatlas can run for minutes and segfaults on some inputs (a regular subdivided
 icosphere, an open upstream bug), so it never runs in the worker process: a fresh
 ``python -m worker.atlas`` child gets the mesh through a temporary .npz, runs under
 ``RLIMIT_AS`` (memory) and ``RLIMIT_CPU`` plus a wall-clock timeout, and writes the
-result to another .npz. A crash, a kill, a timeout or a missing result raises
-``AtlasFailed``; the caller lives on. ``should_cancel`` is polled while the child runs:
+result to another .npz. After a crash, a kill, a timeout or a missing result the atlas is
+made of box-projected charts instead (``worker.box_charts``, in-process, numpy). ``should_cancel`` is polled while the child runs:
 when it turns true the child is killed and ``Canceled`` raised.
 
 Output UVs follow the OBJ/glTF-in-trimesh convention (v up): xatlas's v points down
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -33,17 +34,23 @@ from typing import Callable
 
 import numpy as np
 
+from worker.box_charts import box_charts
 from worker.errors import AtlasFailed, Canceled
+
+log = logging.getLogger(__name__)
 
 # The module the child runs (``python -m``): its ``__main__`` reads in.npz, writes out.npz.
 # Tests swap in one that crashes or hangs, to check the parent contains it.
 CHILD_MODULE = "worker.atlas"
 POLL_SECONDS = 0.2   # how often a running child is checked for cancel and timeout
-CACHE_FORMAT = 1     # bump when the stored arrays or their meaning change
+CACHE_FORMAT = 2     # bump when the stored arrays or their meaning change
 DEFAULT_CACHE_BYTES = 512 * 2**20
 # xatlas options beyond resolution and padding (attribute names of xatlas.ChartOptions /
 # PackOptions). Defaults measured best on the 100k-face bench mesh (docs/PERFORMANCE.md).
 CHART_OPTIONS: dict = {}
+# The share of the atlas budget xatlas gets before the box-projected charts take over: a noisy
+# 100k-face scan ran 415 s in xatlas on a busy 2-core machine; its box charts take 0.2 s.
+XATLAS_SHARE = 0.5
 PACK_OPTIONS: dict = {"bilinear": True, "bruteForce": False}
 
 
@@ -98,12 +105,17 @@ def parametrize(vertices: np.ndarray, faces: np.ndarray, *, resolution: int, pad
                 timeout: float = 120.0, memory_bytes: int = 2 << 30,
                 should_cancel: Callable[[], bool] | None = None,
                 cache_dir: str | os.PathLike | None = None,
-                cache_bytes: int = DEFAULT_CACHE_BYTES) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                cache_bytes: int = DEFAULT_CACHE_BYTES) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     """Run xatlas in a limited child process, or load its earlier result from ``cache_dir``.
 
     vertices : (V, 3) float64, faces : (F, 3) int64.
     Returns (vmap (V',) int64 original vertex of each new vertex, faces (F, 3) int64 into
-    the new vertices, uv (V', 2) float64 in [0, 1], v up).
+    the new vertices, uv (V', 2) float64 in [0, 1], v up, the method: "xatlas" or "box").
+
+    xatlas gets ``XATLAS_SHARE`` of ``timeout``; when it crashes or runs out of it, the
+    atlas is made of box-projected charts (``worker.box_charts``: well under a second for
+    200k faces, about half the texel use of xatlas's, stretch as low), so a mesh xatlas
+    cannot unwrap in time is still baked.
     """
     key = path = None
     if cache_dir is not None:
@@ -112,8 +124,13 @@ def parametrize(vertices: np.ndarray, faces: np.ndarray, *, resolution: int, pad
         hit = _cache_load(path, len(vertices), len(faces))
         if hit is not None:
             return hit
-    result = _run_child(vertices, faces, resolution=resolution, padding=padding, timeout=timeout,
-                        memory_bytes=memory_bytes, should_cancel=should_cancel)
+    try:
+        result = (*_run_child(vertices, faces, resolution=resolution, padding=padding,
+                              timeout=timeout * XATLAS_SHARE, memory_bytes=memory_bytes,
+                              should_cancel=should_cancel), "xatlas")
+    except AtlasFailed as exc:  # (a cancel is not a failure: it propagates)
+        log.warning("xatlas gave no atlas (%s); box-projected charts instead", exc.detail)
+        result = (*box_charts(vertices, faces, resolution=resolution, padding=padding), "box")
     if path is not None:
         _cache_store(path, result, cache_bytes)
     return result
@@ -139,11 +156,12 @@ def _xatlas_version() -> str:
 
 
 def _cache_load(path: str, n_vertices: int, n_faces: int):
-    """The cached (vmap, faces, uv), or None when absent or not a valid atlas of this mesh."""
+    """The cached (vmap, faces, uv, method), or None when absent or not a valid atlas of this mesh."""
     try:
         with np.load(path) as out:
             vmap, faces, uv = (out["vmap"].astype(np.int64), out["faces"].astype(np.int64),
                                out["uv"].astype(np.float64))
+            method = str(out["method"])
     except (OSError, KeyError, ValueError, EOFError):
         return None
     ok = (faces.shape == (n_faces, 3) and uv.shape == (len(vmap), 2) and len(vmap) > 0
@@ -155,7 +173,7 @@ def _cache_load(path: str, n_vertices: int, n_faces: int):
         os.utime(path)               # most recently used: evicted last
     except OSError:
         pass
-    return vmap, faces, uv
+    return vmap, faces, uv, method
 
 
 def _cache_store(path: str, result, cache_bytes: int) -> None:
@@ -166,8 +184,8 @@ def _cache_store(path: str, result, cache_bytes: int) -> None:
         os.makedirs(folder, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=folder, suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
-            vmap, faces, uv = result
-            np.savez(f, vmap=vmap.astype(np.int32), faces=faces.astype(np.int32), uv=uv)
+            vmap, faces, uv, method = result
+            np.savez(f, vmap=vmap.astype(np.int32), faces=faces.astype(np.int32), uv=uv, method=method)
         os.replace(tmp, path)
         entries = []
         for name in os.listdir(folder):

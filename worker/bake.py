@@ -98,7 +98,7 @@ class BakeLimits:
 class BakeResult:
     path: Path
     exr_path: Path | None
-    uv_source: str                  # "mesh" or "xatlas"
+    uv_source: str                  # "mesh", "xatlas" or "box" (worker/box_charts.py, when xatlas gives none)
     resolution: int
     scale: float
     covered: np.ndarray = field(repr=False)   # (R, R) bool: texels evaluated by the sampler
@@ -540,12 +540,12 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
         normals_job = beside.submit(vertex_normals, mesh)
         uv_source, vmap = "mesh", None
         if not uvs_usable(uv, faces, resolution, vertices):
-            vmap, faces, uv = atlas.parametrize(
+            vmap, faces, uv, uv_source = atlas.parametrize(
                 vertices, faces, resolution=resolution, padding=max(1, padding // 2),
                 timeout=limits.atlas_timeout, memory_bytes=limits.atlas_memory_bytes,
                 should_cancel=should_cancel,
                 cache_dir=atlas_cache_dir, cache_bytes=atlas_cache_bytes)
-            vertices, uv_source = vertices[vmap], "xatlas"
+            vertices = vertices[vmap]
         timings["atlas"] = time.perf_counter() - clock
         step(0.3)
         # triplanar blends by the file's own normals when it has them all (its intended shading)
