@@ -158,6 +158,10 @@ def bench_bake(model_dir: Path, resolution: int = 2048, log=print) -> dict:
         f"p5/p95 {quality['area_ratio_p5_p95'][0]:.2f}/{quality['area_ratio_p5_p95'][1]:.2f}; repeated bake "
         f"{again_seconds:.2f} s = {repeat_excl / sampler_s:.2f} x sampler excl. atlas, "
         f"atlas {again.timings['atlas']:.3f} s (cached)")
+    box_s, box_quality = _box_charts_seconds(mesh, resolution)
+    log(f"  box charts (the fallback when xatlas crashes or runs past half the atlas budget), same mesh: "
+        f"{box_s:.2f} s = {box_s / result.timings['atlas']:.3f} x xatlas's {result.timings['atlas']:.2f} s; texel use "
+        f"{box_quality['uv_area']:.3f}, L2 stretch {box_quality['stretch_l2']:.3f}")
     triplanar_excl = triplanar_seconds - triplanar.timings["atlas"]
     log(f"  triplanar bake (a lattice fit's default; atlas cached): {triplanar_excl:.2f} s excl. atlas = "
         f"{triplanar_excl / repeat_excl:.2f} x the repeated solid bake's {repeat_excl:.2f} s")
@@ -172,7 +176,24 @@ def bench_bake(model_dir: Path, resolution: int = 2048, log=print) -> dict:
             "bake_2048_repeat_vs_sampler": repeat_excl / sampler_s,
             "bake_2048_repeat_atlas_s": again.timings["atlas"], "bake_2048_cpu_s": bake_cpu,
             "bake_2048_sampler_cpu_s": min(cpu_before, cpu_after), "bake_2048_cpu_vs_sampler": cpu_ratio,
-            "bake_2048_triplanar_excl_xatlas_s": triplanar_excl, "bake_2048_triplanar_vs_solid": triplanar_excl / repeat_excl}
+            "bake_2048_triplanar_excl_xatlas_s": triplanar_excl, "bake_2048_triplanar_vs_solid": triplanar_excl / repeat_excl,
+            "box_charts_s": box_s, "box_charts_vs_xatlas": box_s / result.timings["atlas"],
+            "box_charts_quality": box_quality}
+
+
+def _box_charts_seconds(mesh: bytes, resolution: int) -> tuple[float, dict]:
+    """Seconds of worker.box_charts on the bench mesh (best of two) and its atlas quality."""
+    from worker.atlas import atlas_quality
+    from worker.bake import BakeLimits, load_mesh
+    from worker.box_charts import box_charts
+
+    vertices, faces, _ = load_mesh(mesh, "bench.obj", BakeLimits())
+    times = []
+    for _ in range(2):
+        t = time.perf_counter()
+        vmap, new_faces, uv = box_charts(vertices, faces, resolution=resolution, padding=4)
+        times.append(time.perf_counter() - t)
+    return min(times), atlas_quality(vertices[vmap], new_faces, uv)
 
 
 def _sampler_seconds(runtime, code, points) -> tuple[float, float]:
