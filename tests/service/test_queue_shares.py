@@ -43,6 +43,8 @@ def test_an_upload_whose_fit_queue_is_full_is_deferred_then_refined(refining, ph
     assert jobs.reap(services)["refinements"] == 1
     now = client.get(f"/v1/textures/{third['id']}").json()
     assert now["refinement"]["stage"] == "queued" and now["refinement"]["job_id"] == deferred["job_id"]
+    assert jobs.reap(services)["refinements"] == 0  # queued once: its deferral is cleared (SQL NULL, not JSON null)
+    assert client.get(f"/v1/textures/{third['id']}").json()["refinement"]["job_id"] == deferred["job_id"]
     drain_fit_lane(services)
     assert [client.get(f"/v1/textures/{t['id']}").json()["sampler"] for t in (first, second, third)] == ["fitted"] * 3
 
