@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import json
+import math
 import shutil
 import zipfile
 from collections.abc import Callable
@@ -56,15 +57,20 @@ def _texture_to_render(services: Services, job: Job) -> Texture:
 
 
 def _store_result(services: Services, job: Job, path: Path, fmt: str, names: tuple[str, str],
-                  height_range: tuple[float, float] | None = None) -> dict[str, Any]:
+                  height_range: tuple[float, float] | None = None,
+                  texels_per_metre: float | None = None, scale: float | None = None) -> dict[str, Any]:
     """Store the result file at ``path``; ``names``: its download name's stem and that stem
     in ASCII (``service/download_names.py``), which the storage key uses. The extension is
     the file's own (a GLB bake with extra maps becomes a zip). ``height_range``: its height
-    map's luminance range, shown with the result."""
+    map's luminance range, ``texels_per_metre`` a bake's texel density at real size and
+    ``scale`` the world units per mesh unit it used, shown with the result."""
     shown, stored = names
     key = keys.result_key(job.id, stored + path.suffix)
     size = services.storage.put_file(key, path)
-    details = {"height_range": list(height_range)} if height_range is not None else None
+    details = {key: value for key, value in (("height_range", list(height_range) if height_range else None),
+                                             ("texels_per_metre", round(texels_per_metre, 2)
+                                              if texels_per_metre else None),
+                                             ("scale", scale)) if value is not None} or None
     return {"result_key": key, "result_filename": shown + path.suffix, "result_size": size,
             "result_media_type": media_type(fmt), "result_details": details}
 
@@ -98,7 +104,7 @@ def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
 
 def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
              should_cancel: ShouldCancel) -> dict[str, Any]:
-    from worker.bake import bake_mesh
+    from worker.bake import bake_mesh, physical_scale
 
     texture = _texture_to_render(services, job)
     p = BakeParams.model_validate(job.params)
@@ -106,17 +112,25 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
     names = _names(bake_name, texture, mesh_filename=p.filename, resolution=p.resolution, seed=p.seed)
     out_path = workdir / f"{names[1]}{extension(p.format)}"   # zip members are named after it
     limits = bake_limits(services.settings)
+    scale = p.scale
+    if p.unit_m is not None:  # at real size (the route checked the texture's width_m)
+        runtime = services.registry.get(texture.model_version)
+        scale = physical_scale(texture.width, texture.height, runtime.short_side, services.pixels_per_unit(texture),
+                               texture.width_m, p.unit_m)
     result = bake_mesh(services.sampler_for(texture), texture.sampling_code(), p.seed, mesh_bytes=mesh_bytes,
-                       filename=p.filename, resolution=p.resolution, scale=p.scale, fmt=p.format,
+                       filename=p.filename, resolution=p.resolution, scale=scale, fmt=p.format,
                        out_path=out_path, limits=limits, pixels_per_unit=services.pixels_per_unit(texture),
                        atlas_cache_dir=services.settings.resolved_atlas_cache_dir,
                        atlas_cache_bytes=services.settings.atlas_cache_bytes,
                        maps=tuple(p.maps), gpu_format=p.gpu_format, normal_strength=p.normal_strength,
                        projection=bake_projection(p.projection, texture.served_structure()),
                        progress=progress, should_cancel=should_cancel)
+    # texel density over the surface in metres, for a bake at real size
+    density = (math.sqrt(float(result.covered.sum()) / (result.surface_area * p.unit_m ** 2))
+               if p.unit_m is not None and result.surface_area > 0 else None)
     # a GLB with a height map or a DDS comes back as a zip (a KTX2 goes inside the GLB)
     return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip", names,
-                         result.height_range)
+                         result.height_range, texels_per_metre=density, scale=result.scale)
 
 
 def run_region(services: Services, job: Job, workdir: Path, progress: Progress,

@@ -6,7 +6,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
-from worker.contract import MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION, MIN_TILE_SIZE, MIN_VOLUME_RESOLUTION
+from worker.contract import (MAX_VOLUME_RESOLUTION, MAX_WIDTH_M, MIN_BAKE_RESOLUTION, MIN_TILE_SIZE,
+                             MIN_VOLUME_RESOLUTION)
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH, MAX_WHOLE_PIXELS
 from worker.bake import FORMATS as BAKE_FORMATS
 from worker.triplanar import PROJECTIONS
@@ -125,6 +126,8 @@ class TextureOut(BaseModel):
     parents: dict[str, Any] | None = None
     width: int | None = Field(None, description="exemplar width in pixels")
     height: int | None = None
+    width_m: float | None = Field(None, description="the photo's real width in metres, if given (upload or PATCH): "
+                                                    "bakes with unit_m texture meshes at that size")
     has_own_sampler: bool = Field(description="true for fitted textures (they carry their own sampler)")
     sampler: Literal["encoder", "interim", "fitted"] = Field(
         description="what tiles come from: the model's sampler at the encoder's code; an interim, the best state "
@@ -147,7 +150,7 @@ class TextureOut(BaseModel):
         in the fit lane (``service.jobs.refinement_wait``)."""
         base = f"/v1/textures/{t.id}"
         return cls(id=t.id, name=t.name, code=t.code, colour=t.colour, model_version=t.model_version, source=t.source,
-                   parents=t.parents, width=t.width, height=t.height, has_own_sampler=bool(t.sampler_key),
+                   parents=t.parents, width=t.width, height=t.height, width_m=t.width_m, has_own_sampler=bool(t.sampler_key),
                    sampler=("interim" if t.sampler_interim else "fitted") if t.sampler_key else "encoder",
                    refinement=(Refinement.of(refinement, wait) if refinement is not None
                                else Refinement.deferred(t) if t.refinement_deferred and t.refinement_job_id else None),
@@ -166,8 +169,18 @@ class TexturePage(BaseModel):
 
 
 class TexturePatch(BaseModel):
+    """What a PATCH changes: the fields given (at least one)."""
     model_config = {"extra": "forbid"}
-    name: SafeText = Field(max_length=200)
+    name: SafeText | None = Field(None, max_length=200)
+    width_m: float | None = Field(None, gt=0, le=MAX_WIDTH_M, description="the photo's real width in metres")
+
+    @model_validator(mode="after")
+    def _something(self) -> "TexturePatch":
+        if not self.model_fields_set:
+            raise ValueError("give name, width_m or both")
+        if "name" in self.model_fields_set and self.name is None:
+            raise ValueError("name cannot be null")
+        return self
 
 
 class InterpolateIn(BaseModel):
@@ -275,6 +288,7 @@ class BakeParams(BaseModel):
     resolution: int
     seed: int
     scale: float | None = None
+    unit_m: float | None = None
     format: Literal[BAKE_FORMATS] = "glb"
     filename: str = "mesh.obj"
     maps: list[Literal[MAP_NAMES]] = []
@@ -342,6 +356,11 @@ class JobResult(BaseModel):
                                       "(oak-planks_region_z6_1024px_seed7.png)")
     media_type: str
     size: int
+    scale: float | None = Field(None, description="a bake: the world units per mesh unit it used (given, fitted to "
+                                                  "the mesh's bounds, or from unit_m and the texture's width_m)")
+    texels_per_metre: float | None = Field(
+        None, description="a bake at real size (unit_m): atlas texels per metre of the surface (the square root "
+                          "of covered texels over its area in square metres)")
     height_range: list[float] | None = Field(
         None, min_length=2, max_length=2,
         description="with a height map: the [min, max] Rec. 709 linear luminance its 16-bit range 0..65535 "
@@ -403,7 +422,10 @@ class JobOut(BaseModel):
                    cancel_requested=j.cancel_requested, worker_id=j.worker_id, error=j.error,
                    result=JobResult(filename=j.result_filename, media_type=j.result_media_type,
                                     size=j.result_size,
-                                    height_range=(j.result_details or {}).get("height_range")) if done else None,
+                                    height_range=(j.result_details or {}).get("height_range"),
+                                    texels_per_metre=(j.result_details or {}).get("texels_per_metre"),
+                                    scale=(j.result_details or {}).get("scale"))
+                   if done else None,
                    output_texture_id=j.output_texture_id, created_at=j.created_at, started_at=j.started_at,
                    sampler=JobSampler(**j.sampler) if j.sampler else None,
                    finished_at=j.finished_at, heartbeat_at=j.heartbeat_at, lease_expires_at=j.lease_expires_at,

@@ -84,6 +84,8 @@ class Texture(Base):
     # The params of a refinement not yet queued, because the fit lane's queue or the owner's
     # share of it was full at upload (``jobs.queue_deferred_refinements`` queues it as room
     # frees, oldest upload first); None once queued, or when none was deferred.
+    # The photo's real width in metres, if the uploader said (bakes at real size: unit_m).
+    width_m: Mapped[float | None] = mapped_column(Float, nullable=True)
     refinement_deferred: Mapped[dict | None] = mapped_column(JSON(none_as_null=True), nullable=True)  # None: SQL NULL
     encoder_code: Mapped[list | None] = mapped_column(JSON, nullable=True)
     # The colour table the sampler applies last (worker/colour_match.py): the photo's colour

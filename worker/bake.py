@@ -43,7 +43,9 @@ for lattice fits (``projection="auto"``, service/schemas.py ``bake_projection``)
 World scale: a mesh point p is textured with the solid texture at ``scale * p``
 (``scale`` = world units per mesh unit). Default (``scale=None``): fit to bounds, the
 mesh's longest bounding-box side spans ``DEFAULT_SPAN_PIXELS`` exemplar pixels, i.e.
-``scale = DEFAULT_SPAN_PIXELS / pixels_per_unit / longest_side``.
+``scale = DEFAULT_SPAN_PIXELS / pixels_per_unit / longest_side``. A texture whose photo's
+real width is known bakes at real size instead (``physical_scale``): a teapot and a bunny
+get as many features as their size in metres implies.
 """
 from __future__ import annotations
 
@@ -78,6 +80,16 @@ MAX_UV_OVERLAP = 0.01
 MAX_UV_DEGENERATE = 0.001  # share of 3D area allowed on faces whose UVs have no area
 NORMAL_EPS = 1e-12         # a normal shorter than this (relative, for computed ones) is unusable
 DEFAULT_SPAN_PIXELS = 512.0
+
+
+def physical_scale(photo_width_px: int, photo_height_px: int, short_side: int, pixels_per_unit: float,
+                   photo_width_m: float, mesh_unit_m: float) -> float:
+    """World units per mesh unit that bake a photo ``photo_width_m`` metres wide at its real
+    size on a mesh whose unit is ``mesh_unit_m`` metres (1 for metres, 0.01 for centimetres).
+    The space reads the photo with its short side at ``short_side`` pixels, ``pixels_per_unit``
+    of them per world unit, so its width spans ``working width / pixels_per_unit`` world units."""
+    working_width = photo_width_px * short_side / min(photo_width_px, photo_height_px)
+    return working_width / pixels_per_unit / photo_width_m * mesh_unit_m
 AREA_EPS = 1e-20           # squared-length scale below which a face counts as degenerate
 # |coordinate| limit: beyond it xatlas (float32) spins for minutes and extent ** 4 overflows
 MAX_COORDINATE = 1e9
@@ -106,6 +118,7 @@ class BakeResult:
     vertices: int = 0
     timings: dict = field(default_factory=dict)   # seconds per stage: load, atlas, raster, sample, gutter, write
     height_range: tuple[float, float] | None = None   # the height map's luminance (min, max), if one was made
+    surface_area: float = 0.0        # the mesh's area in mesh units^2 (texel density: covered texels / area)
 
 
 @dataclass
@@ -584,8 +597,11 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
         out_path, height_range = outputs.path, outputs.height_range
     timings["write"] = time.perf_counter() - clock
     report(1.0)
+    corners = vertices[faces]
+    area = 0.5 * float(np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
+                                      axis=1).sum())
     return BakeResult(out_path, exr_path, uv_source, resolution, float(scale), covered,
-                      len(faces), len(vertices), timings, height_range)
+                      len(faces), len(vertices), timings, height_range, area)
 
 
 def glb_bytes(vertices, faces, uv, normals, png: bytes) -> bytes:

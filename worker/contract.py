@@ -27,3 +27,7 @@ MAX_VOLUME_RESOLUTION = 1024
 #: a bake's texture atlas side in pixels
 MIN_BAKE_RESOLUTION = 16
 MAX_BAKE_RESOLUTION = 8192
+#: a photo's real width in metres, and a mesh unit in metres (bakes at real size): a
+#: kilometre-wide aerial photo or a light-year-sized unit is a typo, not a texture
+MAX_WIDTH_M = 10_000.0
+MAX_UNIT_M = 1_000.0

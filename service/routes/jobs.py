@@ -11,9 +11,9 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from worker.bake import FORMATS as BAKE_FORMATS
-from worker.contract import MAX_BAKE_RESOLUTION, MIN_BAKE_RESOLUTION
+from worker.contract import MAX_BAKE_RESOLUTION, MAX_UNIT_M, MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH
-from worker.errors import Canceled, FeatureUnavailable, LimitExceeded
+from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, LimitExceeded
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.tiles import MIN_ZOOM
 
@@ -71,6 +71,9 @@ def submit_bake(
     seed: Annotated[int, Form(ge=0, le=2**31 - 1)] = 0,
     scale: Annotated[float | None, Form(gt=0, le=1e6, description="world units per mesh unit; default: "
                                                                    "the mesh spans 512 exemplar pixels")] = None,
+    unit_m: Annotated[float | None, Form(gt=0, le=MAX_UNIT_M, description="metres per mesh unit (1: a mesh in "
+                                         "metres, 0.01: in centimetres): the texture is baked at its photo's real "
+                                         "size (the texture's width_m); not with scale")] = None,
     format: Annotated[Literal[BAKE_FORMATS], Form(description="glb, or a zip of obj + mtl + png")] = "glb",
     maps: Annotated[list[Literal[MAP_NAMES]], Form(
         description="derived maps of the atlas (repeat the field for each): normal = tangent-space, OpenGL "
@@ -95,12 +98,17 @@ def submit_bake(
 ) -> JobOut:
     """UV-unwrap a mesh and bake the solid texture into its atlas (a job)."""
     checked_text(mesh.filename or "", "mesh filename")  # a NUL is refused, as in an upload's name, not cleaned
-    load_texture(services, texture_id)
+    texture = load_texture(services, texture_id)
+    if unit_m is not None and scale is not None:
+        raise InvalidParameter("give scale (world units per mesh unit) or unit_m (metres per mesh unit), not both")
+    if unit_m is not None and texture.width_m is None:
+        raise InvalidParameter(f"texture {texture_id} has no width_m: say how wide its photo is in metres "
+                               f"(PATCH /v1/textures/{texture_id} {{\"width_m\": ...}}) to bake it at real size")
     if resolution > services.settings.max_bake_resolution:
         raise LimitExceeded(f"resolution {resolution} exceeds the limit of {services.settings.max_bake_resolution}")
     data = read_limited(mesh, services.settings.max_mesh_bytes, "the mesh")
     filename = safe_filename(mesh.filename, "mesh.obj")
-    params = BakeParams(resolution=resolution, seed=seed, scale=scale, format=format, filename=filename,
+    params = BakeParams(resolution=resolution, seed=seed, scale=scale, unit_m=unit_m, format=format, filename=filename,
                         maps=sorted(set(maps)), gpu_format=gpu_format, normal_strength=normal_strength,
                         projection=projection, after_refinement=after_refinement).model_dump()
     fingerprint = jobs.request_hash(JobKind.BAKE, texture_id, params, sha256(data).encode())

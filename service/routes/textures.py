@@ -10,6 +10,7 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures
+from worker.contract import MAX_WIDTH_M
 from worker.files import media_type, media_type_of_extension
 from worker.images import LIGHTING, encode_texture, read_image, sniff_format
 from worker.shader import LANGUAGES
@@ -60,6 +61,8 @@ def create_texture(
     lighting: Annotated[Literal[LIGHTING], Form(
         description="as-is (default), or even: the photo's smooth shading (light falling off, a vignette) "
                     "divided out before it is encoded and fitted; the stored photo is unchanged")] = "as-is",
+    width_m: Annotated[float | None, Form(gt=0, le=MAX_WIDTH_M, description="the photo's real width in metres "
+                                          "(optional): bakes with unit_m texture meshes at that size")] = None,
 ) -> TextureOut:
     """Encode an exemplar photo into a texture code and store it.
 
@@ -83,7 +86,8 @@ def create_texture(
                       colour=colour, colour_calibration=COLOUR_CALIBRATION, model_version=runtime.version,
                       source="upload", exemplar_key=key,
                       exemplar_media_type=media_type_of_extension(ext), lighting=lighting,
-                      width=int(pixels.shape[1]), height=int(pixels.shape[0]), owner_id=auth.current_owner(),
+                      width=int(pixels.shape[1]), height=int(pixels.shape[0]), width_m=width_m,
+                      owner_id=auth.current_owner(),
                       refinement_job_id=new_id() if refine else None)
     try:
         with session_scope(services.sessions) as session:
@@ -169,12 +173,14 @@ def get_texture(services: ServicesDep, texture_id: TextureId) -> TextureOut:
 
 @router.patch("/{texture_id}", response_model=TextureOut, responses=problem_responses(404, 422, 507))
 def patch_texture(services: ServicesDep, texture_id: TextureId, body: TexturePatch) -> TextureOut:
-    """Rename a texture (its code, and so its tiles, never change)."""
+    """Rename a texture, or say how wide its photo is in metres (its code, and so its tiles,
+    never change)."""
     with session_scope(services.sessions) as session:
         texture = session.get(Texture, texture_id)
         if texture is None or not auth.visible(texture):
             raise not_found("texture", texture_id)
-        texture.name = body.name
+        for field in body.model_fields_set:
+            setattr(texture, field, getattr(body, field))
         texture.updated_at = utcnow()
     return texture_out(services, texture)
 
