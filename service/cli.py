@@ -402,7 +402,7 @@ def cmd_tileable(args: argparse.Namespace, settings: Settings) -> None:
     source = TextureSource(settings, args.texture, args.lighting, args.refine)
     bar, report = _progress_bar("tileable")
     with bar:
-        path = render_region(source.tileable_sampler(), source.code, args.seed, z=NATIVE_ZOOM, x0=0, y0=0,
+        path = render_region(source.tileable_sampler(), source.code, args.seed, z=NATIVE_ZOOM + args.zoom, x0=0, y0=0,
                              width=args.size, height=args.size, fmt=fmt, out_path=out, pixels_per_unit=source.ppu,
                              tileable=True, limits=RegionLimits(max_pixels=settings.max_region_pixels),
                              progress=report)
@@ -599,13 +599,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "x, y and z; auto (default): triplanar for a texture fitted on a repeat lattice")
 
     p = proc("tileable", cmd_tileable, "render a seamlessly tiling square image of an image file or stored "
-                                       "texture id (one pixel per exemplar pixel)")
+                                       "texture id (one pixel per exemplar pixel, or more with --zoom)")
     p.add_argument("texture", help="IMAGE file or TEXTURE_ID (required)")
     texture_args(p, "image", TILEABLE_EXTENSIONS, "tileable-SIZE")
     p.add_argument("--size", type=ranged(int, 64, 16384), default=1024,
                    help="side in pixels, up to TEXSPACE_MAX_REGION_PIXELS in all (dds, ktx2: 4096); the noise "
                         "octaves' frequencies are rounded to whole cells per side, so small sizes (256) change "
                         "the coarse features most")
+    p.add_argument("--zoom", type=ranged(int, -2, 4), default=0,
+                   help="zoom levels above the native one (0): 1 draws the same period's worth of texture in twice "
+                        "the pixels per side")
 
     p = proc("shader", cmd_shader, "write an image file's or stored texture id's shader: GLSL ES 3.00 or WGSL "
                                    "function texspace_<id>(p, seed) -> linear RGB (docs/SHADER.md)")

@@ -333,9 +333,9 @@ class RegionIn(BaseModel):
     normal_strength: float = Field(DEFAULT_NORMAL_STRENGTH, gt=0, le=MAX_NORMAL_STRENGTH,
                                    description=NORMAL_STRENGTH_HELP)
     tileable: bool = Field(
-        False, description="a seamlessly tiling image: square (width = height), z = 6 (the native zoom), "
-                           "plane xy, one image (not pyramid); the texture is made periodic with the image's "
-                           "side as its period (each octave's frequency rounded to whole cells per period: "
+        False, description="a seamlessly tiling image: square (width = height), plane xy, one image (not "
+                           "pyramid), any zoom (above the native 6, the same period's worth of texture in more "
+                           "pixels); the texture is made periodic with the image's side at its zoom as its period (each octave's frequency rounded to whole cells per period: "
                            "coarse octaves change most, and small images most). A normal map then wraps too")
 
     @model_validator(mode="after")

@@ -23,9 +23,10 @@ image in ``fmt``) plus ``<stem>_<map>.png`` for each, ``<stem>`` being the resul
 gradients and blurs wrap around the borders. GPU formats and derived maps need the whole image in memory, so
 they are limited to ``RegionLimits.max_whole_pixels``.
 
-Tileable (``tileable=True``): a square image at the native zoom on the xy plane,
-rendered by the texture's tileable sampler with period ``width / pixels_per_unit`` world
-units, so the image repeats exactly: tiled 2 x 2 it has no seam (the column after the last
+Tileable (``tileable=True``): a square image on the xy plane, rendered by the texture's
+tileable sampler with period ``width / (pixels_per_unit * 2^(z - NATIVE_ZOOM))`` world units
+(the image's width at its zoom: above the native zoom, the same texture in more pixels), so
+the image repeats exactly: tiled 2 x 2 it has no seam (the column after the last
 is the first). The sampler rounds each octave's frequency so that a whole number of its
 cells spans the period (``TextureField.periodic_lattice``): coarse octaves move most, and
 small images most (at 256 x 256 the coarsest octaves keep few cells per period).
@@ -102,7 +103,7 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
 
     fmt : png | tiff | exr | dds | ktx2 (one image) or pyramid (zip of ``size`` tiles, see
     module doc). maps : derived maps to add (the result is then a zip, see module doc).
-    tileable : the image repeats seamlessly (module doc): needs z == NATIVE_ZOOM, plane xy,
+    tileable : the image repeats seamlessly (module doc): needs plane xy,
     width == height, a single image, and a tileable sampler (a ``ModelRuntime`` or a
     ``SamplerSession`` of sampler_tileable.onnx); derived maps then wrap too.
     Returns the final path, written atomically.
@@ -120,7 +121,8 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
     ppu = resolve_pixels_per_unit(sampler, pixels_per_unit)
     if tileable:
         check_tileable(z=z, width=width, height=height, fmt=fmt, plane=plane)
-        sampler, wrap_maps = periodic_sampler(sampler, width / ppu), True
+        # one period across the image: its width in world units at this zoom
+        sampler, wrap_maps = periodic_sampler(sampler, width / (ppu * 2.0 ** (z - NATIVE_ZOOM))), True
 
     def check_cancel():
         if should_cancel is not None and should_cancel():
@@ -170,10 +172,8 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
 
 def check_tileable(*, z: int, width: int, height: int, fmt: str, plane: str) -> None:
     """InvalidParameter unless a tileable region can be made of these arguments: the
-    sampler has one period for x and y (square image), at the native zoom, on plane xy."""
-    if z != NATIVE_ZOOM:
-        raise InvalidParameter(f"a tileable region is rendered at the native zoom {NATIVE_ZOOM} "
-                               f"(one pixel per exemplar pixel), not {z}")
+    sampler has one period for x and y (square image) on plane xy; any zoom (above the
+    native one, more pixels for the same period's worth of texture)."""
     if width != height:
         raise InvalidParameter(f"a tileable region must be square (one period for x and y), got {width}x{height}")
     if plane != "xy":

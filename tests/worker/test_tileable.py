@@ -29,8 +29,8 @@ def vector(runtime, brick):
     return texture_vector(*encode_texture(runtime, brick))
 
 
-def render(runtime, vector, tmp_path, size, *, tileable, seed=0, x0=0, y0=0, name="r.png"):
-    path = render_region(runtime, vector, seed, z=N, x0=x0, y0=y0, width=size, height=size, fmt="png",
+def render(runtime, vector, tmp_path, size, *, tileable, seed=0, x0=0, y0=0, name="r.png", z=N):
+    path = render_region(runtime, vector, seed, z=z, x0=x0, y0=y0, width=size, height=size, fmt="png",
                          out_path=tmp_path / name, tileable=tileable)
     return path.read_bytes()
 
@@ -51,13 +51,13 @@ def seam_scores(image: np.ndarray) -> tuple[float, float]:
     return scores[0], scores[1]
 
 
-def check_seamless(runtime, vector, tmp_path, size, seeds) -> dict:
+def check_seamless(runtime, vector, tmp_path, size, seeds, z=N) -> dict:
     """Seam scores of the tileable and the plain render for each seed (asserted), and the
     colour statistics of both (the last seed's)."""
     tiled, plain = [], []
     for s in seeds:
-        image = linear(render(runtime, vector, tmp_path, size, tileable=True, seed=s))
-        reference = linear(render(runtime, vector, tmp_path, size, tileable=False, seed=s))
+        image = linear(render(runtime, vector, tmp_path, size, tileable=True, seed=s, z=z))
+        reference = linear(render(runtime, vector, tmp_path, size, tileable=False, seed=s, z=z))
         tiled.append(seam_scores(image))
         plain.append(seam_scores(reference))
     tiled, plain = np.array(tiled), np.array(plain)
@@ -83,6 +83,18 @@ def check_statistics(stats: dict) -> None:
 
 def test_tileable_256_has_no_seam(runtime, vector, tmp_path):
     check_seamless(runtime, vector, tmp_path, 256, seeds=range(3))
+
+
+def test_tileable_above_the_native_zoom_has_no_seam_and_twice_the_pixels(runtime, vector, tmp_path):
+    """A 512 px export at z 7 is the 256 px export's period in twice the pixels: seamless,
+    repeating every 512 pixels, and like the z 6 export downsampled 2 x 2."""
+    check_seamless(runtime, vector, tmp_path, 512, seeds=[0], z=N + 1)
+    base = render(runtime, vector, tmp_path, 512, tileable=True, z=N + 1, name="a.png")
+    assert render(runtime, vector, tmp_path, 512, tileable=True, z=N + 1, x0=512, y0=-1024, name="b.png") == base
+    fine = linear(base)
+    coarse = linear(render(runtime, vector, tmp_path, 256, tileable=True, name="c.png"))
+    halved = fine.reshape(256, 2, 256, 2, 3).mean(axis=(1, 3))
+    assert np.abs(halved - coarse).mean() < 0.25 * np.abs(coarse - coarse.mean((0, 1))).mean()
 
 
 @pytest.mark.slow
@@ -112,8 +124,7 @@ def test_tileable_keeps_the_texture_statistics(runtime, vector, tmp_path):
 
 def test_tileable_arguments_are_checked(runtime, vector, tmp_path):
     common = dict(x0=0, y0=0, out_path=tmp_path / "x.png", tileable=True)
-    for bad in (dict(z=N - 1, width=64, height=64), dict(z=N + 1, width=64, height=64),
-                dict(z=N, width=64, height=32), dict(z=N, width=64, height=64, plane="xz"),
+    for bad in (dict(z=N, width=64, height=32), dict(z=N, width=64, height=64, plane="xz"),
                 dict(z=N, width=64, height=64, fmt="pyramid")):
         with pytest.raises(InvalidParameter):
             render_region(runtime, vector, 0, **common, **bad)
