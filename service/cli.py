@@ -35,6 +35,7 @@ from worker.volume_writers import FORMATS as VOLUME_FORMATS
 from . import auth, db, processes
 from .context import build_services
 from .logs import setup_logging
+from .samplers import sampler_inputs
 from .schemas import BAKE_PROJECTIONS, bake_projection
 from .settings import FIT_SECONDS, Settings
 from .tables import Texture
@@ -157,8 +158,9 @@ class TextureSource:
             texture = session.get(Texture, ref)
         if texture is None:
             raise CliError(f"{ref!r} is neither an image file nor a texture id in {url}")
-        self.z, self.code = np.asarray(texture.code, np.float32), texture.sampling_code()
-        self.sampler, self.ppu = services.sampler_for(texture), services.pixels_per_unit(texture)
+        inputs = sampler_inputs(services, texture)
+        self.z = np.asarray(texture.code, np.float32)
+        self.sampler, self.code, self.ppu = inputs.sampler, inputs.code, inputs.pixels_per_unit
         self.model_version = texture.model_version
         self.structure = texture.served_structure()
         self.tileable_sampler = lambda: services.tileable_sampler_for(texture)

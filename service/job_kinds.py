@@ -25,6 +25,7 @@ from . import jobs, keys
 from .container import Services
 from .db import session_scope
 from .limits import bake_limits
+from .samplers import sampler_inputs, tileable_inputs
 from .schemas import BakeParams, FitParams, RegionIn, VolumeIn, bake_projection
 from .tables import Job, Texture, utcnow
 
@@ -66,7 +67,8 @@ def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
     texture = _texture_to_render(services, job)
     p = VolumeIn.model_validate(job.params)
     out_path = workdir / f"volume-{texture.id[:8]}-{p.resolution}{extension(p.format)}"
-    path = render_volume(services.sampler_for(texture), texture.sampling_code(), p.seed, resolution=p.resolution,
+    inputs = sampler_inputs(services, texture)
+    path = render_volume(inputs.sampler, inputs.code, p.seed, resolution=p.resolution,
                          bounds=p.bounds, fmt=p.format, out_path=out_path,
                          progress=progress, should_cancel=should_cancel)
     return _store_result(services, job, path, p.format)
@@ -82,9 +84,10 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
     stem = Path(p.filename).stem or "mesh"
     out_path = workdir / f"{stem}-baked{extension(p.format)}"
     limits = bake_limits(services.settings)
-    result = bake_mesh(services.sampler_for(texture), texture.sampling_code(), p.seed, mesh_bytes=mesh_bytes,
+    inputs = sampler_inputs(services, texture)
+    result = bake_mesh(inputs.sampler, inputs.code, p.seed, mesh_bytes=mesh_bytes,
                        filename=p.filename, resolution=p.resolution, scale=p.scale, fmt=p.format,
-                       out_path=out_path, limits=limits, pixels_per_unit=services.pixels_per_unit(texture),
+                       out_path=out_path, limits=limits, pixels_per_unit=inputs.pixels_per_unit,
                        atlas_cache_dir=services.settings.resolved_atlas_cache_dir,
                        atlas_cache_bytes=services.settings.atlas_cache_bytes,
                        maps=tuple(p.maps), gpu_format=p.gpu_format, normal_strength=p.normal_strength,
@@ -106,12 +109,12 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
     limits = RegionLimits(max_pixels=services.settings.max_region_pixels,
                           max_tiles=services.settings.max_region_tiles)
     # tileable: the texture's sampler_tileable.onnx, its period the image's side
-    sampler = services.tileable_sampler_for(texture) if p.tileable else services.sampler_for(texture)
-    path = render_region(sampler, texture.sampling_code(), p.seed, z=p.z, x0=p.x0, y0=p.y0, width=p.width,
+    inputs = tileable_inputs(services, texture) if p.tileable else sampler_inputs(services, texture)
+    path = render_region(inputs.sampler, inputs.code, p.seed, z=p.z, x0=p.x0, y0=p.y0, width=p.width,
                          height=p.height, fmt=p.format, out_path=out_path, size=p.size, min_zoom=p.min_zoom,
                          plane=p.plane, offset=p.offset, maps=maps, normal_strength=p.normal_strength,
                          wrap_maps=p.tileable, tileable=p.tileable,
-                         pixels_per_unit=services.pixels_per_unit(texture), limits=limits,
+                         pixels_per_unit=inputs.pixels_per_unit, limits=limits,
                          progress=progress, should_cancel=should_cancel)
     return _store_result(services, job, path, fmt)
 

@@ -9,11 +9,8 @@ import datetime as dt
 import uuid
 from typing import Any
 
-import numpy as np
 from sqlalchemy import JSON, Boolean, DateTime, Float, Integer, String, Text, TypeDecorator, false
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
-
-from worker.colour_match import texture_vector
 
 #: the job states (the one list: schemas, routes and metrics use it; the kinds are
 #: settings.JOB_KINDS)
@@ -113,10 +110,6 @@ class Texture(Base):
     sampler_interim: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
     updated_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
-
-    def sampling_code(self) -> np.ndarray:
-        """What this texture's sampler takes as its code: z, then the colour table if any."""
-        return texture_vector(self.code, self.colour)
 
     def refinement_may_replace_sampler(self) -> bool:
         """True while an in-place refinement may still give this texture another sampler: it

@@ -20,6 +20,7 @@ from ..deps import PageParams, SafeText, ServicesDep, TextureId, apply_cursor, p
 from ..errors import Problem, not_found, problem_responses
 from ..job_kinds import auto_fit_params
 from ..purge import purge_texture
+from ..samplers import sampling_code
 from ..schemas import InterpolateIn, TextureOut, TexturePage, TexturePatch
 from ..tables import Job, Texture, blend_calibration, new_id, utcnow
 from ..tiles import etag_matches
@@ -216,7 +217,7 @@ def get_shader(services: ServicesDep, request: Request, texture_id: TextureId,
     3.00) or its WGSL twin, the same function as the texture's sampler (linear RGB at world
     point p), with the weights and the texture's constants embedded."""
     texture = load_texture(services, texture_id)
-    vector = texture.sampling_code()
+    vector = sampling_code(texture)
     key = "|".join((SHADER_VERSION, language, texture.model_version, texture.sampler_key or ""))
     digest = hashlib.sha256(key.encode() + vector.tobytes()).hexdigest()[:32]
     headers = {"ETag": f'"{digest}"', "Cache-Control": "public, no-cache", **NOSNIFF}
