@@ -47,7 +47,7 @@ from model.networks import TextureSpace, load_checkpoint
 from model.colour import compressed_moments, transfer_colour_moments
 from model.slices import linear_to_srgb, plane_points, random_planes, render_slices, srgb_to_linear
 from model.vgg import GATYS_LAYERS, shared_vgg
-from worker.decode import encoder_crops
+from worker.photo import encoder_crops
 
 
 POSITION_EXTENT = 4.0  # world units around the origin where position-input variants train
@@ -509,7 +509,7 @@ def lean_warp(degrees: float, stretch: float) -> torch.Tensor:
 
 def initial_code(model: TextureSpace, image: np.ndarray, crop: int) -> torch.Tensor:
     """The encoder's code for an exemplar as an upload gets it: the mean over the same grid of
-    crops (``worker.decode.encoder_crops``, the image already at its working size). A fit then
+    crops (``worker.photo.encoder_crops``, the image already at its working size). A fit then
     starts from the code its texture serves, so its probe's "never worse than the start" holds
     for what users saw. With 8 random crops instead, a 60-s grass fit that kept its start still
     scored 0.0144 against the served code's 0.0137 (the codes 0.1 apart). Single mode reads its

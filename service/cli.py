@@ -26,7 +26,7 @@ import numpy as np
 
 from worker.bake import FORMATS as BAKE_FORMATS
 from worker.files import extensions
-from worker.images import LIGHTING
+from worker.photo import LIGHTING
 from worker.regions import FORMATS as REGION_FORMATS
 from worker.shader import LANGUAGES
 from worker.tiles import COORD_LIMIT, PLANES, TILE_FORMATS
@@ -167,7 +167,8 @@ class TextureSource:
 
     def _encode(self, settings: Settings, path: Path, lighting: str) -> None:
         from worker.colour_match import texture_vector
-        from worker.images import encode_texture, read_image
+        from worker.encode import encode_texture
+        from worker.images import read_image
 
         if path.stat().st_size > settings.max_upload_bytes:
             raise CliError(f"{path}: {path.stat().st_size} bytes exceeds the limit of {settings.max_upload_bytes} "
@@ -190,7 +191,7 @@ class TextureSource:
         except ImportError:
             raise CliError("--refine needs PyTorch: pip install 'texspace[train]'", code=1) from None
         from worker.colour_match import texture_vector
-        from worker.images import working_photo
+        from worker.photo import working_photo
         from worker.runtime import TILEABLE_SAMPLER
 
         from .job_kinds import fit_structure, fitted_colour, photo_to_fit

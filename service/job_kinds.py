@@ -19,7 +19,8 @@ import numpy as np
 from worker.colour_match import COLOUR_CALIBRATION, calibrate_texture
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, Paused
 from worker.files import extension, media_type
-from worker.images import read_image, working_photo, write_image
+from worker.images import read_image, write_image
+from worker.photo import working_photo
 
 from . import jobs, keys
 from .container import Services

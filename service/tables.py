@@ -102,7 +102,7 @@ class Texture(Base):
     # "lean": [degrees, stretch] | None (absent in rows from before: None),
     # "lattice": [ax, ay, bx, by] world units | None}. None for the encoder's code.
     structure: Mapped[dict | None] = mapped_column(JSON, nullable=True)
-    # How its photo is taken when encoded or fitted (worker.images.LIGHTING): "as-is", or
+    # How its photo is taken when encoded or fitted (worker.photo.LIGHTING): "as-is", or
     # "even" (its smooth shading divided out). The stored photo itself is never changed.
     lighting: Mapped[str] = mapped_column(String(8), default="as-is", server_default="as-is")
     # True while sampler_key is the interim a running refinement published part way through

@@ -11,7 +11,10 @@ from sqlalchemy import select
 
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures
 from worker.files import media_type, media_type_of_extension
-from worker.images import LIGHTING, encode_texture, read_image, sniff_format
+from worker.decode import sniff_format
+from worker.encode import encode_texture
+from worker.images import read_image
+from worker.photo import LIGHTING
 from worker.shader import LANGUAGES, emit_shader, shader_name
 
 from .. import auth, jobs, keys

@@ -345,7 +345,8 @@ def test_a_fit_starts_from_the_code_an_upload_gets(tmp_path, skimage_textures):
     exported ONNX one), so a fit that keeps its start serves what the upload served."""
     from model.networks import load_checkpoint
     from model.train import initial_code
-    from worker.images import encode_image, resize_short_side
+    from worker.encode import encode_image
+    from worker.photo import resize_short_side
     from worker.runtime import ModelRuntime
 
     model, _ = load_checkpoint(space_checkpoint(tmp_path))

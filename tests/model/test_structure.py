@@ -457,7 +457,7 @@ def test_detect_even_tells_gravel_from_a_photo_with_large_patches(skimage_textur
     """Gravel at the working resolution is even at 32 px and larger (its 512-px original,
     pebbles twice the size, is not); the same gravel under a slow light-dark wave is not,
     nor is a flat photo (nothing varies)."""
-    from worker.decode import resize_short_side
+    from worker.photo import resize_short_side
 
     assert not detect_even(skimage_textures["gravel"])
     gravel = resize_short_side(skimage_textures["gravel"], 256)

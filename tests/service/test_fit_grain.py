@@ -263,7 +263,8 @@ def test_fit_of_an_evened_texture_sees_the_photo_as_its_encoding_did(fit_client,
     """A texture uploaded with lighting=even is fitted from its evened photo at the working
     resolution (16-bit TIFF; model.fit reads it with the service's reader), its colour table
     made from the same; the texture keeps the photo that was sent."""
-    from worker.images import read_image, working_photo
+    from worker.images import read_image
+    from worker.photo import working_photo
     from tests.helpers import shaded_png
 
     shaded = shaded_png()
