@@ -15,8 +15,10 @@ from model.config import VARIANTS  # noqa: E402
 from model.networks import ModelConfig, TextureSpace, load_checkpoint  # noqa: E402
 from model.slices import random_planes, render_slices  # noqa: E402
 from model.vgg import shared_vgg  # noqa: E402
-from model.train import (LATTICE_CONTRAST_WEIGHT, Objective, TrainConfig,  # noqa: E402
-                         lattice_partners, main as train_main, parse_args, train)
+from model.objective import LATTICE_CONTRAST_WEIGHT, Objective  # noqa: E402
+from model.slices import lattice_partners  # noqa: E402
+from model.train import main as train_main, train  # noqa: E402
+from model.train_config import TrainConfig, parse_args  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -301,7 +303,7 @@ def test_lend_best_hands_the_best_state_and_puts_the_training_state_back():
     was (weights, code, train mode), and the optimiser still holds the same parameters."""
     from types import SimpleNamespace
 
-    from model.train import Probe
+    from model.probe import Probe
 
     model = torch.nn.Linear(2, 2)
     codes = torch.nn.Parameter(torch.zeros(1, 8))
@@ -323,7 +325,7 @@ def test_lend_best_hands_the_best_state_and_puts_the_training_state_back():
 def test_an_interim_is_published_once_at_the_first_probe_that_beats_the_start(tmp_path, brick, vgg):
     """train(interim=Interim(0, ...)) in a fit: one call, at the first probe whose best state
     is past step 0, with that state; training goes on to its last step afterwards."""
-    from model.train import Interim
+    from model.probe import Interim
 
     image = tmp_path / "brick.png"
     Image.fromarray((brick * 255).astype(np.uint8)).save(image)
@@ -345,7 +347,7 @@ def test_an_interim_is_published_once_at_the_first_probe_that_beats_the_start(tm
 def test_an_interim_waits_for_its_seconds():
     from types import SimpleNamespace
 
-    from model.train import Interim
+    from model.probe import Interim
 
     calls = []
     interim = Interim(60.0, None)
@@ -360,15 +362,15 @@ def test_an_interim_waits_for_its_seconds():
 
 
 def test_precision_auto_follows_the_hardware_and_named_precisions_are_kept(monkeypatch):
-    from model import train as train_module
+    from model import device as device_module
 
     cpu = torch.device("cpu")
-    assert train_module.resolve_precision("fp32", cpu) is None
-    assert train_module.resolve_precision("bf16", cpu) is torch.bfloat16
-    monkeypatch.setattr(train_module, "cpu_has_native_bf16", lambda: False)  # emulated bf16: no faster
-    assert train_module.resolve_precision("auto", cpu) is None
-    monkeypatch.setattr(train_module, "cpu_has_native_bf16", lambda: True)
-    assert train_module.resolve_precision("auto", cpu) is torch.bfloat16
+    assert device_module.resolve_precision("fp32", cpu) is None
+    assert device_module.resolve_precision("bf16", cpu) is torch.bfloat16
+    monkeypatch.setattr(device_module, "cpu_has_native_bf16", lambda: False)  # emulated bf16: no faster
+    assert device_module.resolve_precision("auto", cpu) is None
+    monkeypatch.setattr(device_module, "cpu_has_native_bf16", lambda: True)
+    assert device_module.resolve_precision("auto", cpu) is torch.bfloat16
     with pytest.raises(SystemExit):
         TrainConfig(out="x", precision="fp16")
 
@@ -389,7 +391,7 @@ def test_bf16_features_are_float32_and_their_gram_loss_stays_within_a_percent(vg
 def test_a_fit_paused_after_its_interim_resumes_to_the_uninterrupted_result(tmp_path, brick, vgg):
     """train(pause=...) stops right after the interim with a resumable checkpoint; training the
     same --out again ends where one uninterrupted run ends (same steps, code and best state)."""
-    from model.train import Interim
+    from model.probe import Interim
 
     image = tmp_path / "brick.png"
     Image.fromarray((brick * 255).astype(np.uint8)).save(image)
@@ -415,7 +417,7 @@ def test_a_fit_paused_after_its_interim_resumes_to_the_uninterrupted_result(tmp_
 
 
 def test_an_interim_asks_for_one_probe_at_its_second():
-    from model.train import Interim
+    from model.probe import Interim
 
     interim = Interim(10.0, None)
     assert not interim.due(9.9)
@@ -428,7 +430,7 @@ def test_an_interim_published_by_a_probe_that_straddles_its_second_is_still_due_
     for all 90 s when its 25th step came just before the tenth second)."""
     from types import SimpleNamespace
 
-    from model.train import Interim
+    from model.probe import Interim
 
     interim = Interim(10.0, lambda *state: None)
     assert not interim.due(9.6)
@@ -452,7 +454,7 @@ def test_a_fit_pauses_at_its_interims_second_even_when_its_start_stays_best(tmp_
     """A start that stays best (rates 0 here; the validation grass in practice) publishes no
     interim; the fit still pauses at the interim's second, or it held the uploads behind it
     for its whole budget."""
-    from model.train import Interim
+    from model.probe import Interim
 
     image = tmp_path / "brick.png"
     Image.fromarray((brick * 255).astype(np.uint8)).save(image)
