@@ -23,13 +23,13 @@ from torch import nn
 
 from model.colour import KNOTS, apply_colour, colour_size, identity_colour
 from model.networks import TextureField, TextureSpace, load_checkpoint
+from worker.contract import TILEABLE_SAMPLER
 
 OPSET = 18  # BitwiseAnd / BitwiseXor need 18; onnxruntime 1.31 reads it
 MAX_IR_VERSION = 13  # onnxruntime 1.31 refuses newer IR
 DEFAULT_OUTDIR = Path(__file__).resolve().parent / "weights"
 ENCODER_INPUT_SIZE = 128
 ENCODER_INPUT_RANGE = [-1.0, 1.0]
-TILEABLE_SAMPLER = "sampler_tileable.onnx"  # file name beside sampler.onnx, also in a fit's folder
 _SHIFT_DOMAIN = "texspace"  # placeholder op domain, gone from the written file
 
 
@@ -111,9 +111,12 @@ class SamplerGraph(nn.Module):
     """Contract 1 around a TextureField.
 
     points float64 [P,3], z float32 [P,8] or [1,8], seed int64 [] or [1],
-    colour float32 [P,K] or [1,K] (same rows as z; model/colour.py)  ->  rgb float32 [P,3]
+    colour float32 [P,K] or [1,K] (model/colour.py)  ->  rgb float32 [P,3]
     A shared code is one row evaluated for all P points; per-point codes are P rows of
-    one point each. ``reshape(rows, -1, 3)`` covers both with one graph.
+    one point each. ``reshape(rows, -1, 3)`` covers both with one graph. The colour
+    table's rows are independent of z's: the raw colours are regrouped by the table's
+    rows before it is applied (``_coloured``), so all four combinations give [P,3], and
+    the same pixels, since the colour stage is exact per point.
     """
 
     def __init__(self, field: TextureField):
@@ -121,9 +124,8 @@ class SamplerGraph(nn.Module):
         self.field = field
 
     def forward(self, points, z, seed, colour):
-        rows = z.shape[0]
-        raw = self.field(points.reshape(rows, -1, 3), z, seed.reshape([]))
-        return apply_colour(raw, colour).reshape(-1, 3)
+        raw = self.field(points.reshape(z.shape[0], -1, 3), z, seed.reshape([]))
+        return _coloured(raw, colour)
 
 
 class TileableSamplerGraph(SamplerGraph):
@@ -131,9 +133,24 @@ class TileableSamplerGraph(SamplerGraph):
     in x and y with that period (``TextureField.periodic_lattice``), for tileable images."""
 
     def forward(self, points, z, seed, colour, period):
-        rows = z.shape[0]
-        raw = self.field(points.reshape(rows, -1, 3), z, seed.reshape([]), period=period.reshape([]))
-        return apply_colour(raw, colour).reshape(-1, 3)
+        raw = self.field(points.reshape(z.shape[0], -1, 3), z, seed.reshape([]), period=period.reshape([]))
+        return _coloured(raw, colour)
+
+
+def _coloured(raw: torch.Tensor, colour: torch.Tensor) -> torch.Tensor:
+    """Raw colours [R, P/R, 3] (R rows of z) coloured by tables [T, K] (T = 1 or P) -> [P, 3].
+
+    Regrouped as [T, P/T, 3] first: with the tables' own row count the stage broadcasts
+    one table over all points or pairs table i with point i, whatever z's rows were
+    (applied in z's grouping, a shared z with per-point tables broadcast to P x P rows).
+    """
+    return apply_colour(raw.reshape(colour.shape[0], -1, 3), colour).reshape(-1, 3)
+
+
+# Dynamic axes of both samplers: z and colour rows are named apart (1 or P each, chosen
+# independently); one shared name let ONNX Runtime assume them equal and reuse one's buffer
+# for the other.
+_SAMPLER_AXES = {"points": {0: "P"}, "z": {0: "code_rows"}, "colour": {0: "colour_rows"}, "rgb": {0: "P"}}
 
 
 def _export(module: nn.Module, args: tuple, path: Path, input_names, output_names, dynamic_axes):
@@ -178,7 +195,7 @@ def export_sampler(field: TextureField, path: Path) -> None:
         path,
         ["points", "z", "seed", "colour"],
         ["rgb"],
-        {"points": {0: "P"}, "z": {0: "R"}, "colour": {0: "R"}, "rgb": {0: "P"}},
+        _SAMPLER_AXES,
     )
 
 
@@ -194,7 +211,7 @@ def export_tileable_sampler(field: TextureField, path: Path) -> None:
         path,
         ["points", "z", "seed", "colour", "period"],
         ["rgb"],
-        {"points": {0: "P"}, "z": {0: "R"}, "colour": {0: "R"}, "rgb": {0: "P"}},
+        _SAMPLER_AXES,
     )
 
 

@@ -11,7 +11,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-AXIS_PLANES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
+from worker.contract import PLANE_AXES
+
+#: the world axes each axis-aligned plane spans (u, v): the tiles' planes
+AXIS_PLANES = {plane: axes[:2] for plane, axes in PLANE_AXES.items()}
 LATTICE_PARTNER_STEPS = 2  # a partner lies up to this many lattice vectors away along each
 
 

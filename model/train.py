@@ -485,6 +485,7 @@ def train(cfg: TrainConfig, progress=None, interim: Interim | None = None, pause
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
     budget = Budget(cfg, run.step, run.budget_spent if cfg.mode == "single" else 0.0)
     run.model.train()
+    ended = False  # the loop ran out or was stopped, rather than raising (a canceled fit's progress hook)
     try:
         while budget.left(run.step) and not stop.is_set():
             stats = train_step(run, budget.time_done() if cfg.decay_by_time else None)
@@ -505,11 +506,12 @@ def train(cfg: TrainConfig, progress=None, interim: Interim | None = None, pause
             if run.step % cfg.ckpt_every == 0:
                 save(run)
                 run.log.flush()
+        ended = True
     finally:
         budget.close()
         if run.paused:
             run.budget_spent, run.probe_best = budget.elapsed(), probe.saved_best()
-        elif probe is not None:
+        elif probe is not None and ended:  # (a fit that raised ends now: no last score for a result nobody takes)
             if run.step % cfg.probe_every:  # the state after the last score
                 probe.update()
             run.probe = probe.restore_best()

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from worker.bake import FORMATS as BAKE_FORMATS
+from worker.contract import MAX_BAKE_RESOLUTION, MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION, MIN_VOLUME_RESOLUTION
 from worker.files import extensions
 from worker.photo import LIGHTING
 from worker.regions import FORMATS as REGION_FORMATS
@@ -37,7 +38,7 @@ from .context import build_services
 from .logs import setup_logging
 from .samplers import sampler_inputs
 from .schemas import BAKE_PROJECTIONS, bake_projection
-from .settings import FIT_SECONDS, Settings
+from .settings import FIT_SECONDS, MAX_FIT_SECONDS, Settings
 from .tables import Texture
 
 log = logging.getLogger(__name__)
@@ -46,15 +47,18 @@ log = logging.getLogger(__name__)
 #: settings lower the upper ends further, as they do for the API
 SEED_MAX = 2**31 - 1
 OFFSET_LIMIT = 1e9
-VOLUME_RESOLUTION = (2, 1024)
-BAKE_RESOLUTION = (16, 8192)
 SCALE_MAX = 1e6
+#: the longest `upload --timeout`, seconds per photo: a wait of this client, no server limit
+UPLOAD_WAIT_MAX = 60.0 * 60
 #: output formats by extension (tile: the tile route's; bake: obj is a zip of obj + mtl + png)
 TILE_EXTENSIONS = extensions(TILE_FORMATS)
 BAKE_EXTENSIONS = extensions(BAKE_FORMATS)
 TILEABLE_EXTENSIONS = extensions(f for f in REGION_FORMATS if f != "pyramid")
 SHADER_EXTENSIONS = extensions(LANGUAGES)
 VOLUME_EXTENSIONS = extensions(VOLUME_FORMATS)
+#: the files ``upload`` takes from a folder: the photo formats the API reads
+UPLOAD_EXTENSIONS = frozenset(ext for exts in extensions(("png", "jpeg", "tiff", "exr", "webp", "gif", "bmp")).values()
+                              for ext in exts) | {".jpeg"}
 #: refusals of the input (exit 2); every other domain error is a failure of the work (exit 1)
 INPUT_ERRORS = ("InvalidImage", "InvalidMesh", "InvalidParameter", "LimitExceeded")
 
@@ -191,8 +195,8 @@ class TextureSource:
         except ImportError:
             raise CliError("--refine needs PyTorch: pip install 'texspace[train]'", code=1) from None
         from worker.colour_match import texture_vector
+        from worker.contract import TILEABLE_SAMPLER
         from worker.photo import working_photo
-        from worker.runtime import TILEABLE_SAMPLER
 
         from .job_kinds import fit_structure, fitted_colour, photo_to_fit
 
@@ -440,13 +444,66 @@ def cmd_keys(args: argparse.Namespace, settings: Settings) -> None:
         print(f"revoked {args.key_id}")
 
 
+def upload_files(paths: list[str]) -> list[Path]:
+    """The image files named by ``paths``: each file as given, each folder's image files
+    (by extension, ``UPLOAD_EXTENSIONS``; not its subfolders) in name order."""
+    found: list[Path] = []
+    for given in paths:
+        path = Path(given)
+        if path.is_dir():
+            found += sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in UPLOAD_EXTENSIONS)
+        elif path.is_file():
+            found.append(path)
+        else:
+            raise CliError(f"{given}: no such file or folder")
+    return found
+
+
+def _api_client(url: str, api_key: str | None, timeout: float):  # noqa: ANN202 (service.client.Client)
+    """The HTTP client ``upload`` talks to the server with (tests give it the app's transport)."""
+    from .client import Client
+
+    return Client(url, api_key=api_key, timeout=timeout)
+
+
+def cmd_upload(args: argparse.Namespace, settings: Settings) -> None:
+    """``texspace upload IMAGE|FOLDER ...``: upload photos to a running server one after
+    another, a status line per file as each ends; exit 1 when any failed."""
+    import httpx
+
+    from .client import ApiError
+
+    files = upload_files(args.images)
+    if not files:
+        raise CliError(f"no image files ({', '.join(sorted(UPLOAD_EXTENSIONS))}) in {' '.join(args.images)}")
+    if args.name is not None and len(files) > 1:
+        raise CliError("--name names one upload; with several files each is named after its file")
+    url = args.url or os.environ.get("TEXSPACE_URL") or f"http://127.0.0.1:{settings.port}"
+    failed = 0
+    with _api_client(url, args.api_key or os.environ.get("TEXSPACE_API_KEY"), args.timeout) as ts:
+        for number, path in enumerate(files, 1):
+            where = f"[{number}/{len(files)}] {path}"
+            try:
+                texture = ts.upload(path, name=args.name, lighting=args.lighting)
+            except ApiError as exc:
+                failed += 1
+                print(f"{where}: failed: {_one_line(exc)}", flush=True)
+            except httpx.TransportError as exc:
+                raise CliError(f"cannot reach the server at {url} ({_one_line(exc)}); {number - 1} of "
+                               f"{len(files)} uploaded (TEXSPACE_URL or --url names the server)", code=1) from None
+            else:
+                print(f"{where}: texture {texture['id']} ({texture.get('name') or path.name})", flush=True)
+    if failed:
+        raise CliError(f"{failed} of {len(files)} uploads failed", code=1)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from worker.tiles import MAX_TILE_SIZE, MAX_ZOOM, MIN_TILE_SIZE, MIN_ZOOM, NATIVE_ZOOM
 
     fields = Settings.model_fields
     parser = Parser(prog="texspace", formatter_class=HelpFormatter,
-                    description="processes (api, worker, serve, migrate, reencode, recolour) and offline tools (encode, tile, "
-                                "volume, bake, tileable, shader) that work without a server",
+                    description="processes (api, worker, serve, migrate, reencode, recolour), offline tools (encode, tile, "
+                                "volume, bake, tileable, shader) that work without a server, and upload (to a server)",
                     epilog="An error is one line on stderr; exit status 2: bad input, 1: the work failed.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -489,7 +546,7 @@ def build_parser() -> argparse.ArgumentParser:
     lighting_arg(p)
 
     def refine_arg(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--refine", nargs="?", type=ranged(float, 0, 3600, above=True), const=FIT_SECONDS,
+        p.add_argument("--refine", nargs="?", type=ranged(float, 0, MAX_FIT_SECONDS, above=True), const=FIT_SECONDS,
                        metavar="SECONDS", help="an image file: fit it first, as an upload's refinement is, for "
                        f"SECONDS ({FIT_SECONDS:g} when not given), with a progress bar; needs the train extra "
                        "(PyTorch) (default: no fit, the encoder's code at once)")
@@ -524,8 +581,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = proc("volume", cmd_volume, "render a solid N^3 block of an image file or stored texture id")
     p.add_argument("texture", help="IMAGE file or TEXTURE_ID (required)")
     texture_args(p, "volume", VOLUME_EXTENSIONS, "volume-N")
-    p.add_argument("--resolution", type=ranged(int, *VOLUME_RESOLUTION), default=64,
-                   help=f"voxels per side N, {VOLUME_RESOLUTION[0]}..TEXSPACE_MAX_VOLUME_RESOLUTION "
+    p.add_argument("--resolution", type=ranged(int, MIN_VOLUME_RESOLUTION, MAX_VOLUME_RESOLUTION), default=64,
+                   help=f"voxels per side N, {MIN_VOLUME_RESOLUTION}..TEXSPACE_MAX_VOLUME_RESOLUTION "
                         f"({fields['max_volume_resolution'].default} unless set)")
     p.add_argument("--bounds", type=ranged(float, -OFFSET_LIMIT, OFFSET_LIMIT), nargs=6,
                    default=[0.0, 0.0, 0.0, 1.0, 1.0, 1.0], metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
@@ -535,8 +592,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mesh", help="OBJ, PLY, STL or GLB mesh file (by extension; required)")
     p.add_argument("--texture", required=True, help="IMAGE file or TEXTURE_ID (required)")
     texture_args(p, "bake", BAKE_EXTENSIONS, "MESH-baked")
-    p.add_argument("--resolution", type=ranged(int, *BAKE_RESOLUTION), default=1024,
-                   help=f"texture atlas side in pixels, {BAKE_RESOLUTION[0]}..TEXSPACE_MAX_BAKE_RESOLUTION "
+    p.add_argument("--resolution", type=ranged(int, MIN_BAKE_RESOLUTION, MAX_BAKE_RESOLUTION), default=1024,
+                   help=f"texture atlas side in pixels, {MIN_BAKE_RESOLUTION}..TEXSPACE_MAX_BAKE_RESOLUTION "
                         f"({fields['max_bake_resolution'].default} unless set)")
     p.add_argument("--scale", type=ranged(float, 0, SCALE_MAX, above=True),
                    help="world units per mesh unit (default: the mesh spans 512 exemplar pixels)")
@@ -562,6 +619,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="must agree with -o's extension (default: from -o's extension, else glsl)")
     lighting_arg(p)
     refine_arg(p)
+
+    p = proc("upload", cmd_upload, "upload photos (files, or every image in a folder) to a running server, one "
+                                   "after another, a line per file; exit 1 when any failed")
+    p.add_argument("images", nargs="+", metavar="IMAGE", help="image files or folders of them (required)")
+    p.add_argument("--url", help="the server (default: TEXSPACE_URL, else http://127.0.0.1:TEXSPACE_PORT)")
+    p.add_argument("--api-key", dest="api_key", help="for a server with API keys on (default: TEXSPACE_API_KEY)")
+    p.add_argument("--name", help="the texture's name, for a single file (default: its file name)")
+    p.add_argument("--timeout", type=ranged(float, 0, UPLOAD_WAIT_MAX, above=True), default=300.0,
+                   help="seconds per upload (an upload is encoded before it answers)")
+    lighting_arg(p)
 
     p = proc("keys", cmd_keys, "API keys: create, list, revoke")
     actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")

@@ -1,7 +1,7 @@
 """A small Python client for the texspace HTTP API (needs only httpx and the stdlib).
 
-It imports nothing else from the service, so a script or notebook that talks to a
-running server pays for no numpy, ONNX or FastAPI import::
+Of the service it imports only the job vocabulary (standard library), so a script or
+notebook that talks to a running server pays for no numpy, ONNX or FastAPI import::
 
     from service.client import Client
 
@@ -10,7 +10,7 @@ running server pays for no numpy, ONNX or FastAPI import::
         png = ts.tile(texture["id"], 6, 0, 0)           # bytes of one 256 px tile
         job = ts.volume(texture["id"], resolution=64, format="exr")
         job = ts.wait(job, progress=lambda j: print(f"{j['progress']:.0%}"))
-        path = ts.download(job, "out/")                 # out/volume-....exr
+        path = ts.download(job, "out/")                 # out/brick_volume_64px_seed0.exr
 
 Every error answer (RFC 9457 problem+json) raises :class:`ApiError`; a job that ends
 failed or canceled raises :class:`JobFailed` from :meth:`Client.wait`.
@@ -21,14 +21,15 @@ import json
 import os
 import re
 import time
-from urllib.parse import quote
+from urllib.parse import quote, unquote
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
 
-TERMINAL = ("succeeded", "failed", "canceled")
+from .vocabulary import TERMINAL_STATES, JobState
+
 #: the response header of a zoomed-out tile's preview (openapi.yaml, getTile)
 PREVIEW_HEADER = "X-Texspace-Tile"
 Job = dict[str, Any]
@@ -45,7 +46,7 @@ class _ProgressBar:
 
     def update(self, job: Job) -> None:
         self.bar.n = round(100 * float(job.get("progress", 0.0)), 1)
-        stage = "paused after its interim" if job.get("stage") == "interim" and job.get("state") == "queued" else None
+        stage = "paused after its interim" if job.get("stage") == "interim" and job.get("state") == JobState.QUEUED else None
         self.bar.set_postfix_str(stage or job.get("state", ""), refresh=False)
         self.bar.refresh()
 
@@ -78,6 +79,29 @@ def _job_id(job: Job | str) -> str:
     return _segment(job if isinstance(job, str) else job["id"])
 
 
+def _disposition_name(header: str) -> str:
+    """The file name of a Content-Disposition header: RFC 6266's UTF-8 ``filename*`` (a
+    non-ASCII name) before the plain ASCII ``filename``; "" when it has neither."""
+    star = re.search(r"filename\*=UTF-8''([^;\s]+)", header, re.IGNORECASE)
+    if star:
+        return unquote(star[1])
+    plain = re.search(r'filename="([^"]+)"', header)
+    return plain[1] if plain else ""
+
+
+def _form_value(value: Any) -> str:
+    """One multipart form value as the server reads it (booleans as true / false)."""
+    return ("true" if value else "false") if isinstance(value, bool) else str(value)
+
+
+def _form_fields(params: dict[str, Any]) -> dict[str, str | list[str]]:
+    """Form fields of keyword arguments: a list or tuple (``maps=["height", "normal"]``)
+    becomes the field repeated once per item, which is how the API takes list fields; None
+    leaves the field out (the server's default)."""
+    return {key: [_form_value(v) for v in value] if isinstance(value, (list, tuple)) else _form_value(value)
+            for key, value in params.items() if value is not None}
+
+
 def _segment(value: str) -> str:
     """An id as one URL path segment: percent-encoded, so '../../v1/jobs' cannot walk the API."""
     return quote(str(value), safe="")
@@ -92,6 +116,7 @@ class Client:
         headers = {"X-API-Key": api_key} if api_key else {}
         self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout,
                                  transport=transport)
+        self._limits: dict[str, Any] | None = None
 
     def close(self) -> None:
         self.http.close()
@@ -111,6 +136,14 @@ class Client:
     @staticmethod
     def _key(idempotency_key: str | None) -> dict[str, str]:
         return {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+
+    def limits(self) -> dict[str, Any]:
+        """The server's limits (``GET /v1/limits``: upload bytes and pixels, tile sizes and
+        planes, volume and bake resolutions, a fit's default and longest budget, ...), read
+        once per client: the server's own numbers, never copies of them."""
+        if self._limits is None:
+            self._limits = self._call("GET", "/v1/limits").json()
+        return self._limits
 
     # --- textures -------------------------------------------------------------------
     def upload(self, image: str | os.PathLike | bytes, *, name: str | None = None,
@@ -147,7 +180,8 @@ class Client:
     def tile(self, texture_id: str, z: int, x: int, y: int, *, fmt: str = "png", seed: int = 0,
              size: int = 256, plane: str = "xy", offset: float = 0.0, exact: bool = True,
              timeout: float = 300.0) -> bytes:
-        """The bytes of tile (z, x, y) in ``fmt`` (png, webp, exr).
+        """The bytes of tile (z, x, y) in ``fmt`` (png, webp, exr); ``size`` in pixels and ``plane``
+        within the server's ``limits()`` (``min_tile_size``..``max_tile_size``, ``planes``).
 
         A zoomed-out tile the server does not hold yet may come first as a preview
         (header ``X-Texspace-Tile: preview``); with ``exact`` (the default) this asks again
@@ -182,20 +216,21 @@ class Client:
              idempotency_key: str | None = None, **params: Any) -> Job:
         """Submit a bake of a mesh file (OBJ, PLY, STL, GLB; bytes need ``filename``):
         ``resolution``, ``seed``, ``scale``, ``format`` (glb or obj), ``projection`` (auto,
-        solid or triplanar), and the other form fields of openapi.yaml."""
+        solid or triplanar), ``maps`` (a list: ``["height", "normal", "roughness", "ao"]``),
+        ``normal_strength``, ``after_refinement`` and the other form fields of openapi.yaml."""
         if isinstance(mesh, bytes):
             data, filename = mesh, filename or "mesh.obj"
         else:
             data, filename = Path(mesh).read_bytes(), filename or Path(mesh).name
-        form = {k: str(v) for k, v in params.items() if v is not None}
         return self._call("POST", f"/v1/textures/{_segment(texture_id)}/bakes", files={"mesh": (filename, data)},
-                          data=form, headers=self._key(idempotency_key)).json()
+                          data=_form_fields(params), headers=self._key(idempotency_key)).json()
 
     def fit(self, texture_id: str, *, seconds: float | None = None, grain: str | None = "auto",
             lattice: str | None = "auto", even: str | None = "auto", lean: str | None = "auto",
             idempotency_key: str | None = None) -> Job:
         """Submit a fit (needs the train extra on the workers): refines the texture's sampler.
-        ``seconds``: its time budget (None: the server's default, 240);
+        ``seconds``: its time budget (None: the server's default, ``limits()["fit_seconds"]``;
+        at most ``limits()["max_fit_seconds"]``);
         ``grain``: "x", "y", "auto" (detected from the photo) or None (isotropic);
         ``lattice``: "auto" (a repeat lattice detected from the photo) or None;
         ``even``: "auto" (an even photo's coarse octaves muted) or None;
@@ -246,9 +281,9 @@ class Client:
                 end = None
             if end is None:
                 now = self.job(job_id)
-                end = now if now["state"] in TERMINAL else None
+                end = now if now["state"] in TERMINAL_STATES else None
             if end is not None:
-                if end["state"] != "succeeded":
+                if end["state"] != JobState.SUCCEEDED:
                     raise JobFailed(end)
                 return end
 
@@ -280,7 +315,7 @@ class Client:
                     event = line[6:].strip()
                 elif line.startswith("data:"):
                     data = json.loads(line[5:].strip())
-                    if event in TERMINAL:
+                    if event in TERMINAL_STATES:
                         return data
                     if progress is not None:
                         progress(data)
@@ -304,8 +339,7 @@ class Client:
             if res.status_code >= 400:
                 res.read()
                 self._raise(res)
-            found = re.search(r'filename="([^"]+)"', res.headers.get("content-disposition", ""))
-            name = Path(found[1]).name if found else f"{_job_id(job)}.bin"
+            name = Path(_disposition_name(res.headers.get("content-disposition", ""))).name or f"{_job_id(job)}.bin"
             target = Path(to) if to is not None else Path(".")
             if to is None or target.is_dir() or str(to).endswith(("/", os.sep)):
                 target.mkdir(parents=True, exist_ok=True)

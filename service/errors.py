@@ -6,7 +6,9 @@ as a problem document with a useful ``detail``.
 """
 from __future__ import annotations
 
+import errno
 import logging
+import sqlite3
 from http import HTTPStatus
 from typing import Any
 
@@ -14,6 +16,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
+from sqlalchemy import exc as database
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from worker import errors as domain
@@ -23,6 +26,13 @@ log = logging.getLogger(__name__)
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 TYPE_PREFIX = "urn:texspace:problem:"
 BODY_PARSE_ERROR = "There was an error parsing the body"  # FastAPI's 400 for bodies it cannot decode
+
+
+#: Retry-After of a request the database failed: PostgreSQL restarts in seconds, and the
+#: pool's pre-ping replaces the dropped connections on the next checkout
+DATABASE_RETRY_AFTER_SECONDS = 5
+#: what a client is told instead of the driver's message, which names hosts, files and SQL
+DATABASE_DETAIL = f"the database did not answer; retry in {DATABASE_RETRY_AFTER_SECONDS} s"
 
 
 class ClientGone(domain.TexspaceError):
@@ -40,9 +50,16 @@ ERROR_TABLE: dict[type[Exception], tuple[int, str, str]] = {
     domain.Canceled: (409, "canceled", "The job was canceled"),
     domain.ModelNotFound: (503, "model-unavailable", "The texture's model is not loaded"),
     domain.Busy: (503, "busy", "The service is busy; retry later"),
+    domain.InsufficientStorage: (507, "insufficient-storage", "The server's storage is full"),
     domain.ModelInvalid: (500, "model-invalid", "A model export is broken"),
     domain.FeatureUnavailable: (501, "feature-unavailable", "This feature is not installed"),
     domain.TexspaceError: (400, "bad-request", "The request cannot be processed"),
+    # The database did not answer: down, restarting, out of connections (the pool's wait),
+    # or SQLite locked past its busy timeout. Not the request's fault, nor the service's.
+    database.OperationalError: (503, "database-unavailable", "The database is unavailable"),
+    database.InterfaceError: (503, "database-unavailable", "The database is unavailable"),
+    database.DisconnectionError: (503, "database-unavailable", "The database is unavailable"),
+    database.TimeoutError: (503, "database-unavailable", "The database is unavailable"),
 }
 
 
@@ -73,15 +90,54 @@ def not_found(what: str, ident: str) -> Problem:
     return Problem(404, f"{what} {ident!r} does not exist", slug="not-found")
 
 
+STORAGE_FULL_DETAIL = ("the server's storage is full, so nothing was stored; deleting textures frees "
+                       "space, or retry once an operator has added some")
+_FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT}
+_NO_SPACE = "No space left on device"  # strerror(ENOSPC), in the messages of writers that drop the errno
+_SQLITE_FULL = "database or disk is full"  # SQLITE_FULL's message
+_POSTGRES_DISK_FULL = "53100"  # SQLSTATE disk_full
+
+
+def storage_full(exc: BaseException) -> domain.InsufficientStorage | None:
+    """The domain error ``exc`` stands for when a write failed for lack of space, else None.
+
+    Space errors come from everywhere a byte is written, so they are recognised here, on
+    the way out, through the chain of causes (SQLAlchemy keeps the driver's error as
+    ``orig``): an OSError with ENOSPC or EDQUOT (or its message, from writers such as
+    OpenImageIO that drop the errno), SQLite's "database or disk is full" (the database
+    and the SQLite queue) and PostgreSQL's disk_full. Their messages name server paths;
+    the problem says what happened instead.
+    """
+    seen, pending = set(), [exc]
+    while pending:
+        error = pending.pop()
+        if error is None or id(error) in seen:
+            continue
+        seen.add(id(error))
+        if isinstance(error, domain.InsufficientStorage):
+            return error
+        if (isinstance(error, OSError) and (error.errno in _FULL_ERRNOS or _NO_SPACE in str(error))
+                or isinstance(error, sqlite3.OperationalError) and _SQLITE_FULL in str(error)
+                or getattr(error, "sqlstate", None) == _POSTGRES_DISK_FULL):
+            return domain.InsufficientStorage(STORAGE_FULL_DETAIL)
+        pending += [getattr(error, "orig", None), error.__cause__, error.__context__]
+    return None
+
+
 def problem_for(exc: BaseException) -> Problem:
     """The problem a domain (or unexpected) exception stands for."""
     if isinstance(exc, Problem):
         return exc
+    if not isinstance(exc, domain.TexspaceError):
+        exc = storage_full(exc) or exc
     for cls in type(exc).__mro__:
         if cls in ERROR_TABLE:
             status, slug, title = ERROR_TABLE[cls]
-            retry = getattr(exc, "retry_after", None)
-            return Problem(status, getattr(exc, "detail", str(exc)), slug=slug, title=title,
+            if isinstance(exc, domain.TexspaceError):
+                detail, retry = exc.detail, getattr(exc, "retry_after", None)
+            else:       # the database's errors, the table's only others
+                detail, retry = DATABASE_DETAIL, DATABASE_RETRY_AFTER_SECONDS
+            return Problem(status, detail, slug=slug, title=title,
                            headers={"Retry-After": str(retry)} if retry else None)
     return Problem(500, "internal error; the request id in the logs tells more", slug="internal-error")
 
@@ -125,8 +181,18 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
-        log.exception("unhandled error on %s %s", request.method, request.url.path)
-        return problem_response(problem_for(exc), request)
+        problem = problem_for(exc)
+        log_unhandled(log, problem, exc, request.method, request.url.path)
+        return problem_response(problem, request)
+
+
+def log_unhandled(logger: logging.Logger, problem: Problem, exc: BaseException, method: str, path: str) -> None:
+    """A bug's traceback; one line for a known outage (a database that is down fails every
+    request while it is: a traceback each would bury the log)."""
+    if problem.slug == "internal-error":
+        logger.error("unhandled error on %s %s", method, path, exc_info=exc)
+    else:
+        logger.warning("%s on %s %s: %s", problem.slug, method, path, type(exc).__name__)
 
 
 class ProblemDetails(BaseModel):

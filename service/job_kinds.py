@@ -10,6 +10,7 @@ import hashlib
 import importlib.util
 import json
 import shutil
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from worker.colour_match import COLOUR_CALIBRATION, calibrate_texture
+from worker.derived_maps import map_file, read_height_range
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, Paused
 from worker.files import extension, media_type
 from worker.images import read_image, write_image
@@ -25,10 +27,12 @@ from worker.photo import working_photo
 from . import jobs, keys
 from .container import Services
 from .db import session_scope
+from .download_names import bake_name, region_name, sampler_name, volume_name
 from .limits import bake_limits
 from .samplers import sampler_inputs, tileable_inputs
 from .schemas import BakeParams, FitParams, RegionIn, VolumeIn, bake_projection
 from .tables import Job, Texture, utcnow
+from .vocabulary import JobKind, JobState
 
 Progress = Callable[[float], None]
 ShouldCancel = Callable[[], bool]
@@ -53,12 +57,31 @@ def _texture_to_render(services: Services, job: Job) -> Texture:
     return texture
 
 
-def _store_result(services: Services, job: Job, path: Path, fmt: str) -> dict[str, Any]:
-    filename = path.name
-    key = keys.result_key(job.id, filename)
+def _store_result(services: Services, job: Job, path: Path, fmt: str, names: tuple[str, str],
+                  height_range: tuple[float, float] | None = None) -> dict[str, Any]:
+    """Store the result file at ``path``; ``names``: its download name's stem and that stem
+    in ASCII (``service/download_names.py``), which the storage key uses. The extension is
+    the file's own (a GLB bake with extra maps becomes a zip). ``height_range``: its height
+    map's luminance range, shown with the result."""
+    shown, stored = names
+    key = keys.result_key(job.id, stored + path.suffix)
     size = services.storage.put_file(key, path)
-    return {"result_key": key, "result_filename": filename, "result_size": size,
-            "result_media_type": media_type(fmt)}
+    details = {"height_range": list(height_range)} if height_range is not None else None
+    return {"result_key": key, "result_filename": shown + path.suffix, "result_size": size,
+            "result_media_type": media_type(fmt), "result_details": details}
+
+
+def zipped_height_range(path: Path) -> tuple[float, float] | None:
+    """The luminance range stated in the height map of a zipped result (a region's maps), or None."""
+    with zipfile.ZipFile(path) as z:
+        height = next((name for name in z.namelist() if name.endswith(map_file("height"))), None)
+        return read_height_range(z.read(height)) if height else None
+
+
+def _names(build: Callable[..., str], texture: Texture, **parts: Any) -> tuple[str, str]:
+    """(download name stem, its ASCII form) of a result named by ``build``."""
+    return (build(texture.name, texture.id, ext="", **parts),
+            build(texture.name, texture.id, ext="", ascii_only=True, **parts))
 
 
 def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -67,12 +90,13 @@ def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
 
     texture = _texture_to_render(services, job)
     p = VolumeIn.model_validate(job.params)
-    out_path = workdir / f"volume-{texture.id[:8]}-{p.resolution}{extension(p.format)}"
+    names = _names(volume_name, texture, resolution=p.resolution, seed=p.seed)
+    out_path = workdir / f"{names[1]}{extension(p.format)}"
     inputs = sampler_inputs(services, texture)
     path = render_volume(inputs.sampler, inputs.code, p.seed, resolution=p.resolution,
                          bounds=p.bounds, fmt=p.format, out_path=out_path,
                          progress=progress, should_cancel=should_cancel)
-    return _store_result(services, job, path, p.format)
+    return _store_result(services, job, path, p.format, names)
 
 
 def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -82,8 +106,8 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
     texture = _texture_to_render(services, job)
     p = BakeParams.model_validate(job.params)
     mesh_bytes = services.storage.get_bytes(job.input_key)
-    stem = Path(p.filename).stem or "mesh"
-    out_path = workdir / f"{stem}-baked{extension(p.format)}"
+    names = _names(bake_name, texture, mesh_filename=p.filename, resolution=p.resolution, seed=p.seed)
+    out_path = workdir / f"{names[1]}{extension(p.format)}"   # zip members are named after it
     limits = bake_limits(services.settings)
     inputs = sampler_inputs(services, texture)
     result = bake_mesh(inputs.sampler, inputs.code, p.seed, mesh_bytes=mesh_bytes,
@@ -94,8 +118,9 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
                        maps=tuple(p.maps), gpu_format=p.gpu_format, normal_strength=p.normal_strength,
                        projection=bake_projection(p.projection, texture.served_structure()),
                        progress=progress, should_cancel=should_cancel)
-    # a GLB with a height map or a GPU texture comes back as a zip
-    return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip")
+    # a GLB with a height map or a DDS comes back as a zip (a KTX2 goes inside the GLB)
+    return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip", names,
+                         result.height_range)
 
 
 def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -106,7 +131,9 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
     p = RegionIn.model_validate(job.params)
     maps = tuple(p.maps)
     fmt = "zip" if maps else p.format  # with derived maps, a zip of colour + maps
-    out_path = workdir / f"region-{texture.id[:8]}-z{p.z}{extension(fmt)}"
+    names = _names(region_name, texture, z=p.z, width=p.width, height=p.height, seed=p.seed, plane=p.plane,
+                   tileable=p.tileable)
+    out_path = workdir / f"{names[1]}{extension(fmt)}"   # zip members are named after it
     limits = RegionLimits(max_pixels=services.settings.max_region_pixels,
                           max_tiles=services.settings.max_region_tiles)
     # tileable: the texture's sampler_tileable.onnx, its period the image's side
@@ -117,7 +144,7 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
                          wrap_maps=p.tileable, tileable=p.tileable,
                          pixels_per_unit=inputs.pixels_per_unit, limits=limits,
                          progress=progress, should_cancel=should_cancel)
-    return _store_result(services, job, path, fmt)
+    return _store_result(services, job, path, fmt, names, zipped_height_range(path) if "height" in maps else None)
 
 
 def fitted_texture_id(job_id: str) -> str:
@@ -189,7 +216,9 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     services.storage.delete(paused_key)
     structure = fit_structure(fitted)
     code = [float(c) for c in json.loads((out_dir / "code.json").read_text())["code"]]
-    values = _store_result(services, job, out_dir / "sampler.onnx", "onnx")
+    values = _store_result(services, job, out_dir / "sampler.onnx", "onnx",
+                           (sampler_name(texture.name, texture.id).removesuffix(".onnx"),
+                            sampler_name(texture.name, texture.id, ascii_only=True).removesuffix(".onnx")))
     if p.in_place:
         _refine_in_place(services, job, texture, out_dir / "sampler.onnx", code, image, structure)
         return {**values, "output_texture_id": texture.id}
@@ -202,7 +231,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     services.storage.put_file(exemplar_key, original)
     with session_scope(services.sessions) as session:
         current = session.get(Job, job.id)
-        dropped = (session.get(Texture, texture.id) is None or current is None or current.state != "running"
+        dropped = (session.get(Texture, texture.id) is None or current is None or current.state != JobState.RUNNING
                    or current.attempt != job.attempt)  # the texture deleted (with its jobs) meanwhile
         if not dropped and session.get(Texture, new_id) is None:
             session.add(Texture(id=new_id, name=f"{texture.name or texture.id} (fitted)",
@@ -287,7 +316,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
         current = session.get(Job, job.id)
         row = session.get(Texture, texture.id)
         moved = row is not None and row.model_version != texture.model_version
-        if current is None or current.state != "running" or current.attempt != job.attempt or row is None or moved:
+        if current is None or current.state != JobState.RUNNING or current.attempt != job.attempt or row is None or moved:
             services.storage.delete_prefix(folder)  # no row names it: leave no file behind
             local.unlink(missing_ok=True)
             if moved:  # texspace reencode moved it on (and queued a refinement of its own)
@@ -303,7 +332,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
 def _store_tileable(services: Services, sampler_key: str, fit_dir: Path) -> None:
     """Store the fit's tileable sampler beside its sampler (``tileable_key``), where
     tileable regions look for it; a model.fit from before tileable textures writes none."""
-    from worker.runtime import TILEABLE_SAMPLER
+    from worker.contract import TILEABLE_SAMPLER
 
     path = fit_dir / TILEABLE_SAMPLER
     if path.is_file():
@@ -320,6 +349,6 @@ def fitted_colour(sampler, code: list[float], image: np.ndarray) -> list[float] 
     return [float(v) for v in colour] or None
 
 
-KINDS: dict[str, Callable[..., dict[str, Any]]] = {
-    "volume": run_volume, "bake": run_bake, "region": run_region, "fit": run_fit,
+KINDS: dict[JobKind, Callable[..., dict[str, Any]]] = {
+    JobKind.VOLUME: run_volume, JobKind.BAKE: run_bake, JobKind.REGION: run_region, JobKind.FIT: run_fit,
 }

@@ -21,7 +21,8 @@ from .container import Services
 from .db import session_scope
 from .errors import Problem, problem_for
 from .limits import check_queue_room
-from .tables import TERMINAL_STATES, Job, Texture, new_id, utcnow
+from .tables import Job, Texture, new_id, utcnow
+from .vocabulary import TERMINAL_STATES, JobKind, JobState
 
 log = logging.getLogger(__name__)
 
@@ -48,9 +49,9 @@ def submit(services: Services, *, kind: str, texture_id: str | None, params: dic
             return same_request(existing, fingerprint), False
     check_queue_room(services, kind)  # back-pressure: 503 (full) or 429 (the tenant's share) + Retry-After
     sampler = (served_sampler(services, texture_id, waiting=bool(params.get("after_refinement")))
-               if texture_id and kind != "fit" else None)
+               if texture_id and kind != JobKind.FIT else None)
     job = Job(id=job_id or new_id(), kind=kind, texture_id=texture_id, params=params, input_key=input_key,
-              state="queued", attempt=0, max_attempts=services.settings.max_attempts, progress=0.0,
+              state=JobState.QUEUED, attempt=0, max_attempts=services.settings.max_attempts, progress=0.0,
               cancel_requested=False, idempotency_key=idempotency_key, request_hash=fingerprint,
               owner_id=current_owner(), sampler=sampler)
     try:
@@ -79,7 +80,7 @@ def queue_refinement(services: Services, texture: Texture, params: dict[str, Any
         if not texture.refinement_deferred and owner_has_deferred(services, texture.owner_id):
             # first come, first refined: a new upload does not take the room an older deferred one waits for
             raise Problem(429, "earlier uploads of this tenant wait for room in the fit queue", slug="queue-share-used")
-        submit(services, kind="fit", texture_id=texture.id, params=params, job_id=texture.refinement_job_id)
+        submit(services, kind=JobKind.FIT, texture_id=texture.id, params=params, job_id=texture.refinement_job_id)
         deferred, queued = None, True
     except Problem as exc:
         full = exc.slug in ("queue-full", "queue-share-used")
@@ -136,7 +137,7 @@ def refinement_pending(services: Services, texture: Texture) -> bool:
         return True  # queued by the reaper as the fit queue frees
     with session_scope(services.sessions) as session:
         state = session.scalar(select(Job.state).where(Job.id == texture.refinement_job_id))
-    return state is not None and state not in ("failed", "canceled")
+    return state is not None and state not in (JobState.FAILED, JobState.CANCELED)
 
 
 def served_sampler(services: Services, texture_id: str, waiting: bool = False) -> dict[str, Any] | None:
@@ -165,8 +166,8 @@ def record_sampler(services: Services, job_id: str, sampler: dict[str, Any]) -> 
 def release_waiting(services: Services, texture_id: str) -> None:
     """Send again the queued jobs of ``texture_id`` (those held for its refinement, which ended)."""
     with session_scope(services.sessions) as session:
-        held = session.scalars(select(Job.id).where(Job.texture_id == texture_id, Job.state == "queued",
-                                                    Job.kind != "fit")).all()
+        held = session.scalars(select(Job.id).where(Job.texture_id == texture_id, Job.state == JobState.QUEUED,
+                                                    Job.kind != JobKind.FIT)).all()
     for job_id in held:
         enqueue(services, job_id)  # a duplicate message is harmless: claim() is conditional
 
@@ -226,12 +227,12 @@ def claim(services: Services, job_id: str) -> Claim | None:
     lease = now + dt.timedelta(seconds=services.settings.lease_seconds)
     with session_scope(services.sessions) as session:
         job = session.get(Job, job_id)
-        if job is None or job.state != "queued":
+        if job is None or job.state != JobState.QUEUED:
             return None
         attempt = job.attempt + 1
         moved = session.execute(
-            update(Job).where(Job.id == job_id, Job.state == "queued", Job.attempt == job.attempt)
-            .values(state="running", attempt=attempt, worker_id=services.worker_id, heartbeat_at=now,
+            update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED, Job.attempt == job.attempt)
+            .values(state=JobState.RUNNING, attempt=attempt, worker_id=services.worker_id, heartbeat_at=now,
                     lease_expires_at=lease, started_at=job.started_at or now, error=None,
                     progress=job.progress if job.stage else 0.0)  # (a paused fit goes on from where it was)
         ).rowcount
@@ -241,7 +242,7 @@ def claim(services: Services, job_id: str) -> Claim | None:
 
 
 def _mine(claim_: Claim):  # noqa: ANN202
-    return and_(Job.id == claim_.job.id, Job.state == "running", Job.attempt == claim_.attempt)
+    return and_(Job.id == claim_.job.id, Job.state == JobState.RUNNING, Job.attempt == claim_.attempt)
 
 
 def heartbeat(services: Services, claim_: Claim, progress: float) -> tuple[bool, bool]:
@@ -257,7 +258,7 @@ def heartbeat(services: Services, claim_: Claim, progress: float) -> tuple[bool,
 
 def finish(services: Services, claim_: Claim, state: str, **values: Any) -> bool:
     """Record the end of our attempt (succeeded / failed / canceled / back to queued)."""
-    assert state in TERMINAL_STATES or state == "queued"
+    assert state in TERMINAL_STATES or state == JobState.QUEUED
     done = {"finished_at": utcnow()} if state in TERMINAL_STATES else {}
     with session_scope(services.sessions) as session:
         moved = session.execute(update(Job).where(_mine(claim_)).values(
@@ -273,10 +274,10 @@ def cancel(services: Services, job_id: str) -> Job:
             raise Problem(404, f"job {job_id!r} does not exist", slug="not-found")
         if job.state in TERMINAL_STATES:
             raise Problem(409, f"job {job_id} is already {job.state}", slug="job-finished")
-        session.execute(update(Job).where(Job.id == job_id, Job.state == "queued").values(
-            state="canceled", cancel_requested=True, finished_at=utcnow(),
+        session.execute(update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED).values(
+            state=JobState.CANCELED, cancel_requested=True, finished_at=utcnow(),
             error=problem_for(Canceled("canceled while queued")).to_dict()))
-        session.execute(update(Job).where(Job.id == job_id, Job.state == "running").values(
+        session.execute(update(Job).where(Job.id == job_id, Job.state == JobState.RUNNING).values(
             cancel_requested=True))
     return get(services, job_id)
 
@@ -287,22 +288,24 @@ def reap(services: Services) -> dict[str, int]:
     now = utcnow()
     counts = {"requeued": 0, "failed": 0, "resent": 0, "refinements": queue_deferred_refinements(services)}
     with session_scope(services.sessions) as session:
-        expired = session.scalars(select(Job).where(Job.state == "running",
+        expired = session.scalars(select(Job).where(Job.state == JobState.RUNNING,
                                                     Job.lease_expires_at < now)).all()
     for job in expired:
-        if job.cancel_requested or job.attempt >= job.max_attempts:
-            state = "canceled" if job.cancel_requested else "failed"
+        if job.cancel_requested:  # the cancel is what ends it, not the attempts spent
+            error = problem_for(Canceled("canceled; its worker stopped (lease expired) before it ended the job"))
+            values = {"state": JobState.CANCELED, "finished_at": now, "error": error.to_dict(), "lease_expires_at": None}
+        elif job.attempt >= job.max_attempts:
             error = Problem(500, f"worker lost the job {job.attempt} time(s) (lease expired); giving up after "
-                            f"{job.max_attempts}", slug="lease-expired", title="The worker stopped").to_dict()
-            values = {"state": state, "finished_at": now, "error": error, "lease_expires_at": None}
+                            f"{job.max_attempts}", slug="lease-expired", title="The worker stopped")
+            values = {"state": JobState.FAILED, "finished_at": now, "error": error.to_dict(), "lease_expires_at": None}
         else:
-            values = {"state": "queued", "lease_expires_at": None, "worker_id": None}
+            values = {"state": JobState.QUEUED, "lease_expires_at": None, "worker_id": None}
         with session_scope(services.sessions) as session:
             moved = session.execute(update(Job).where(
-                Job.id == job.id, Job.state == "running", Job.attempt == job.attempt,
+                Job.id == job.id, Job.state == JobState.RUNNING, Job.attempt == job.attempt,
                 Job.lease_expires_at < now).values(**values)).rowcount
         if moved == 1:
-            if values["state"] == "queued":
+            if values["state"] == JobState.QUEUED:
                 counts["requeued"] += 1
                 log.warning("lease expired, re-queued", extra={"job_id": job.id})
                 enqueue(services, job.id)
@@ -310,8 +313,8 @@ def reap(services: Services) -> dict[str, int]:
                 counts["failed"] += 1
     stale = now - dt.timedelta(seconds=services.settings.requeue_after_seconds)
     with session_scope(services.sessions) as session:
-        lost = session.scalars(select(Job.id).where(Job.state == "queued", Job.enqueued_at < stale)).all()
-        queued = session.scalar(select(func.count()).select_from(Job).where(Job.state == "queued"))
+        lost = session.scalars(select(Job.id).where(Job.state == JobState.QUEUED, Job.enqueued_at < stale)).all()
+        queued = session.scalar(select(func.count()).select_from(Job).where(Job.state == JobState.QUEUED))
     if lost and services.pending_count() >= queued:
         lost = []  # the broker holds a message for every queued job: they are only waiting
     for job_id in lost:
@@ -327,15 +330,15 @@ def release_worker(services: Services) -> list[str]:
     the attempt it claimed while still running). From here on this worker claims nothing."""
     services.stopping.set()
     with session_scope(services.sessions) as session:
-        held = session.scalars(select(Job.id).where(Job.state == "running",
+        held = session.scalars(select(Job.id).where(Job.state == JobState.RUNNING,
                                                     Job.worker_id == services.worker_id)).all()
     released = []
     for job_id in held:
         with session_scope(services.sessions) as session:
             moved = session.execute(update(Job).where(
-                Job.id == job_id, Job.state == "running", Job.worker_id == services.worker_id,
+                Job.id == job_id, Job.state == JobState.RUNNING, Job.worker_id == services.worker_id,
                 Job.cancel_requested.is_(False)).values(
-                state="queued", lease_expires_at=None, worker_id=None, attempt=Job.attempt - 1)).rowcount
+                state=JobState.QUEUED, lease_expires_at=None, worker_id=None, attempt=Job.attempt - 1)).rowcount
         if moved == 1:
             released.append(job_id)
             enqueue(services, job_id)
@@ -360,7 +363,7 @@ def _first_stage(job: Job) -> bool:
 def queued_fits(services: Services) -> list[Job]:
     """The queued fits, oldest first."""
     with session_scope(services.sessions) as session:
-        return list(session.scalars(select(Job).where(Job.kind == "fit", Job.state == "queued")
+        return list(session.scalars(select(Job).where(Job.kind == JobKind.FIT, Job.state == JobState.QUEUED)
                                     .order_by(Job.created_at, Job.id)))
 
 
@@ -371,7 +374,7 @@ def fit_order(services: Services) -> list[Job]:
     owners = {job.owner_id for job in queued}
     with session_scope(services.sessions) as session:
         last_ran = dict(session.execute(select(Job.owner_id, func.max(Job.heartbeat_at)).where(
-            Job.kind == "fit", Job.heartbeat_at.is_not(None)).group_by(Job.owner_id)).all()) if queued else {}
+            Job.kind == JobKind.FIT, Job.heartbeat_at.is_not(None)).group_by(Job.owner_id)).all()) if queued else {}
     order: list[Job] = []
     for group in ([j for j in queued if _first_stage(j)], [j for j in queued if not _first_stage(j)]):
         # round robin: each pick moves its tenant to the back (the tick stands for "ran now")
@@ -423,7 +426,7 @@ class FitLane:
 
 def fit_lane(services: Services) -> FitLane:
     with session_scope(services.sessions) as session:
-        running = session.scalars(select(Job).where(Job.kind == "fit", Job.state == "running")).all()
+        running = session.scalars(select(Job).where(Job.kind == JobKind.FIT, Job.state == JobState.RUNNING)).all()
     return FitLane(order=fit_order(services), running=list(running))
 
 
@@ -445,12 +448,12 @@ def refinement_wait(services: Services, job: Job, lane: FitLane | None = None) -
     def first(j: Job) -> float:  # an upload's first stage, up to its interim
         return interim + overhead if interim > 0 and _first_stage(j) else rest(j)
 
-    if job.state == "running":
+    if job.state == JobState.RUNNING:
         spent = job.progress * whole(job)
         to_interim = max(0.0, interim + overhead - spent) if job.stage is None and interim > 0 else None
         return {"position": 0, "interim_eta_seconds": to_interim, "final_eta_seconds": rest(job)}
     ids = [j.id for j in lane.order]
-    if job.state != "queued" or job.id not in ids:
+    if job.state != JobState.QUEUED or job.id not in ids:
         return {"position": None, "interim_eta_seconds": None, "final_eta_seconds": None}
     k, order = ids.index(job.id), lane.order
     start = sum(rest(j) for j in lane.running) + sum(first(j) for j in order[:k])

@@ -37,7 +37,7 @@ def refinement_prefix(texture_id: str, job_id: str, attempt: int) -> str:
 
 def tileable_key(sampler_key: str) -> str:
     """Storage key of the tileable sampler stored beside a fitted texture's sampler."""
-    from worker.runtime import TILEABLE_SAMPLER
+    from worker.contract import TILEABLE_SAMPLER
 
     folder = sampler_key.rpartition("/")[0]
     return f"{folder}/{TILEABLE_SAMPLER}" if folder else TILEABLE_SAMPLER

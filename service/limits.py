@@ -1,11 +1,14 @@
 """Limits checked at the door, before anything is stored or queued.
 
-* ``check_mesh``: parse and validate an uploaded mesh at submission time, so a bad mesh
-  is a 422 / 413 problem at once (and nothing is stored) instead of a failed job later.
+* ``check_mesh``: check an uploaded mesh's header, then parse and validate it, at
+  submission time, so a bad mesh is a 422 / 413 problem at once (and nothing is stored)
+  instead of a failed job later.
 * ``check_queue_room``: back-pressure. When ``max_queued_jobs`` jobs (``max_queued_fits``
   fits: they have a lane and a limit of their own) already wait, new submissions get ``503``
   with ``Retry-After`` instead of growing the queue without bound; a tenant holding its share
   of either (``tenant_queue_share``) gets ``429``.
+* ``check_free_space``: the local folders the service writes to have ``min_free_bytes``
+  free (``/readyz`` asks, so a load balancer stops sending work before writes fail).
 
 Byte limits on request bodies are enforced while the body streams in
 (``service/middleware.py``); image pixel limits are read from the header before decoding
@@ -14,10 +17,16 @@ Byte limits on request bodies are enforced while the body streams in
 from __future__ import annotations
 
 import math
+import shutil
+import threading
+from contextlib import contextmanager
+from pathlib import Path
 
 from sqlalchemy import func, select
 
-from worker.bake import BakeLimits, load_mesh
+from worker.bake import MESH_TYPES, BakeLimits, load_mesh
+from worker.errors import Busy, InsufficientStorage
+from worker.mesh_size import check_mesh_size
 
 from .auth import current_owner
 from .container import Services
@@ -25,24 +34,75 @@ from .db import session_scope
 from .errors import Problem
 from .settings import Settings
 from .tables import Job
+from .vocabulary import JobKind, JobState
 
 
 def bake_limits(settings: Settings) -> BakeLimits:
     """The mesh limits of the settings, in the worker's terms."""
     return BakeLimits(max_faces=settings.max_mesh_faces, max_vertices=settings.max_mesh_vertices,
+                      max_nodes=settings.max_mesh_nodes, max_depth=settings.max_mesh_depth,
                       max_resolution=settings.max_bake_resolution)
+
+
+#: full mesh parses one API process runs at once (each up to ~1 s of CPU, much of it holding
+#: the GIL, and ~100 MB at the limits), requests that may wait for one (each holds a thread
+#: of the pool the other routes run on), and for how long; beyond, 503 busy + Retry-After
+MESH_PARSES = 2
+MESH_PARSES_WAITING = 4
+MESH_PARSE_WAIT_SECONDS = 10.0
+
+
+class ParseSlots:
+    """At most ``slots`` holders at once, at most ``max_waiting`` waiting ``wait_seconds``."""
+
+    def __init__(self, slots: int, max_waiting: int, wait_seconds: float) -> None:
+        self.slots, self.max_waiting, self.wait_seconds = slots, max_waiting, wait_seconds
+        self._cond = threading.Condition()
+        self._held = self._waiting = 0
+
+    @contextmanager
+    def slot(self):  # noqa: ANN201
+        with self._cond:
+            if self._held >= self.slots:
+                if self._waiting >= self.max_waiting:
+                    raise Busy(f"{self._held} meshes are being checked and {self._waiting} wait; retry shortly",
+                               retry_after=2)
+                self._waiting += 1
+                try:
+                    if not self._cond.wait_for(lambda: self._held < self.slots, timeout=self.wait_seconds):
+                        raise Busy(f"no room to check the mesh within {self.wait_seconds:g} s", retry_after=2)
+                finally:
+                    self._waiting -= 1
+            self._held += 1
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._held -= 1
+                self._cond.notify()
+
+
+MESH_PARSE_SLOTS = ParseSlots(MESH_PARSES, MESH_PARSES_WAITING, MESH_PARSE_WAIT_SECONDS)
 
 
 def check_mesh(settings: Settings, data: bytes, filename: str) -> None:
     """Raise InvalidMesh / LimitExceeded if the mesh cannot be baked (parse + validate only;
-    the UV atlas is made later by the job). Cost: one trimesh parse, ~1 s for 200k faces."""
-    load_mesh(data, filename, bake_limits(settings))
+    the UV atlas is made later by the job), Busy while ``MESH_PARSES`` others are parsed and
+    ``MESH_PARSES_WAITING`` wait. The file's header is checked first, without waiting
+    (``worker/mesh_size.py``: faces, vertices, a GLB's nodes and depth, in milliseconds), so
+    the parse that follows is bounded by the limits: ~1 s for 200k faces or 4,096 nodes."""
+    limits = bake_limits(settings)
+    ext = Path(filename).suffix.lower().lstrip(".")
+    if ext in MESH_TYPES and data:        # (else load_mesh says what is wrong)
+        check_mesh_size(data, ext, limits)
+    with MESH_PARSE_SLOTS.slot():
+        load_mesh(data, filename, limits)   # (its header check again: milliseconds)
 
 
 def queued_jobs(services: Services, *, fits: bool = False, owner: str | None = None,
                 tenant: bool = False) -> int:
     """Queued jobs of the fit lane (``fits``) or of the other one; of ``owner`` only with ``tenant``."""
-    where = [Job.state == "queued", (Job.kind == "fit") if fits else (Job.kind != "fit")]
+    where = [Job.state == JobState.QUEUED, (Job.kind == JobKind.FIT) if fits else (Job.kind != JobKind.FIT)]
     if tenant:
         where.append(Job.owner_id.is_(None) if owner is None else Job.owner_id == owner)
     with session_scope(services.sessions) as session:
@@ -61,7 +121,7 @@ def check_queue_room(services: Services, kind: str) -> None:
     the caller's tenant (``auth.current_owner``, with API keys on) holds its share of that
     limit, so one tenant's burst leaves room for the others."""
     settings = services.settings
-    fits = kind == "fit"
+    fits = kind == JobKind.FIT
     limit = settings.max_queued_fits if fits else settings.max_queued_jobs
     what = "fits" if fits else "jobs"
     retry = str(settings.queue_full_retry_after_seconds)
@@ -76,3 +136,20 @@ def check_queue_room(services: Services, kind: str) -> None:
         raise Problem(429, f"you already have {mine} {what} queued, your share of the queue ({share} of {limit}); "
                            f"retry in {retry} s, as they finish", slug="queue-share-used",
                       title="Your share of the job queue is used", headers={"Retry-After": retry})
+
+
+def check_free_space(settings: Settings) -> None:
+    """Raise InsufficientStorage when the volume of the data folder (SQLite database and
+    queue, job scratch, caches) or of the local storage folder has less than
+    ``min_free_bytes`` free (0: no check)."""
+    minimum = settings.min_free_bytes
+    if not minimum:
+        return
+    folders = {"data folder": settings.data_dir}
+    if settings.storage_backend == "local":
+        folders["storage folder"] = settings.resolved_storage_dir
+    for what, folder in folders.items():
+        free = shutil.disk_usage(folder).free
+        if free < minimum:
+            raise InsufficientStorage(f"the {what}'s volume has {free / 2**20:.1f} MiB free, under "
+                                      f"TEXSPACE_MIN_FREE_BYTES ({minimum / 2**20:.1f} MiB)")

@@ -11,7 +11,8 @@ from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily
 from sqlalchemy import func, select
 
-from .tables import JOB_STATES, Job
+from .tables import Job
+from .vocabulary import JobState
 
 log = logging.getLogger(__name__)
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30)
@@ -50,7 +51,7 @@ class _JobCollector:
         try:
             with self.services.sessions() as session:
                 counts = dict(session.execute(select(Job.state, func.count()).group_by(Job.state)).all())
-            for state in JOB_STATES:
+            for state in JobState:
                 jobs.add_metric([state], counts.get(state, 0))
             yield jobs
         except Exception:  # a scrape must not fail because the database hiccups

@@ -11,7 +11,7 @@ import uuid
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect, Request
 
-from .errors import Problem, problem_for, problem_response
+from .errors import Problem, log_unhandled, problem_for, problem_response
 from .logs import request_id_var
 from .metrics import Metrics
 
@@ -99,8 +99,9 @@ class RequestContextMiddleware:
         except Exception as exc:  # here, not in Starlette's outer handler: the id is still ours
             if status["sent"]:
                 raise
-            error_log.exception("unhandled error on %s %s", method, scope["path"])
-            await problem_response(problem_for(exc), Request(scope))(scope, receive, send_with_id)
+            problem = problem_for(exc)
+            log_unhandled(error_log, problem, exc, method, scope["path"])
+            await problem_response(problem, Request(scope))(scope, receive, send_with_id)
         finally:
             route = scope.get("route")
             route_path = getattr(route, "path", None) or "unmatched"

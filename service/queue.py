@@ -15,14 +15,15 @@ from huey import MemoryHuey, PostgresHuey, RedisHuey, SqliteHuey
 from huey.api import Huey
 
 from .settings import Settings
+from .vocabulary import JobKind
 
 
 LANES = ("main", "fit")
 
 
-def lane_of(kind: str | None) -> str:
+def lane_of(kind: JobKind | str | None) -> str:
     """The lane (queue) that carries jobs of ``kind``."""
-    return "fit" if kind == "fit" else "main"
+    return "fit" if kind == JobKind.FIT else "main"
 
 
 def worker_lanes(settings: Settings) -> list[str]:

@@ -1,10 +1,11 @@
 """Running one job attempt: claim, heartbeat thread, call the job kind, record the end.
 
 Retry policy: domain errors (bad mesh, limits, ...) are final, since a re-run would fail
-the same way; unexpected errors re-queue until ``max_attempts``; a worker killed
-outright is noticed by the reaper when its lease expires. A kind that raises ``Paused``
-(an upload's fit at its interim's second, while other uploads wait) goes back to the queue
-without using an attempt, its progress kept.
+the same way, and so is a write that failed for space (a full disk or database,
+``errors.storage_full``) until an operator frees some; unexpected errors re-queue until
+``max_attempts``; a worker killed outright is noticed by the reaper when its lease
+expires. A kind that raises ``Paused`` (an upload's fit at its interim's second, while
+other uploads wait) goes back to the queue without using an attempt, its progress kept.
 
 Fit-lane messages are turns: the lane runs the fit ``jobs.pick_fit`` chooses, whichever
 queued fit the message names.
@@ -20,10 +21,11 @@ from worker.errors import Canceled, Paused, TexspaceError
 
 from . import jobs
 from .container import Services
-from .errors import problem_for
+from .errors import problem_for, storage_full
 from .job_kinds import KINDS
 from .logs import job_id_var
 from .purge import forget_job_files
+from .vocabulary import JobKind, JobState
 
 log = logging.getLogger(__name__)
 TASK_NAME = "texspace.run_job"
@@ -96,7 +98,7 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
         jobs.enqueue(services, job_id)
         return None
     named = jobs.get(services, job_id)
-    fit_turn = named is not None and named.kind == "fit"
+    fit_turn = named is not None and named.kind == JobKind.FIT
     claim = jobs.claim_fit_turn(services, job_id) if fit_turn else None
     job_id = claim.job.id if claim is not None else job_id
     token = job_id_var.set(job_id)
@@ -120,27 +122,32 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
                 values = KINDS[claim.job.kind](services, claim.job, workdir, lease.report, lease.should_cancel)
                 if lease.lost.is_set():
                     raise Canceled("lease lost")
-            state, values = "succeeded", {**values, "progress": 1.0}
+            state, values = JobState.SUCCEEDED, {**values, "progress": 1.0}
         except Paused as exc:  # back in line, the attempt not spent (a paused fit keeps its progress)
-            state, values = "queued", {"attempt": claim.attempt - 1, "stage": exc.stage, "progress": lease.progress}
+            state, values = JobState.QUEUED, {"attempt": claim.attempt - 1, "stage": exc.stage, "progress": lease.progress}
             resend = exc.resend
         except Canceled as exc:
-            state, values = "canceled", {"error": problem_for(exc).to_dict()}
+            state, values = JobState.CANCELED, {"error": problem_for(exc).to_dict()}
         except TexspaceError as exc:
-            state, values = "failed", {"error": problem_for(exc).to_dict()}
-        except Exception as exc:  # unexpected: retry while attempts remain
-            log.exception("job attempt crashed")
-            problem = problem_for(exc).to_dict()
-            problem["detail"] = f"{type(exc).__name__}: {exc}"
-            retry = claim.attempt < claim.job.max_attempts
-            state, values = ("queued" if retry else "failed"), {"error": problem}
+            state, values = JobState.FAILED, {"error": problem_for(exc).to_dict()}
+        except Exception as exc:
+            full = storage_full(exc)
+            if full is not None:  # the same write fails again until space is freed: not retried
+                log.warning("job failed: storage full (%s)", exc)
+                state, values = JobState.FAILED, {"error": problem_for(full).to_dict()}
+            else:  # unexpected: retry while attempts remain
+                log.exception("job attempt crashed")
+                problem = problem_for(exc).to_dict()
+                problem["detail"] = f"{type(exc).__name__}: {exc}"
+                retry = claim.attempt < claim.job.max_attempts
+                state, values = (JobState.QUEUED if retry else JobState.FAILED), {"error": problem}
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
         if jobs.finish(services, claim, state, **values):
             log.info("job %s", state, extra={"seconds": round(time.monotonic() - started, 3)})
-            if state == "queued" and resend:
+            if state == JobState.QUEUED and resend:
                 jobs.enqueue(services, job_id)
-            if claim.job.kind == "fit" and state != "queued" and claim.job.texture_id:
+            if claim.job.kind == JobKind.FIT and state != JobState.QUEUED and claim.job.texture_id:
                 jobs.release_waiting(services, claim.job.texture_id)  # jobs held for this refinement
         else:
             log.warning("job ended as %s but its lease was taken over; result discarded", state)

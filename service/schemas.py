@@ -6,7 +6,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
-from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS
+from worker.contract import MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION, MIN_TILE_SIZE, MIN_VOLUME_RESOLUTION
+from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH, MAX_WHOLE_PIXELS
 from worker.bake import FORMATS as BAKE_FORMATS
 from worker.triplanar import PROJECTIONS
 from worker.gpu_textures import FORMATS as GPU_FORMATS
@@ -16,8 +17,9 @@ from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
 from worker.volume_writers import FORMATS as VOLUME_FORMATS
 
 from .deps import SafeText
-from .settings import FIT_SECONDS, JOB_KINDS
-from .tables import JOB_STATES, TERMINAL_STATES, Job, Texture
+from .settings import FIT_SECONDS, MAX_FIT_SECONDS, Settings
+from .tables import Job, Texture
+from .vocabulary import TERMINAL_STATES, JobKind, JobState
 
 CODE_SIZE = 8
 Seed = Annotated[int, Field(ge=0, le=2**31 - 1, description="texture instance; same seed, same texture")]
@@ -39,7 +41,7 @@ class Refinement(BaseModel):
     texture serve its own fitted sampler (same id and URLs, new tile bytes and ETags)."""
 
     job_id: str
-    state: Literal[JOB_STATES]
+    state: JobState
     progress: float = Field(ge=0, le=1, description="share of the fit's time budget spent (0 while queued)")
     stage: Literal["deferred", "queued", "fitting", "paused", "done"] = Field(
         description="deferred: not queued yet, the fit queue (or its owner's share of it) was full at upload; it is "
@@ -60,7 +62,7 @@ class Refinement(BaseModel):
     @classmethod
     def of(cls, job: Job, wait: dict | None = None) -> "Refinement":
         wait = wait or {}
-        stage = ("done" if job.state in TERMINAL_STATES else "fitting" if job.state == "running"
+        stage = ("done" if job.state in TERMINAL_STATES else "fitting" if job.state == JobState.RUNNING
                  else "paused" if job.stage else "queued")
         return cls(job_id=job.id, state=job.state, progress=job.progress, stage=stage,
                    queue_position=wait.get("position"),
@@ -71,7 +73,7 @@ class Refinement(BaseModel):
     @classmethod
     def deferred(cls, texture: Texture) -> "Refinement":
         """A refinement waiting for room in the fit queue (``Texture.refinement_deferred``)."""
-        return cls(job_id=texture.refinement_job_id or "", state="queued", progress=0.0, stage="deferred")
+        return cls(job_id=texture.refinement_job_id or "", state=JobState.QUEUED, progress=0.0, stage="deferred")
 
 
 def _rounded(seconds: float | None) -> float | None:
@@ -185,15 +187,16 @@ class VolumeIn(BaseModel):
         False, description="if the texture's refinement may still replace its sampler (it is queued or running), "
                            "wait for it to end and render with the refined sampler; false: render now with what the "
                            "texture serves (the job's sampler says which)")
-    resolution: int = Field(64, ge=2, le=1024, description="voxels per side (N); capped by the server limit")
+    resolution: int = Field(64, ge=MIN_VOLUME_RESOLUTION, le=MAX_VOLUME_RESOLUTION,
+                            description="voxels per side (N); capped by the server limit")
     bounds: Bounds = Field(default_factory=lambda: [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     seed: Seed = 0
     format: Literal[VOLUME_FORMATS] = Field(
         "npy", description="npy: float32 linear RGB [N,N,N,3] in (z, y, x) order; exr / tiff: one z slice per "
-                           "part / page, with bounds and voxel size in each header; raw: zip of raw float32 + "
+                           "part / page (EXR: one Blender layer per slice), with bounds and voxel size in each header; raw: zip of raw float32 + "
                            "JSON header; nrrd; dds volume; flipbook: one PNG with the slices in a grid (Unity 3D "
-                           "texture import); vdb: OpenVDB, one float RGB (vec3s) grid 'Cd' placed by the bounds "
-                           "(Blender, Houdini)")
+                           "texture import); vdb: OpenVDB, a float RGB (vec3s) grid 'Cd' and a float grid "
+                           "'density' (luminance) placed by the bounds (Blender, Houdini)")
 
     @field_validator("bounds")
     @classmethod
@@ -209,7 +212,7 @@ class VolumeIn(BaseModel):
 
 class FitIn(BaseModel):
     model_config = {"extra": "forbid"}
-    seconds: float = Field(FIT_SECONDS, gt=0, le=3600, description="optimisation time budget; capped by the server")
+    seconds: float = Field(FIT_SECONDS, gt=0, le=MAX_FIT_SECONDS, description="optimisation time budget; capped by the server")
     grain: Literal["x", "y", "auto"] | None = Field(
         "auto", description="anisotropic exemplar (wood, brushed metal): the direction its grain runs in the photo, "
                             "x = left-right, y = up-down; the fitted solid's noise cells are stretched 8x along "
@@ -262,6 +265,10 @@ def bake_projection(requested: str, structure: dict | None) -> str:
     return "triplanar" if structure and structure.get("lattice") else "solid"
 
 
+NORMAL_STRENGTH_HELP = ("normal map: how many pixels the height map's full range rises (its gradient times this); "
+                        "the default gives a mean |xy| of 0.14-0.46 (median 0.25) on the validation photos")
+
+
 class BakeParams(BaseModel):
     """A bake job's stored parameters (the multipart form's fields, validated by the route)."""
     model_config = {"extra": "forbid"}
@@ -297,19 +304,20 @@ class RegionIn(BaseModel):
     plane: Literal[PLANES] = "xy"
     offset: float = Field(0.0, ge=-1e9, le=1e9)
     format: Literal[REGION_FORMATS] = Field(
-        "png", description="png: 8-bit sRGB; tiff: tiled 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
-                           "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json; dds / ktx2: RGBA8 sRGB "
-                           "GPU texture with the full mip chain (averaged in linear light)")
-    size: int = Field(256, ge=64, le=1024, description="pyramid tile size")
+        "png", description="png: 8-bit sRGB; tiff: scanline 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
+                           "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json; dds: BC1 (legacy DXT1 "
+                           "header); ktx2: Basis Universal UASTC + Zstandard; GPU textures with the full mip chain (averaged in linear light)")
+    size: int = Field(256, ge=MIN_TILE_SIZE, le=MAX_TILE_SIZE, description="pyramid tile size")
     min_zoom: int | None = Field(None, ge=MIN_ZOOM, le=MAX_ZOOM,
                                  description="pyramid: lowest zoom, at most z (default: the minimum zoom)")
     maps: list[Literal[MAP_NAMES]] = Field(
-        default_factory=list, max_length=2,
-        description="derived maps to add (not with pyramid): height = linear luminance, normal = tangent-space "
-                    "from its gradient, OpenGL convention (+Y up). The result is then a zip of colour.<ext>, "
-                    "height.png (16-bit) and/or normal.png")
-    normal_strength: float = Field(DEFAULT_NORMAL_STRENGTH, gt=0, le=100,
-                                   description="normal map: height units per pixel step (steeper with more)")
+        default_factory=list, max_length=len(MAP_NAMES),
+        description="derived maps to add (not with pyramid): height = linear luminance stretched to the 16-bit "
+                    "range (result.height_range), normal = tangent-space from its gradient, OpenGL convention "
+                    "(+Y up), roughness and ao = estimates. The result is then a zip of <stem>_basecolor.<ext> "
+                    "and <stem>_<map>.png for each")
+    normal_strength: float = Field(DEFAULT_NORMAL_STRENGTH, gt=0, le=MAX_NORMAL_STRENGTH,
+                                   description=NORMAL_STRENGTH_HELP)
     tileable: bool = Field(
         False, description="a seamlessly tiling image: square (width = height), z = 6 (the native zoom), "
                            "plane xy, one image (not pyramid); the texture is made periodic with the image's "
@@ -330,9 +338,15 @@ class RegionIn(BaseModel):
 
 
 class JobResult(BaseModel):
-    filename: str
+    filename: str = Field(description="the download name: texture, kind, size, seed, tileable "
+                                      "(oak-planks_region_z6_1024px_seed7.png)")
     media_type: str
     size: int
+    height_range: list[float] | None = Field(
+        None, min_length=2, max_length=2,
+        description="with a height map: the [min, max] Rec. 709 linear luminance its 16-bit range 0..65535 "
+                    "spans (height = min + value / 65535 * (max - min)); also in the PNG's "
+                    "texspace:height_min / texspace:height_max text")
 
 
 class JobLinks(BaseModel):
@@ -358,8 +372,8 @@ class JobSampler(BaseModel):
 
 class JobOut(BaseModel):
     id: str
-    kind: Literal[JOB_KINDS]
-    state: Literal[JOB_STATES]
+    kind: JobKind
+    state: JobState
     texture_id: str | None
     params: dict[str, Any]
     progress: float = Field(ge=0, le=1)
@@ -383,12 +397,13 @@ class JobOut(BaseModel):
     @classmethod
     def of(cls, j: Job) -> "JobOut":
         base = f"/v1/jobs/{j.id}"
-        done = j.state == "succeeded" and j.result_key
+        done = j.state == JobState.SUCCEEDED and j.result_key
         return cls(id=j.id, kind=j.kind, state=j.state, texture_id=j.texture_id, params=j.params,
                    progress=j.progress, attempt=j.attempt, max_attempts=j.max_attempts,
                    cancel_requested=j.cancel_requested, worker_id=j.worker_id, error=j.error,
                    result=JobResult(filename=j.result_filename, media_type=j.result_media_type,
-                                    size=j.result_size) if done else None,
+                                    size=j.result_size,
+                                    height_range=(j.result_details or {}).get("height_range")) if done else None,
                    output_texture_id=j.output_texture_id, created_at=j.created_at, started_at=j.started_at,
                    sampler=JobSampler(**j.sampler) if j.sampler else None,
                    finished_at=j.finished_at, heartbeat_at=j.heartbeat_at, lease_expires_at=j.lease_expires_at,
@@ -415,6 +430,44 @@ class ModelOut(BaseModel):
 class ModelList(BaseModel):
     items: list[ModelOut]
     default: str | None
+
+
+class Limits(BaseModel):
+    """The limits in force on this server (``TEXSPACE_MAX_*`` and the fit budget), so that
+    the page and clients read them instead of copying numbers."""
+
+    max_upload_bytes: int = Field(description="bytes of an uploaded photo")
+    max_image_pixels: int = Field(description="pixels of an uploaded photo, decoded")
+    max_mesh_bytes: int = Field(description="bytes of a bake's mesh")
+    max_mesh_faces: int
+    max_mesh_vertices: int
+    min_tile_size: int = Field(description="tile side in pixels")
+    max_tile_size: int
+    max_tile_samples: int = Field(description="sampler calls of one tile: (size x supersampling factor)^2")
+    planes: list[Literal[PLANES]] = Field(description="the slice planes of tiles and regions")
+    min_volume_resolution: int = Field(description="a volume's voxels per side")
+    max_volume_resolution: int
+    min_bake_resolution: int = Field(description="a bake's texture atlas side in pixels")
+    max_bake_resolution: int
+    max_region_pixels: int = Field(description="pixels of one region export")
+    max_region_tiles: int = Field(description="tiles of one region pyramid")
+    fit_seconds: float = Field(description="the time budget of a fit request that names none")
+    max_fit_seconds: float = Field(description="the longest time budget a fit request may name")
+    refinement_seconds: float = Field(description="the time budget of an upload's automatic refinement")
+
+    @classmethod
+    def of(cls, settings: Settings) -> "Limits":
+        """The limits ``settings`` set, with the bounds no setting can raise."""
+        s = settings
+        return cls(max_upload_bytes=s.max_upload_bytes, max_image_pixels=s.max_image_pixels,
+                   max_mesh_bytes=s.max_mesh_bytes, max_mesh_faces=s.max_mesh_faces,
+                   max_mesh_vertices=s.max_mesh_vertices, min_tile_size=MIN_TILE_SIZE, max_tile_size=s.max_tile_size,
+                   max_tile_samples=s.max_tile_samples, planes=list(PLANES),
+                   min_volume_resolution=MIN_VOLUME_RESOLUTION, max_volume_resolution=s.max_volume_resolution,
+                   min_bake_resolution=MIN_BAKE_RESOLUTION, max_bake_resolution=s.max_bake_resolution,
+                   max_region_pixels=s.max_region_pixels, max_region_tiles=s.max_region_tiles,
+                   fit_seconds=FitIn.model_fields["seconds"].default, max_fit_seconds=s.max_fit_seconds,
+                   refinement_seconds=min(s.fit_seconds, s.max_fit_seconds))
 
 
 class TileJSON(BaseModel):

@@ -14,16 +14,19 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-#: the job kinds (the one list: tables, schemas and routes use it); a worker may run only
-#: some (``worker_kinds``)
-JOB_KINDS = ("volume", "bake", "region", "fit")
-JobKind = Literal[JOB_KINDS]
+from worker.contract import (MAX_BAKE_RESOLUTION, MAX_TILE_SIZE, MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION,
+                             MIN_TILE_SIZE, MIN_VOLUME_RESOLUTION)
+
+from .vocabulary import JobKind
+
 #: a fit's time budget unless one is asked for: an upload's refinement and ``POST .../fit``.
 #: 90 s: bf16 steps buy back most of a 4-minute float32 fit (9 validation photos: geometric
 #: mean 1.07x its style error) for four uploads' finals in ~400 s instead of ~17 minutes
 #: (docs/DECISIONS.md, "An upload's fit is 90 s"). Fits have a queue of their own
 #: (service/queue.py), so a longer one holds up no tile, volume or bake.
 FIT_SECONDS = 90.0
+#: the longest fit any server may allow (``max_fit_seconds`` is its own limit, at most this)
+MAX_FIT_SECONDS = 3600.0
 #: the model export shipped inside the package (``model/weights``)
 PACKAGED_MODEL_DIR = Path(__file__).resolve().parent.parent / "model" / "weights"
 
@@ -53,6 +56,8 @@ class Settings(BaseSettings):
     s3_access_key: str | None = None
     s3_secret_key: str | None = None
     s3_region: str = "us-east-1"
+    min_free_bytes: int = Field(64 * 2**20, ge=0, description="/readyz answers 503 when the data folder's "
+                                "volume, or the local storage folder's, has less free space than this (0: not checked)")
 
     # --- models ----------------------------------------------------------------------
     model_dirs: Annotated[list[Path], NoDecode] = Field(
@@ -67,7 +72,10 @@ class Settings(BaseSettings):
     max_mesh_bytes: int = Field(64 * 2**20, ge=1024)
     max_mesh_faces: int = Field(200_000, ge=1)
     max_mesh_vertices: int = Field(200_000, ge=3)
-    max_tile_size: int = Field(1024, ge=16)
+    max_mesh_nodes: int = Field(4096, ge=1, description="nodes of a GLB's scene, and its mesh primitives (each "
+                                "costs the flattening ~0.3 ms: 4,096 about 1 s)")
+    max_mesh_depth: int = Field(64, ge=1, description="levels of a GLB's node tree")
+    max_tile_size: int = Field(MAX_TILE_SIZE, ge=MIN_TILE_SIZE, le=MAX_TILE_SIZE)
     max_tile_samples: int = Field(4 * 2**20, ge=64 * 64, description="sampler calls of one tile: "
                                   "(size x supersampling factor)^2, the factor 2^(6 - z) capped at 4")
     decode_budget_pixels: int = Field(64 * 2**20, ge=64 * 64, description="pixels the API's decoded "
@@ -76,16 +84,16 @@ class Settings(BaseSettings):
                                        "room in the decode budget, then gets 503 + Retry-After")
     decode_max_waiting: int = Field(4, ge=0, description="uploads that may wait for decode room at once "
                                     "(each holds a thread and its bytes); one more gets 503 + Retry-After")
-    max_region_pixels: int = Field(8192 * 8192, ge=64 * 64)
+    max_region_pixels: int = Field(64 * 2**20, ge=64 * 64)
     max_region_tiles: int = Field(4096, ge=1)
-    max_volume_resolution: int = Field(256, ge=2)
-    max_bake_resolution: int = Field(4096, ge=16)
+    max_volume_resolution: int = Field(256, ge=MIN_VOLUME_RESOLUTION, le=MAX_VOLUME_RESOLUTION)
+    max_bake_resolution: int = Field(4096, ge=MIN_BAKE_RESOLUTION, le=MAX_BAKE_RESOLUTION)
     atlas_cache_dir: Path | None = Field(None, description="UV atlases of baked meshes, per mesh content, so a "
                                          "second bake of a mesh skips xatlas; default data_dir/cache/atlas")
     atlas_cache_bytes: int = Field(512 * 2**20, ge=0, description="size bound of atlas_cache_dir (least "
                                    "recently used entries go first); 0 disables the cache")
     fit_seconds: float = Field(FIT_SECONDS, gt=0, description="time budget of an upload's automatic refinement")
-    max_fit_seconds: float = Field(900.0, gt=0)
+    max_fit_seconds: float = Field(900.0, gt=0, le=MAX_FIT_SECONDS)
 
     # --- jobs --------------------------------------------------------------------------
     workers: int = Field(2, ge=1, description="huey worker threads per worker process")
@@ -106,7 +114,7 @@ class Settings(BaseSettings):
                                       "Retry-After, an upload's refinement deferred")
     queue_full_retry_after_seconds: int = Field(30, ge=1)
     worker_kinds: Annotated[list[JobKind], NoDecode] = Field(
-        default_factory=lambda: list(JOB_KINDS), description="job kinds this worker process runs, comma-separated; "
+        default_factory=lambda: list(JobKind), description="job kinds this worker process runs, comma-separated; "
         "fits have a queue of their own (volume, bake and region share the other: list all three or none)")
 
     # --- per-exemplar fits (the train extra) ------------------------------------------
@@ -129,8 +137,8 @@ class Settings(BaseSettings):
                                          "built without sampling (0: off)")
     tile_workers: int = Field(2, ge=1, description="cold tiles one API process renders at once (each over "
                               "the sampler's threads); the others wait in order")
-    tile_queue_depth: int = Field(64, ge=0, description="cold tiles that may wait for a render; beyond, "
-                                  "503 + Retry-After")
+    tile_queue_depth: int = Field(64, ge=0, description="cold tiles that may wait for a render, in units "
+                                  "of a 256 px native tile's samples (a 512 px tile is 4); beyond, 503 + Retry-After")
     tile_queue_max_wait_seconds: float = Field(2.0, gt=0, description="a cold tile whose estimated wait "
                                                "for a render is longer gets 503 + Retry-After at once")
     tile_zoom_out: Literal["progressive", "supersample", "bounded"] = Field(
@@ -190,8 +198,8 @@ class Settings(BaseSettings):
 
     @field_validator("worker_kinds")
     @classmethod
-    def _whole_queues(cls, value: list[str]) -> list[str]:
-        shared = set(JOB_KINDS) - {"fit"}  # one queue carries these (service/queue.py)
+    def _whole_queues(cls, value: list[JobKind]) -> list[JobKind]:
+        shared = set(JobKind) - {JobKind.FIT}  # one queue carries these (service/queue.py)
         if not value:
             raise ValueError("name at least one job kind")
         if 0 < len(shared & set(value)) < len(shared):

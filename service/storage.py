@@ -39,12 +39,13 @@ class Storage:
 
     def put_bytes(self, key: str, data: bytes) -> int:
         """Store ``data`` under ``key`` atomically; return its size."""
-        with tempfile.NamedTemporaryFile(delete=False) as tmp:
-            tmp.write(data)
-        try:
-            return self.put_file(key, Path(tmp.name))
+        fd, tmp = tempfile.mkstemp()
+        try:  # removed whatever fails, a write to a full temporary folder too
+            with os.fdopen(fd, "wb") as file:
+                file.write(data)
+            return self.put_file(key, Path(tmp))
         finally:
-            os.unlink(tmp.name)
+            os.unlink(tmp)
 
     def get_file(self, key: str, dest: Path) -> Path:
         """Copy the object to the local path ``dest`` (atomically); raise StorageKeyError."""
@@ -92,7 +93,9 @@ def _gone_already(function, path, exc_info) -> None:  # noqa: ANN001 (shutil.rmt
 
 
 class LocalStorage(Storage):
-    """Files under a root folder; writes go to a temporary file then ``os.replace``."""
+    """Files under a root folder; writes go to a temporary file then ``os.replace``.
+    Folders exist only while they hold files: a write that fails removes the folders it
+    made, and a delete the folders it leaves empty (a texture's folder does not outlive it)."""
 
     def __init__(self, root: Path) -> None:
         self.root = Path(root).resolve()
@@ -103,16 +106,53 @@ class LocalStorage(Storage):
 
     def put_file(self, key: str, path: Path) -> int:
         dest = self._path(key)
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=".tmp-")
-        os.close(fd)
+        made = self._missing_folders(dest.parent)
+        tmp = None
         try:
+            tmp = self._temporary_in(dest.parent)
             shutil.copyfile(path, tmp)
             os.replace(tmp, dest)
         except BaseException:
-            os.unlink(tmp)
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+            self._remove_empty(made)  # a write that failed (for space, say) leaves no empty folder
             raise
         return dest.stat().st_size
+
+    def _missing_folders(self, folder: Path) -> list[Path]:
+        """The folders from ``folder`` up that do not exist yet, deepest first."""
+        missing = []
+        while folder != self.root and not folder.exists():
+            missing.append(folder)
+            folder = folder.parent
+        return missing
+
+    @staticmethod
+    def _temporary_in(folder: Path) -> str:
+        """A new empty file in ``folder``, made first (again if a delete pruned it meanwhile)."""
+        tries = 3
+        while True:
+            tries -= 1
+            folder.mkdir(parents=True, exist_ok=True)
+            try:
+                fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-")
+            except FileNotFoundError:
+                if not tries:
+                    raise
+                continue
+            os.close(fd)
+            return tmp
+
+    @staticmethod
+    def _remove_empty(folders: list[Path]) -> None:
+        """Remove ``folders`` (deepest first) while they are empty."""
+        for folder in folders:
+            try:
+                folder.rmdir()
+            except FileNotFoundError:  # another delete was first
+                continue
+            except OSError:  # not empty: another write's files
+                return
 
     def get_file(self, key: str, dest: Path) -> Path:
         src = self._path(key)
@@ -161,6 +201,9 @@ class LocalStorage(Storage):
         except FileNotFoundError:  # a concurrent delete of the same prefix got there first
             count = 0
         shutil.rmtree(folder, onerror=_gone_already)
+        # the folders above it that it leaves empty (textures/<id>/refined/ ...), up to the top level
+        inner = len(folder.relative_to(self.root).parents) - 2
+        self._remove_empty(list(folder.parents)[:max(inner, 0)])
         return count
 
     def local_path(self, key: str) -> Path | None:

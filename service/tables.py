@@ -12,10 +12,7 @@ from typing import Any
 from sqlalchemy import JSON, Boolean, DateTime, Float, Integer, String, Text, TypeDecorator, false
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
-#: the job states (the one list: schemas, routes and metrics use it; the kinds are
-#: settings.JOB_KINDS)
-JOB_STATES = ("queued", "running", "succeeded", "failed", "canceled")
-TERMINAL_STATES = frozenset({"succeeded", "failed", "canceled"})
+from .vocabulary import JobState
 
 
 def utcnow() -> dt.datetime:
@@ -145,9 +142,9 @@ class Job(Base):
     __tablename__ = "jobs"
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
-    kind: Mapped[str] = mapped_column(String(16))
+    kind: Mapped[str] = mapped_column(String(16))  # a JobKind
     texture_id: Mapped[str | None] = mapped_column(String(32), index=True, nullable=True)
-    state: Mapped[str] = mapped_column(String(16), default="queued", index=True)
+    state: Mapped[str] = mapped_column(String(16), default=JobState.QUEUED, index=True)  # a JobState
     params: Mapped[dict] = mapped_column(JSON, default=dict)
     input_key: Mapped[str | None] = mapped_column(String(300), nullable=True)
     attempt: Mapped[int] = mapped_column(Integer, default=0)
@@ -163,6 +160,8 @@ class Job(Base):
     result_filename: Mapped[str | None] = mapped_column(String(200), nullable=True)
     result_media_type: Mapped[str | None] = mapped_column(String(100), nullable=True)
     result_size: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    # {"height_range": [min, max]}: a height map's luminance range (migration 0010)
+    result_details: Mapped[dict | None] = mapped_column(JSON, nullable=True)
     output_texture_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
     # "interim": an upload's fit paused at its interim's second, waiting for its continuation
     stage: Mapped[str | None] = mapped_column(String(16), nullable=True)

@@ -43,8 +43,13 @@ PREVIEW_CACHE_CONTROL = "public, no-cache"
 PREVIEW_HEADER = ("X-Texspace-Tile", "preview")
 
 
-#: tiles of at most this many sampler calls are small: they never queue behind large ones
-SMALL_TILE_SAMPLES = 1 << 18
+#: the unit of tile cost: the sampler calls of a 256 px tile at native zoom. Queue depths
+#: count tiles in these units (``tile_units``): a 512 px tile is 4, a 1024 px one 16.
+TILE_UNIT_SAMPLES = 256 ** 2
+#: tiles of at most this many sampler calls are small: they never queue behind large ones.
+#: One unit: a 512 px tile costs four 256 px ones, and two of them holding both render
+#: slots made every 256 px tile behind them wait past the bound (6 of 6 answered 503).
+SMALL_TILE_SAMPLES = TILE_UNIT_SAMPLES
 #: a large tile renders in bands of about this many sampler calls, and before each band
 #: waits while small tiles render, so one costs a small tile at most about one band
 BAND_SAMPLES = 1 << 15
@@ -63,6 +68,12 @@ def tile_samples(z: int, size: int, zoom_out: str = "supersample") -> int:
     """Sampler calls of one tile: (size x supersampling factor)^2, or size^2 when zoom-out is
     ``bounded`` (one sub-sample per pixel)."""
     return size ** 2 if zoom_out == "bounded" else (size * supersample_for(z)) ** 2
+
+
+def tile_units(samples: int) -> int:
+    """A tile's weight in queue depths: its sampler calls in units of a 256 px native tile,
+    rounded up (a smaller tile counts one)."""
+    return max(1, math.ceil(samples / TILE_UNIT_SAMPLES))
 
 
 def final_zoom_out(settings: Settings) -> str:
@@ -122,17 +133,21 @@ DISCONNECT_POLL_SECONDS = 0.1
 class TileQueue:
     """Admission of cold tiles, in arrival order: at most ``tile_workers`` small tiles render
     at once, the rest wait here (on the event loop, holding no thread) while their client is
-    connected. A tile that would wait behind ``tile_queue_depth`` others, or longer than
-    ``tile_queue_max_wait_seconds`` by the measured render rate, gets Busy (503 +
-    Retry-After) at once. Large tiles have their own lane (TileLanes) and bound (``large``)."""
+    connected. A tile that would wait behind ``tile_queue_depth`` units of tiles
+    (``tile_units``), or longer than ``tile_queue_max_wait_seconds`` by the measured render
+    rate, gets Busy (503 + Retry-After) at once. Large tiles have their own lane (TileLanes)
+    and bound (``large``): their work is not counted in a small tile's wait, since their
+    bands wait for small tiles."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._running = 0
         self._waiting: deque[dict] = deque()
         self._queued_samples = 0
+        self._queued_units = 0
         self._running_samples = 0
         self._large_samples = 0
+        self._large_units = 0
         self.samples_per_second = 5e5  # rendered samples per second of the whole queue, measured
 
     def estimated_wait(self) -> float:
@@ -152,15 +167,17 @@ class TileQueue:
                 self._running += 1
                 self._running_samples += samples
                 return
-            if len(self._waiting) >= settings.tile_queue_depth:
-                raise self._busy(f"{len(self._waiting)} tiles are waiting to render (limit "
-                                 f"{settings.tile_queue_depth})")
+            units = tile_units(samples)
+            if self._queued_units + units > settings.tile_queue_depth:
+                raise self._busy(f"{len(self._waiting)} tiles ({self._queued_units} units of a 256 px tile) are "
+                                 f"waiting to render (limit {settings.tile_queue_depth} units)")
             if self.estimated_wait() > settings.tile_queue_max_wait_seconds:
                 raise self._busy(f"the tile queue holds more than {settings.tile_queue_max_wait_seconds:g} s "
                                  "of rendering")
             entry = {"future": loop.create_future(), "samples": samples, "granted": False}
             self._waiting.append(entry)
             self._queued_samples += samples
+            self._queued_units += units
         try:
             while not entry["future"].done():
                 await asyncio.wait({entry["future"]}, timeout=DISCONNECT_POLL_SECONDS)
@@ -172,6 +189,7 @@ class TileQueue:
                 if not granted:
                     self._waiting.remove(entry)
                     self._queued_samples -= samples
+                    self._queued_units -= units
             if granted:
                 self.release(settings, samples)
             raise
@@ -188,6 +206,7 @@ class TileQueue:
             while self._waiting and self._running < settings.tile_workers:
                 entry = self._waiting.popleft()
                 self._queued_samples -= entry["samples"]
+                self._queued_units -= tile_units(entry["samples"])
                 entry["granted"] = True
                 self._running += 1
                 self._running_samples += entry["samples"]
@@ -198,19 +217,24 @@ class TileQueue:
     def large(self, settings: Settings, samples: int):  # noqa: ANN201
         """Admission of a large tile: only while no small tile waits (interactive first), and
         one at a time unless the large ones admitted render within ``tile_queue_max_wait_seconds``
-        by the measured rate; else Busy."""
+        by the measured rate and, with it, weigh at most ``tile_queue_depth`` units; else Busy."""
+        units = tile_units(samples)
         with self._lock:
             ahead = self._large_samples / self.samples_per_second
-            if self._waiting or (self._large_samples and ahead > settings.tile_queue_max_wait_seconds):
+            if self._waiting or (self._large_samples and (ahead > settings.tile_queue_max_wait_seconds or
+                                                          self._large_units + units > settings.tile_queue_depth)):
                 why = (f"{len(self._waiting)} small tiles are waiting" if self._waiting else
-                       f"large tiles admitted before it take {ahead:.1f} s")
+                       f"large tiles admitted before it take {ahead:.1f} s ({self._large_units} units of a "
+                       f"256 px tile, limit {settings.tile_queue_depth})")
                 raise Busy(why, retry_after=max(1, math.ceil(ahead or samples / self.samples_per_second)))
             self._large_samples += samples
+            self._large_units += units
         try:
             yield
         finally:
             with self._lock:
                 self._large_samples -= samples
+                self._large_units -= units
 
 
 class ExactRenders:

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import os
+import struct
 import subprocess
 import uuid
 from collections.abc import Callable, Iterable, Iterator
@@ -107,3 +109,46 @@ def export_mask_noise_sampler(path) -> None:
         patch.setattr(noise, "cell_mix", noise.mix32)
         patch.setattr(noise, "channel_fields", mask_fields)
         export_sampler(model.field, Path(path))
+
+
+def glb_file(gltf: dict, binary: bytes = b"") -> bytes:
+    """A GLB: the 12-byte header, the JSON chunk, then the binary chunk (each padded to 4 bytes)."""
+    text = json.dumps(gltf, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    body = struct.pack("<I4s", len(text), b"JSON") + text
+    if binary:
+        body += struct.pack("<I4s", len(binary), b"BIN\0") + binary
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
+
+
+def tetrahedra_glb(nodes: list[dict], roots: list[int]) -> bytes:
+    """A GLB whose one mesh is a tetrahedron (4 faces, 4 vertices), placed by ``nodes``
+    (glTF node objects; ``{"mesh": 0}`` places it) under the scene's ``roots``."""
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint16)
+    gltf = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": roots}], "nodes": nodes,
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+            "buffers": [{"byteLength": vertices.nbytes + faces.nbytes}],
+            "bufferViews": [{"buffer": 0, "byteLength": vertices.nbytes},
+                            {"buffer": 0, "byteOffset": vertices.nbytes, "byteLength": faces.nbytes}],
+            "accessors": [{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+                           "min": [0, 0, 0], "max": [1, 1, 1]},
+                          {"bufferView": 1, "componentType": 5123, "count": 12, "type": "SCALAR"}]}
+    return glb_file(gltf, vertices.tobytes() + faces.tobytes())
+
+
+def chained_glb(depth: int) -> bytes:
+    """A chain of ``depth`` nodes, each a child of the one before, each placing a tetrahedron
+    half a unit along x: a chain of 5,000 once held the API for 22 minutes."""
+    nodes = [{"mesh": 0, "translation": [0.5, 0, 0], "children": [i + 1]} for i in range(depth)]
+    del nodes[-1]["children"]
+    return tetrahedra_glb(nodes, [0])
+
+
+def instanced_glb(instances: int) -> bytes:
+    """One root node with ``instances`` children, each placing the tetrahedron somewhere
+    else: 100k of them once took 173 s and 850 MB to refuse."""
+    nodes = [{"children": list(range(1, instances + 1))}]
+    nodes += [{"mesh": 0, "translation": [i % 100, i // 100, 0]} for i in range(instances)]
+    return tetrahedra_glb(nodes, [0])

@@ -7,7 +7,8 @@ circle), and:
   those, the CLI at the top;
 * ``worker/`` never imports ``service/``; ``model/`` never imports ``service/``, and of
   ``worker/`` only the leaves (``WORKER_LEAVES``: the one image reader, the working-resolution
-  photo, the sRGB curves, the domain errors), which import nothing of the project but each other and no onnxruntime,
+  photo, the sRGB curves, the domain errors, the names and bounds the parts agree on), which
+  import nothing of the project but each other and no onnxruntime,
   scikit-image or torch, so that training reads photos exactly as an upload is read;
 * torch is imported only under ``model/`` (the service and the worker run on ONNX).
 """
@@ -22,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: lowest first; a module may import its own layer or those below, never one above
 LAYERS = (
-    ("settings and container", {"service.settings", "service.container"}),
+    ("settings and container", {"service.vocabulary", "service.settings", "service.container"}),
     ("domain", {"service.auth", "service.jobs", "service.limits", "service.purge", "service.job_kinds"}),
     ("process wiring", {"service.context", "service.runner", "service.processes"}),
     ("CLI", {"service.cli"}),
@@ -30,7 +31,7 @@ LAYERS = (
 
 
 #: modules of worker/ that model/ may import: numpy / OpenImageIO / Pillow / stdlib, and each other
-WORKER_LEAVES = {"worker.decode", "worker.photo", "worker.colour", "worker.errors"}
+WORKER_LEAVES = {"worker.decode", "worker.photo", "worker.colour", "worker.errors", "worker.contract"}
 LEAF_THIRD_PARTY = {"numpy", "OpenImageIO", "PIL"}
 
 

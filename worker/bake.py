@@ -2,7 +2,8 @@
 
 Steps, each reported through ``progress`` and preceded by a ``should_cancel`` check:
 
-1. Load with trimesh (OBJ, PLY, STL, GLB/glTF binary; ``process=False`` so seam
+1. Check the file's header (``worker/mesh_size.py``: counts, a GLB's node tree), then load
+   with trimesh (OBJ, PLY, STL, GLB/glTF binary; ``process=False`` so seam
    vertices stay split; an OBJ of plain ``v``/``f`` lines by ``read_plain_obj``, the same
    arrays faster) and validate: parse errors, no faces, non-finite vertices or
    coordinates beyond +-``MAX_COORDINATE``, out-of-range indices, all-degenerate faces -> InvalidMesh; face/vertex counts over
@@ -24,11 +25,14 @@ Steps, each reported through ``progress`` and preceded by a ``should_cancel`` ch
    fill the gutter: uncovered texels within ``padding`` of a chart copy the nearest
    covered texel, so bilinear filtering and mipmaps near seams never read background.
 5. Write atomically: GLB (written here: POSITION, NORMAL, TEXCOORD_0, PBR material, base
-   colour factor 1, embedded 8-bit sRGB PNG) or a zip of ``model.obj`` (with ``vn``) + ``model.mtl`` (``Kd 1 1 1``, ``map_Kd texture.png``) +
-   ``texture.png``. With ``exr=True`` a linear half-float ``texture.exr`` is added to the
-   OBJ zip, or written next to a GLB as ``<out_path>.exr``. ``maps`` (height, normal) and
-   ``gpu_format`` (dds, ktx2) add derived maps and a mipmapped texture of the atlas
-   (``worker/bake_outputs.py``; a GLB with more than its normal map becomes a zip).
+   colour factor 1, embedded 8-bit sRGB PNG) or a zip of ``<stem>.obj`` (with ``vn``) +
+   ``<stem>.mtl`` (``Kd 1 1 1``, ``map_Kd <stem>_basecolor.png``) + ``<stem>_basecolor.png``,
+   ``<stem>`` being the result file's own stem (``worker.files.member_stem``), so two bakes
+   extracted into one folder keep their files. With ``exr=True`` a linear half-float
+   ``<stem>_basecolor.exr`` is added to the OBJ zip, or written next to a GLB as ``<out_path>.exr``. ``maps`` (height,
+   normal, roughness, ao) and ``gpu_format`` (dds, ktx2) add derived maps and a mipmapped texture of the
+   atlas (``worker/bake_outputs.py``: a GLB embeds normal, roughness and AO in its material and a KTX2 as
+   its base colour's KHR_texture_basisu source, and becomes a zip with a height map or a DDS).
 
 Projection: a solid texture is one 3D material, the right thing for isotropic ones (stone,
 gravel) and for grain (wood cut from one log). A texture fitted on a 2D repeat lattice
@@ -59,10 +63,12 @@ import numpy as np
 import trimesh
 from worker import atlas, raster
 from worker.bake_outputs import add_bake_outputs, check_options
+from worker.contract import MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH
 from worker.errors import Canceled, InvalidMesh, InvalidParameter, LimitExceeded
-from worker.files import ZIP_TIME, atomic_output, media_type
+from worker.files import ZIP_TIME, atomic_output, media_type, member_name, member_stem
 from worker.images import png_bytes, write_image
+from worker.mesh_size import check_mesh_size
 from worker.runtime import Sampler
 from worker.triplanar import PROJECTIONS, sample_triplanar
 
@@ -81,6 +87,8 @@ MAX_COORDINATE = 1e9
 class BakeLimits:
     max_faces: int = 500_000
     max_vertices: int = 500_000
+    max_nodes: int = 4096            # a GLB's nodes, and its mesh primitives (worker/mesh_size.py)
+    max_depth: int = 64              # levels of a GLB's node tree
     max_resolution: int = 4096
     atlas_timeout: float = 120.0
     atlas_memory_bytes: int = 2 << 30
@@ -97,6 +105,7 @@ class BakeResult:
     faces: int = 0
     vertices: int = 0
     timings: dict = field(default_factory=dict)   # seconds per stage: load, atlas, raster, sample, gutter, write
+    height_range: tuple[float, float] | None = None   # the height map's luminance (min, max), if one was made
 
 
 @dataclass
@@ -115,6 +124,7 @@ def read_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
         raise InvalidMesh(f"unsupported mesh type {ext!r}; use one of {sorted(MESH_TYPES)}")
     if not mesh_bytes:
         raise InvalidMesh("empty mesh upload (0 bytes)")
+    check_mesh_size(mesh_bytes, ext, limits)     # from the header, before any parse
     plain = read_plain_obj(mesh_bytes) if ext == "obj" else None
     if plain is not None:
         (vertices, faces), uv, normals = plain, None, None
@@ -266,23 +276,51 @@ def load_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits(
 
 def _as_mesh(loaded):
     """(one Trimesh, the file's own vertex normals (V, 3) or None). A scene is flattened
-    as trimesh's ``to_mesh`` does (which drops normals); normals are kept for a scene of
-    one geometry, turned by its node's transform."""
+    as trimesh's ``to_mesh`` does (which drops normals), with each node's transform from
+    ``_world_transforms``; normals are kept for a scene of one geometry, turned by its
+    node's transform."""
     if isinstance(loaded, trimesh.Trimesh):
         return loaded, (loaded.vertex_normals if "vertex_normals" in loaded._cache else None)
     if not isinstance(loaded, trimesh.Scene):        # e.g. a point cloud: an empty mesh, "no faces"
         loaded = trimesh.Scene(loaded)
-    mesh = loaded.to_mesh()
+    world = _world_transforms(loaded.graph)
+    placed = []
+    for node in loaded.graph.nodes_geometry:
+        geometry = loaded.geometry[loaded.graph.transforms.node_data[node]["geometry"]]
+        if isinstance(geometry, trimesh.Trimesh):     # points and lines are dropped, as to_mesh does
+            placed.append(geometry.copy().apply_transform(world[node]))
+    mesh = trimesh.util.concatenate(placed)
     normals = None
     if len(loaded.graph.nodes_geometry) == 1:
         node = loaded.graph.nodes_geometry[0]
-        transform, name = loaded.graph[node]
-        geometry = loaded.geometry[name]
+        geometry = loaded.geometry[loaded.graph.transforms.node_data[node]["geometry"]]
         if "vertex_normals" in geometry._cache and len(geometry.vertices) == len(mesh.vertices):
-            linear = np.asarray(transform, dtype=np.float64)[:3, :3]
+            linear = world[node][:3, :3]
             if abs(np.linalg.det(linear)) > 1e-300:
                 normals = geometry.vertex_normals @ np.linalg.inv(linear)  # inverse transpose, row vectors
     return mesh, normals
+
+
+def _world_transforms(graph) -> dict:
+    """Each frame of a trimesh scene graph -> its (4, 4) float64 transform from the base
+    frame: one product per edge, parents first. (trimesh's ``graph[node]`` multiplies each
+    node's whole path anew, choosing the order by numpy's O(depth^3) chain search: 22
+    minutes for a 5,000-node chain.) Raises ValueError for a node off the tree."""
+    children: dict = {}
+    for (parent, child), edge in graph.transforms.edge_data.items():
+        children.setdefault(parent, []).append((child, edge.get("matrix")))
+    world = {graph.base_frame: np.eye(4)}
+    stack = [graph.base_frame]
+    while stack:
+        parent = stack.pop()
+        for child, matrix in children.get(parent, ()):
+            if child not in world:                  # a forest: one parent each
+                world[child] = world[parent] if matrix is None else world[parent] @ np.asarray(matrix, np.float64)
+                stack.append(child)
+    missing = [node for node in graph.nodes_geometry if node not in world]
+    if missing:
+        raise ValueError(f"scene node {missing[0]!r} is not connected to the scene's root")
+    return world
 
 
 def _unit_normals(normals, count: int) -> np.ndarray | None:
@@ -477,8 +515,8 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     """
     if fmt not in FORMATS:
         raise InvalidParameter(f"bake format must be 'glb' or 'obj', got {fmt!r}")
-    if not 16 <= resolution <= limits.max_resolution:
-        raise LimitExceeded(f"texture resolution must be in [16, {limits.max_resolution}]")
+    if not MIN_BAKE_RESOLUTION <= resolution <= limits.max_resolution:
+        raise LimitExceeded(f"texture resolution must be in [{MIN_BAKE_RESOLUTION}, {limits.max_resolution}]")
     if projection not in PROJECTIONS:
         raise InvalidParameter(f"projection must be one of {PROJECTIONS}, got {projection!r}")
     check_options(maps, gpu_format)
@@ -535,17 +573,19 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     if fmt == "glb":
         payload = glb_bytes(vertices, faces, uv, normals, png)
     else:
-        payload = _obj_zip_bytes(vertices, faces, uv, normals, png, exr_bytes)
+        payload = _obj_zip_bytes(vertices, faces, uv, normals, png, exr_bytes, member_stem(out_path))
     _atomic_write(out_path, payload)
     if exr_path is not None:
         _atomic_write(exr_path, exr_bytes)
+    height_range = None
     if extras:
-        out_path = add_bake_outputs(out_path, fmt, image, maps=maps, gpu_format=gpu_format,
-                                    strength=normal_strength)
+        outputs = add_bake_outputs(out_path, fmt, image, maps=maps, gpu_format=gpu_format,
+                                   strength=normal_strength, mask=covered)
+        out_path, height_range = outputs.path, outputs.height_range
     timings["write"] = time.perf_counter() - clock
     report(1.0)
     return BakeResult(out_path, exr_path, uv_source, resolution, float(scale), covered,
-                      len(faces), len(vertices), timings)
+                      len(faces), len(vertices), timings, height_range)
 
 
 def glb_bytes(vertices, faces, uv, normals, png: bytes) -> bytes:
@@ -595,23 +635,26 @@ def glb_bytes(vertices, faces, uv, normals, png: bytes) -> bytes:
                      struct.pack("<I4s", len(body), b"BIN\0"), body])
 
 
-def _obj_zip_bytes(vertices, faces, uv, normals, png: bytes, exr: bytes | None) -> bytes:
+def _obj_zip_bytes(vertices, faces, uv, normals, png: bytes, exr: bytes | None, stem: str) -> bytes:
     """OBJ with one vt and one vn per v (same indices), an MTL with Kd 1 1 1, and the
-    textures (stored: PNG and EXR are compressed already)."""
+    textures (stored: PNG and EXR are compressed already), every member named after ``stem``."""
     f = faces + 1
+    obj, mtl_name, colour = (member_name(stem, "", ".obj"), member_name(stem, "", ".mtl"),
+                             member_name(stem, "basecolor", ".png"))
     text = "".join([
-        "# texspace bake\nmtllib model.mtl\no texspace\n",
+        f"# texspace bake\nmtllib {mtl_name}\no {stem}\n",
         ("v %.9g %.9g %.9g\n" * len(vertices)) % tuple(vertices.ravel().tolist()),
         ("vt %.9g %.9g\n" * len(uv)) % tuple(uv.ravel().tolist()),
         ("vn %.6f %.6f %.6f\n" * len(normals)) % tuple(normals.ravel().tolist()),
-        "usemtl texspace\n",
+        f"usemtl {stem}\n",
         ("f %d/%d/%d %d/%d/%d %d/%d/%d\n" * len(f)) % tuple(np.repeat(f, 3, axis=1).ravel().tolist()),
     ])
-    mtl = ("newmtl texspace\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\nmap_Kd texture.png\n")
+    mtl = f"newmtl {stem}\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\nmap_Kd {colour}\n"
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as z:
-        members = [("model.obj", text.encode(), zipfile.ZIP_DEFLATED), ("model.mtl", mtl.encode(), zipfile.ZIP_DEFLATED),
-                   ("texture.png", png, zipfile.ZIP_STORED)] + ([("texture.exr", exr, zipfile.ZIP_STORED)] if exr else [])
+        members = [(obj, text.encode(), zipfile.ZIP_DEFLATED), (mtl_name, mtl.encode(), zipfile.ZIP_DEFLATED),
+                   (colour, png, zipfile.ZIP_STORED)]
+        members += [(member_name(stem, "basecolor", ".exr"), exr, zipfile.ZIP_STORED)] if exr else []
         for name, data, method in members:
             z.writestr(zipfile.ZipInfo(name, ZIP_TIME), data, compress_type=method)
     return buf.getvalue()

@@ -1,18 +1,30 @@
 """Extra outputs of a bake: derived maps and a mipmapped GPU texture of the atlas.
 
 Called at the end of ``worker.bake.bake_mesh`` (its write stage) with the linear atlas
-(``R x R x 3``, gutter filled). Where each output goes:
+(``R x R x 3``, gutter filled) and the texels it covers (the height map's range and the
+maps' blurs are taken over those). Every member is named after the result (``<stem>`` = its
+file's stem, ``worker.files.member_stem``), so two bakes extracted into one folder keep
+their files. Where each output goes:
 
-* OBJ zip: members ``normal.png`` / ``height.png`` (``worker/derived_maps.py``) and
-  ``texture.dds`` / ``texture.ktx2`` (``worker/gpu_textures.py``) are added;
-  ``model.mtl`` gains ``norm normal.png`` (the PBR MTL extension Blender and others read
-  as a tangent-space normal map). ``height.png`` is not referenced from the MTL (MTL's
-  ``bump`` means a height map to some tools and a normal map to others).
+* OBJ zip: members ``<stem>_normal.png``, ``<stem>_height.png``, ``<stem>_roughness.png``,
+  ``<stem>_ao.png`` (``worker/derived_maps.py``) and ``<stem>_basecolor.dds|ktx2``
+  (``worker/gpu_textures.py``) are added; the MTL gains ``map_Bump <stem>_normal.png``
+  (what Blender's OBJ importer reads as a tangent-space normal map), ``norm
+  <stem>_normal.png`` (the PBR MTL extension other tools read), ``map_Pr
+  <stem>_roughness.png`` (PBR MTL roughness, which Blender reads) and a comment naming the
+  AO map (MTL has no occlusion keyword). The height map is not referenced from the MTL
+  (MTL's ``bump`` is a height map to some tools and a normal map to others, and the normal
+  map holds the same relief).
 * GLB: the normal map is embedded as the material's ``normalTexture`` (glTF's own
-  convention: tangent space, +Y up, which is what ``normal_map`` writes; viewers derive
-  tangents from the UVs). glTF core has no height map and no DDS/KTX2 without extensions,
-  so when ``height`` or a GPU format is asked for the result becomes a zip of ``model.glb``
-  plus ``height.png`` / ``texture.dds|ktx2``.
+  convention: tangent space, +Y up, which is what ``normal_map`` writes) with a TANGENT
+  attribute; roughness and AO are packed into one embedded "ORM" PNG (R = occlusion, G =
+  roughness, B = metallic 0), set as the ``occlusionTexture`` (R) and the
+  ``metallicRoughnessTexture`` (G, B; ``metallicFactor`` 0, ``roughnessFactor`` 1) for the
+  maps asked for. A KTX2 texture is embedded too, as the base colour's
+  ``KHR_texture_basisu`` source (``glb_with_basisu_texture``): viewers that know the
+  extension load the KTX2, others (Blender 3.4) the PNG beside it. glTF has no height map
+  and no DDS, so when ``height`` or ``dds`` is asked for the result becomes a zip of
+  ``<stem>.glb`` plus ``<stem>_height.png`` / ``<stem>_basecolor.dds``.
 
 All rewrites are atomic (``worker/files.py``).
 """
@@ -21,59 +33,93 @@ from __future__ import annotations
 import json
 import struct
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from worker.derived_maps import MAP_NAMES, derived_map_files
+from worker.derived_maps import check_maps, derived_maps, encode_normals8, grey8, map_file
 from worker.errors import InvalidParameter
-from worker.files import ZIP_TIME, atomic_output, extension, media_type
+from worker.files import ZIP_TIME, atomic_output, extension, media_type, member_name, member_stem
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.gpu_textures import gpu_texture_bytes
+from worker.images import png_bytes
 
 GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
 
 
+@dataclass(frozen=True)
+class BakeOutputs:
+    path: Path                                   # the result (a GLB may have become a zip)
+    height_range: tuple[float, float] | None     # the height map's luminance (min, max), if one was made
+
+
 def check_options(maps, gpu_format) -> None:
-    if set(maps) - set(MAP_NAMES):
-        raise InvalidParameter(f"unknown derived maps {sorted(set(maps) - set(MAP_NAMES))}; choose from {MAP_NAMES}")
+    check_maps(maps)
     if gpu_format is not None and gpu_format not in GPU_FORMATS:
         raise InvalidParameter(f"GPU texture format must be one of {GPU_FORMATS}, got {gpu_format!r}")
 
 
 def add_bake_outputs(path: Path, fmt: str, image: np.ndarray, *, maps=(), gpu_format: str | None = None,
-                     strength: float) -> Path:
-    """Add the requested outputs to the bake result at ``path`` (see module doc); returns the
-    result's path (a GLB becomes ``<stem>.zip`` when it cannot hold everything)."""
+                     strength: float, mask: np.ndarray | None = None) -> BakeOutputs:
+    """Add the requested outputs to the bake result at ``path`` (see module doc); returns
+    the result's path (a GLB becomes ``<stem>.zip`` when it cannot hold everything) and the
+    height map's luminance range. ``mask``: (R, R) bool, the texels the mesh covers."""
     check_options(maps, gpu_format)
-    files = derived_map_files(image, maps, strength=strength)
-    if gpu_format is not None:
-        files[f"texture{extension(gpu_format)}"] = gpu_texture_bytes(image, gpu_format)
-    if not files:
-        return path
+    stem = member_stem(path)
+    derived = derived_maps(image, maps, strength=strength, mask=mask)
+    done = BakeOutputs(path, derived.height_range)
     if fmt == "obj":
-        _rewrite_zip(path, path, files, {}, mtl_extra="norm normal.png\n" if "normal.png" in files else "")
-        return path
+        files = derived.files(stem)
+    else:   # the GLB embeds normal, roughness and AO; the rest goes beside it
+        files = derived.files(stem) if "height" in maps else {}
+        files = {name: data for name, data in files.items() if name == map_file("height", stem)}
+    if gpu_format is not None:
+        files[member_name(stem, "basecolor", extension(gpu_format))] = gpu_texture_bytes(image, gpu_format)
+    if fmt == "obj":
+        if files:
+            _rewrite_zip(path, path, files, {}, mtl=(member_name(stem, "", ".mtl"), _mtl_lines(files, stem)))
+        return done
+    embedded = set(maps) & {"normal", "roughness", "ao"}
+    if not files and not embedded:
+        return done
     glb = path.read_bytes()
-    if "normal.png" in files:
-        glb = glb_with_normal_texture(glb, files.pop("normal.png"))
+    if embedded:
+        glb = glb_with_material_maps(glb, normal=derived.arrays.get("normal"),
+                                     roughness=derived.arrays.get("roughness"), ao=derived.arrays.get("ao"))
+    ktx2 = member_name(stem, "basecolor", extension("ktx2"))
+    if ktx2 in files:
+        glb = glb_with_basisu_texture(glb, files.pop(ktx2))
     if not files:
         with atomic_output(path) as tmp, open(tmp, "wb") as f:
             f.write(glb)
-        return path
+        return done
     zip_path = path.with_suffix(".zip")
-    _rewrite_zip(None, zip_path, files, {"model.glb": glb})
+    _rewrite_zip(None, zip_path, files, {member_name(stem, "", ".glb"): glb})
     path.unlink()
-    return zip_path
+    return BakeOutputs(zip_path, derived.height_range)
 
 
-def _rewrite_zip(source: Path | None, target: Path, files: dict, first: dict, mtl_extra: str = "") -> None:
+def _mtl_lines(files: dict, stem: str) -> str:
+    """The MTL lines naming the derived maps among ``files`` (module doc)."""
+    normal, roughness, ao = (map_file(name, stem) for name in ("normal", "roughness", "ao"))
+    lines = [f"map_Bump {normal}", f"norm {normal}"] if normal in files else []
+    lines += [f"map_Pr {roughness}"] if roughness in files else []
+    lines += [f"# ambient occlusion (no MTL keyword): map_ao {ao}"] if ao in files else []
+    return "".join(line + "\n" for line in lines)
+
+
+def _rewrite_zip(source: Path | None, target: Path, files: dict, first: dict,
+                 mtl: tuple[str, str] = ("", "")) -> None:
+    """Write ``target``: the members ``first``, then those of the zip ``source``, then
+    ``files``; ``mtl``: (member, lines) to append to that MTL member."""
     members = dict(first)
     if source is not None:
         with zipfile.ZipFile(source) as z:
             members.update({name: z.read(name) for name in z.namelist()})
-    if mtl_extra and "model.mtl" in members:
-        members["model.mtl"] = members["model.mtl"] + mtl_extra.encode()
+    mtl_name, mtl_extra = mtl
+    if mtl_extra and mtl_name in members:
+        members[mtl_name] = members[mtl_name] + mtl_extra.encode()
     members.update(files)
     with atomic_output(target) as tmp, zipfile.ZipFile(tmp, "w") as z:
         for name, data in members.items():
@@ -112,6 +158,23 @@ def vertex_tangents(vertices: np.ndarray, normals: np.ndarray, uv: np.ndarray, f
     return np.concatenate([tan, w[:, None]], axis=1).astype(np.float32)
 
 
+def _add_tangents(gltf: dict, prim: dict, binary: bytes, append) -> None:
+    """A TANGENT accessor (``vertex_tangents``) for a primitive with positions, normals, UVs
+    and indices but no tangents; ``append`` stores its bytes."""
+    attrs = prim["attributes"]
+    if "TANGENT" in attrs or not {"POSITION", "NORMAL", "TEXCOORD_0"} <= set(attrs) or "indices" not in prim:
+        return
+    positions, normals, st = (_accessor(gltf, binary, attrs[k]).astype(np.float64)
+                              for k in ("POSITION", "NORMAL", "TEXCOORD_0"))
+    faces = _accessor(gltf, binary, prim["indices"]).reshape(-1, 3).astype(np.int64)
+    uv = np.stack([st[:, 0], 1.0 - st[:, 1]], axis=1)        # glTF t points down the image
+    tangents = vertex_tangents(positions, normals, uv, faces)
+    view = append(tangents.tobytes(), target=34962)
+    gltf.setdefault("accessors", []).append(
+        {"bufferView": view, "componentType": 5126, "count": len(tangents), "type": "VEC4"})
+    attrs["TANGENT"] = len(gltf["accessors"]) - 1
+
+
 def _accessor(gltf: dict, binary: bytes, index: int) -> np.ndarray:
     """A tightly packed float32 / uint32 accessor as an array (what ``worker.bake`` writes)."""
     acc = gltf["accessors"][index]
@@ -124,60 +187,101 @@ def _accessor(gltf: dict, binary: bytes, index: int) -> np.ndarray:
     return np.frombuffer(binary, dtype, count=acc["count"] * width, offset=start).reshape(acc["count"], width)
 
 
-def glb_with_normal_texture(glb: bytes, png: bytes) -> bytes:
-    """The GLB with ``png`` appended to its binary chunk and set as every material's
-    ``normalTexture`` (a new bufferView, image and texture; the base colour's sampler is
-    reused when it has one), and a TANGENT attribute (``vertex_tangents``) on each
-    primitive that has none, so viewers need not guess the tangent frame."""
-    magic, version, length = struct.unpack_from("<3I", glb)
-    json_len, json_type = struct.unpack_from("<2I", glb, 12)
-    if magic != GLB_MAGIC or version != 2 or json_type != JSON_CHUNK:
-        raise ValueError("not a glTF 2.0 binary")
-    gltf = json.loads(glb[20:20 + json_len])
-    at = 20 + json_len
-    binary = b""
-    if at < length:
-        bin_len, bin_type = struct.unpack_from("<2I", glb, at)
-        if bin_type != BIN_CHUNK:
-            raise ValueError("second GLB chunk is not BIN")
-        binary = glb[at + 8:at + 8 + bin_len]
+def glb_with_material_maps(glb: bytes, *, normal: np.ndarray | None = None, roughness: np.ndarray | None = None,
+                           ao: np.ndarray | None = None) -> bytes:
+    """The GLB with the given maps embedded in every material (module doc): ``normal``
+    (R, R, 3) unit vectors as ``normalTexture``, with a TANGENT attribute (``vertex_tangents``)
+    on each primitive that has none, so viewers need not guess the tangent frame;
+    ``roughness`` and ``ao`` (R, R) 0..1 packed into one ORM PNG, the
+    ``metallicRoughnessTexture`` and / or ``occlusionTexture``. Each image is appended to the
+    binary chunk as a new bufferView, image and texture (the base colour's sampler reused)."""
+    gltf, binary = _glb_split(glb)
     views = gltf.setdefault("bufferViews", [])
 
     def append(data: bytes, **extra) -> int:
+        """Append ``data`` to the binary chunk as a new bufferView (4-byte aligned); its index."""
         nonlocal binary
         binary += b"\0" * (-len(binary) % 4)
         views.append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(data), **extra})
         binary += data
         return len(views) - 1
 
-    for mesh in gltf.get("meshes", []):
-        for prim in mesh["primitives"]:
-            attrs = prim["attributes"]
-            if "TANGENT" in attrs or not {"POSITION", "NORMAL", "TEXCOORD_0"} <= set(attrs) or "indices" not in prim:
-                continue
-            positions, normals, st = (_accessor(gltf, binary, attrs[k]).astype(np.float64)
-                                      for k in ("POSITION", "NORMAL", "TEXCOORD_0"))
-            faces = _accessor(gltf, binary, prim["indices"]).reshape(-1, 3).astype(np.int64)
-            uv = np.stack([st[:, 0], 1.0 - st[:, 1]], axis=1)        # glTF t points down the image
-            tangents = vertex_tangents(positions, normals, uv, faces)
-            view = append(tangents.tobytes(), target=34962)
-            gltf.setdefault("accessors", []).append(
-                {"bufferView": view, "componentType": 5126, "count": len(tangents), "type": "VEC4"})
-            attrs["TANGENT"] = len(gltf["accessors"]) - 1
-    append(png)
+    def add_texture(png: bytes, name: str) -> int:
+        append(png)
+        gltf.setdefault("images", []).append({"bufferView": len(views) - 1, "mimeType": media_type("png"),
+                                              "name": name})
+        texture = {"source": len(gltf["images"]) - 1}
+        samplers = [t["sampler"] for t in gltf.get("textures", []) if "sampler" in t]
+        if samplers:
+            texture["sampler"] = samplers[0]
+        gltf.setdefault("textures", []).append(texture)
+        return len(gltf["textures"]) - 1
+
+    if normal is not None:
+        for mesh in gltf.get("meshes", []):
+            for prim in mesh["primitives"]:
+                _add_tangents(gltf, prim, binary, append)
+        index = add_texture(png_bytes(encode_normals8(normal)), "normal")
+        for material in gltf.get("materials", []):
+            material["normalTexture"] = {"index": index}
+    if roughness is not None or ao is not None:
+        size = (roughness if roughness is not None else ao).shape
+        full = np.full(size, 255, np.uint8)
+        orm = np.stack([grey8(ao) if ao is not None else full, grey8(roughness) if roughness is not None else full,
+                        np.zeros(size, np.uint8)], axis=-1)     # metallic 0
+        index = add_texture(png_bytes(orm), "occlusion-roughness-metallic")
+        for material in gltf.get("materials", []):
+            if ao is not None:
+                material["occlusionTexture"] = {"index": index}
+            if roughness is not None:
+                pbr = material.setdefault("pbrMetallicRoughness", {})
+                pbr.update(metallicRoughnessTexture={"index": index}, metallicFactor=0.0, roughnessFactor=1.0)
     binary += b"\0" * (-len(binary) % 4)
-    buffers = gltf.setdefault("buffers", [{}])
-    buffers[0]["byteLength"] = len(binary)
-    gltf.setdefault("images", []).append({"bufferView": len(gltf["bufferViews"]) - 1, "mimeType": media_type("png"),
-                                          "name": "normal"})
-    texture = {"source": len(gltf["images"]) - 1}
-    samplers = [t["sampler"] for t in gltf.get("textures", []) if "sampler" in t]
-    if samplers:
-        texture["sampler"] = samplers[0]
-    gltf.setdefault("textures", []).append(texture)
-    for material in gltf.get("materials", []):
-        material["normalTexture"] = {"index": len(gltf["textures"]) - 1}
+    gltf.setdefault("buffers", [{}])[0]["byteLength"] = len(binary)
+    return _glb_join(gltf, binary)
+
+
+def glb_with_basisu_texture(glb: bytes, ktx2: bytes) -> bytes:
+    """The GLB with ``ktx2`` (Basis Universal, ``worker.gpu_textures.ktx2_bytes``) appended
+    to its binary chunk as an ``image/ktx2`` image and named by every base-colour texture's
+    ``KHR_texture_basisu`` extension. The texture keeps its PNG ``source`` as the fallback,
+    so the extension is used, not required: every glTF loader still opens the file."""
+    gltf, binary = _glb_split(glb)
+    binary += b"\0" * (-len(binary) % 4)
+    gltf.setdefault("bufferViews", []).append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(ktx2)})
+    binary += ktx2 + b"\0" * (-len(ktx2) % 4)
+    gltf.setdefault("buffers", [{}])[0]["byteLength"] = len(binary)
+    gltf.setdefault("images", []).append({"bufferView": len(gltf["bufferViews"]) - 1,
+                                          "mimeType": media_type("ktx2"), "name": "base colour (KTX2)"})
+    colour = {m["pbrMetallicRoughness"]["baseColorTexture"]["index"] for m in gltf.get("materials", [])
+              if "baseColorTexture" in m.get("pbrMetallicRoughness", {})}
+    for index in sorted(colour):
+        gltf["textures"][index].setdefault("extensions", {})["KHR_texture_basisu"] = {
+            "source": len(gltf["images"]) - 1}
+    used = gltf.setdefault("extensionsUsed", [])
+    if colour and "KHR_texture_basisu" not in used:
+        used.append("KHR_texture_basisu")
+    return _glb_join(gltf, binary)
+
+
+def _glb_split(glb: bytes) -> tuple[dict, bytes]:
+    """(glTF JSON, BIN chunk) of a glTF 2.0 binary."""
+    magic, version, length = struct.unpack_from("<3I", glb)
+    json_len, json_type = struct.unpack_from("<2I", glb, 12)
+    if magic != GLB_MAGIC or version != 2 or json_type != JSON_CHUNK:
+        raise ValueError("not a glTF 2.0 binary")
+    at, binary = 20 + json_len, b""
+    if at < length:
+        bin_len, bin_type = struct.unpack_from("<2I", glb, at)
+        if bin_type != BIN_CHUNK:
+            raise ValueError("second GLB chunk is not BIN")
+        binary = glb[at + 8:at + 8 + bin_len]
+    return json.loads(glb[20:20 + json_len]), binary
+
+
+def _glb_join(gltf: dict, binary: bytes) -> bytes:
     text = json.dumps(gltf, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 4)
+    binary += b"\0" * (-len(binary) % 4)
     body = struct.pack("<2I", len(text), JSON_CHUNK) + text + struct.pack("<2I", len(binary), BIN_CHUNK) + binary
     return struct.pack("<3I", GLB_MAGIC, 2, 12 + len(body)) + body

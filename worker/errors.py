@@ -61,6 +61,11 @@ class FeatureUnavailable(TexspaceError):
     """An optional dependency (e.g. torch for fitting) is not installed."""
 
 
+class InsufficientStorage(TexspaceError):
+    """A write failed for lack of space: the disk (ENOSPC, a quota) or the database is full.
+    Nothing was stored; a retry fails the same way until space is freed."""
+
+
 class Busy(TexspaceError):
     """A shared resource (the API's decode budget) had no room in time; try again after
     ``retry_after`` seconds."""

@@ -1,5 +1,5 @@
 """Result files: the one table of the formats texspace writes (file extension and media
-type by format name), the fixed time stamped on zip members, and atomic writing (under a
+type by format name), the fixed time stamped on zip members and images, and atomic writing (under a
 temporary name in the target folder, renamed into place only when complete, so readers
 never see half a file and a re-run simply overwrites).
 
@@ -11,6 +11,7 @@ types are read here, and the API's and the CLI's lists are derived from those tu
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
@@ -19,6 +20,9 @@ from pathlib import Path
 
 #: the time of every zip member: fixed, so identical content gives identical zips
 ZIP_TIME = (2020, 1, 1, 0, 0, 0)
+#: the same time as the ``DateTime`` of every image OpenImageIO writes (EXR ``capDate``,
+#: TIFF DateTime), which it would otherwise stamp with the time of writing
+IMAGE_DATETIME = "{:04d}:{:02d}:{:02d} {:02d}:{:02d}:{:02d}".format(*ZIP_TIME)
 #: the media type of bytes whose format is not in the table
 OCTET_STREAM = "application/octet-stream"
 
@@ -79,6 +83,20 @@ def extensions(formats: Iterable[str]) -> dict[str, tuple[str, ...]]:
     """Format -> every extension that names it (the first is what files are written as),
     for ``formats`` in their order."""
     return {fmt: (FORMATS[fmt].extension, *FORMATS[fmt].aliases) for fmt in formats}
+
+
+def member_stem(path: str | os.PathLike) -> str:
+    """The stem a result's zip members are named after: the result file's own stem (the
+    service names results after their texture, ``service/download_names.py``), reduced to
+    characters every unzip tool and OBJ reader takes (``mtllib``, ``map_Kd`` end at a blank),
+    so two results extracted into one folder do not overwrite each other."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", Path(path).stem).strip("-.") or "texture"
+
+
+def member_name(stem: str, role: str, ext: str) -> str:
+    """A zip member of the result ``stem``: ``<stem>_<role><ext>`` (``oak_normal.png``), or
+    ``<stem><ext>`` without a role (``oak.obj``)."""
+    return f"{stem}_{role}{ext}" if role else f"{stem}{ext}"
 
 
 @contextmanager

@@ -6,20 +6,21 @@ exactly those of the tiles covering it (same sampling and anti-aliasing).
 
 Formats:
 
-* ``tiff``: tiled TIFF (256 x 256 tiles), 16-bit sRGB, zip compression, via OpenImageIO.
+* ``tiff``: scanline (strip) TIFF, 16-bit sRGB, zip compression, via OpenImageIO.
 * ``exr``: tiled OpenEXR, half-float linear, zip compression, via OpenImageIO.
 * ``png``: 8-bit sRGB, written by a streaming encoder (one row of tiles in memory).
 * ``pyramid``: a zip of ``{z}/{x}/{y}.png`` tiles of ``size`` pixels for every zoom from
   ``min_zoom`` to ``z`` (the tiles covering the rectangle at each level, each rendered exactly like the tile
   endpoint, so the bytes match it) plus ``tilejson.json`` (TileJSON 3.0.0, xyz scheme,
   plus a ``texspace`` object with the box and tile size).
-* ``dds`` / ``ktx2``: mipmapped GPU textures, RGBA8 sRGB with the full mip chain
+* ``dds`` / ``ktx2``: mipmapped GPU textures (BC1 blocks / Basis Universal UASTC) with the full mip chain
   averaged in linear light (``worker/gpu_textures.py``).
 
-Derived maps (``maps``: ``height`` and/or ``normal``, ``worker/derived_maps.py``): the
-result is then a zip of ``colour.<ext>`` (the image in ``fmt``) plus ``height.png`` and/or
-``normal.png``; ``wrap_maps=True`` (a tileable region) makes the normal map's gradient
-wrap around the borders. GPU formats and derived maps need the whole image in memory, so
+Derived maps (``maps``: any of ``height``, ``normal``, ``roughness``, ``ao``,
+``worker/derived_maps.py``): the result is then a zip of ``<stem>_basecolor.<ext>`` (the
+image in ``fmt``) plus ``<stem>_<map>.png`` for each, ``<stem>`` being the result file's own
+(``worker.files.member_stem``); ``wrap_maps=True`` (a tileable region) makes the maps'
+gradients and blurs wrap around the borders. GPU formats and derived maps need the whole image in memory, so
 they are limited to ``RegionLimits.max_whole_pixels``.
 
 Tileable (``tileable=True``): a square image at the native zoom on the xy plane,
@@ -48,7 +49,7 @@ import OpenImageIO as oiio
 from worker.colour import linear_to_srgb, linear_to_srgb8
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS, derived_map_files
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
-from worker.files import ZIP_TIME, atomic_output, extension
+from worker.files import IMAGE_DATETIME, ZIP_TIME, atomic_output, extension, member_name, member_stem
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.gpu_textures import gpu_texture_bytes
 from worker.images import write_image
@@ -58,7 +59,7 @@ from worker.tiles import (MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM, render_tile, render_w
 from worker.volume_writers import PngStream
 
 FORMATS = ("png", "exr", "tiff", "pyramid") + GPU_FORMATS  # extensions: worker.files
-BLOCK = 256                  # pixels per side of one sampler call / one TIFF or EXR tile
+BLOCK = 256                  # pixels per side of one sampler call / one EXR tile
 
 
 @dataclass(frozen=True)
@@ -161,7 +162,7 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
                     raise LimitExceeded(f"{fmt} or derived maps of {width}x{height} pixels exceed "
                                         f"{limits.max_whole_pixels} pixels")
                 image = np.concatenate(list(stripes()), axis=0)
-                _write_whole(tmp, fmt, image, maps, normal_strength, wrap_maps)
+                _write_whole(tmp, fmt, image, maps, normal_strength, wrap_maps, member_stem(out_path))
             else:
                 _write_image_stripes(tmp, fmt, width, height, stripes())
     return out_path
@@ -181,9 +182,10 @@ def check_tileable(*, z: int, width: int, height: int, fmt: str, plane: str) -> 
         raise InvalidParameter("a tileable region is one image, not a pyramid")
 
 
-def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, wrap: bool) -> None:
-    """One image in memory: a GPU texture, or the zip of the colour image and its maps."""
-    files = derived_map_files(image, maps, strength=strength, wrap=wrap)   # checks maps first
+def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, wrap: bool, stem: str) -> None:
+    """One image in memory: a GPU texture, or the zip of the colour image and its maps
+    (members named after ``stem``)."""
+    files = derived_map_files(image, maps, strength=strength, wrap=wrap, stem=stem)   # checks maps first
     if not maps:
         with open(path, "wb") as f:
             f.write(gpu_texture_bytes(image, fmt))
@@ -201,8 +203,9 @@ def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, 
             if os.path.exists(colour_path):
                 os.unlink(colour_path)
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as z:   # PNG/EXR/TIFF compress
-        for name, data in {f"colour{extension(fmt)}": colour, **files}.items():
-            method = zipfile.ZIP_DEFLATED if fmt in GPU_FORMATS and name.startswith("colour") else zipfile.ZIP_STORED
+        colour_name = member_name(stem, "basecolor", extension(fmt))
+        for name, data in {colour_name: colour, **files}.items():
+            method = zipfile.ZIP_DEFLATED if fmt in GPU_FORMATS and name == colour_name else zipfile.ZIP_STORED
             z.writestr(zipfile.ZipInfo(name, ZIP_TIME), data, compress_type=method)
 
 
@@ -217,16 +220,24 @@ def _write_image_stripes(path: str, fmt: str, width: int, height: int, stripes) 
         return
     spec = oiio.ImageSpec(width, height, 3, "uint16" if fmt == "tiff" else "half")
     spec.attribute("compression", "zip")
-    spec.tile_width = spec.tile_height = BLOCK
+    spec.attribute("DateTime", IMAGE_DATETIME)
+    if fmt == "exr":
+        spec.tile_width = spec.tile_height = BLOCK
+    # TIFF stays in strips: Blender 3.4 (Debian 12) shows a tiled 16-bit TIFF as coloured
+    # stripes, and every TIFF reader knows strips
     out = oiio.ImageOutput.create(path)
     if out is None or not out.open(path, spec):
         raise OSError(f"OpenImageIO cannot open {path}: {oiio.geterror()}")
     try:
         for k, stripe in enumerate(stripes):
-            pixels = (linear_to_srgb(stripe) * 65535 + 0.5).astype(np.uint16) if fmt == "tiff" \
-                else stripe.astype(np.float16)
             y = k * BLOCK
-            if not out.write_tiles(0, width, y, y + len(stripe), 0, 1, np.ascontiguousarray(pixels)):
+            if fmt == "tiff":
+                pixels = (linear_to_srgb(stripe) * 65535 + 0.5).astype(np.uint16)
+                written = out.write_scanlines(y, y + len(stripe), 0, np.ascontiguousarray(pixels))
+            else:
+                written = out.write_tiles(0, width, y, y + len(stripe), 0, 1,
+                                          np.ascontiguousarray(stripe.astype(np.float16)))
+            if not written:
                 raise OSError(f"OpenImageIO failed writing rows {y}..{y + len(stripe)}: {out.geterror()}")
     finally:
         out.close()

@@ -31,6 +31,7 @@ import numpy as np
 import onnxruntime as ort
 
 from worker.colour_match import identity_colour
+from worker.contract import TILEABLE_SAMPLER
 from worker.errors import FeatureUnavailable, InvalidParameter, ModelInvalid, ModelNotFound
 
 log = logging.getLogger(__name__)
@@ -45,9 +46,6 @@ MANIFEST_KEYS = (
 # shared 2-core machine: 1024: 0.33, 2048: 0.32, 4096: 0.28, 8192: 0.27 M points/s;
 # 64k chunks (the old default) ~0.25. bench/run.py sweeps it again on every run.
 DEFAULT_CHUNK = 2048
-# The tileable sampler's file name beside sampler.onnx (a model export, a fit's folder, a
-# fitted texture's storage folder); the manifest names it under "tileable_sampler".
-TILEABLE_SAMPLER = "sampler_tileable.onnx"
 
 
 class Sampler(Protocol):
@@ -154,6 +152,8 @@ class SamplerSession:
         if self.colour_size:
             colour = (np.ascontiguousarray(code[:, self.code_size:]) if code.shape[1] > self.code_size
                       else self._identity_colour)
+            # Fitted samplers exported before 2026-12-02 took z and colour with the same rows
+            # only (a shared table beside per-point codes failed there); they are still stored.
             if per_point and len(colour) == 1:
                 colour = np.broadcast_to(colour, (len(points), self.colour_size))
         seed_arr = np.full(self._seed_shape, int(seed), dtype=np.int64)

@@ -39,21 +39,17 @@ from typing import Callable
 
 import numpy as np
 
+from worker.contract import MAX_TILE_SIZE, MIN_TILE_SIZE, PLANE_AXES, PLANES
 from worker.errors import InvalidParameter
 from worker.runtime import Sampler
 
 NATIVE_ZOOM = 6      # one tile pixel == one exemplar pixel
 MIN_ZOOM = 2         # 16 exemplar pixels per tile pixel
 MAX_ZOOM = 12        # 64x magnification
-MIN_TILE_SIZE = 64
-MAX_TILE_SIZE = 1024
 SUPERSAMPLE_CAP = 4  # at most 4 x 4 sampler calls per output pixel
 COORD_LIMIT = 2 ** 36  # |x|, |y|: keeps 2*s*x*size + ... below 2^53 (exact in float64)
-PLANES = ("xy", "xz", "yz")
 TILE_FORMATS = ("png", "webp", "exr")  # what a tile can be served as (worker.images.write_image)
 ZOOM_OUT_MODES = ("supersample", "bounded")
-# Which world axis receives u, v and the plane offset, per plane.
-_PLANE_AXES = {"xy": (0, 1, 2), "xz": (0, 2, 1), "yz": (1, 2, 0)}
 
 
 def supersample_for(z: int, cap: int = SUPERSAMPLE_CAP) -> int:
@@ -70,7 +66,7 @@ def _check_tile(z: int, x: int, y: int, size: int, supersample: int, plane: str)
         raise InvalidParameter(f"tile coordinates must satisfy |x|, |y| <= 2^36, got {x}, {y}")
     if supersample < 1 or supersample & (supersample - 1) or supersample > 16:
         raise InvalidParameter(f"supersample must be a power of two in [1, 16], got {supersample}")
-    if plane not in _PLANE_AXES:
+    if plane not in PLANE_AXES:
         raise InvalidParameter(f"plane must be one of {PLANES}, got {plane!r}")
 
 
@@ -109,9 +105,9 @@ def plane_points(u: np.ndarray, v: np.ndarray, *, plane: str = "xy", offset: flo
     Returns (R*C, 3) float64, row-major (rows follow v). Built by broadcasting, no copies
     of u or v beyond the output itself.
     """
-    if plane not in _PLANE_AXES:
+    if plane not in PLANE_AXES:
         raise InvalidParameter(f"plane must be one of {PLANES}, got {plane!r}")
-    axis_u, axis_v, axis_o = _PLANE_AXES[plane]
+    axis_u, axis_v, axis_o = PLANE_AXES[plane]
     pts = np.empty((len(v), len(u), 3), dtype=np.float64)
     pts[:, :, axis_u] = u[None, :]
     pts[:, :, axis_v] = v[:, None]
@@ -187,7 +183,7 @@ def render_window(sampler: Sampler, code: np.ndarray, seed: int, z: int, col0: i
                      z, s)
         pu = u[np.arange(width)[None, :] * s + a]
         pv = v[np.arange(height)[:, None] * s + b]
-        axis_u, axis_v, axis_o = _PLANE_AXES[plane]
+        axis_u, axis_v, axis_o = PLANE_AXES[plane]
         pts = np.empty((height, width, 3), dtype=np.float64)
         pts[:, :, axis_u], pts[:, :, axis_v], pts[:, :, axis_o] = pu, pv, offset
         return sampler.sample(pts.reshape(-1, 3), code, seed).reshape(height, width, 3)

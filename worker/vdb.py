@@ -1,4 +1,5 @@
-"""A dense OpenVDB writer in numpy: one Vec3s grid (``Tree_vec3s_5_4_3``), zip compression.
+"""A dense OpenVDB writer in numpy: a Vec3s colour grid ``Cd`` (``Tree_vec3s_5_4_3``) and a
+float ``density`` grid (``Tree_float_5_4_3``), zip compression.
 
 No OpenVDB Python binding installs into the project's environment from the registries
 (PyPI: ``openvdb``, ``pyopenvdb`` and ``nanovdb`` offer no installable distribution for
@@ -12,18 +13,22 @@ Layout of the file (all little-endian):
 
 * header: magic ``0x56444220``, file format 224, library 10.0, has-grid-offsets 1, a
   36-character UUID (derived from the volume's size and bounds, so output is
-  deterministic), file metadata (``creator``), grid count 1;
-* grid descriptor: name, type ``Tree_vec3s_5_4_3``, no instance parent, the grid's three
-  stream offsets (grid, data blocks, end);
+  deterministic), file metadata (``creator``), grid count 2;
+* per grid, ``Cd`` then ``density``: a descriptor (name, type, no instance parent, the
+  grid's three stream offsets: grid, data blocks, end), then the grid itself;
 * grid: compression flags ``COMPRESS_ZIP`` (no active-mask compression, so every node
-  stores all its values), metadata (``class``, ``name``, ``vector_type = invariant``,
-  ``is_local_space``, ``texspace_bounds_min/max``, ``texspace_colour = linear``), the
+  stores all its values), metadata (``class``: ``unknown`` / ``fog volume``, ``name``,
+  ``vector_type = invariant`` for ``Cd``, ``is_local_space``, ``texspace_bounds_min/max``, ``texspace_colour = linear``), the
   transform ``ScaleTranslateMap`` with scale = voxel size and translation = the first
   voxel's centre (so index (i, j, k) maps to voxel centre ``min + (index + 0.5) * size``,
   which is how Houdini and Blender place VDB voxels), then the topology (root with one
   5-level internal node at the origin, 4-level nodes, 8^3 leaves; only leaves that hold
   voxels) and the leaf buffers. Voxel (i, j, k) is volume[k, j, i] (x = column, y = row,
   z = slice); voxels past N in a partial leaf are inactive and 0 (the background).
+
+``density`` is the colour's linear Rec. 709 luminance: Blender's volume shader renders a
+grid of that name (and colours it with ``Cd`` when asked), Houdini's volume tools take it
+too; a colour grid alone renders as empty space.
 """
 from __future__ import annotations
 
@@ -33,10 +38,12 @@ import zlib
 
 import numpy as np
 
+from worker.colour import LUMA_709
+
 FILE_VERSION = 224
 LIBRARY_VERSION = (10, 0)
 COMPRESS_ZIP = 0x1
-GRID_TYPE = "Tree_vec3s_5_4_3"
+GRID_TYPES = {3: "Tree_vec3s_5_4_3", 1: "Tree_float_5_4_3"}   # by components per voxel
 NO_MASK_AND_ALL_VALS = 6        # io/Compression.h: per-node "metadata" byte
 LEAF, NODE1, NODE2 = 8, 128, 4096        # voxels per side of a leaf, 4-level and 5-level node
 ZIP_LEVEL = 1                   # zlib level: float noise barely compresses; level 1 is fastest
@@ -103,15 +110,16 @@ def _node1_leaves(n: int, origin) -> tuple[int, int, int]:
     return tuple(_counts(n, o, NODE1, LEAF) for o in origin)
 
 
-def _topology(n: int) -> bytes:
+def _topology(n: int, components: int) -> bytes:
     """Tree::writeTopology: buffer count, root (background, tiles, children), nodes, leaf masks."""
-    zero3 = struct.pack("<3f", 0, 0, 0)
+    value = 4 * components                               # bytes per voxel value
+    background = bytes(value)
     c2 = -(-n // NODE1)
     child2 = np.zeros((32, 32, 32), dtype=bool)
     child2[:c2, :c2, :c2] = True
-    out = [struct.pack("<i", 1), zero3, struct.pack("<II", 0, 1), struct.pack("<3i", 0, 0, 0),
-           _mask(child2), _mask(np.zeros(32 ** 3, bool)), _values(bytes(32 ** 3 * 12))]
-    empty1, values1 = _mask(np.zeros(16 ** 3, bool)), _values(bytes(16 ** 3 * 12))
+    out = [struct.pack("<i", 1), background, struct.pack("<II", 0, 1), struct.pack("<3i", 0, 0, 0),
+           _mask(child2), _mask(np.zeros(32 ** 3, bool)), _values(bytes(32 ** 3 * value))]
+    empty1, values1 = _mask(np.zeros(16 ** 3, bool)), _values(bytes(16 ** 3 * value))
     for origin in _node1_origins(n):
         cx, cy, cz = _node1_leaves(n, origin)
         child1 = np.zeros((16, 16, 16), dtype=bool)
@@ -122,16 +130,20 @@ def _topology(n: int) -> bytes:
     return b"".join(out)
 
 
-def _write_buffers(f, volume: np.ndarray, n: int) -> None:
+def _write_buffers(f, volume: np.ndarray, n: int, density: bool) -> None:
     """Tree::writeBuffers: per leaf, in tree order: value mask, flag byte, zipped values
-    ([x][y][z] order, RGB interleaved). The volume is read one 4-level node at a time."""
+    ([x][y][z] order; RGB interleaved, or the luminance for ``density``). The volume is
+    read one 4-level node at a time."""
     full = _leaf_mask(n, (0, 0, 0)) if n >= LEAF else None
+    components = 1 if density else 3
     for ox, oy, oz in _node1_origins(n):
         cx, cy, cz = _node1_leaves(n, (ox, oy, oz))
-        block = np.zeros((NODE1, NODE1, NODE1, 3), dtype="<f4")            # [x][y][z][c]
+        block = np.zeros((NODE1, NODE1, NODE1, components), dtype="<f4")   # [x][y][z][c]
         part = np.asarray(volume[oz:oz + NODE1, oy:oy + NODE1, ox:ox + NODE1], dtype="<f4")
+        if density:
+            part = (part @ LUMA_709)[..., None]
         block[:part.shape[2], :part.shape[1], :part.shape[0]] = part.transpose(2, 1, 0, 3)
-        leaves = block.reshape(16, LEAF, 16, LEAF, 16, LEAF, 3).transpose(0, 2, 4, 1, 3, 5, 6)
+        leaves = block.reshape(16, LEAF, 16, LEAF, 16, LEAF, components).transpose(0, 2, 4, 1, 3, 5, 6)
         for i in range(cx):
             for j in range(cy):
                 for k in range(cz):
@@ -141,11 +153,12 @@ def _write_buffers(f, volume: np.ndarray, n: int) -> None:
                     f.write(mask + _values(np.ascontiguousarray(leaves[i, j, k]).tobytes()))
 
 
-def write_vdb(f, volume: np.ndarray, bounds: np.ndarray, grid_name: str = "Cd") -> None:
-    """Write ``volume`` as an OpenVDB file to the seekable binary file ``f``.
+def write_vdb(f, volume: np.ndarray, bounds: np.ndarray) -> None:
+    """Write ``volume`` as an OpenVDB file (grids ``Cd`` and ``density``) to the seekable
+    binary file ``f``.
 
     volume : (N, N, N, 3) float32 linear RGB, [z, y, x, channel] (a memmap is fine: it is
-    read one 128^3 block at a time). bounds : (2, 3) float64 world box (min, max).
+    read one 128^3 block at a time, once per grid). bounds : (2, 3) float64 world box (min, max).
     """
     n = volume.shape[0]
     if volume.shape != (n, n, n, 3) or not 1 <= n <= MAX_SIDE:
@@ -153,26 +166,29 @@ def write_vdb(f, volume: np.ndarray, bounds: np.ndarray, grid_name: str = "Cd") 
     bounds = np.asarray(bounds, dtype=np.float64)
     size = (bounds[1] - bounds[0]) / n
     key = f"texspace:{n}:{bounds.tolist()}"
-    header = (struct.pack("<QIII", 0x56444220, FILE_VERSION, *LIBRARY_VERSION) + b"\x01"
-              + str(uuid.uuid5(uuid.NAMESPACE_URL, key)).encode()
-              + _metadata({"creator": _meta_string("texspace")}) + struct.pack("<i", 1)
-              + _string(grid_name) + _string(GRID_TYPE) + _string(""))
-    f.write(header)
-    offsets_at = f.tell()
-    f.write(bytes(24))                                   # grid, block and end positions
-    grid_pos = f.tell()
-    meta = _metadata({
-        "class": _meta_string("unknown"), "name": _meta_string(grid_name),
-        "vector_type": _meta_string("invariant"), "is_local_space": ("bool", b"\x00"),
-        "texspace_bounds_min": _meta_vec3d(bounds[0]), "texspace_bounds_max": _meta_vec3d(bounds[1]),
-        "texspace_colour": _meta_string("linear")})
+    f.write(struct.pack("<QIII", 0x56444220, FILE_VERSION, *LIBRARY_VERSION) + b"\x01"
+            + str(uuid.uuid5(uuid.NAMESPACE_URL, key)).encode()
+            + _metadata({"creator": _meta_string("texspace")}) + struct.pack("<i", 2))
     translate = bounds[0] + 0.5 * size
     transform = _string("ScaleTranslateMap") + struct.pack(
         "<18d", *translate, *size, *np.abs(size), *(1 / size), *(1 / size ** 2), *(0.5 / size))
-    f.write(struct.pack("<I", COMPRESS_ZIP) + meta + transform + _topology(n))
-    block_pos = f.tell()
-    _write_buffers(f, volume, n)
-    end_pos = f.tell()
-    f.seek(offsets_at)
-    f.write(struct.pack("<3q", grid_pos, block_pos, end_pos))
-    f.seek(end_pos)
+    for name, density in (("Cd", False), ("density", True)):
+        components = 1 if density else 3
+        f.write(_string(name) + _string(GRID_TYPES[components]) + _string(""))
+        offsets_at = f.tell()
+        f.write(bytes(24))                               # grid, block and end positions
+        grid_pos = f.tell()
+        entries = {
+            "class": _meta_string("fog volume" if density else "unknown"), "name": _meta_string(name),
+            "is_local_space": ("bool", b"\x00"),
+            "texspace_bounds_min": _meta_vec3d(bounds[0]), "texspace_bounds_max": _meta_vec3d(bounds[1]),
+            "texspace_colour": _meta_string("linear luminance" if density else "linear")}
+        if not density:
+            entries["vector_type"] = _meta_string("invariant")
+        f.write(struct.pack("<I", COMPRESS_ZIP) + _metadata(entries) + transform + _topology(n, components))
+        block_pos = f.tell()
+        _write_buffers(f, volume, n, density)
+        end_pos = f.tell()
+        f.seek(offsets_at)
+        f.write(struct.pack("<3q", grid_pos, block_pos, end_pos))
+        f.seek(end_pos)

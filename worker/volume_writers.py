@@ -10,14 +10,18 @@ Layouts:
 * ``npy``: float32 linear, shape (N, N, N, 3), C order. Header written first, slabs
   appended (the file is a valid .npy when closed; ``np.load(..., mmap_mode='r')`` works).
 * ``exr``: multi-part OpenEXR, one part per z slice named ``slice_0000``...; float32
-  linear RGB, zip compression. Part k holds slice z = k. Every part's header carries the
+  linear RGB, zip compression. Part k holds slice z = k in channels
+  ``slice_0000.Combined.R`` / ``.G`` / ``.B``: the layer.pass.channel names of a
+  multilayer EXR, so Blender shows one layer per slice (bare ``R``, ``G``, ``B`` in every
+  part made Blender 3.4 refuse the file: "too many channels in one pass"). Every part's header carries the
   volume's placement: ``boundsMin``, ``boundsMax``, ``voxelSize`` (v3f, world units; x, y,
   z), ``sliceIndex`` (int k), ``sliceZ`` (float, world z of the slice's voxel centres) and
   ``texspace:volume`` (string, JSON of ``volume_metadata``: the same values in double
   precision, ``resolution``, axis order, colour). OpenEXR has no double attributes.
 * ``tiff``: multi-page TIFF, one page per z slice (page k = slice z = k); float32 linear
   RGB, zip compression; each page's ImageDescription is the JSON of ``volume_metadata``.
-* ``vdb``: OpenVDB (``worker/vdb.py``): one vec3s grid ``Cd`` (linear RGB), voxel
+* ``vdb``: OpenVDB (``worker/vdb.py``): a vec3s grid ``Cd`` (linear RGB) and a float
+  grid ``density`` (the colour's linear luminance, what Blender renders a volume by), voxel
   (i, j, k) = x, y, z index, transform ``ScaleTranslateMap`` from the bounds (index
   (i, j, k) maps to the voxel centre). Slabs are spooled to a temporary raw file beside
   the output (VDB stores x-major blocks, the volume arrives z-slice by z-slice) and
@@ -27,10 +31,14 @@ Layouts:
 * ``nrrd``: NRRD 4 header written by hand (sizes ``3 N N N``, kinds
   ``RGB-color domain domain domain``, raw little-endian float32, space directions and
   origin from the bounds) followed by the data: pynrrd, 3D Slicer and ParaView read it.
-* ``dds``: DirectDraw Surface volume texture, "DDS " + DDS_HEADER (DDSD_DEPTH,
-  DDSCAPS2_VOLUME) + DDS_HEADER_DXT10 (DXGI_FORMAT_R8G8B8A8_UNORM_SRGB,
-  D3D10_RESOURCE_DIMENSION_TEXTURE3D), one mip level, then RGBA8 texels (sRGB-encoded,
-  alpha 255) slice by slice.
+* ``dds``: DirectDraw Surface volume texture in the legacy DirectX 9 layout: "DDS " +
+  DDS_HEADER (DDSD_DEPTH, DDSCAPS2_VOLUME) with an uncompressed 32-bit pixel format
+  (DDPF_RGB | DDPF_ALPHAPIXELS, masks R 0xff0000, G 0xff00, B 0xff, A 0xff000000: D3D9's
+  A8R8G8B8, bytes B G R A, the layout every reader knows; ImageMagick ignores the masks
+  and assumes it), one mip level, then the texels (sRGB-encoded, alpha 255) slice by slice. The
+  DX10 header (R8G8B8A8_UNORM_SRGB, TEXTURE3D) it replaces opened in neither OpenImageIO
+  nor ImageMagick ("unsupported"); now iinfo shows the N x N x N volume, though
+  OpenImageIO and ImageMagick decode only slice 0.
 * ``flipbook``: one 8-bit sRGB PNG holding the N slices as a grid of ``cols x rows``
   cells of N x N pixels, ``cols * rows == N`` exactly (cols = the smallest divisor of N
   that is >= sqrt(N)), slice 0 at the top-left, then left to right, top to bottom:
@@ -51,7 +59,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from worker.colour import linear_to_srgb8
-from worker.files import ZIP_TIME
+from worker.files import IMAGE_DATETIME, ZIP_TIME
 from worker.vdb import write_vdb
 
 FORMATS = ("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb")  # extensions: worker.files
@@ -115,6 +123,9 @@ class OiioPagesWriter(VolumeWriter):
             spec = oiio.ImageSpec(n, n, 3, "float")
             spec.attribute("compression", "zip")
             spec.attribute("name", f"slice_{k:04d}")
+            spec.attribute("DateTime", IMAGE_DATETIME)
+            if exr:
+                spec.channelnames = tuple(f"slice_{k:04d}.Combined.{c}" for c in "RGB")
             meta = volume_metadata(n, bounds, k)
             if exr:   # OpenEXR attributes cannot be doubles: float32 vectors + the exact JSON
                 for name, value in (("boundsMin", bounds[0]), ("boundsMax", bounds[1]), ("voxelSize", step)):
@@ -188,14 +199,13 @@ class NrrdWriter(VolumeWriter):
 
 
 def dds_volume_header(n: int) -> bytes:
-    """'DDS ' + DDS_HEADER + DDS_HEADER_DXT10 for an n^3 RGBA8 sRGB volume, one mip."""
+    """'DDS ' + DDS_HEADER for an n^3 uncompressed RGBA8 volume, one mip (module doc)."""
     flags = 0x1 | 0x2 | 0x4 | 0x8 | 0x1000 | 0x800000   # CAPS HEIGHT WIDTH PITCH PIXELFORMAT DEPTH
-    pixel_format = struct.pack("<2I4s5I", 32, 0x4, b"DX10", 0, 0, 0, 0, 0)   # DDPF_FOURCC
+    pixel_format = struct.pack("<2I4s5I", 32, 0x40 | 0x1, b"\0\0\0\0", 32,   # DDPF_RGB | ALPHAPIXELS
+                               0xFF0000, 0xFF00, 0xFF, 0xFF000000)
     caps, caps2 = 0x1000 | 0x8, 0x200000                # TEXTURE | COMPLEX, VOLUME
     header = struct.pack("<7I11I", 124, flags, n, n, n * 4, n, 1, *([0] * 11))
-    header += pixel_format + struct.pack("<5I", caps, caps2, 0, 0, 0)
-    dxt10 = struct.pack("<5I", 29, 4, 0, 1, 0)          # R8G8B8A8_UNORM_SRGB, TEXTURE3D
-    return b"DDS " + header + dxt10
+    return b"DDS " + header + pixel_format + struct.pack("<5I", caps, caps2, 0, 0, 0)
 
 
 class DdsWriter(VolumeWriter):
@@ -206,7 +216,7 @@ class DdsWriter(VolumeWriter):
 
     def write(self, rgb):
         rgba = np.empty(rgb.shape[:3] + (4,), dtype=np.uint8)
-        rgba[..., :3] = linear_to_srgb8(rgb)
+        rgba[..., 2::-1] = linear_to_srgb8(rgb)          # B G R, then A
         rgba[..., 3] = 255
         self.file.write(rgba.data)
 

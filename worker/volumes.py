@@ -18,13 +18,13 @@ from typing import Callable
 
 import numpy as np
 
+from worker.contract import MAX_VOLUME_RESOLUTION, MIN_VOLUME_RESOLUTION
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
 from worker.files import atomic_output, extension
 from worker.runtime import Sampler
 from worker.volume_writers import FORMATS, WRITERS
 
 SLAB_POINTS = 2 ** 18          # default points per slab (~6 MB of positions)
-MAX_RESOLUTION = 1024
 MAX_FLIPBOOK_SIDE = 16384      # PNG width/height a texture importer can take
 DEFAULT_BOUNDS = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
 
@@ -60,8 +60,8 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
     n = int(resolution)
     if fmt not in FORMATS:
         raise InvalidParameter(f"volume format must be one of {FORMATS}, got {fmt!r}")
-    if not 2 <= n <= MAX_RESOLUTION:
-        raise InvalidParameter(f"resolution must be in [2, {MAX_RESOLUTION}], got {n}")
+    if not MIN_VOLUME_RESOLUTION <= n <= MAX_VOLUME_RESOLUTION:
+        raise InvalidParameter(f"resolution must be in [{MIN_VOLUME_RESOLUTION}, {MAX_VOLUME_RESOLUTION}], got {n}")
     if n ** 3 > max_voxels:
         raise LimitExceeded(f"{n}^3 = {n ** 3} voxels exceeds the limit of {max_voxels}")
     box = np.asarray(bounds, dtype=np.float64)

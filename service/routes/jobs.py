@@ -11,21 +11,24 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 from worker.bake import FORMATS as BAKE_FORMATS
-from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES
+from worker.contract import MAX_BAKE_RESOLUTION, MIN_BAKE_RESOLUTION
+from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH
 from worker.errors import Canceled, FeatureUnavailable, LimitExceeded
 from worker.gpu_textures import FORMATS as GPU_FORMATS
 from worker.tiles import MIN_ZOOM
 
 from .. import auth, jobs, keys
 from ..db import session_scope
+from ..download_names import content_disposition
 from ..deps import JobId, PageParams, SafeText, ServicesDep, TextureId, apply_cursor, idempotency_key, page_of
 from ..errors import Problem, not_found, problem_for, problem_responses
 from ..job_kinds import torch_available
 from ..limits import check_mesh, check_queue_room
-from ..schemas import BAKE_PROJECTIONS, BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
-from ..tables import JOB_STATES, TERMINAL_STATES, Job, new_id
+from ..schemas import BAKE_PROJECTIONS, NORMAL_STRENGTH_HELP, BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
+from ..tables import Job, new_id
 from ..uploads import read_limited, safe_filename, sha256
-from .textures import NOSNIFF, load_texture
+from ..vocabulary import TERMINAL_STATES, JobKind, JobState
+from .textures import NOSNIFF, checked_text, load_texture
 
 router = APIRouter(tags=["jobs"])
 IdempotencyKey = Annotated[str | None, Depends(idempotency_key)]
@@ -45,7 +48,7 @@ def _submit(services, response: Response, kind: str, texture_id: str, params: di
     return accepted(response, job, created)
 
 
-@router.post("/v1/textures/{texture_id}/volumes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503))
+@router.post("/v1/textures/{texture_id}/volumes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503, 507))
 def submit_volume(services: ServicesDep, response: Response, texture_id: TextureId, body: VolumeIn,
                   key: IdempotencyKey) -> JobOut:
     """Render an N x N x N block of the solid texture (a job)."""
@@ -53,30 +56,35 @@ def submit_volume(services: ServicesDep, response: Response, texture_id: Texture
     if body.resolution > services.settings.max_volume_resolution:
         raise LimitExceeded(f"resolution {body.resolution} exceeds the limit of "
                             f"{services.settings.max_volume_resolution}")
-    return _submit(services, response, "volume", texture_id, body.model_dump(), key)
+    return _submit(services, response, JobKind.VOLUME, texture_id, body.model_dump(), key)
 
 
-@router.post("/v1/textures/{texture_id}/bakes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503))
+@router.post("/v1/textures/{texture_id}/bakes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503, 507))
 def submit_bake(
     services: ServicesDep,
     response: Response,
     texture_id: TextureId,
     key: IdempotencyKey,
     mesh: Annotated[UploadFile, File(description="OBJ, PLY, STL or GLB mesh (by file extension)")],
-    resolution: Annotated[int, Form(ge=16, le=8192, description="texture atlas side in pixels")] = 1024,
+    resolution: Annotated[int, Form(ge=MIN_BAKE_RESOLUTION, le=MAX_BAKE_RESOLUTION,
+                                     description="texture atlas side in pixels")] = 1024,
     seed: Annotated[int, Form(ge=0, le=2**31 - 1)] = 0,
     scale: Annotated[float | None, Form(gt=0, le=1e6, description="world units per mesh unit; default: "
                                                                    "the mesh spans 512 exemplar pixels")] = None,
     format: Annotated[Literal[BAKE_FORMATS], Form(description="glb, or a zip of obj + mtl + png")] = "glb",
     maps: Annotated[list[Literal[MAP_NAMES]], Form(
-        description="derived maps of the atlas (repeat the field for both): normal = tangent-space, OpenGL "
+        description="derived maps of the atlas (repeat the field for each): normal = tangent-space, OpenGL "
                     "convention (+Y up), embedded in a GLB as its normalTexture (with TANGENTs) or added to "
-                    "the OBJ zip; height = linear luminance, height.png (a GLB result becomes a zip)")] = [],
+                    "the OBJ zip; roughness, ao = estimates, in a GLB its metallicRoughnessTexture (G) and "
+                    "occlusionTexture (R), in the OBJ zip MTL map_Pr and a comment; height = linear luminance "
+                    "stretched to 16 bits, <stem>_height.png (a GLB result becomes a zip; its range: "
+                    "result.height_range)")] = [],
     gpu_format: Annotated[Literal[GPU_FORMATS] | None, Form(
-        description="add a mipmapped RGBA8 sRGB texture.dds / texture.ktx2 of the atlas (a GLB result "
-                    "becomes a zip of model.glb and the textures)")] = None,
-    normal_strength: Annotated[float, Form(gt=0, le=100, description="normal map: height units per "
-                                                                     "pixel step")] = DEFAULT_NORMAL_STRENGTH,
+        description="add a mipmapped <stem>_basecolor.dds (BC1) / .ktx2 (Basis Universal UASTC) of the atlas "
+                    "(<stem>: the result's name); a GLB embeds the KTX2 (KHR_texture_basisu, PNG fallback) "
+                    "and stays a GLB, with dds it becomes a zip of <stem>.glb and the texture")] = None,
+    normal_strength: Annotated[float, Form(gt=0, le=MAX_NORMAL_STRENGTH,
+                                           description=NORMAL_STRENGTH_HELP)] = DEFAULT_NORMAL_STRENGTH,
     projection: Annotated[Literal[BAKE_PROJECTIONS], Form(
         description="solid: the solid texture at each surface point; triplanar: the texture's xy plane "
                     "projected along x, y and z, blended by the surface normal; auto: triplanar for a "
@@ -86,6 +94,7 @@ def submit_bake(
                     "with the refined sampler; false: bake now with what the texture serves")] = False,
 ) -> JobOut:
     """UV-unwrap a mesh and bake the solid texture into its atlas (a job)."""
+    checked_text(mesh.filename or "", "mesh filename")  # a NUL is refused, as in an upload's name, not cleaned
     load_texture(services, texture_id)
     if resolution > services.settings.max_bake_resolution:
         raise LimitExceeded(f"resolution {resolution} exceeds the limit of {services.settings.max_bake_resolution}")
@@ -94,16 +103,16 @@ def submit_bake(
     params = BakeParams(resolution=resolution, seed=seed, scale=scale, format=format, filename=filename,
                         maps=sorted(set(maps)), gpu_format=gpu_format, normal_strength=normal_strength,
                         projection=projection, after_refinement=after_refinement).model_dump()
-    fingerprint = jobs.request_hash("bake", texture_id, params, sha256(data).encode())
+    fingerprint = jobs.request_hash(JobKind.BAKE, texture_id, params, sha256(data).encode())
     if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:
         return accepted(response, jobs.same_request(existing, fingerprint), False)
     check_mesh(services.settings, data, filename)  # a bad mesh is refused now, nothing stored
-    check_queue_room(services, "bake")
+    check_queue_room(services, JobKind.BAKE)
     job_id = new_id()
     input_key = keys.job_input_key(job_id, filename)
     services.storage.put_bytes(input_key, data)
     try:
-        job, created = jobs.submit(services, kind="bake", texture_id=texture_id, params=params,
+        job, created = jobs.submit(services, kind=JobKind.BAKE, texture_id=texture_id, params=params,
                                    input_key=input_key, idempotency_key=key, fingerprint=fingerprint, job_id=job_id)
     except BaseException:  # no row, no file: nothing orphaned
         services.storage.delete_prefix(keys.job_prefix(job_id))
@@ -113,7 +122,8 @@ def submit_bake(
     return accepted(response, job, created)
 
 
-@router.post("/v1/textures/{texture_id}/fit", **ACCEPTED, responses=problem_responses(404, 409, 413, 422, 501, 503))
+@router.post("/v1/textures/{texture_id}/fit", **ACCEPTED,
+             responses=problem_responses(404, 409, 413, 422, 501, 503, 507))
 def submit_fit(services: ServicesDep, response: Response, texture_id: TextureId, key: IdempotencyKey,
                body: FitIn | None = None) -> JobOut:
     """Optimise a sampler for this one exemplar (needs the torch extra on the workers)."""
@@ -125,11 +135,11 @@ def submit_fit(services: ServicesDep, response: Response, texture_id: TextureId,
     texture = load_texture(services, texture_id)
     if not texture.exemplar_key:
         raise Problem(409, "this texture has no exemplar image to fit", slug="no-exemplar")
-    return _submit(services, response, "fit", texture_id, body.model_dump(), key)
+    return _submit(services, response, JobKind.FIT, texture_id, body.model_dump(), key)
 
 
 @router.post("/v1/textures/{texture_id}/regions", **ACCEPTED,
-             responses=problem_responses(404, 409, 413, 422, 501, 503))
+             responses=problem_responses(404, 409, 413, 422, 501, 503, 507))
 def submit_region(services: ServicesDep, response: Response, texture_id: TextureId, body: RegionIn,
                   key: IdempotencyKey) -> JobOut:
     """Render a large rectangle of the infinite plane to one image (a job); ``tileable``: a
@@ -152,14 +162,14 @@ def submit_region(services: ServicesDep, response: Response, texture_id: Texture
         check_tileable(z=body.z, width=body.width, height=body.height, fmt=body.format, plane=body.plane)
         if (reason := services.tileable_available(texture)) is not None:
             raise Problem(409, reason, slug="not-tileable", title="This texture has no tileable sampler")
-    return _submit(services, response, "region", texture_id, body.model_dump(), key)
+    return _submit(services, response, JobKind.REGION, texture_id, body.model_dump(), key)
 
 
 @router.get("/v1/jobs", response_model=JobPage, responses=problem_responses(422))
 def list_jobs(
     services: ServicesDep,
     page: Annotated[PageParams, Depends()],
-    state: Annotated[Literal[JOB_STATES] | None, Query()] = None,
+    state: Annotated[JobState | None, Query()] = None,
     texture_id: Annotated[SafeText | None, Query(max_length=64)] = None,
 ) -> JobPage:
     query = auth.scoped(select(Job), Job)
@@ -185,7 +195,7 @@ def get_job(services: ServicesDep, job_id: JobId) -> JobOut:
     return JobOut.of(load_job(services, job_id))
 
 
-@router.post("/v1/jobs/{job_id}/cancel", **ACCEPTED, responses=problem_responses(404, 409))
+@router.post("/v1/jobs/{job_id}/cancel", **ACCEPTED, responses=problem_responses(404, 409, 507))
 def cancel_job(services: ServicesDep, response: Response, job_id: JobId) -> JobOut:
     """Cancel: a queued job at once; a running one stops at its next slab (poll the job)."""
     load_job(services, job_id)  # 404 for another tenant's job
@@ -199,10 +209,10 @@ def cancel_job(services: ServicesDep, response: Response, job_id: JobId) -> JobO
                        **problem_responses(404, 409)})
 def get_result(services: ServicesDep, job_id: JobId) -> Response:
     job = load_job(services, job_id)
-    if job.state != "succeeded" or not job.result_key:
+    if job.state != JobState.SUCCEEDED or not job.result_key:
         raise Problem(409, f"job {job_id} is {job.state}; the result exists once it has succeeded",
                       slug="result-not-ready")
-    headers = {"Content-Disposition": f'attachment; filename="{job.result_filename}"', **NOSNIFF}
+    headers = {"Content-Disposition": content_disposition(job.result_filename or f"{job.id}.bin"), **NOSNIFF}
     local = services.storage.local_path(job.result_key)
     if local is not None:
         return FileResponse(local, media_type=job.result_media_type, headers=headers)
@@ -230,8 +240,8 @@ async def job_events(services: ServicesDep, request: Request, job_id: JobId) -> 
             job = await run_in_threadpool(jobs.get, services, job_id)
             if job is None:  # deleted with its texture while running: it ends canceled
                 event_id += 1
-                gone = JobOut.of(seen).model_copy(update={"state": "canceled", "error": DELETED})
-                yield f"id: {event_id}\nevent: canceled\ndata: {gone.model_dump_json()}\n\n"
+                gone = JobOut.of(seen).model_copy(update={"state": JobState.CANCELED, "error": DELETED})
+                yield f"id: {event_id}\nevent: {JobState.CANCELED}\ndata: {gone.model_dump_json()}\n\n"
                 return
             seen = job
             snapshot = (job.state, round(job.progress, 4), job.attempt, job.stage)

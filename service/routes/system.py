@@ -1,4 +1,4 @@
-"""Health, readiness, metrics and the list of model versions."""
+"""Health, readiness, metrics, the list of model versions and the limits in force."""
 from __future__ import annotations
 
 import logging
@@ -13,7 +13,8 @@ from .. import db, queue
 from ..db import session_scope
 from ..deps import ServicesDep
 from ..errors import problem_responses
-from ..schemas import Health, ModelList, ModelOut
+from ..limits import check_free_space
+from ..schemas import Health, Limits, ModelList, ModelOut
 from ..tables import ModelVersion
 
 router = APIRouter(tags=["system"])
@@ -31,6 +32,7 @@ def _readiness(services) -> tuple[bool, dict[str, str]]:  # noqa: ANN001
     for name, check in (("database", lambda: db.ping(services.engine)),
                         ("queue", lambda: queue.ping(services.huey)),
                         ("storage", services.storage.ping),
+                        ("disk", lambda: check_free_space(services.settings)),
                         ("model", lambda: _model_ready(services))):
         try:
             check()
@@ -47,7 +49,8 @@ def _model_ready(services) -> None:  # noqa: ANN001
 
 @router.get("/readyz", response_model=Health, responses={503: {"model": Health, "description": "not ready"}})
 async def readyz(services: ServicesDep) -> Response:
-    """Readiness: model loaded and evaluating, database, queue and storage reachable."""
+    """Readiness: model loaded and evaluating, database, queue and storage reachable, and
+    ``TEXSPACE_MIN_FREE_BYTES`` free on the local data and storage folders."""
     ok, checks = await run_in_threadpool(_readiness, services)
     body = Health(status="ok" if ok else "unavailable", checks=checks)
     return JSONResponse(body.model_dump(), status_code=200 if ok else 503)
@@ -73,3 +76,11 @@ def list_models(services: ServicesDep) -> ModelList:
                                   pixels_per_unit=runtime.pixels_per_unit, manifest=runtime.manifest)
     return ModelList(items=sorted(items.values(), key=lambda m: (not m.default, not m.loaded, m.version)),
                      default=registry.default.version)
+
+
+@router.get("/v1/limits", response_model=Limits)
+def get_limits(services: ServicesDep) -> Limits:
+    """The limits in force: upload and mesh sizes, tile sizes and planes, volume, bake and
+    region bounds, a fit's default and longest time budget. The page and the Python client
+    read them here instead of copying numbers."""
+    return Limits.of(services.settings)

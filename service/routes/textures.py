@@ -1,7 +1,6 @@
 """Textures: upload (encode), list, read, rename, delete, exemplar, interpolate, shader."""
 from __future__ import annotations
 
-import hashlib
 import logging
 from typing import Annotated, Literal
 
@@ -10,12 +9,12 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures
-from worker.files import media_type, media_type_of_extension
 from worker.decode import sniff_format
 from worker.encode import encode_texture
+from worker.files import media_type, media_type_of_extension
 from worker.images import read_image
 from worker.photo import LIGHTING
-from worker.shader import LANGUAGES, emit_shader, shader_name
+from worker.shader import LANGUAGES
 
 from .. import auth, jobs, keys
 from ..db import session_scope
@@ -23,11 +22,12 @@ from ..deps import PageParams, SafeText, ServicesDep, TextureId, apply_cursor, p
 from ..errors import Problem, not_found, problem_responses
 from ..job_kinds import auto_fit_params
 from ..purge import purge_texture
-from ..samplers import sampling_code
 from ..schemas import InterpolateIn, TextureOut, TexturePage, TexturePatch
+from ..shaders import shader_etag, shader_source
 from ..tables import Job, Texture, blend_calibration, new_id, utcnow
 from ..tiles import etag_matches
 from ..uploads import read_limited
+from ..vocabulary import JobState
 
 router = APIRouter(prefix="/v1/textures", tags=["textures"])
 log = logging.getLogger(__name__)
@@ -53,7 +53,7 @@ def load_texture(services, texture_id: str) -> Texture:  # noqa: ANN001
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=TextureOut,
-             responses=problem_responses(413, 422, 503))
+             responses=problem_responses(413, 422, 503, 507))
 def create_texture(
     services: ServicesDep,
     response: Response,
@@ -106,7 +106,7 @@ def texture_outs(services, textures: list[Texture]) -> list[TextureOut]:  # noqa
     if job_ids:
         with session_scope(services.sessions) as session:
             found = {j.id: j for j in session.scalars(select(Job).where(Job.id.in_(job_ids)))}
-    waiting = [job for job in found.values() if job.state in ("queued", "running")]
+    waiting = [job for job in found.values() if job.state in (JobState.QUEUED, JobState.RUNNING)]
     lane = jobs.fit_lane(services) if waiting else None  # read once for the whole page
     waits = {job.id: jobs.refinement_wait(services, job, lane) for job in waiting}
     return [TextureOut.of(t, found.get(t.refinement_job_id or ""), waits.get(t.refinement_job_id or ""))
@@ -127,7 +127,7 @@ def list_textures(services: ServicesDep, page: Annotated[PageParams, Depends()])
 
 
 @router.post("/interpolate", status_code=status.HTTP_201_CREATED, response_model=TextureOut,
-             responses=problem_responses(404, 409, 422))
+             responses=problem_responses(404, 409, 422, 507))
 def interpolate(services: ServicesDep, body: InterpolateIn, response: Response) -> TextureOut:
     """A new texture whose code is (1 - t) a + t b, in the latent space of a and b's model."""
     a, b = load_texture(services, body.a), load_texture(services, body.b)
@@ -169,7 +169,7 @@ def get_texture(services: ServicesDep, texture_id: TextureId) -> TextureOut:
     return texture_out(services, load_texture(services, texture_id))
 
 
-@router.patch("/{texture_id}", response_model=TextureOut, responses=problem_responses(404, 422))
+@router.patch("/{texture_id}", response_model=TextureOut, responses=problem_responses(404, 422, 507))
 def patch_texture(services: ServicesDep, texture_id: TextureId, body: TexturePatch) -> TextureOut:
     """Rename a texture (its code, and so its tiles, never change)."""
     with session_scope(services.sessions) as session:
@@ -181,7 +181,8 @@ def patch_texture(services: ServicesDep, texture_id: TextureId, body: TexturePat
     return texture_out(services, texture)
 
 
-@router.delete("/{texture_id}", status_code=status.HTTP_204_NO_CONTENT, responses=problem_responses(404))
+@router.delete("/{texture_id}", status_code=status.HTTP_204_NO_CONTENT,
+               responses=problem_responses(404, 507))
 def delete_texture(services: ServicesDep, texture_id: TextureId) -> Response:
     """Delete the texture, cancel and delete its jobs, and remove all their stored files."""
     with session_scope(services.sessions) as session:
@@ -207,27 +208,19 @@ def get_exemplar(services: ServicesDep, texture_id: TextureId) -> StreamingRespo
                              headers={"Content-Length": str(size), "Cache-Control": "public, max-age=86400", **NOSNIFF})
 
 
-SHADER_VERSION = "1"  # bump when worker/shader.py emits different text for the same texture
-
-
 @router.get("/{texture_id}/shader.{language}", response_class=Response,
             responses={200: {"description": "GLSL ES 3.00 or WGSL source (docs/SHADER.md)",
                              "content": {media_type(lang).split(";")[0]: {} for lang in LANGUAGES}},
-                       304: {"description": "unchanged (If-None-Match)"}, **problem_responses(404, 422)})
+                       304: {"description": "unchanged (If-None-Match)"}, **problem_responses(404, 422, 503)})
 def get_shader(services: ServicesDep, request: Request, texture_id: TextureId,
                language: Literal[LANGUAGES]) -> Response:
     """The texture as a real-time shader: ``vec3 texspace_<id>(vec3 p, uint seed)`` (GLSL ES
     3.00) or its WGSL twin, the same function as the texture's sampler (linear RGB at world
-    point p), with the weights and the texture's constants embedded."""
+    point p), with the weights and the texture's constants embedded. Generated once per
+    version of the texture; 503 + Retry-After while too many others are being generated."""
     texture = load_texture(services, texture_id)
-    vector = sampling_code(texture)
-    key = "|".join((SHADER_VERSION, language, texture.model_version, texture.sampler_key or ""))
-    digest = hashlib.sha256(key.encode() + vector.tobytes()).hexdigest()[:32]
-    headers = {"ETag": f'"{digest}"', "Cache-Control": "public, no-cache", **NOSNIFF}
+    headers = {"ETag": shader_etag(texture, language), "Cache-Control": "public, no-cache", **NOSNIFF}
     if etag_matches(request.headers.get("if-none-match"), headers["ETag"]):
         return Response(status_code=304, headers=headers)
-    sampler = services.sampler_for(texture)
-    path = getattr(sampler, "sampler", sampler).path  # a model's runtime, or a fitted SamplerSession
-    header = f"texspace texture {texture.id}, model {texture.model_version}"
-    text = emit_shader(path, vector, shader_name(texture.id), language, header=header)
+    text = shader_source(services, texture, language)
     return Response(text, media_type=media_type(language), headers=headers)

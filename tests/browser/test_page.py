@@ -222,7 +222,7 @@ def test_keyboard_reaches_upload_and_map(page, base_url: str) -> None:
         if choosers:
             break
         page.wait_for_timeout(100)
-    assert len(choosers) == 1 and not choosers[0].is_multiple()
+    assert len(choosers) == 1 and choosers[0].is_multiple()  # several photos upload one after another
     assert choosers[0].element.get_attribute("id") == "upload-file"
     assert page.get_attribute("#map", "tabindex") == "0", "the map takes keyboard focus"
 
@@ -236,4 +236,25 @@ def test_controls_are_labelled(page, base_url: str) -> None:
                         && !el.textContent.trim() && !el.title)
         .map((el) => el.outerHTML.slice(0, 80))""")
     assert unlabelled == []
+    assert page_errors(page) == []
+
+
+def test_the_page_reads_the_servers_limits(page, base_url: str) -> None:
+    """The fit budget, the planes and the sizes offered come from GET /v1/limits, not copies."""
+    import httpx
+
+    limits = httpx.get(f"{base_url.rstrip('/')}/v1/limits", timeout=30).json()
+    page.goto(base_url)
+    page.wait_for_function("() => document.querySelectorAll('#plane option').length > 0")
+    offered = page.evaluate("""() => ({
+        planes: [...document.querySelectorAll('#plane option')].map((o) => o.value),
+        fit: Number(document.getElementById('fit-seconds').value),
+        fitMax: Number(document.getElementById('fit-seconds').max),
+        volumes: [...document.querySelectorAll('#volume-resolution option')].map((o) => Number(o.value)),
+        bakes: [...document.querySelectorAll('#bake-resolution option')].map((o) => Number(o.value)),
+    })""")
+    assert offered["planes"] == limits["planes"]
+    assert (offered["fit"], offered["fitMax"]) == (limits["fit_seconds"], limits["max_fit_seconds"])
+    assert offered["volumes"] and max(offered["volumes"]) <= limits["max_volume_resolution"]
+    assert offered["bakes"] and max(offered["bakes"]) <= limits["max_bake_resolution"]
     assert page_errors(page) == []

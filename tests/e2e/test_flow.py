@@ -13,11 +13,11 @@ import pytest
 import trimesh
 from PIL import Image
 
+from service.vocabulary import TERMINAL_STATES
 from tests.helpers import brick_png
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow, pytest.mark.timeout(600)]
 MESHES = Path(__file__).resolve().parents[1] / "data" / "meshes"
-TERMINAL = {"succeeded", "failed", "canceled"}
 
 
 @pytest.fixture(scope="module", params=["embedded", pytest.param("scaleout", marks=pytest.mark.scaleout)])
@@ -39,7 +39,7 @@ def texture(http) -> dict:
     return res.json()
 
 
-def wait_for(http: httpx.Client, job_id: str, states=TERMINAL, timeout: float = 240.0,
+def wait_for(http: httpx.Client, job_id: str, states=TERMINAL_STATES, timeout: float = 240.0,
              min_progress: float | None = None) -> dict:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

@@ -108,6 +108,25 @@ def test_colour_stage_matches_torch_shared_and_per_point(exported):
     assert np.abs(per_point - ref).max() < 1e-4
 
 
+@pytest.mark.parametrize("name", ["sampler.onnx", "sampler_tileable.onnx"])
+def test_z_and_colour_rows_pair_freely(exported, name):
+    # Contract 1: z [1|P] and colour [1|P] in any pairing give [P,3] and the shared form's
+    # pixels (a fit exports its samplers with this code, so each fitted texture keeps it).
+    _, _, _, out = exported
+    session = ort.InferenceSession(str(out / name), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(9)
+    n = 500
+    feed = {"points": rng.random((n, 3)) * 6, "seed": np.asarray(2, np.int64)}
+    if name != "sampler.onnx":
+        feed["period"] = np.asarray(3.0)
+    z, table = rng.standard_normal((1, 8)).astype(np.float32), random_colour_tables(rng, 1)
+    shared = session.run(None, feed | {"z": z, "colour": table})[0]
+    for z_rows, colour_rows in [(1, n), (n, 1), (n, n)]:
+        rgb = session.run(None, feed | {"z": np.repeat(z, z_rows, axis=0),
+                                        "colour": np.repeat(table, colour_rows, axis=0)})[0]
+        assert rgb.shape == (n, 3) and np.array_equal(rgb, shared), (z_rows, colour_rows)
+
+
 def test_bit_identical_across_runs_and_batch_splits(exported):
     _, session, _, _ = exported
     rng = np.random.default_rng(0)

@@ -466,3 +466,26 @@ def test_a_fit_pauses_at_its_interims_second_even_when_its_start_stays_best(tmp_
                  pause=lambda: asked.append(True) or True)
     _, ckpt = load_checkpoint(path)
     assert published == [] and asked == [True] and ckpt["paused"] and ckpt["step"] == 1
+
+
+def test_a_fit_canceled_from_its_progress_hook_stops_without_a_last_score(tmp_path, brick, vgg):
+    """A cancel (the service's progress hook raises) ends the fit at once: no last probe and
+    no best state restored for a result nobody takes (they held a canceled fit 3-5 s more)."""
+    image = tmp_path / "brick.png"
+    Image.fromarray((brick * 255).astype(np.uint8)).save(image)
+    out = tmp_path / "run"
+    cfg = parse_args(["--mode", "single", "--exemplar", str(image), "--out", str(out), "--patch", "32", "--batch", "1",
+                      "--short-side", "128", "--crop", "64", "--quiet", "--layers", "relu1_1", "--steps", "20",
+                      "--warmup", "1", "--probe-every", "10"])
+    steps = []
+
+    def progress(fraction):  # noqa: ANN001, ANN202
+        steps.append(fraction)
+        if len(steps) == 3:
+            raise KeyboardInterrupt("canceled")
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, progress=progress)
+    scores = [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines() if "probe" in line]
+    assert scores == [0]  # the start's score only
+    _, ckpt = load_checkpoint(out / "checkpoint.pt")
+    assert ckpt["step"] == 3 and ckpt.get("probe") is None

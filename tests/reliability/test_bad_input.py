@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import math
 import time
+import tracemalloc
 
 import pytest
 
+from tests.helpers import chained_glb, instanced_glb, tetrahedra_glb
 from tests.reliability.helpers import BAD, PROBLEM, row_counts, stored_files
 
 # file -> (status, problem slug or None, a word the detail must contain)
@@ -105,6 +107,41 @@ def test_mesh_upload(client, module_services, texture, name: str) -> None:
         assert job["state"] == "succeeded", job
         glb = client.get(job["links"]["result"])
         assert glb.status_code == 200 and glb.content[:4] == b"glTF"
+    assert_still_serving(client)
+
+
+# GLBs whose flattening once cost minutes: refused from the JSON chunk (worker/mesh_size.py)
+COSTLY_GLBS = {
+    "chain_5000.glb": (lambda: chained_glb(5000), 413, "limit-exceeded", "5000 nodes, limit is 4096"),
+    "instances_100k.glb": (lambda: instanced_glb(100_000), 413, "limit-exceeded", "100001 nodes, limit is 4096"),
+    "chain_65.glb": (lambda: chained_glb(65), 413, "limit-exceeded", "65 levels deep, limit is 64"),
+    "instances_300.glb": (lambda: instanced_glb(300), 413, "limit-exceeded",
+                          "places 1200 faces (300 mesh instances), limit is 1000"),
+    "cycle.glb": (lambda: tetrahedra_glb([{"mesh": 0, "children": [1]}, {"mesh": 0, "children": [0]}], [0]),
+                  422, "invalid-mesh", "node 0 is reached twice"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(COSTLY_GLBS))
+def test_costly_glb_is_refused_from_its_json(client, module_services, texture, name: str) -> None:
+    """Within 1 s and 100 MB on the request thread, nothing stored (the 5,000-node chain once
+    held the API for 22 minutes, then the worker; 100k instances took 173 s and 850 MB)."""
+    make, status, slug, word = COSTLY_GLBS[name]
+    data = make()
+    before_files, before_rows = stored_files(module_services), row_counts(module_services)
+    started = time.process_time()     # CPU seconds of this process (client and app): not slowed by neighbours
+    res = client.post(texture["links"]["bakes"], files={"mesh": (name, data)}, data={"resolution": "32"})
+    elapsed = time.process_time() - started
+    assert_problem(res, status, slug, word)
+    assert elapsed < 1.0, f"{elapsed:.2f} s of CPU"
+    tracemalloc.start()    # again, traced (tracing slows allocations several times over)
+    try:
+        again = client.post(texture["links"]["bakes"], files={"mesh": (name, data)}, data={"resolution": "32"})
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert again.status_code == status and peak < 100 * 2**20, f"{peak / 2**20:.0f} MB"
+    assert stored_files(module_services) == before_files and row_counts(module_services) == before_rows
     assert_still_serving(client)
 
 

@@ -18,7 +18,7 @@ from service.logs import request_id_var
 from service.purge import purge_texture
 from service.tables import Job, new_id
 from tests.helpers import brick_png
-from tests.reliability.helpers import PROBLEM
+from tests.reliability.helpers import BAD, PROBLEM
 
 from .test_bad_input import assert_still_serving
 
@@ -54,17 +54,18 @@ def assert_validation_problem(res, word: str = "") -> None:
 BAD_CHARS = ["\x00", "\x1b", "\x7f", "\u0085"]
 
 
-def raw_upload(filename: str) -> bytes:
+def raw_upload(filename: str, field: str = "image", body: bytes | None = None) -> bytes:
     """A multipart upload whose filename holds the raw characters (httpx would escape them)."""
-    return (b'--b\r\nContent-Disposition: form-data; name="image"; filename="' + filename.encode() +
-            b'"\r\nContent-Type: image/png\r\n\r\n' + brick_png() + b"\r\n--b--\r\n")
+    body = brick_png() if body is None else body
+    return (f'--b\r\nContent-Disposition: form-data; name="{field}"; filename="'.encode() + filename.encode() +
+            b'"\r\nContent-Type: application/octet-stream\r\n\r\n' + body + b"\r\n--b--\r\n")
 
 
 @pytest.mark.parametrize("char", BAD_CHARS, ids=["nul", "esc", "del", "nel"])
 @pytest.mark.parametrize("where", ["texture path", "job path", "exemplar path", "tile path", "tilejson path",
                                    "texture_id filter", "patch path", "patch name", "upload filename",
                                    "upload name", "interpolate name", "interpolate id", "cursor", "region path",
-                                   "delete path", "events path"])
+                                   "delete path", "events path", "bake filename"])
 def test_control_characters_are_refused_at_the_edge(client, services, texture, where: str, char: str) -> None:
     bad = f"ab{char}cd"
     quoted = bad.encode().hex()  # percent-encode every byte, NUL included
@@ -91,6 +92,10 @@ def test_control_characters_are_refused_at_the_edge(client, services, texture, w
                                            json={"z": 6, "x0": 0, "y0": 0, "width": 64, "height": 64}),
         "delete path": lambda: client.delete(f"/v1/textures/{path_id}"),
         "events path": lambda: client.get(f"/v1/jobs/{path_id}/events"),
+        # was cleaned to "ab_cd.obj" and baked: refused like an upload's filename instead
+        "bake filename": lambda: client.post(f"/v1/textures/{tid}/bakes", content=raw_upload(
+            bad + ".obj", "mesh", (BAD / "cube.obj").read_bytes()),
+            headers={"content-type": "multipart/form-data; boundary=b"}),
     }
     with services.sessions() as session:
         before = session.query(Job).count()

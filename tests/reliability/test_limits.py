@@ -9,9 +9,10 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
+from service import limits
 from service.context import build_services
 from service.main import create_app
-from tests.helpers import brick_png
+from tests.helpers import brick_png, chained_glb
 from tests.reliability.helpers import BAD, PROBLEM, make_settings, row_counts, stored_files
 
 CHUNK = 64 * 1024
@@ -97,6 +98,25 @@ def test_mesh_vertex_limit(client, module_services, texture) -> None:
         assert res.status_code == 413 and "8 vertices" in res.json()["detail"]
     finally:
         module_services.settings.max_mesh_vertices = 1000
+
+
+def test_mesh_parses_are_bounded_and_header_checks_do_not_wait(client, module_services, texture,
+                                                                monkeypatch) -> None:
+    """With every parse slot taken and no room to wait, a bake is 503 busy + Retry-After and
+    stores nothing; a GLB its header refuses is still a 413 at once."""
+    slots = limits.ParseSlots(1, 0, 0.1)
+    monkeypatch.setattr(limits, "MESH_PARSE_SLOTS", slots)
+    cube = (BAD / "cube.obj").read_bytes()
+    before = stored_files(module_services), row_counts(module_services)
+    with slots.slot():                               # another request's parse
+        busy = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", cube)})
+        deep = client.post(texture["links"]["bakes"], files={"mesh": ("deep.glb", chained_glb(5000))})
+    assert busy.status_code == 503 and busy.headers["content-type"] == PROBLEM, busy.text
+    assert busy.json()["type"].endswith(":busy") and int(busy.headers["retry-after"]) >= 1
+    assert deep.status_code == 413 and "5000 nodes" in deep.json()["detail"]
+    assert (stored_files(module_services), row_counts(module_services)) == before
+    assert client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", cube)},
+                       data={"resolution": "16"}).status_code == 202
 
 
 def test_queue_back_pressure(tmp_path: Path) -> None:

@@ -88,6 +88,16 @@ def test_download_keeps_the_servers_file_name(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.exr", "volume-64.exr"]
 
 
+def test_download_prefers_the_utf8_file_name(tmp_path: Path) -> None:
+    from service.download_names import content_disposition
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(200, content=b"PNG", headers={"content-disposition": content_disposition("béton_1.png")})
+
+    with client_for(handler) as ts:
+        assert ts.download("j1", tmp_path) == tmp_path / "béton_1.png"
+
+
 def test_the_client_imports_no_numpy_onnx_or_fastapi() -> None:
     code = ("import sys, service.client; heavy = {'numpy', 'onnxruntime', 'fastapi', 'sqlalchemy', 'torch'}; "
             "print(sorted(heavy & set(sys.modules)))")
@@ -171,3 +181,33 @@ def test_ids_are_one_path_segment_each() -> None:
         ts.delete("../textures/abc")
         ts.job("a/b")
     assert seen == ["/v1/textures/..%2F..%2Fv1%2Fjobs", "/v1/textures/..%2Ftextures%2Fabc", "/v1/jobs/a%2Fb"]
+
+
+def test_bake_sends_list_fields_the_app_accepts(client, texture, tmp_path: Path) -> None:
+    """Against the app itself: ``maps=[...]`` is the form field repeated (a str of the list
+    answered 422), booleans are true / false, and the download is named after the bake."""
+    mesh = Path(__file__).resolve().parents[1] / "data" / "meshes" / "cube.obj"
+    with Client("http://testserver", transport=client._transport) as ts:
+        job = ts.bake(texture["id"], mesh, resolution=64, maps=["height", "normal"], after_refinement=False,
+                      normal_strength=6.0)
+        assert job["params"]["maps"] == ["height", "normal"] and job["params"]["normal_strength"] == 6.0
+        done = ts.wait(job, timeout=60)
+        assert done["result"]["filename"] == "brick_cube_bake_64px_seed0.zip"
+        assert ts.download(done, tmp_path).name == "brick_cube_bake_64px_seed0.zip"
+        with pytest.raises(ApiError) as info:
+            ts.bake(texture["id"], mesh, maps=["gloss"])
+    assert info.value.status == 422
+
+
+def test_limits_are_the_servers_read_once() -> None:
+    """limits() asks GET /v1/limits once per client and answers the server's numbers."""
+    served = {"max_tile_size": 512, "planes": ["xy", "xz", "yz"], "fit_seconds": 45.0, "max_fit_seconds": 600.0}
+    calls: list[str] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        calls.append(request.url.path)
+        return httpx.Response(200, json=served)
+
+    with client_for(handler) as ts:
+        assert ts.limits() == served and ts.limits()["fit_seconds"] == 45.0
+    assert calls == ["/v1/limits"]

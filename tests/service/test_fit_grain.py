@@ -243,7 +243,8 @@ def bake_atlas(client: TestClient, texture: dict, **form: str) -> np.ndarray:
     job = client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
-        return np.asarray(Image.open(io.BytesIO(z.read("texture.png"))))
+        colour = next(name for name in z.namelist() if name.endswith("_basecolor.png"))
+        return np.asarray(Image.open(io.BytesIO(z.read(colour))))
 
 
 @pytest.mark.parametrize("lattice", ["auto", None])

@@ -28,5 +28,6 @@ def test_fit_job_makes_a_texture_with_its_own_sampler(client, texture) -> None:
     assert client.get(fitted["links"]["exemplar"]).status_code == 200
     sampler = client.get(job["links"]["result"])  # the job's result is the fitted sampler.onnx
     assert sampler.status_code == 200 and len(sampler.content) > 1000
+    assert sampler.headers["content-disposition"] == 'attachment; filename="brick_sampler.onnx"'
     blend = client.post("/v1/textures/interpolate", json={"a": fitted["id"], "b": texture["id"], "t": 0.5})
     assert blend.status_code == 409

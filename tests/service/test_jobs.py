@@ -108,17 +108,34 @@ def test_bake_with_maps_and_gpu_texture(client, texture) -> None:
     job = client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     assert job["params"]["maps"] == ["height", "normal"] and job["params"]["gpu_format"] == "dds"
-    assert job["result"]["media_type"] == "application/zip" and job["result"]["filename"].endswith(".zip")
-    with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
-        assert sorted(z.namelist()) == ["height.png", "model.glb", "texture.dds"]
-        assert Image.open(io.BytesIO(z.read("height.png"))).size == (64, 64)
-        scene = trimesh.load(io.BytesIO(z.read("model.glb")), file_type="glb")
+    # named for people: texture, mesh, size, seed; the members after the result
+    stem = "brick_cube_bake_64px_seed0"
+    assert job["result"]["media_type"] == "application/zip" and job["result"]["filename"] == f"{stem}.zip"
+    assert len(job["result"]["height_range"]) == 2
+    res = client.get(job["links"]["result"])
+    assert res.headers["content-disposition"] == f'attachment; filename="{stem}.zip"'
+    with zipfile.ZipFile(io.BytesIO(res.content)) as z:
+        assert sorted(z.namelist()) == [f"{stem}.glb", f"{stem}_basecolor.dds", f"{stem}_height.png"]
+        assert Image.open(io.BytesIO(z.read(f"{stem}_height.png"))).size == (64, 64)
+        scene = trimesh.load(io.BytesIO(z.read(f"{stem}.glb")), file_type="glb")
     material = next(iter(scene.geometry.values())).visual.material
     assert material.normalTexture is not None and material.normalTexture.size == (64, 64)
     only_normal = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
                               data={"resolution": "64", "maps": "normal"})
     done = client.get(only_normal.json()["links"]["self"]).json()
     assert done["state"] == "succeeded" and done["result"]["media_type"] == "model/gltf-binary"
+    assert done["result"]["height_range"] is None
+    # a KTX2 goes inside the GLB (KHR_texture_basisu) beside the material maps: the result stays a GLB
+    with_ktx2 = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                            data={"resolution": "64", "maps": ["normal", "roughness"], "gpu_format": "ktx2"})
+    done = client.get(with_ktx2.json()["links"]["self"]).json()
+    assert done["state"] == "succeeded" and done["result"]["media_type"] == "model/gltf-binary"
+    assert done["result"]["filename"] == f"{stem}.glb"
+    glb = client.get(done["links"]["result"]).content
+    gltf = json.loads(glb[20:20 + int.from_bytes(glb[12:16], "little")])
+    assert gltf["extensionsUsed"] == ["KHR_texture_basisu"] and gltf["images"][-1]["mimeType"] == "image/ktx2"
+    assert {"normalTexture", "pbrMetallicRoughness"} <= set(gltf["materials"][0])
+    assert "metallicRoughnessTexture" in gltf["materials"][0]["pbrMetallicRoughness"]
     bad = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)}, data={"maps": "gloss"})
     assert bad.status_code == 422
 
@@ -132,7 +149,8 @@ def baked_atlas(client: TestClient, texture: dict, **form: str) -> tuple[dict, n
     job = client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
-        return job, np.asarray(Image.open(io.BytesIO(z.read("texture.png"))))
+        colour = next(name for name in z.namelist() if name.endswith("_basecolor.png"))
+        return job, np.asarray(Image.open(io.BytesIO(z.read(colour))))
 
 
 def test_bake_projection(client, texture) -> None:
@@ -288,6 +306,25 @@ def test_reaper_requeues_expired_lease_then_fails(held, photo) -> None:
     assert services.huey.pending_count() == services.settings.max_attempts - 1
 
 
+def test_reaper_ends_a_canceled_job_whose_worker_died_as_canceled(held, photo) -> None:
+    # The cancel ends it, whatever attempts are left: its error said "giving up after 3"
+    # while its state was canceled.
+    client, services = held
+    job = submit_volume(client, upload(client, photo))
+    services.huey.flush()
+    assert jobs.claim(services, job["id"]).attempt == 1  # a worker takes it ...
+    assert client.post(f"/v1/jobs/{job['id']}/cancel").json()["cancel_requested"]
+    with services.sessions.begin() as session:  # ... and dies before it sees the cancel
+        session.execute(update(Job).where(Job.id == job["id"]).values(
+            lease_expires_at=dt.datetime.now(dt.timezone.utc) - dt.timedelta(seconds=1)))
+    jobs.reap(services)
+    body = client.get(f"/v1/jobs/{job['id']}").json()
+    assert body["state"] == "canceled" and body["attempt"] == 1
+    assert body["error"]["type"] == "urn:texspace:problem:canceled", body["error"]
+    assert "canceled" in body["error"]["detail"] and "giving up" not in body["error"]["detail"]
+    assert services.huey.pending_count() == 0
+
+
 def test_requeued_job_runs_to_success(held, photo) -> None:
     client, services = held
     job = submit_volume(client, upload(client, photo))
@@ -337,13 +374,21 @@ def test_region_gpu_textures_and_maps(client, texture) -> None:
     assert ktx["result"]["media_type"] == "image/ktx2" and ktx["result"]["filename"].endswith(".ktx2")
     header, levels = read_ktx2(client.get(ktx["links"]["result"]).content)
     assert (header["width"], header["height"], header["levels"]) == (100, 70, 7) and levels[-1].shape == (1, 1, 4)
-    res = client.post(texture["links"]["regions"], json={**rect, "format": "dds", "maps": ["height", "normal"]})
+    res = client.post(texture["links"]["regions"], json={**rect, "format": "dds",
+                                                         "maps": ["height", "normal", "roughness", "ao"]})
     job = client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     assert job["result"]["media_type"] == "application/zip"
+    low, high = job["result"]["height_range"]          # the luminance the 16-bit height map spans
+    assert 0 <= low < high <= 1
     with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
-        assert sorted(z.namelist()) == ["colour.dds", "height.png", "normal.png"]
-        normal = np.asarray(Image.open(io.BytesIO(z.read("normal.png"))), dtype=np.float32) / 127.5 - 1
+        stem = "brick_region_z6_100x70px_seed0"
+        assert job["result"]["filename"] == f"{stem}.zip"
+        assert sorted(z.namelist()) == [f"{stem}_{name}" for name in ("ao.png", "basecolor.dds", "height.png",
+                                                                       "normal.png", "roughness.png")]
+        height = np.asarray(Image.open(io.BytesIO(z.read(f"{stem}_height.png"))))
+        assert (height.min(), height.max()) == (0, 65535)
+        normal = np.asarray(Image.open(io.BytesIO(z.read(f"{stem}_normal.png"))), dtype=np.float32) / 127.5 - 1
     assert normal.shape == (70, 100, 3) and np.abs(np.linalg.norm(normal, axis=-1) - 1).max() < 0.02
     for body in ({**rect, "format": "pyramid", "maps": ["height"]}, {**rect, "maps": ["gloss"]},
                  {**rect, "format": "ktx2", "width": 8192, "height": 4096}):

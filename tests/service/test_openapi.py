@@ -109,3 +109,60 @@ def test_enums_match(spec, app_spec) -> None:
     spec_op = operations(spec)[("/v1/textures/{texture_id}/tiles/{z}/{x}/{y}.{fmt}", "get")]
     spec_fmt = next(resolve(spec, p) for p in spec_op["parameters"] if resolve(spec, p)["name"] == "fmt")
     assert set(resolve(app_spec, fmt["schema"])["enum"]) == set(spec_fmt["schema"]["enum"])
+
+
+BOUNDS = ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum", "default")
+
+
+def bounds(doc: dict, schema: dict) -> dict:
+    """A schema's bounds and numeric default; an optional one's (anyOf [X, null]) from X."""
+    schema = resolve(doc, schema)
+    if "anyOf" in schema:
+        inner = next((resolve(doc, s) for s in schema["anyOf"] if s.get("type") != "null"), {})
+        schema = {**inner, **schema}
+    return {key: schema[key] for key in BOUNDS if key in schema
+            and (key != "default" or type(schema[key]) in (int, float))}  # numbers only: FastAPI drops [] / null
+
+
+def field_bounds(doc: dict, op: dict) -> dict[tuple[str, str], dict]:
+    """(where, name) -> bounds, for an operation's parameters and its body's fields."""
+    found = {(p["in"], p["name"]): bounds(doc, p.get("schema", {})) for p in map(lambda p: resolve(doc, p),
+                                                                                 op["parameters"])}
+    if "requestBody" in op:
+        for content in resolve(doc, op["requestBody"])["content"].values():
+            schema = resolve(doc, content.get("schema", {}))
+            if "anyOf" in schema:
+                schema = resolve(doc, next(s for s in schema["anyOf"] if s.get("type") != "null"))
+            found |= {("body", name): bounds(doc, prop) for name, prop in schema.get("properties", {}).items()}
+    return found
+
+
+def test_same_bounds_and_defaults(spec, app_spec) -> None:
+    """A number's bounds and default are the app's (settings.FIT_SECONDS, worker/contract.py),
+    which the contract repeats for its readers: a change there must change it here."""
+    ours, theirs = operations(spec), operations(app_spec)
+    problems = []
+    for key in sorted(ours.keys() & theirs.keys()):
+        a, b = field_bounds(spec, ours[key]), field_bounds(app_spec, theirs[key])
+        for name in sorted(a.keys() & b.keys()):
+            if a[name] != b[name]:
+                problems.append(f"{key} {name}: {a[name]} != app {b[name]}")
+    assert not problems, "\n".join(problems)
+
+
+def test_limits_are_the_settings(spec, app_spec, client, settings) -> None:
+    """GET /v1/limits answers the settings in force and the bounds no setting raises, with
+    the fields openapi.yaml documents."""
+    from service.schemas import FitIn
+    from worker import contract
+
+    limits = client.get("/v1/limits").json()
+    for doc in (spec, app_spec):
+        schema = doc["components"]["schemas"]["Limits"]
+        assert set(limits) == set(schema["properties"]) == set(schema["required"])
+    assert limits["max_volume_resolution"] == settings.max_volume_resolution == 32  # the tests' setting
+    assert (limits["max_tile_size"], limits["max_bake_resolution"], limits["max_upload_bytes"]) == (
+        settings.max_tile_size, settings.max_bake_resolution, settings.max_upload_bytes)
+    assert (limits["min_tile_size"], limits["min_bake_resolution"], limits["planes"]) == (
+        contract.MIN_TILE_SIZE, contract.MIN_BAKE_RESOLUTION, list(contract.PLANES))
+    assert limits["fit_seconds"] == FitIn().seconds and limits["max_fit_seconds"] == settings.max_fit_seconds

@@ -213,6 +213,31 @@ def test_texture_deleted_during_its_refinement_leaves_no_files(refining, photo, 
     assert list((services.cache_dir / "samplers").glob(f"{texture['id']}*")) == []
 
 
+@pytest.mark.parametrize("when", ["before its interim", "at its interim"])
+def test_texture_deleted_around_its_interim_leaves_no_empty_folder(refining, photo, monkeypatch, when) -> None:
+    """The fit stores its interim (or its final sampler) under textures/<id>/refined/ after the
+    texture was deleted, then drops it: the folders it made went with it only to the
+    attempt's, leaving an empty textures/<id>/refined/ behind."""
+    client, services = refining
+    texture = upload_photo(client, photo)
+    module = sys.modules["model.fit"]
+    delete = lambda: client.delete(f"/v1/textures/{texture['id']}").status_code  # noqa: E731
+    module.during_interim = (lambda: None) if when == "before its interim" else delete
+
+    @functools.wraps(module.fit_exemplar)
+    def delete_then_fit(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        assert delete() == 204
+        return module_fit(*args, **kwargs)
+
+    module_fit = module.fit_exemplar
+    if when == "before its interim":
+        monkeypatch.setattr(module, "fit_exemplar", delete_then_fit)
+    run_fit_lane(services)
+    assert client.get(f"/v1/textures/{texture['id']}").status_code == 404
+    root = services.storage.root
+    assert [str(p.relative_to(root)) for p in root.rglob("*") if p.parent != root] == []  # below textures/, jobs/
+
+
 def test_refinement_of_a_texture_moved_to_another_model_is_dropped(refining, photo, monkeypatch) -> None:
     """texspace reencode may move a texture to a new model while its old model's refinement
     runs: that refinement must not replace what the new model serves, nor leave files."""

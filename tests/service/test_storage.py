@@ -76,6 +76,35 @@ class TestLocalStorage(StorageContract):
         assert storage.local_path("a/b.txt").read_bytes() == b"hi"
         assert not list(storage.root.rglob(".tmp-*"))
 
+    def test_a_failed_write_leaves_no_folder_it_made(self, storage, monkeypatch) -> None:
+        # an upload that failed for space left an empty textures/<id>/ behind
+        import errno
+        import os
+
+        storage.put_bytes("textures/kept/a.png", b"a")
+
+        def full(src, dst, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), dst)
+
+        monkeypatch.setattr(shutil, "copyfile", full)
+        for key in ("textures/new/refined/j-1/sampler.onnx", "textures/kept/refined/sampler.onnx", "jobs/j/x"):
+            with pytest.raises(OSError):
+                storage.put_bytes(key, b"never stored")
+        folders = sorted(str(p.relative_to(storage.root)) for p in storage.root.rglob("*") if p.is_dir())
+        assert folders == ["textures", "textures/kept"]
+        assert [p.name for p in storage.root.rglob("*") if p.is_file()] == ["a.png"]
+
+    def test_a_delete_removes_the_folders_it_leaves_empty(self, storage) -> None:
+        storage.put_bytes("textures/t/refined/j-1/interim/sampler.onnx", b"s")
+        storage.put_bytes("textures/u/refined/j-1/interim/sampler.onnx", b"s")
+        storage.put_bytes("textures/u/exemplar.png", b"e")
+        assert storage.delete_prefix("textures/t/refined/j-1/interim") == 1
+        assert storage.delete_prefix("textures/u/refined/j-1/interim") == 1
+        folders = sorted(str(p.relative_to(storage.root)) for p in storage.root.rglob("*") if p.is_dir())
+        assert folders == ["textures", "textures/u"]  # up to the top level, and only while empty
+        storage.put_bytes("textures/t/refined/j-2/sampler.onnx", b"s")  # a folder pruned is made again
+        assert storage.get_bytes("textures/t/refined/j-2/sampler.onnx") == b"s"
+
 
 class TestS3Storage(StorageContract):
     @pytest.fixture

@@ -189,7 +189,7 @@ def test_worker_lowers_its_own_priority() -> None:
 
 def test_large_tiles_only_while_no_small_tile_waits(services, queue) -> None:
     settings = services.settings
-    settings.tile_workers, settings.tile_queue_depth, settings.tile_queue_max_wait_seconds = 1, 10, 2.0
+    settings.tile_workers, settings.tile_queue_depth, settings.tile_queue_max_wait_seconds = 1, 64, 2.0
     queue.samples_per_second = 1e6
     with queue.large(settings, 4_000_000):          # alone: admitted whatever its size
         with pytest.raises(Busy):                   # 4 s of large work ahead: refused
@@ -212,3 +212,70 @@ def test_large_tiles_only_while_no_small_tile_waits(services, queue) -> None:
 
     run_async(scenario())
     assert queue._large_samples == 0
+
+
+def test_tiles_weigh_their_samples_in_units_of_a_256_px_tile() -> None:
+    units = service_tiles.tile_units
+    assert units(service_tiles.tile_samples(N, 256)) == 1 and units(service_tiles.tile_samples(N, 64)) == 1
+    assert units(service_tiles.tile_samples(N, 512)) == 4 and units(service_tiles.tile_samples(N, 1024)) == 16
+    assert units(service_tiles.tile_samples(N - 1, 256)) == 4              # 2 x 2 sub-samples per pixel
+    assert units(service_tiles.tile_samples(N - 1, 256, "bounded")) == 1
+    assert service_tiles.tile_samples(N, 512) > service_tiles.SMALL_TILE_SAMPLES >= service_tiles.tile_samples(N, 256)
+
+
+def test_512_px_tiles_do_not_make_256_px_tiles_busy(services, queue) -> None:
+    """Two cold 512 px tiles, then six 256 px ones, on a machine rendering 200k samples/s:
+    the 512 px tiles (4 units each) go to the large lane, whose bands wait for small tiles,
+    and every 256 px tile is admitted. (They once took both render slots: 2.6 s of work
+    ahead of each 256 px tile, and 6 of 6 answered 503.)"""
+    settings = services.settings
+    settings.tile_workers, settings.tile_queue_depth, settings.tile_queue_max_wait_seconds = 2, 64, 2.0
+    queue.samples_per_second = 2e5
+    large, small = service_tiles.tile_samples(N, 512), service_tiles.tile_samples(N, 256)
+
+    async def scenario() -> None:
+        with queue.large(settings, large), queue.large(settings, large):
+            for _ in range(2):
+                await queue.acquire(settings, small, None)                  # the two render slots
+            waiting = [asyncio.ensure_future(queue.acquire(settings, small, None)) for _ in range(4)]
+            await asyncio.sleep(0.01)
+            assert not any(w.done() for w in waiting) and queue._queued_units == 4   # queued, none refused
+            with pytest.raises(Busy, match="small tiles are waiting"):       # a third 512 px tile: later
+                with queue.large(settings, large):
+                    pass
+            for _ in range(6):
+                queue.release(settings, small)
+                await asyncio.sleep(0)
+            await asyncio.gather(*waiting)
+
+    run_async(scenario())
+    assert queue._running == 0 and queue._queued_units == 0 and queue._large_units == 0
+
+
+def test_queue_depth_counts_units(services, queue) -> None:
+    """Large tiles admitted weigh their units against ``tile_queue_depth``: 512 px tiles
+    count four each, whatever the measured rate says of their time."""
+    settings = services.settings
+    settings.tile_workers, settings.tile_queue_depth, settings.tile_queue_max_wait_seconds = 1, 8, 2.0
+    queue.samples_per_second = 1e9
+    large = service_tiles.tile_samples(N, 512)
+    with queue.large(settings, large), queue.large(settings, large):
+        with pytest.raises(Busy, match="8 units of a 256 px tile, limit 8"):
+            with queue.large(settings, large):
+                pass
+    with queue.large(settings, service_tiles.tile_samples(N, 1024)):        # alone: admitted whatever its weight
+        pass
+
+
+def test_a_512_px_tile_renders_on_the_large_lane(client, texture, services, monkeypatch) -> None:
+    threads = []
+    render = service_tiles.render_tile_bytes
+
+    def recording(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        threads.append(threading.current_thread().name)
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(service_tiles, "render_tile_bytes", recording)
+    assert client.get(tile_url(texture, N, 7, 9), params={"size": 512}).status_code == 200
+    assert client.get(tile_url(texture, N, 7, 9), params={"size": 256}).status_code == 200
+    assert threads[0].startswith("large-tiles") and not threads[1].startswith("large-tiles"), threads

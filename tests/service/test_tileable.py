@@ -121,7 +121,9 @@ def test_tileable_with_derived_maps(api, photo) -> None:
     texture = upload_photo(client, photo)
     job = region(client, texture, **SQUARE, format="exr", maps=["normal"])
     with zipfile.ZipFile(io.BytesIO(result(client, job))) as z:
-        assert sorted(z.namelist()) == ["colour.exr", "normal.png"]
+        stem = f"{job['result']['filename'][:-4]}"
+        assert stem.endswith("_region_z6_128px_seed0_tileable"), stem
+        assert sorted(z.namelist()) == [f"{stem}_basecolor.exr", f"{stem}_normal.png"]
 
 
 @pytest.mark.parametrize("change", [{"height": 64}, {"z": 5}, {"z": 7}, {"plane": "xz"}, {"format": "pyramid"}])

@@ -128,11 +128,13 @@ def test_obj_zip_with_exr(runtime, code, meshes, tmp_path):
     assert result.uv_source == "xatlas"                 # the cube's 6 faces share one UV square
     folder = tmp_path / "unzipped"
     zipfile.ZipFile(result.path).extractall(folder)
-    assert sorted(os.listdir(folder)) == ["model.mtl", "model.obj", "texture.exr", "texture.png"]
-    assert "Kd 1 1 1" in (folder / "model.mtl").read_text()
-    mesh = trimesh.load(str(folder / "model.obj"), process=False, force="mesh")
+    # members named after the result, so two bakes extracted into one folder keep their files
+    assert sorted(os.listdir(folder)) == ["c.mtl", "c.obj", "c_basecolor.exr", "c_basecolor.png"]
+    mtl = (folder / "c.mtl").read_text()
+    assert "Kd 1 1 1" in mtl and "map_Kd c_basecolor.png" in mtl and "mtllib c.mtl" in (folder / "c.obj").read_text()
+    mesh = trimesh.load(str(folder / "c.obj"), process=False, force="mesh")
     assert len(mesh.faces) == 12 and mesh.visual.uv.shape == (len(mesh.vertices), 2)
-    assert Image.open(folder / "texture.png").size == (64, 64)
+    assert Image.open(folder / "c_basecolor.png").size == (64, 64)
 
 
 def test_other_mesh_types(waves, meshes, tmp_path):
@@ -341,7 +343,7 @@ def test_mesh_normals_are_kept_in_glb_and_obj(waves, meshes, tmp_path):
         file_type="glb", include_normals=True)
     for data, name, fmt in ((obj, "own.obj", "glb"), (obj, "own.obj", "obj"), (glb_in, "own.glb", "glb")):
         result = bake_mesh(waves, None, 0, mesh_bytes=data, filename=name, resolution=64, fmt=fmt,
-                           out_path=tmp_path / f"{name}.{fmt}")
+                           out_path=tmp_path / f"{name[:-4]}.{fmt}")
         if fmt == "glb":
             gltf, arrays = glb_json_and_arrays(result.path)
             attributes = gltf["meshes"][0]["primitives"][0]["attributes"]
@@ -349,8 +351,8 @@ def test_mesh_normals_are_kept_in_glb_and_obj(waves, meshes, tmp_path):
         else:
             folder = tmp_path / f"{name}-unzipped"
             zipfile.ZipFile(result.path).extractall(folder)
-            assert "\nvn " in (folder / "model.obj").read_text()
-            mesh = trimesh.load(str(folder / "model.obj"), process=False)
+            assert "\nvn " in (folder / "own.obj").read_text()
+            mesh = trimesh.load(str(folder / "own.obj"), process=False)
             position, normal = mesh.vertices, mesh.vertex_normals
         expected = position / np.linalg.norm(position, axis=1, keepdims=True)
         assert np.abs(normal - expected).max() < 1e-5, (name, fmt)

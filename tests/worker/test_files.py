@@ -79,3 +79,42 @@ def test_every_format_offered_has_an_extension_and_a_media_type():
         assert FORMATS[fmt].extension.startswith(".") and "/" in FORMATS[fmt].media_type, fmt
     # every image an upload may be (what decode sniffs) is stored with its own media type
     assert all(media_type_of_extension(ext) != OCTET_STREAM for _, _, ext in decode._MAGIC)
+
+
+def _image_writes(kind: str, fmt: str, sampler, path) -> bytes:
+    import numpy as np
+
+    from worker.images import write_image
+    from worker.regions import render_region
+    from worker.volumes import render_volume
+
+    code = np.zeros(8, np.float32)
+    if kind == "image":
+        rgb = np.random.default_rng(1).random((24, 40, 3)).astype(np.float32)
+        path.write_bytes(write_image(rgb, fmt))
+    elif kind == "region":
+        render_region(sampler, code, 3, z=6, x0=-5, y0=7, width=40, height=24, fmt=fmt, out_path=path)
+    else:
+        render_volume(sampler, code, 3, resolution=6, fmt=fmt, out_path=path)
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("kind", ["image", "region", "volume"])
+@pytest.mark.parametrize("fmt", ["exr", "tiff"])
+def test_images_carry_a_fixed_time_so_the_same_request_gives_the_same_bytes(waves, tmp_path, kind, fmt):
+    # OpenImageIO stamps EXR parts (capDate) and TIFF pages with the time of writing unless
+    # told otherwise: two runs of one request then differed in those bytes alone.
+    import OpenImageIO as oiio
+
+    from worker.files import IMAGE_DATETIME
+
+    first = _image_writes(kind, fmt, waves, tmp_path / f"a.{fmt}")
+    assert _image_writes(kind, fmt, waves, tmp_path / f"b.{fmt}") == first
+    reader = oiio.ImageInput.open(str(tmp_path / f"a.{fmt}"))
+    stamps = set()
+    subimage = 0
+    while reader.seek_subimage(subimage, 0):
+        stamps.add(reader.spec().get_string_attribute("DateTime"))
+        subimage += 1
+    reader.close()
+    assert stamps == {IMAGE_DATETIME} and IMAGE_DATETIME == "2020:01:01 00:00:00"

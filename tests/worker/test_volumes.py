@@ -14,7 +14,7 @@ import OpenImageIO as oiio
 import pytest
 
 from tests.worker.vdb_reader import read_vdb
-from worker.colour import linear_to_srgb8
+from worker.colour import LUMA_709, linear_to_srgb8
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
 from worker.volume_writers import flipbook_grid
 from worker.volumes import render_volume, slab_points, voxel_centres
@@ -45,44 +45,57 @@ SYSTEM_PYTHON = "/usr/bin/python3"
 READ_VDB = """
 import json, sys, numpy as np, pyopenvdb as vdb
 grids, file_meta = vdb.readAll(sys.argv[1])
-g = grids[0]
-lo, hi = g.evalActiveVoxelBoundingBox()
-a = np.zeros(tuple(h + 1 for h in hi) + (3,), np.float32)
-g.copyToArray(a, ijk=(0, 0, 0))
-np.save(sys.argv[2], a)
-json.dump({"grids": len(grids), "name": g.name, "type": type(g).__name__, "active": g.activeVoxelCount(),
-           "bbox": [lo, hi], "first": g.transform.indexToWorld((0, 0, 0)),
-           "voxel_size": g.transform.voxelSize(), "file_meta": file_meta,
-           "meta": {k: g[k] for k in g.metadata.keys()}}, open(sys.argv[3], "w"))
+out = {"grids": [], "file_meta": file_meta}
+for g in grids:
+    lo, hi = g.evalActiveVoxelBoundingBox()
+    shape = tuple(h + 1 for h in hi) + ((3,) if type(g).__name__ == "Vec3SGrid" else ())
+    a = np.zeros(shape, np.float32)
+    g.copyToArray(a, ijk=(0, 0, 0))
+    np.save(sys.argv[2] + "-" + g.name + ".npy", a)
+    out["grids"].append({"name": g.name, "type": type(g).__name__, "active": g.activeVoxelCount(),
+                         "bbox": [lo, hi], "first": g.transform.indexToWorld((0, 0, 0)),
+                         "voxel_size": g.transform.voxelSize(),
+                         "meta": {k: g[k] for k in g.metadata.keys()}})
+json.dump(out, open(sys.argv[3], "w"))
 """
 
 
 def read_vdb_with_openvdb(path: Path, tmp: Path):
-    """(array [x][y][z][c], info) as OpenVDB itself reads the file; skips without it."""
+    """({grid name: array [x][y][z](c)}, info) as OpenVDB itself reads the file; skips without it."""
     if not (shutil.which(SYSTEM_PYTHON) and subprocess.run(
             [SYSTEM_PYTHON, "-c", "import pyopenvdb"], capture_output=True).returncode == 0):
         pytest.skip("Debian's python3-openvdb is not installed (apt-get install python3-openvdb)")
-    subprocess.run([SYSTEM_PYTHON, "-c", READ_VDB, str(path), str(tmp / "vdb.npy"), str(tmp / "vdb.json")],
+    subprocess.run([SYSTEM_PYTHON, "-c", READ_VDB, str(path), str(tmp / "vdb"), str(tmp / "vdb.json")],
                    check=True, timeout=120)
-    return np.load(tmp / "vdb.npy"), json.loads((tmp / "vdb.json").read_text())
+    info = json.loads((tmp / "vdb.json").read_text())
+    return {g["name"]: np.load(tmp / f"vdb-{g['name']}.npy") for g in info["grids"]}, info
 
 
 def check_vdb(path: Path, reference: np.ndarray, bounds, tmp: Path) -> None:
-    """The file read back by our own minimal reader, then by OpenVDB itself (if installed)."""
+    """The file read back by our own minimal reader, then by OpenVDB itself (if installed):
+    ``Cd`` is the colour, ``density`` its linear luminance."""
     n = reference.shape[0]
     lo, hi = np.asarray(bounds, float)
     size = (hi - lo) / n
-    own, dense = read_vdb(path.read_bytes())
-    assert (own["version"], own["name"], own["type"], own["active"]) == (224, "Cd", "Tree_vec3s_5_4_3", n ** 3)
-    assert np.array_equal(dense, reference.transpose(2, 1, 0, 3))
-    assert np.allclose(own["translation"], lo + size / 2) and np.allclose(own["scale"], size)
+    xyz = reference.transpose(2, 1, 0, 3)                               # voxel (i, j, k) = [z=k, y=j, x=i]
+    luminance = xyz @ LUMA_709
+    grids = read_vdb(path.read_bytes())
+    assert list(grids) == ["Cd", "density"]
+    (colour, dense), (fog, density) = grids["Cd"], grids["density"]
+    assert (colour["version"], colour["type"], colour["active"]) == (224, "Tree_vec3s_5_4_3", n ** 3)
+    assert (fog["type"], fog["active"], fog["meta"]["class"]) == ("Tree_float_5_4_3", n ** 3, "fog volume")
+    assert np.array_equal(dense, xyz) and np.allclose(density[..., 0], luminance, atol=1e-6)
+    for info in (colour, fog):
+        assert np.allclose(info["translation"], lo + size / 2) and np.allclose(info["scale"], size)
     data, info = read_vdb_with_openvdb(path, tmp)
-    assert (info["grids"], info["name"], info["type"], info["active"]) == (1, "Cd", "Vec3SGrid", n ** 3)
-    assert info["bbox"] == [[0, 0, 0], [n - 1] * 3]
-    assert np.array_equal(data, reference.transpose(2, 1, 0, 3))         # voxel (i, j, k) = [z=k, y=j, x=i]
-    assert np.allclose(info["first"], lo + size / 2) and np.allclose(info["voxel_size"], size)
-    assert np.allclose(info["meta"]["texspace_bounds_min"], lo) and np.allclose(info["meta"]["texspace_bounds_max"], hi)
-    assert info["meta"]["texspace_colour"] == "linear" and info["file_meta"] == {"creator": "texspace"}
+    assert [(g["name"], g["type"], g["active"]) for g in info["grids"]] == [
+        ("Cd", "Vec3SGrid", n ** 3), ("density", "FloatGrid", n ** 3)]
+    assert np.array_equal(data["Cd"], xyz) and np.allclose(data["density"], luminance, atol=1e-6)
+    for g in info["grids"]:
+        assert g["bbox"] == [[0, 0, 0], [n - 1] * 3]
+        assert np.allclose(g["first"], lo + size / 2) and np.allclose(g["voxel_size"], size)
+        assert np.allclose(g["meta"]["texspace_bounds_min"], lo) and np.allclose(g["meta"]["texspace_bounds_max"], hi)
+    assert info["grids"][0]["meta"]["texspace_colour"] == "linear" and info["file_meta"] == {"creator": "texspace"}
 
 
 def test_reference_is_the_sampler_on_voxel_centres(runtime, code, reference):
@@ -102,6 +115,10 @@ def test_every_format_reads_back_equal_to_npy(runtime, code, reference, tmp_path
     assert out.is_file() and os.listdir(tmp_path) == [f"v.{fmt}"]      # no temp (or spool) file left
     if fmt in ("exr", "tiff"):
         assert np.array_equal(read_pages(out), reference)
+        if fmt == "exr":    # Blender's multilayer names: one layer per slice, its pass Combined
+            inp = oiio.ImageInput.open(str(out))
+            assert inp.seek_subimage(3, 0) and inp.spec().channelnames == tuple(f"slice_0003.Combined.{c}" for c in "RGB")
+            inp.close()
     elif fmt == "vdb":
         check_vdb(out, reference, BOUNDS, tmp_path)
     elif fmt == "raw":
@@ -118,9 +135,10 @@ def test_every_format_reads_back_equal_to_npy(runtime, code, reference, tmp_path
         magic, size, flags, height, width, pitch, depth = struct.unpack_from("<4s6I", raw)
         assert (magic, size, height, width, depth, pitch) == (b"DDS ", 124, N, N, N, 4 * N)
         assert flags & 0x800000 and struct.unpack_from("<I", raw, 112)[0] & 0x200000  # DEPTH, caps2 VOLUME
-        assert raw[84:88] == b"DX10" and struct.unpack_from("<2I", raw, 128) == (29, 4)     # sRGB RGBA8, 3D
-        texels = np.frombuffer(raw, np.uint8, offset=148).reshape(N, N, N, 4)
-        assert np.array_equal(texels[..., :3], linear_to_srgb8(reference)) and (texels[..., 3] == 255).all()
+        # legacy pixel format: DDPF_RGB | DDPF_ALPHAPIXELS, 32 bits A8R8G8B8, bytes B G R A
+        assert struct.unpack_from("<2I4s5I", raw, 76) == (32, 0x41, bytes(4), 32, 0xFF0000, 0xFF00, 0xFF, 0xFF000000)
+        texels = np.frombuffer(raw, np.uint8, offset=128).reshape(N, N, N, 4)
+        assert np.array_equal(texels[..., 2::-1], linear_to_srgb8(reference)) and (texels[..., 3] == 255).all()
         # OpenImageIO recognises it as an RGBA volume (its reader returns slice 0 only).
         spec = oiio.ImageInput.open(str(out)).spec()
         assert (spec.width, spec.height, spec.depth, spec.nchannels) == (N, N, N, 4)

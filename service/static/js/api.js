@@ -176,11 +176,15 @@ function retryRefusedTile(img, url) {
   img._texspaceRetryOff = off;
 }
 
-/** The file name in a Content-Disposition header, if any. */
+/** The file name in a Content-Disposition header, if any: RFC 6266's UTF-8 filename*
+ * (a non-ASCII name) before the plain ASCII filename. */
 function dispositionName(header) {
-  const match = /filename\*?=(?:UTF-8'')?"?([^";]+)"?/i.exec(header || '');
-  if (!match) return '';
-  try { return decodeURIComponent(match[1]); } catch { return match[1]; }
+  const star = /filename\*=UTF-8''([^;\s]+)/i.exec(header || '');
+  if (star) {
+    try { return decodeURIComponent(star[1]); } catch { /* fall back to the plain name */ }
+  }
+  const plain = /filename="?([^";]+)"?/i.exec(header || '');
+  return plain ? plain[1] : '';
 }
 
 /** Download an API resource with the key: fetch, then save the blob under its own name. */
@@ -349,6 +353,18 @@ export async function deleteTexture(id) {
 
 export async function cancelJob(id) {
   return (await request(`jobs/${id}/cancel`, { method: 'POST' })).body;
+}
+
+let limits = null;
+
+/**
+ * The server's limits (GET /v1/limits: tile sizes and planes, volume and bake resolutions,
+ * a fit's default and longest budget, ...), fetched once: the page reads its numbers here
+ * instead of copying them. A failed fetch is asked again next time.
+ */
+export function getLimits() {
+  limits ||= request('limits').then(({ body }) => body, (error) => { limits = null; throw error; });
+  return limits;
 }
 
 /** `{items: [{version, manifest, ...}], default}` */

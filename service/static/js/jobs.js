@@ -6,7 +6,8 @@ import {
   cancelJob, downloadWithKey, getJob, hasApiKey, jobEventsUrl, jobResultUrl, streamEvents,
 } from './api.js';
 
-const TERMINAL = new Set(['succeeded', 'failed', 'canceled']);
+/** The states a job ends in (JobState in service/vocabulary.py). */
+export const TERMINAL = new Set(['succeeded', 'failed', 'canceled']);
 // GET /v1/jobs/{id}/events sends `progress` ({state, progress, attempt}) while the job
 // runs, then one last event named after the end state carrying the whole job.
 const EVENT_NAMES = ['progress', 'succeeded', 'failed', 'canceled'];

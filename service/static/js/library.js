@@ -82,10 +82,14 @@ export function textureItem(texture, { pressed, onSelect, onDelete = null }) {
 
 /**
  * A drop zone that is also the (keyboard-usable) label of a file input: dropped or
- * chosen files go to onFile(file).
+ * chosen files go to onFiles([file, ...]) (one or several).
  */
-export function wireDropZone(zone, input, onFile) {
-  input.addEventListener('change', () => { if (input.files[0]) onFile(input.files[0]); input.value = ''; });
+export function wireDropZone(zone, input, onFiles) {
+  input.addEventListener('change', () => {
+    const files = [...input.files];
+    input.value = '';
+    if (files.length) onFiles(files);
+  });
   zone.addEventListener('keydown', (event) => {
     if (event.key === 'Enter' || event.key === ' ') { event.preventDefault(); input.click(); }
   });
@@ -97,6 +101,6 @@ export function wireDropZone(zone, input, onFile) {
   }
   zone.addEventListener('drop', (event) => {
     event.preventDefault();
-    if (event.dataTransfer.files[0]) onFile(event.dataTransfer.files[0]);
+    if (event.dataTransfer.files.length) onFiles([...event.dataTransfer.files]);
   });
 }

@@ -3,7 +3,7 @@ import * as api from './api.js';
 import { TextureMap } from './map.js';
 import { matches, textureItem, textureName, wireDropZone } from './library.js';
 import { InterpolationPanel } from './interp.js';
-import { JobList, follow, fraction } from './jobs.js';
+import { JobList, TERMINAL, follow, fraction } from './jobs.js';
 import { sphereObjFile } from './sphere.js';
 import { readView, writeView } from './permalink.js';
 import { GpuView } from './gpuview.js';
@@ -97,7 +97,6 @@ async function sizeExemplar(texture) {
 // sampler once the job succeeds: the page shows the job's progress, looks for the interim
 // now and then, and reloads the map's tiles under new URLs each time (api.tileVersion).
 
-const ENDED = new Set(['succeeded', 'failed', 'canceled']);
 const INTERIM_LOOK_MS = 5000; // how often a refining texture is fetched again for its interim
 let stopRefinement = () => {};
 
@@ -143,7 +142,7 @@ function followRefinement(texture) {
     showRefinement(`tiles from the fitted sampler${structureNote(texture)}`, 'succeeded');
     return;
   }
-  if (!refinement || ENDED.has(refinement.state)) {
+  if (!refinement || TERMINAL.has(refinement.state)) {
     showRefinement();
     return;
   }
@@ -164,14 +163,14 @@ function followRefinement(texture) {
   say();
   // the texture again now and then: its interim, its place in the lane, fresher estimates
   const timer = setInterval(() => {
-    if (state.current?.id !== texture.id || ENDED.has(last.state)) return;
-    reloadServed(texture.id).then((now) => { if (now && !ENDED.has(last.state)) say(); }).catch(sayError);
+    if (state.current?.id !== texture.id || TERMINAL.has(last.state)) return;
+    reloadServed(texture.id).then((now) => { if (now && !TERMINAL.has(last.state)) say(); }).catch(sayError);
   }, INTERIM_LOOK_MS);
   const stopFollowing = follow({ id: refinement.job_id, state: refinement.state }, (job) => {
     if (state.current?.id !== texture.id) return;
     last = job;
     if (job.state === 'succeeded') refined(texture.id);
-    else if (ENDED.has(job.state)) {
+    else if (TERMINAL.has(job.state)) {
       const served = state.current.sampler === 'interim' ? "its fit's first seconds" : "the encoder's code";
       showRefinement(`refinement ${job.state}: tiles from ${served}`, job.state);
     } else say();
@@ -330,24 +329,64 @@ $('load-more').addEventListener('click', () => loadTextures(true));
 $('show-blends').addEventListener('change', renderLibrary);
 $('texture-search').addEventListener('input', renderLibrary);
 
-async function upload(file) {
-  if (!file) return;
-  if (!file.type.startsWith('image/')) { say(`${file.name} is not an image`, true); return; }
-  const name = $('upload-name').value.trim() || file.name.replace(/\.[^.]+$/, '');
-  say(`Encoding ${file.name}...`);
-  try {
-    const texture = await api.uploadTexture(file, name, $('upload-even-lighting').checked ? 'even' : 'as-is');
-    state.textures = [texture, ...state.textures.filter((t) => t.id !== texture.id)];
-    renderLibrary();
-    say(`Uploaded ${texture.name || texture.id}.`);
-    $('upload-name').value = '';
-    await showTexture(texture);
-  } catch (error) {
-    sayError(error);
-  }
+/** One line of the upload queue: the file's name and its state (waiting, encoding, done, failed). */
+function queueItem(file) {
+  const item = document.createElement('li');
+  item.innerHTML = '<span class="file"></span> <span class="state"></span>';
+  item.querySelector('.file').textContent = file.name;
+  item.querySelector('.file').title = file.name;
+  const set = (stateName, text) => {
+    item.dataset.state = stateName;
+    item.querySelector('.state').textContent = text;
+  };
+  set('waiting', 'waiting');
+  return { item, set };
 }
 
-wireDropZone($('drop-zone'), $('upload-file'), upload);
+/**
+ * Upload photos one after another (each is encoded before the next starts, so the server's
+ * encoder is not asked for several at once), a line per file in the upload queue; the
+ * library lists each as it is done, and the last one uploaded is shown. The name field
+ * names a single photo; with several, each is named after its file.
+ */
+async function uploadAll(files) {
+  const typed = $('upload-name').value.trim();
+  const lighting = $('upload-even-lighting').checked ? 'even' : 'as-is';
+  const queue = files.map((file) => ({ file, ...queueItem(file) }));
+  $('upload-queue').replaceChildren(...queue.map((q) => q.item));
+  $('upload-queue').hidden = false;
+  let last = null;
+  let failed = 0;
+  for (const [index, { file, set }] of queue.entries()) {
+    if (!file.type.startsWith('image/')) {
+      failed += 1;
+      set('failed', 'not an image');
+      continue;
+    }
+    const name = (files.length === 1 && typed) || file.name.replace(/\.[^.]+$/, '');
+    set('encoding', 'encoding...');
+    say(files.length > 1 ? `Encoding ${index + 1} of ${files.length}: ${file.name}...` : `Encoding ${file.name}...`);
+    try {
+      const texture = await api.uploadTexture(file, name, lighting);
+      state.textures = [texture, ...state.textures.filter((t) => t.id !== texture.id)];
+      renderLibrary();
+      set('done', 'uploaded');
+      last = texture;
+    } catch (error) {
+      failed += 1;
+      set('failed', error instanceof api.ApiError ? `error ${error.status}: ${error.message}` : String(error.message || error));
+      if (error instanceof api.ApiError && error.status === 401) { askForKey(); break; }
+    }
+  }
+  if (last) $('upload-name').value = '';
+  const done = queue.filter((q) => q.item.dataset.state === 'done').length;
+  if (files.length === 1 && last) say(`Uploaded ${last.name || last.id}.`);
+  else if (files.length === 1) say(`${files[0].name}: ${queue[0].item.querySelector('.state').textContent}`, true);
+  else say(`Uploaded ${done} of ${files.length}${failed ? `; ${failed} failed` : ''}.`, failed > 0);
+  if (last) await showTexture(last);
+}
+
+wireDropZone($('drop-zone'), $('upload-file'), uploadAll);
 
 // ---- interpolation -------------------------------------------------------------------
 
@@ -477,7 +516,7 @@ $('fit-start').addEventListener('click', async () => {
   if (!requireTexture()) return;
   const source = state.current;
   const name = textureName(source);
-  const seconds = Math.max(1, Number($('fit-seconds').value) || 90);
+  const seconds = Number($('fit-seconds').value) || undefined; // none: the server's default
   fitRunning = true;
   $('fit-start').disabled = true;
   showFit(`fit of ${name}: queued`, 0);
@@ -489,7 +528,7 @@ $('fit-start').addEventListener('click', async () => {
       onState: (update) => {
         const status = update.state || 'running';
         if (status === 'succeeded') return; // onSuccess
-        if (ENDED.has(status)) {
+        if (TERMINAL.has(status)) {
           ended();
           const error = update.error?.detail;
           showFit(`fit of ${name} ${status}${error ? `: ${error}` : ''}`);
@@ -526,7 +565,7 @@ api.apiPaths()
 getViewer().catch((error) => say(`3D view unavailable: ${error.message}`, true));
 /** Open the view in the URL hash (texture, seed, slice, centre, zoom), if any. */
 async function openLinkedView() {
-  const view = readView();
+  const view = readView([...$('plane').options].map((option) => option.value));
   if (!view) return false;
   if (view.seed !== undefined) $('seed').value = view.seed;
   if (view.plane) $('plane').value = view.plane;
@@ -586,5 +625,25 @@ function refreshGpuView() {
 $('gpu-panel').addEventListener('toggle', refreshGpuView);
 for (const id of ['seed', 'plane', 'offset']) $(id).addEventListener('change', refreshGpuView);
 
+// ---- the server's limits (GET /v1/limits): the page copies none of its numbers -------------
+
+/** The fit budget, the planes and the sizes offered, as the server allows them. */
+function applyLimits(limits) {
+  $('fit-seconds').max = limits.max_fit_seconds;
+  $('fit-seconds').value = limits.fit_seconds;
+  $('plane').replaceChildren(...limits.planes.map((plane) => new Option(plane, plane)));
+  const offer = (id, allowed) => {
+    for (const option of [...$(id).options]) if (!allowed(Number(option.value))) option.remove();
+  };
+  offer('bake-resolution', (side) => side <= limits.max_bake_resolution);
+  offer('volume-resolution', (side) => side <= limits.max_volume_resolution);
+  offer('region-size', (side) => side * side <= limits.max_region_pixels);
+}
+
 window.texspace = { state, textureMap, gpuView, get viewer() { return viewer; } };
+try {
+  applyLimits(await api.getLimits());
+} catch (error) {
+  sayError(error);
+}
 await start();

@@ -3,12 +3,15 @@
 
 const KEYS = ['t', 'seed', 'plane', 'offset', 'z', 'x', 'y'];
 
-/** The hash's view, or null without a texture id. Numbers are parsed; absent ones undefined. */
-export function readView(hash = window.location.hash) {
+/**
+ * The hash's view, or null without a texture id. Numbers are parsed; absent ones undefined,
+ * and so is a plane not among `planes` (the server's, GET /v1/limits).
+ */
+export function readView(planes, hash = window.location.hash) {
   const params = new URLSearchParams(hash.replace(/^#/, ''));
   if (!params.get('t')) return null;
   const number = (key) => (params.has(key) && Number.isFinite(Number(params.get(key))) ? Number(params.get(key)) : undefined);
-  const plane = ['xy', 'xz', 'yz'].includes(params.get('plane')) ? params.get('plane') : undefined;
+  const plane = planes.includes(params.get('plane')) ? params.get('plane') : undefined;
   return { t: params.get('t'), seed: number('seed'), plane, offset: number('offset'), z: number('z'), x: number('x'), y: number('y') };
 }
 

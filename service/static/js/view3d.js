@@ -2,7 +2,8 @@
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
-import { authHeaders } from './api.js';
+import { fetchWithKey } from './api.js';
+import { isZip, zipMemberEndingIn } from './unzip.js';
 
 /**
  * Vertex normals averaged over every vertex at the same position, so that the UV
@@ -77,12 +78,16 @@ export class MeshViewer {
   }
 
   /**
-   * Load a GLB from a URL, replace the current model and frame it. GLTFLoader fetches
-   * (FileLoader, and its texture loader for external images) with the request headers
-   * given here: the API key when one is set, none otherwise.
+   * Load a bake from a URL (with the API key when one is set), replace the current model
+   * and frame it. The result is a GLB, or a zip holding one (a GLB bake with a height map
+   * or a GPU texture): its .glb member is read out of it. Bakes embed their images, so
+   * nothing else is fetched.
    */
   async load(url) {
-    const gltf = await new GLTFLoader().setRequestHeader(authHeaders()).loadAsync(url);
+    const response = await fetchWithKey(url);
+    let bytes = await response.arrayBuffer();
+    if (isZip(bytes)) bytes = await zipMemberEndingIn(bytes, '.glb');
+    const gltf = await new GLTFLoader().parseAsync(bytes, '');
     if (this.model) this.scene.remove(this.model);
     this.model = gltf.scene;
     this.model.traverse((node) => {
