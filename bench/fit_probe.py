@@ -1,4 +1,4 @@
-"""The fit's probe: how long one score of its fixed planes takes (model/train.py ``Probe``).
+"""The fit's probe: how long one score of its fixed planes takes (model/probe.py ``Probe``).
 
 A fit (the product's refinement: 240 s) scores itself every 25 steps on 4 planes of 256 px
 (twice its training patch); each score is the field on 262,144 points and VGG16 on four
@@ -67,7 +67,10 @@ def bench_steps(space: Path, photo: Path | None = None, repeats: int = 3, steps:
     import torch
     from PIL import Image
 
-    from model.train import Objective, TrainConfig, cpu_has_native_bf16, setup, train_step
+    from model.device import cpu_has_native_bf16
+    from model.objective import Objective
+    from model.train import setup, train_step
+    from model.train_config import TrainConfig
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -185,8 +185,8 @@ def _lanczos_short_side(image, short_side: int):
 def _pillow_reader() -> None:
     """Where OpenImageIO is not installed (the GPU machine has no network to install it):
     worker.decode imported over a stand-in OpenImageIO module (it uses the library only
-    inside its decoder), with Pillow's decoder in place of ``read_image``. The rest of
-    worker.decode (its Lanczos resize, the encoder's crops) is then the real one. The packed
+    inside its decoder), with Pillow's decoder in place of ``read_image``. worker.photo
+    (the Lanczos resize, the encoder's crops) is the real one. The packed
     photos are 8-bit RGB PNGs or JPEGs, which Pillow decodes as OpenImageIO does (JPEG:
     both through libjpeg)."""
     import types

@@ -69,7 +69,9 @@ from model.slices import fixed_planes
 from model.vgg import GATYS_LAYERS
 from worker.colour import linear_to_srgb
 from worker.colour_match import calibrate_texture, texture_vector
-from worker.images import encode_texture, read_image, resize_short_side
+from worker.encode import encode_texture
+from worker.images import read_image
+from worker.photo import resize_short_side
 from worker.runtime import ModelRuntime, SamplerSession
 from worker.tiles import NATIVE_ZOOM, render_tile
 

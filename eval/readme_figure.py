@@ -5,7 +5,7 @@
 
 Each row: the exemplar at the model's working resolution (256 px crop) | native-zoom
 tile 6/0/0 (256 px) at seed 1 | the same tile at seed 2, all through the service's own
-code path (worker.images.encode_texture: code + colour table; worker.tiles), so the
+code path (worker.encode.encode_texture: code + colour table; worker.tiles), so the
 picture shows what the API serves for an upload before its refinement fit. With
 ``--fits DIR`` (``model.fit`` outputs, DIR/<photo stem>/, as ``make fits`` writes them)
 the last column is tile 6/0/0 at seed 1 of the photo's fitted sampler instead, with a
@@ -21,7 +21,9 @@ from PIL import Image
 
 from worker.colour import linear_to_srgb8
 from worker.colour_match import texture_vector
-from worker.images import encode_texture, read_image, resize_short_side
+from worker.encode import encode_texture
+from worker.images import read_image
+from worker.photo import resize_short_side
 from worker.colour_match import calibrate_texture
 from worker.runtime import ModelRuntime, SamplerSession
 from worker.tiles import NATIVE_ZOOM, render_tile

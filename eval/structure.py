@@ -44,7 +44,7 @@ from scipy import ndimage
 from model.data import load_exemplar
 from model.structure import photo_structure, same_lattice, straighten
 from worker.decode import read_image
-from worker.images import resize_short_side
+from worker.photo import resize_short_side
 
 from tests.model.photos import hexagonal_tiles  # the synthetic tilings the tests use too
 

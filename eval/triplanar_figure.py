@@ -19,7 +19,8 @@ from PIL import Image
 
 from worker.colour import linear_to_srgb
 from worker.colour_match import calibrate_texture, texture_vector
-from worker.images import read_image, resize_short_side
+from worker.images import read_image
+from worker.photo import resize_short_side
 from worker.runtime import ModelRuntime, SamplerSession
 from worker.triplanar import sample_triplanar
 

@@ -19,7 +19,8 @@ import torch
 
 from eval.by_example import by_example_tile, gaussianise
 from eval.style_floor import crop_errors, photo_floor, style_ratio
-from worker.images import read_image, resize_short_side
+from worker.images import read_image
+from worker.photo import resize_short_side
 
 EDGES = (16.0, 24.0, 32.0, 48.0, 64.0, 80.0, 96.0)
 TILE, SHORT_SIDE, MAX_PIXELS = 256, 256, 1 << 26

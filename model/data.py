@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageOps
 
-from worker.decode import SUFFIXES, read_image, resize_short_side
+from worker.decode import SUFFIXES, read_image
+from worker.photo import resize_short_side
 
 DEFAULT_DATA_DIR = Path("data/textures")
 DEFAULT_SHORT_SIDE = 256
@@ -207,7 +208,7 @@ def to_rgb_uint8(image: Image.Image) -> np.ndarray:
 def load_exemplar(path: str | Path, short_side: int | None = DEFAULT_SHORT_SIDE, *,
                   quantise: bool = True) -> np.ndarray:
     """Read a texture photo for fitting, training or evaluation, with the upload's reader
-    and resize (``worker.decode``: any upload format, alpha over mid grey; Lanczos to the
+    and resize (``worker.decode``, ``worker.photo``: any upload format, alpha over mid grey; Lanczos to the
     working resolution), quantised to 8 bits as training always saw it (PNG/JPEG: within
     about 1/255 of the earlier Pillow reader and 8-bit resize, tests/model/test_data.py).
     ``quantise=False`` keeps the resize's floats, as an upload's encoding does: a fit reads

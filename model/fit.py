@@ -17,18 +17,23 @@ import argparse
 import contextlib
 import json
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from PIL import Image
 
+from model.config import ModelConfig
 from model.data import load_exemplar
 from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
+from model.device import resolve_device, resolve_precision
 from model.networks import load_checkpoint
+from model.probe import Interim
 from model.structure import (EVEN_BLOCK, GRAIN_STRETCH, detect_even, grain_stretch, grain_turn, photo_lean,
                              photo_structure, straighten)
-from model.train import Interim, TrainConfig, resolve_device, resolve_precision, train
+from model.train import train
+from model.train_config import TrainConfig
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
 # An upload's refinement is the product's latency: 90 s, with bf16 steps (``precision``) 1.7x
@@ -95,7 +100,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``device``: where the steps run, ``cpu`` | ``cuda`` | ``auto`` (cuda when available);
     the export and the files written are the same either way.
     ``precision``: ``auto`` | ``bf16`` | ``fp32``, the arithmetic of the steps' VGG loss and
-    decoder (``model.train.resolve_precision``; the exported samplers are float32 either way).
+    decoder (``model.device.resolve_precision``; the exported samplers are float32 either way).
     ``rate``: ``"falling"`` (the learning rates fall to 10% over ``minutes``) or ``"constant"``;
     the manifest says which.
     ``spectrum``: weight of the spectrum loss (``TrainConfig.spectrum``; 0: off, the default).
@@ -129,6 +134,62 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     space, _ = load_checkpoint(init)
     space_cfg = space.cfg
     photo = load_exemplar(image_path, space_cfg.exemplar_short_side, quantise=False)  # as training reads it
+    found = detect_structure(photo, space_cfg, grain=grain, lattice=lattice, even=even, lean=lean)
+    patch = patch or PATCH
+    structure = found.summary()
+
+    def publish(model, code, step):  # noqa: ANN001, ANN202 (train's Interim hands the best state)
+        folder = out_dir / "interim"
+        folder.mkdir(exist_ok=True)
+        write_samplers(model.field, folder)
+        interim(folder, code.reshape(-1).tolist(), step, dict(structure))
+    if pause is not None and interim is None:
+        raise ValueError("pause is asked at the interim's second: give an interim too")
+    with contextlib.nullcontext(str(run_dir)) if run_dir else tempfile.TemporaryDirectory() as run_dir:
+        Path(run_dir).mkdir(parents=True, exist_ok=True)
+        exemplar = Path(image_path)
+        if found.turned:  # training reads the turned photo as it is (it is smaller than the working size)
+            exemplar = Path(run_dir) / f"{Path(image_path).stem}.png"
+            Image.fromarray((found.photo * 255 + 0.5).astype(np.uint8)).save(exemplar)
+        cfg = fit_config(found, space_cfg, exemplar=exemplar, run_dir=run_dir, init=init, minutes=minutes,
+                         patch=patch, rate=rate, seed=seed, loss=loss, device=device, quiet=quiet,
+                         precision=precision, threads=threads, spectrum=spectrum)
+        ckpt_path = train(cfg, progress=progress, pause=pause,
+                          interim=Interim(interim_seconds, publish) if interim is not None else None)
+        model, ckpt = load_checkpoint(ckpt_path)
+        if ckpt.get("paused"):
+            return {"paused": True, "steps": ckpt["step"], **structure}
+    # The probe scores the unmuted start first; a fit that kept it serves no muted octave.
+    if (ckpt.get("probe") or {}).get("step", 1) == 0:
+        structure["muted_octaves"] = 0
+    return write_fit_outputs(out_dir, model, ckpt, structure, init=init, space_cfg=space_cfg, patch=patch,
+                             rate=rate, device=steps_on, precision=precision, spectrum=spectrum)
+
+
+@dataclass
+class FitStructure:
+    """What a fit builds in, found on its photo (``detect_structure``)."""
+
+    photo: np.ndarray  # the photo it is fitted to: turned when its grain leant
+    turned: float  # degrees the photo was turned (0: not)
+    grain: str | None  # the axis the grain runs along
+    stretch: float  # how much longer the noise cells are along the grain (GRAIN_STRETCH without one)
+    lattice: tuple[float, float, float, float] | None  # world units
+    muted: int  # coarse octaves muted (an even photo)
+    lean: tuple[float, float] | None  # [degrees, stretch] the warp starts at
+
+    def summary(self) -> dict:
+        """The structure keys of the fit's result and manifest."""
+        return {"grain": self.grain or None, "straightened": round(self.turned, 2),
+                "grain_stretch": self.stretch if self.grain else None,
+                "lattice": list(self.lattice) if self.lattice else None,
+                "muted_octaves": self.muted, "lean": [round(self.lean[0], 2), round(self.lean[1], 3)] if self.lean else None}
+
+
+def detect_structure(photo: np.ndarray, space_cfg: ModelConfig, *, grain: str | None, lattice: str | None,
+                     even: str | None, lean: str | None) -> FitStructure:
+    """What ``fit_exemplar`` builds in for ``photo`` (at the working resolution), by its
+    ``grain``, ``lattice``, ``even`` and ``lean`` arguments (``model/structure.py`` detects)."""
     grain, found = photo_structure(photo, grain, lattice)
     # A grain that leans: the photo turned so it runs along its axis (the noise stretches
     # along x or y only), and its boards looked for again on the turned photo.
@@ -142,48 +203,39 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     muted = (coarse_octaves(space_cfg.pixels_per_unit, space_cfg.n_octaves)
              if even == "auto" and not grain and not lattice and detect_even(photo) else 0)
     lean = photo_lean(photo) if lean == "auto" and not grain and not lattice else None
-    patch = patch or PATCH
-    structure = {"grain": grain or None, "straightened": round(turned, 2),
-                 "grain_stretch": stretch if grain else None, "lattice": list(lattice) if lattice else None,
-                 "muted_octaves": muted, "lean": [round(lean[0], 2), round(lean[1], 3)] if lean else None}
+    return FitStructure(photo=photo, turned=turned, grain=grain, stretch=stretch, lattice=lattice, muted=muted,
+                        lean=lean)
 
-    def publish(model, code, step):  # noqa: ANN001, ANN202 (train's Interim hands the best state)
-        folder = out_dir / "interim"
-        folder.mkdir(exist_ok=True)
-        write_samplers(model.field, folder)
-        interim(folder, code.reshape(-1).tolist(), step, dict(structure))
-    if pause is not None and interim is None:
-        raise ValueError("pause is asked at the interim's second: give an interim too")
-    with contextlib.nullcontext(str(run_dir)) if run_dir else tempfile.TemporaryDirectory() as run_dir:
-        Path(run_dir).mkdir(parents=True, exist_ok=True)
-        exemplar = Path(image_path)
-        if turned:  # training reads the turned photo as it is (it is smaller than the working size)
-            exemplar = Path(run_dir) / f"{Path(image_path).stem}.png"
-            Image.fromarray((photo * 255 + 0.5).astype(np.uint8)).save(exemplar)
-        cfg = TrainConfig(
-            mode="single", exemplar=str(exemplar), exemplar_as_is=bool(turned), out=run_dir, init=str(init),
-            # the space's architecture, which --init requires
-            variant=space_cfg.variant, dims=space_cfg.dims, short_side=space_cfg.exemplar_short_side,
-            code_size=space_cfg.code_size, encoder_width=space_cfg.encoder_width, hidden=space_cfg.hidden,
-            no_nearest=not space_cfg.nearest_input, smooth=space_cfg.smooth,
-            # a space trained for colour tables fits the same way: structure under the photo's colours
-            colour_normalise=space_cfg.colour_blind_encoder, isotropic_transforms=space_cfg.isotropic_transforms,
-            minutes=float(minutes), patch=patch, batch=1 if lattice else 2, lr=FIT_LR,
-            transform_lr=FIT_TRANSFORM_LR, warmup=20, decay_by_time=rate == "falling",
-            seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
-            precision=precision,
-            grain=grain or None, grain_stretch=stretch, lattice=lattice, lattice_cell=bool(lattice),
-            threads=threads or 0,
-            spectrum=spectrum, mute_octaves=muted, warp=lean is not None,
-            warp_start=lean)
-        ckpt_path = train(cfg, progress=progress, pause=pause,
-                          interim=Interim(interim_seconds, publish) if interim is not None else None)
-        model, ckpt = load_checkpoint(ckpt_path)
-        if ckpt.get("paused"):
-            return {"paused": True, "steps": ckpt["step"], **structure}
-    # The probe scores the unmuted start first; a fit that kept it serves no muted octave.
-    if (ckpt.get("probe") or {}).get("step", 1) == 0:
-        muted = 0
+
+def fit_config(found: FitStructure, space_cfg: ModelConfig, *, exemplar: Path, run_dir: str, init: Path,
+               minutes: float, patch: int, rate: str, seed: int, loss: str, device: str, quiet: bool,
+               precision: str, threads: int, spectrum: float) -> TrainConfig:
+    """The single-mode training run of a fit: the space's architecture, the fit's rates and
+    budget, and what ``detect_structure`` found."""
+    return TrainConfig(
+        mode="single", exemplar=str(exemplar), exemplar_as_is=bool(found.turned), out=run_dir, init=str(init),
+        # the space's architecture, which --init requires
+        variant=space_cfg.variant, dims=space_cfg.dims, short_side=space_cfg.exemplar_short_side,
+        code_size=space_cfg.code_size, encoder_width=space_cfg.encoder_width, hidden=space_cfg.hidden,
+        no_nearest=not space_cfg.nearest_input, smooth=space_cfg.smooth,
+        # a space trained for colour tables fits the same way: structure under the photo's colours
+        colour_normalise=space_cfg.colour_blind_encoder, isotropic_transforms=space_cfg.isotropic_transforms,
+        minutes=float(minutes), patch=patch, batch=1 if found.lattice else 2, lr=FIT_LR,
+        transform_lr=FIT_TRANSFORM_LR, warmup=20, decay_by_time=rate == "falling",
+        seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
+        precision=precision,
+        grain=found.grain or None, grain_stretch=found.stretch, lattice=found.lattice,
+        lattice_cell=bool(found.lattice),
+        threads=threads or 0,
+        spectrum=spectrum, mute_octaves=found.muted, warp=found.lean is not None,
+        warp_start=found.lean)
+
+
+def write_fit_outputs(out_dir: Path, model, ckpt: dict, structure: dict, *, init: Path,  # noqa: ANN001 (a TextureSpace)
+                      space_cfg: ModelConfig, patch: int, rate: str, device: torch.device, precision: str,
+                      spectrum: float) -> dict:
+    """A finished fit's files in ``out_dir`` (fit.pt, the samplers, code.json, manifest.json)
+    and ``fit_exemplar``'s result."""
     # Weights, config and code without the optimiser: what model.evaluate needs to compare
     # the fit with the space's encoder code on the same exemplar.
     torch.save({key: ckpt.get(key) for key in ("config", "model", "code", "step", "wall_seconds", "mode", "data",
@@ -192,7 +244,6 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     write_samplers(model.field, out_dir)
     code = ckpt["code"].reshape(-1).tolist()
     (out_dir / "code.json").write_text(json.dumps({"code": code}) + "\n")
-    structure["muted_octaves"] = muted
     manifest = {
         "version": model_version(out_dir / "sampler.onnx"),
         "kind": "fitted",
@@ -208,8 +259,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         "output_colour": "linear",
         **structure,
         "rate": rate,
-        "device": steps_on.type,
-        "precision": "bf16" if resolve_precision(precision, steps_on) else "fp32",
+        "device": device.type,
+        "precision": "bf16" if resolve_precision(precision, device) else "fp32",
         "spectrum": spectrum,
     }
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")

@@ -15,6 +15,7 @@ from worker.contract import PLANE_AXES
 
 #: the world axes each axis-aligned plane spans (u, v): the tiles' planes
 AXIS_PLANES = {plane: axes[:2] for plane, axes in PLANE_AXES.items()}
+LATTICE_PARTNER_STEPS = 2  # a partner lies up to this many lattice vectors away along each
 
 
 def plane_points(origins: torch.Tensor, axes: torch.Tensor, size: int, pixels_per_unit: float) -> torch.Tensor:
@@ -135,3 +136,17 @@ def render_slices(
     # anchored at each plane's origin: same colours, gradients without the far-field shift term
     rgb = field(points, z, seeds, anchor=origins if torch.is_grad_enabled() else None)  # [B, S*S, 3] linear
     return linear_to_srgb(rgb).reshape(-1, size, size, 3).permute(0, 3, 1, 2)
+
+
+def lattice_partners(origins: torch.Tensor, lattice: tuple[float, float, float, float],
+                     rng: np.random.Generator) -> torch.Tensor:
+    """Each origin moved by a random whole, nonzero combination of the lattice vectors
+    (world units, in the xy plane): a patch there has the same phases, other noise."""
+    steps = np.zeros((len(origins), 2), dtype=np.int64)
+    while True:
+        redraw = ~steps.any(axis=1)
+        if not redraw.any():
+            break
+        steps[redraw] = rng.integers(-LATTICE_PARTNER_STEPS, LATTICE_PARTNER_STEPS + 1, size=(redraw.sum(), 2))
+    basis = np.array([[lattice[0], lattice[1], 0.0], [lattice[2], lattice[3], 0.0]])
+    return origins + torch.from_numpy(steps @ basis).to(origins)

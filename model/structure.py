@@ -20,8 +20,8 @@ import functools
 import numpy as np
 from scipy import ndimage
 
-from model.networks import ModelConfig
-from model.train import fold_on_lattice, lattice_cell_sizes
+from model.config import ModelConfig
+from model.lattice import fold_on_lattice, lattice_cell_sizes
 from worker.colour import even_lighting
 
 # Grain detection (``grain="auto"``): a photo has grain when its luminance gradient energy

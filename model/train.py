@@ -24,7 +24,6 @@ probe (Probe: single mode only).
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import signal
@@ -32,275 +31,25 @@ import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal, TextIO, get_args
+from typing import TextIO
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
+from model.config import ModelConfig
 from model.data import TextureDataset, load_exemplar, sample_batch
-from model.losses import (gram_energy, gram_loss, gram_matrices, sliced_wasserstein_loss, spectrum_loss,
-                          spectrum_target)
-from model.networks import ModelConfig, TextureSpace, VARIANTS, load_checkpoint
-from model.colour import compressed_moments, transfer_colour_moments
-from model.slices import linear_to_srgb, plane_points, random_planes, render_slices, srgb_to_linear
-from model.vgg import GATYS_LAYERS, shared_vgg
-from worker.decode import encoder_crops
+from model.device import autocast, resolve_device, resolve_precision
+from model.lattice import lattice_mean_cell, lattice_pixels, mean_cell_share
+from model.networks import TextureSpace, load_checkpoint
+from model.objective import Objective
+from model.probe import Interim, Probe
+from model.slices import lattice_partners, plane_points, random_planes, render_slices
+from model.train_config import TrainConfig, parse_args
+from worker.photo import encoder_crops
 
 
 POSITION_EXTENT = 4.0  # world units around the origin where position-input variants train
-# A lattice fit's tiles must differ from one another as much as the photo's tiles do. A
-# Gram loss cannot tell: it let the phase inputs stamp one blotch into every floor tile of
-# a 4-minute fit, where the photo's tiles each have their own marbling. So its patches come
-# in pairs a whole number of lattice vectors apart (same seed and depth) and a hinge holds
-# their mean squared difference up to the photo's own (``lattice_contrast``).
-LATTICE_CONTRAST_WEIGHT = 1.0
-# Pairs only where the photo's repeats differ by at least this share of the difference
-# between two random pixels of it. The grill's holes repeat almost exactly (0.035; floor
-# tiles 0.16, bricks 0.26): there the hinge never has anything to hold up, and pairs would
-# only halve the fit's steps (60-s grill fits, seeds 1 and 2: 9.25 and 5.03 with pairs,
-# 3.22 and 5.26 without).
-LATTICE_PAIRS_MIN = 0.1
-LATTICE_PARTNER_STEPS = 2  # a partner lies up to this many lattice vectors away along each
-
-Mode = Literal["space", "single"]
-Loss = Literal["gram", "swd"]
-Grain = Literal["x", "y"]
-Device = Literal["auto", "cpu", "cuda"]
-Precision = Literal["auto", "fp32", "bf16"]
-
-
-@dataclass(kw_only=True)
-class TrainConfig:
-    """Every option of a run, one field per ``python -m model.train`` flag (``--short-side``
-    is ``short_side``); what each means is in ``--help`` (parse_args). Checkpoints store it
-    as a dict under ``"args"``, and resuming compares the model's part of it."""
-
-    mode: Mode = "space"  # space: one decoder for many exemplars; single: fit one exemplar
-    variant: str = "ours"
-    dims: int = 3
-    data: str = "data/textures/train"
-    exemplar: str | None = None
-    exemplar_as_is: bool = False
-    exclude: str = "miniworld_metal_grill_2"
-    out: str
-    init: str | None = None
-    steps: int = 100_000
-    minutes: float | None = None
-    batch: int = 4
-    patch: int = 96
-    crop: int = 128
-    short_side: int = 256
-    # Architecture of a space trained from scratch (with --init they must match its own):
-    code_size: int = ModelConfig.code_size
-    encoder_width: int = ModelConfig.encoder_width
-    hidden: int = ModelConfig.hidden
-    lr: float = 5e-4
-    code_lr: float = 5e-3
-    transform_lr: float | None = None
-    warmup: int = 200
-    clip: float = 1.0
-    loss: Loss = "gram"
-    layers: str = ",".join(GATYS_LAYERS)
-    colour_weight: float = 50.0
-    colour_normalise: bool = False
-    isotropic_transforms: bool = False
-    warp: bool = False
-    warp_start: tuple[float, float] | None = None
-    decay_start: int | None = None
-    decay_end: int | None = None
-    decay_by_time: bool = False
-    oblique: float = 0.5
-    no_nearest: bool = False
-    smooth: bool = False
-    no_rotations: bool = False
-    grain: Grain | None = None
-    grain_stretch: float = ModelConfig.grain_stretch  # of a grain fit (model.fit picks it: model.structure)
-    lattice: tuple[float, float, float, float] | None = None
-    lattice_cell: bool = False
-    seed: int = 0
-    probe_every: int = 0
-    spectrum: float = 0.0
-    mute_octaves: int = 0
-    ckpt_every: int = 200
-    threads: int = 0
-    device: Device = "cpu"
-    precision: Precision = "auto"
-    quiet: bool = False
-
-    def __post_init__(self):
-        # The CLI's choices, for configs built in code (model/fit.py) too.
-        for name, allowed in (("mode", get_args(Mode)), ("variant", tuple(sorted(VARIANTS))), ("dims", (2, 3)),
-                              ("loss", get_args(Loss)), ("grain", (None, *get_args(Grain))),
-                              ("device", get_args(Device)), ("precision", get_args(Precision))):
-            if getattr(self, name) not in allowed:
-                raise SystemExit(f"{name}={getattr(self, name)!r}: choose from {', '.join(map(str, allowed))}")
-
-
-def parse_args(argv=None) -> TrainConfig:
-    # Defaults live in TrainConfig only: a flag not given stays out of the namespace.
-    p = argparse.ArgumentParser(prog="python -m model.train", description=__doc__, argument_default=argparse.SUPPRESS,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--mode", choices=get_args(Mode))
-    p.add_argument("--variant", choices=sorted(VARIANTS))
-    p.add_argument("--dims", type=int, choices=[2, 3])
-    p.add_argument("--data", help="folder of exemplar PNGs (space mode)")
-    p.add_argument("--exemplar", help="image file (single mode)")
-    p.add_argument("--exemplar-as-is", action="store_true",
-                   help="read --exemplar at its own size, already at the working resolution (a fit's straightened photo)")
-    p.add_argument("--exclude",
-                   help="comma-separated exemplar names left out of space training (the default's "
-                        "regular dot grid has ~30x the Gram loss of any other photo and steers a shared decoder)")
-    p.add_argument("--out", required=True, help="run folder: checkpoint, log; resumed if it exists")
-    p.add_argument("--init", help="checkpoint to start from (weights only; e.g. the space for a fit)")
-    p.add_argument("--steps", type=int, help="stop after this many steps in total")
-    p.add_argument("--minutes", type=float, help="stop after this much wall time (this run)")
-    p.add_argument("--batch", type=int)
-    p.add_argument("--patch", type=int, help="synthesised patch size (pixels)")
-    p.add_argument("--crop", type=int, help="exemplar crop size fed to the encoder")
-    p.add_argument("--short-side", type=int, help="exemplar working resolution")
-    p.add_argument("--code-size", type=int, help="length of a texture's code z (a new space; --init: its own)")
-    p.add_argument("--encoder-width", type=int,
-                   help="channels of the encoder's stem; its stages widen to 8x that (weights grow as its square)")
-    p.add_argument("--hidden", type=int, help="width of the decoder's hidden layers")
-    p.add_argument("--lr", type=float)
-    p.add_argument("--code-lr", type=float, help="learning rate of the codes (table or single)")
-    p.add_argument("--transform-lr", type=float,
-                   help="learning rate of the per-octave transform head (default: --lr); a fit raises it "
-                        "so the octaves can stretch into grain within minutes")
-    p.add_argument("--warmup", type=int)
-    p.add_argument("--clip", type=float, help="global gradient-norm clip")
-    p.add_argument("--loss", choices=get_args(Loss))
-    p.add_argument("--layers")
-    p.add_argument("--colour-weight", type=float,
-                   help="weight of the sRGB colour mean + covariance match (0: VGG statistics only)")
-    p.add_argument("--colour-normalise", action="store_true",
-                   help="judge structure only: give every synthesised patch its exemplar's colour moments "
-                        "before the loss (the sampler's colour table does the same at inference), "
-                        "train a colour-blind encoder; --colour-weight is then unused")
-    p.add_argument("--isotropic-transforms", action="store_true",
-                   help="per-octave transforms keep only their isotropic scale (|det T|^(1/D) I): no learned "
-                        "stretch direction, so 2D tiles do not lean")
-    p.add_argument("--warp", action="store_true",
-                   help="learn a linear map of world x, y before the noise (a fit's lean, ModelConfig.warp)")
-    p.add_argument("--warp-start", type=float, nargs=2, metavar=("DEGREES", "STRETCH"),
-                   help="the warp's start: features STRETCH times longer along DEGREES from +x towards +y "
-                        "(default: the identity)")
-    p.add_argument("--decay-start", type=int,
-                   help="step at which the learning rates start to fall linearly, to 10%% at --decay-end")
-    p.add_argument("--decay-end", type=int, help="step at which the decay ends (default: --steps)")
-    p.add_argument("--decay-by-time", action="store_true",
-                   help="with --minutes: the rates fall linearly to 10%% over the run's wall time")
-    p.add_argument("--oblique", type=float, help="fraction of oblique slice planes")
-    p.add_argument("--no-nearest", action="store_true", help="decoder gets interpolated noise only")
-    p.add_argument("--smooth", action="store_true", help="smoothstep noise interpolation")
-    p.add_argument("--no-rotations", action="store_true", help="exemplar crops keep their orientation")
-    p.add_argument("--grain", choices=get_args(Grain),
-                   help="anisotropic exemplar whose grain runs along the image's x (left-right) or y (up-down): "
-                        "crops keep their orientation and every slice plane contains that world axis in the same "
-                        "role, so tiles on the xy plane show the grain as the exemplar does")
-    p.add_argument("--grain-stretch", type=float,
-                   help="with --grain: how much longer every noise cell is along the grain (model.fit picks 8 or "
-                        "16 from the photo: model.structure.grain_stretch)")
-    p.add_argument("--lattice", type=lambda text: tuple(float(v) for v in text.split(",")),
-                   help="regular exemplar (bricks, tiles): its repeat lattice, two vectors in world units "
-                        "'ax,ay,bx,by' in the xy plane (model.fit detects it); the decoder also reads each "
-                        "point's phase on it, and every slice is an xy plane in the photo's orientation; single "
-                        "mode: patches come in pairs whole lattice steps apart (Objective's pair contrast)")
-    p.add_argument("--mute-octaves", type=int,
-                   help="silence the N coarsest noise octaves (mute_coarse_octaves; model.fit sets it for photos "
-                        "even at large scales)")
-    p.add_argument("--lattice-cell", action="store_true",
-                   help="with --lattice: the decoder also reads the exemplar's mean repeat cell at each point's "
-                        "phase (lattice_mean_cell; model.fit turns it on for every lattice fit)")
-    p.add_argument("--seed", type=int)
-    p.add_argument("--probe-every", type=int,
-                   help="single mode: every N steps (and at the start and end) score the exemplar on fixed "
-                        "planes and seeds; the run ends on the best-scoring weights and code (0: off)")
-    p.add_argument("--spectrum", type=float,
-                   help="weight of the radial log power spectrum loss on each patch's luminance, times the "
-                        "exemplar's Gram magnitude (model.losses.gram_energy; 0: off)")
-    p.add_argument("--ckpt-every", type=int)
-    p.add_argument("--threads", type=int, help="torch threads (0: torch default)")
-    p.add_argument("--precision", choices=get_args(Precision),
-                   help="arithmetic of the VGG loss and the decoder's matrix products: bf16 autocast (Gram "
-                        "matrices, noise and optimiser stay float32/64) or fp32; auto (default): bf16 on CUDA "
-                        "and on CPUs with native bfloat16 instructions (resolve_precision)")
-    p.add_argument("--device", choices=get_args(Device),
-                   help="where steps run (auto: cuda when available); checkpoints always hold CPU tensors")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    return TrainConfig(**vars(p.parse_args(argv)))
-
-
-def lattice_pixels(lattice: tuple[float, float, float, float] | None) -> tuple[float, float, float, float] | None:
-    """A lattice in world units (``--lattice``) in the exemplar's working-resolution pixels,
-    where the photo is measured (model.fit divides the detected one by the same factor)."""
-    ppu = ModelConfig().pixels_per_unit
-    return tuple(v * ppu for v in lattice) if lattice else None
-
-
-def lattice_contrast(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> float:
-    """How much a photo's repeats differ: the mean squared sRGB distance between the photo
-    and itself shifted by each lattice vector (pixels, x along columns, y along rows), the
-    mean over the two vectors. Each shift is the best whole-pixel one within a pixel of the
-    vector, so a grid drawn a fraction of a pixel off does not count as difference."""
-    height, width = image.shape[:2]
-    per_vector = []
-    for vx, vy in (lattice_px[:2], lattice_px[2:]):
-        best = math.inf
-        for dx in range(math.floor(vx) - 1, math.ceil(vx) + 2):
-            for dy in range(math.floor(vy) - 1, math.ceil(vy) + 2):
-                if abs(dx) >= width // 2 or abs(dy) >= height // 2 or dx == dy == 0:
-                    continue
-                a = image[max(0, dy):height + min(0, dy), max(0, dx):width + min(0, dx)]
-                b = image[max(0, -dy):height + min(0, -dy), max(0, -dx):width + min(0, -dx)]
-                best = min(best, float(np.square(a - b).sum(axis=2).mean()))
-        per_vector.append(best)
-    return float(np.mean(per_vector))
-
-
-def fold_on_lattice(image: np.ndarray, lattice_px: tuple[float, float, float, float],
-                    sizes: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Every pixel of the photo binned by its phase on the lattice, ``sizes`` bins along the
-    two lattice vectors (pixels, x along columns, y along rows, as ``lattice_phases`` reads
-    world points): the mean colour float64 [n_a * n_b, 3] and the pixel count [n_a * n_b]
-    of each bin (row i_a * n_b + i_b)."""
-    height, width = image.shape[:2]
-    rows, cols = np.mgrid[0:height, 0:width]
-    points = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], axis=1)
-    u = points @ np.linalg.inv(np.array(lattice_px, np.float64).reshape(2, 2).T).T
-    bins = np.floor((u - np.floor(u)) * sizes).astype(int) % sizes
-    index = bins[:, 0] * sizes[1] + bins[:, 1]
-    n = int(np.prod(sizes))
-    counts = np.bincount(index, minlength=n)
-    colours = image.reshape(-1, 3)
-    sums = np.stack([np.bincount(index, colours[:, c], minlength=n) for c in range(3)], axis=1)
-    return sums / np.maximum(counts, 1)[:, None], counts
-
-
-def lattice_cell_sizes(lattice_px: tuple[float, float, float, float]) -> tuple[int, int]:
-    """Bins of a mean repeat cell: about one per pixel along each lattice vector."""
-    return tuple(int(max(2, round(float(np.hypot(*v))))) for v in (lattice_px[:2], lattice_px[2:]))
-
-
-def lattice_mean_cell(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> np.ndarray:
-    """The photo's mean repeat cell: float32 [n_a, n_b, 3] (``fold_on_lattice`` at
-    ``lattice_cell_sizes``), standardised: zero mean, unit spread over the cell."""
-    sizes = lattice_cell_sizes(lattice_px)
-    cell, counts = fold_on_lattice(image, lattice_px, sizes)
-    cell[counts == 0] = image.reshape(-1, 3).mean(axis=0)  # (a bin no pixel fell in: a lattice longer than the photo)
-    cell = (cell - cell.mean(axis=0)) / (cell.std() + 1e-6)
-    return cell.reshape(*sizes, 3).astype(np.float32)
-
-
-def mean_cell_share(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> float:
-    """How much of the photo's spread its mean repeat cell explains (0..1): the spread of
-    each pixel's cell colour about the photo's mean, over the photo's own spread."""
-    cell, counts = fold_on_lattice(image, lattice_px, lattice_cell_sizes(lattice_px))
-    pixels = image.reshape(-1, 3)
-    explained = (counts[:, None] * np.square(cell - pixels.mean(axis=0))).sum() / counts.sum()
-    return float(np.sqrt(explained / max(pixels.var(axis=0).sum(), 1e-12)))
-
 
 def start_on_mean_cell(model: TextureSpace, code: torch.Tensor, share: float, rng: np.random.Generator,
                        patch: int = 64, planes: int = 4) -> None:
@@ -339,180 +88,6 @@ def start_on_mean_cell(model: TextureSpace, code: torch.Tensor, share: float, rn
     weight = (share * spread) * jacobian.T @ torch.linalg.inv(gram + ridge)
     with torch.no_grad():
         field.decoder.from_phase.weight[:, -3:] = weight
-
-
-def lattice_partners(origins: torch.Tensor, lattice: tuple[float, float, float, float],
-                     rng: np.random.Generator) -> torch.Tensor:
-    """Each origin moved by a random whole, nonzero combination of the lattice vectors
-    (world units, in the xy plane): a patch there has the same phases, other noise."""
-    steps = np.zeros((len(origins), 2), dtype=np.int64)
-    while True:
-        redraw = ~steps.any(axis=1)
-        if not redraw.any():
-            break
-        steps[redraw] = rng.integers(-LATTICE_PARTNER_STEPS, LATTICE_PARTNER_STEPS + 1, size=(redraw.sum(), 2))
-    basis = np.array([[lattice[0], lattice[1], 0.0], [lattice[2], lattice[3], 0.0]])
-    return origins + torch.from_numpy(steps @ basis).to(origins)
-
-
-def colour_moments(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-image mean [N,3] and covariance [N,3,3] of sRGB pixel colours; images [N,3,H,W]."""
-    flat = images.flatten(2)  # [N,3,HW]
-    mean = flat.mean(dim=2)
-    centred = flat - mean.unsqueeze(2)
-    return mean, centred @ centred.transpose(1, 2) / flat.shape[2]
-
-
-class Objective:
-    """VGG statistics of the exemplars, computed once; loss of synthesised patches.
-
-    ``colour_weight`` adds the squared error of the patch's mean colour and colour
-    covariance to the exemplar's. The Gram loss alone let a 6000-step space settle on
-    wrong hues (olive wood, blue-grey marble) whose deeper-layer statistics matched.
-
-    ``lattice_px`` (a lattice fit, pixels): called with ``pairs=True``, the batch's second
-    half are the first half's lattice partners, and their mean squared difference short of
-    the photo's ``lattice_contrast`` adds ``LATTICE_CONTRAST_WEIGHT * (1 - ratio)^2``.
-    ``self.pairs`` says whether training should use pairs (``LATTICE_PAIRS_MIN``).
-
-    ``spectrum_weight`` (``--spectrum``) adds, per patch, that weight times the exemplar's Gram
-    magnitude (``gram_energy``) times its ``spectrum_loss``: the radially averaged luminance
-    spectrum against the photo's (off by default: it brought the spectra closer, but grass fits got
-    worse in 3 of 3 and lattice fits were hurt; docs/DECISIONS.md, "Tried, not adopted").
-    """
-
-    def __init__(self, images: list[np.ndarray], layers: tuple[str, ...], kind: str, colour_weight: float = 0.0,
-                 colour_normalise: bool = False, device: torch.device | str = "cpu",
-                 lattice_px: tuple[float, float, float, float] | None = None, spectrum_weight: float = 0.0,
-                 precision: torch.dtype | None = None):
-        self.images, self.spectra = images, {}  # spectra: (k, size) -> band powers
-        self.vgg = shared_vgg(layers, device)  # one per device: moving the shared one would move it for all
-        self.device = device
-        self.precision = precision  # the VGG's autocast dtype (None: float32); targets stay float32
-        self.contrasts = [lattice_contrast(image, lattice_px) for image in images] if lattice_px else None
-        # whether a lattice fit trains on pairs: every photo's repeats differ enough to charge
-        self.pairs = self.contrasts is not None and all(
-            contrast >= LATTICE_PAIRS_MIN * 2 * image.reshape(-1, 3).var(axis=0).sum()
-            for contrast, image in zip(self.contrasts, images))
-        self.kind = kind
-        self.colour_weight = 0.0 if colour_normalise else colour_weight
-        self.colour_normalise = colour_normalise
-        self.targets = []  # per exemplar: Grams (gram) or features (swd)
-        self.colours = []  # per exemplar: (mean [1,3], covariance [1,3,3])
-        self.compressed = []  # per exemplar: compressed-colour (mean [1,3], covariance [1,3,3])
-        # the spectrum term in proportion to each photo's Gram magnitude (``gram_energy``): it
-        # weighs as much against the Gram loss on a bland concrete (energy 0.17) as on gravel (35)
-        self.spectrum_weights = []
-        with torch.no_grad():
-            for image in images:
-                tensor = torch.from_numpy(image.transpose(2, 0, 1).copy())[None].to(device)
-                feats = self.vgg(tensor)
-                grams = gram_matrices(feats)
-                self.targets.append(grams if kind == "gram" else feats)
-                self.spectrum_weights.append(spectrum_weight * gram_energy(grams) if spectrum_weight else 0.0)
-                self.colours.append(colour_moments(tensor))
-                self.compressed.append(compressed_moments(srgb_to_linear(tensor)))
-
-    def __call__(self, synth: torch.Tensor, indices: np.ndarray, pairs: bool = False) -> torch.Tensor:
-        if self.colour_normalise:
-            mean = torch.cat([self.compressed[k][0] for k in indices])
-            covariance = torch.cat([self.compressed[k][1] for k in indices])
-            synth = linear_to_srgb(transfer_colour_moments(srgb_to_linear(synth), mean, covariance))
-        contrast = self.pair_contrast(synth, indices) if pairs else 0.0
-        if torch.is_grad_enabled():
-            feats = self.features(synth)
-        else:  # scoring (the probe), one image at a time: 4 x 256 px on one thread, with two other
-            # torch processes running, 4.3 s -> 2.9 s (idle, the same: 1.48 s -> 1.54 s; bench/run.py --only fit)
-            parts = [self.features(image[None]) for image in synth]
-            feats = {name: torch.cat([part[name] for part in parts]) for name in parts[0]}
-        losses = []
-        means, covariances = colour_moments(synth)
-        spectral = None  # each patch against its own photo's spectrum, the batch at once
-        if any(self.spectrum_weights[k] for k in indices):
-            spectral = spectrum_loss(synth, torch.stack([self.spectrum(k, synth.shape[-1]) for k in indices]))
-        for b, k in enumerate(indices):
-            one = {name: value[b : b + 1] for name, value in feats.items()}
-            if self.kind == "gram":
-                losses.append(gram_loss(one, self.targets[k]))
-            else:
-                losses.append(sliced_wasserstein_loss(one, self.targets[k]))
-            if self.spectrum_weights[k]:
-                losses[-1] = losses[-1] + self.spectrum_weights[k] * spectral[b]
-            if self.colour_weight:
-                mean, covariance = self.colours[k]
-                colour = (means[b] - mean[0]).square().sum() + (covariances[b] - covariance[0]).square().sum()
-                losses[-1] = losses[-1] + self.colour_weight * colour
-        return torch.stack(losses).mean() + contrast
-
-    def features(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
-        """VGG features of ``images``, float32 whatever the precision of the convolutions: the
-        Gram matrices and their differences from the targets are taken in float32 (bfloat16's
-        8-bit mantissa would round a Gram entry by up to 0.4%, the size of a good fit's error)."""
-        with autocast(torch.device(self.device), self.precision):
-            feats = self.vgg(images)
-        return {name: value.float() for name, value in feats.items()}
-
-    def spectrum(self, k: int, size: int) -> torch.Tensor:
-        """Exemplar k's band powers for patches of ``size`` (computed once per size)."""
-        if (k, size) not in self.spectra:
-            self.spectra[k, size] = spectrum_target(self.images[k], size).to(self.device)
-        return self.spectra[k, size]
-
-    def pair_contrast(self, synth: torch.Tensor, indices: np.ndarray) -> torch.Tensor:
-        """The hinge on lattice partners (first half of the batch against the second)."""
-        if self.contrasts is None:
-            raise ValueError("pairs=True needs an Objective built with lattice_px")
-        half = len(synth) // 2
-        difference = (synth[:half] - synth[half:]).square().sum(dim=1).mean(dim=(1, 2))
-        target = torch.tensor([self.contrasts[k] for k in indices[:half]], dtype=synth.dtype, device=synth.device)
-        return LATTICE_CONTRAST_WEIGHT * torch.relu(1 - difference / target).square().mean()
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` | ``cpu`` | ``cuda`` -> a torch device; ``cuda`` without CUDA is an error."""
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda":
-        if not torch.cuda.is_available():
-            raise SystemExit("--device cuda: this torch build or machine has no CUDA device (use cpu or auto)")
-        # TF32 convolutions and matmuls: the VGG loss dominates a step, and its Gram targets
-        # need no more than TF32's 10-bit mantissa. The noise stays exact 32-bit integer
-        # arithmetic (int32 in torch), which TF32 does not touch.
-        torch.backends.cuda.matmul.allow_tf32 = True
-        torch.backends.cudnn.allow_tf32 = True
-    return torch.device(name)
-
-
-def resolve_precision(name: str, device: torch.device) -> torch.dtype | None:
-    """``auto`` | ``fp32`` | ``bf16`` -> the autocast dtype of a run's VGG and decoder (None: float32).
-
-    ``auto`` picks bfloat16 where the hardware computes it natively: CUDA GPUs that support it,
-    and CPUs with AVX-512 BF16 or AMX (oneDNN then runs bf16 convolutions at about twice the
-    float32 rate: VGG16 to relu5_1, two 128-px patches, forward and backward, one thread of an
-    AMD EPYC: 462-496 ms -> 239-251 ms). Elsewhere oneDNN would emulate bfloat16, no faster
-    than float32, so ``auto`` keeps float32 there.
-    """
-    if name == "fp32":
-        return None
-    if name == "bf16":
-        return torch.bfloat16
-    if device.type == "cuda":
-        return torch.bfloat16 if torch.cuda.is_bf16_supported() else None
-    return torch.bfloat16 if cpu_has_native_bf16() else None
-
-
-def autocast(device: torch.device, precision: torch.dtype | None) -> torch.autocast:
-    """The mixed-precision context of ``resolve_precision``'s dtype on ``device`` (a no-op at None: float32)."""
-    return torch.autocast(device.type, dtype=precision or torch.float32, enabled=precision is not None)
-
-
-def cpu_has_native_bf16() -> bool:
-    """Whether this CPU has bfloat16 dot-product instructions (Linux: /proc/cpuinfo flags)."""
-    try:
-        flags = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    return " avx512_bf16" in flags or " amx_bf16" in flags
 
 
 def load_exemplars(cfg: TrainConfig) -> tuple[list[str], list[np.ndarray]]:
@@ -577,7 +152,7 @@ def lean_warp(degrees: float, stretch: float) -> torch.Tensor:
 
 def initial_code(model: TextureSpace, image: np.ndarray, crop: int) -> torch.Tensor:
     """The encoder's code for an exemplar as an upload gets it: the mean over the same grid of
-    crops (``worker.decode.encoder_crops``, the image already at its working size). A fit then
+    crops (``worker.photo.encoder_crops``, the image already at its working size). A fit then
     starts from the code its texture serves, so its probe's "never worse than the start" holds
     for what users saw. With 8 random crops instead, a 60-s grass fit that kept its start still
     scored 0.0144 against the served code's 0.0137 (the codes 0.1 apart). Single mode reads its
@@ -799,108 +374,6 @@ def log_line(run: Run, stats: dict[str, float]) -> str:
                        "lr": float(f"{stats['lr']:.4g}"), "wall": round(run.wall, 1)}) + "\n"
 
 
-class Probe:
-    """A fit keeps its best state (single mode, --probe-every), scored by its own objective
-    on fixed planes and seeds, not the random ones of training, whose loss is too noisy to
-    compare. A short fit at a fit's learning rate can first move away from a code that
-    already matched well. Every score goes to log.jsonl as ``{"step", "probe"}``."""
-
-    def __init__(self, run: Run):
-        cfg, self.run = run.cfg, run
-        rng = np.random.default_rng(12345)
-        origins, axes = random_planes(4, rng, oblique_fraction=cfg.oblique, dims=cfg.dims, extent=run.extent,
-                                      grain=cfg.grain, photo_plane=bool(cfg.lattice))
-        seeds = torch.arange(4, dtype=torch.int64) + 7
-        self.pairs = run.objective.pairs  # as in training: two planes and their lattice partners
-        if self.pairs:
-            origins = torch.cat([origins[:2], lattice_partners(origins[:2], cfg.lattice, rng)])
-            seeds = seeds[:2].repeat(2)
-        self.origins, self.axes, self.seeds = origins.to(run.device), axes.to(run.device), seeds.to(run.device)
-        saved = run.probe_best
-        if saved is not None:  # a resumed pause starts from the best state before it, without a score:
-            # one costs 1.2-1.6 s of the fit lane, and the state it would score was scored at the pause
-            # or is a few steps from the last scored one (the next scheduled probe scores it)
-            self.best_score, self.best = saved["score"], {key: saved[key] for key in ("model", "code", "step")}
-        else:
-            self.best_score, self.best = self.score(), self.snapshot()
-            self.log(self.best_score)
-
-    def saved_best(self) -> dict:
-        """The best state and its score, for a paused fit's checkpoint."""
-        return {"score": self.best_score, **self.best}
-
-    def score(self) -> float:
-        """The objective on the fixed planes, at twice the training patch size."""
-        with torch.no_grad(), autocast(self.run.device, self.run.precision):
-            patches = render_slices(self.run.model.field, self.run.codes.expand(4, -1), self.seeds, self.origins,
-                                    self.axes, self.run.cfg.patch * 2).float()
-            return float(self.run.objective(patches, np.zeros(4, dtype=np.int64), pairs=self.pairs))
-
-    def snapshot(self) -> dict:
-        run = self.run
-        return {"model": {k: v.detach().clone() for k, v in run.model.state_dict().items()},
-                "code": run.codes.detach().clone(), "step": run.step}
-
-    def log(self, score: float) -> None:
-        self.run.log.write(json.dumps({"step": self.run.step, "probe": round(score, 5)}) + "\n")
-
-    def update(self) -> None:
-        """Score the current state; keep it if it beats the best so far."""
-        score = self.score()
-        self.log(score)
-        if score < self.best_score:
-            self.best_score, self.best = score, self.snapshot()
-
-    def restore_best(self) -> dict:
-        """Put the best weights and code back; returns {'score', 'step'} for the checkpoint."""
-        self._load(self.best)
-        return {"score": self.best_score, "step": self.best["step"]}
-
-    def lend_best(self, use) -> None:  # noqa: ANN001
-        """``use(model, code, step)`` with the best state in the model (code: float32 [1, C], a
-        copy), then the training state put back: a fit's interim exports what it would end on now."""
-        current = self.snapshot()
-        self._load(self.best)
-        try:
-            use(self.run.model, self.run.codes.detach().clone(), self.best["step"])
-        finally:
-            self._load(current)
-            self.run.model.train()  # an export leaves its module in eval mode
-
-    def _load(self, state: dict) -> None:
-        self.run.model.load_state_dict(state["model"])  # in place: the optimiser keeps its parameters
-        self.run.codes.data.copy_(state["code"])
-
-
-class Interim:
-    """A fit's first result, published while it goes on (``train(interim=...)``): at the first
-    probe at least ``seconds`` into the run whose best state beats the start (step > 0),
-    ``publish(model, code, step)`` gets that state, once. An upload's refinement serves it,
-    so its tiles look like the photo in about a minute instead of at the fit's end."""
-
-    def __init__(self, seconds: float, publish):  # noqa: ANN001
-        self.seconds, self.publish, self.done, self.asked = float(seconds), publish, False, False
-
-    def due(self, elapsed: float) -> bool:
-        """True once, at the first step ``seconds`` in, published or not: a probe then, off the
-        probe's schedule, if none has published yet (so the interim comes at its second and not
-        up to ``--probe-every`` steps later: 25 steps are 12 s of a CPU fit), and the fit's pause
-        asked then. A scheduled probe that started just before the second publishes after it;
-        the step after it is still due, or that fit never paused and held the uploads behind it
-        for its whole budget."""
-        if self.asked or elapsed < self.seconds:
-            return False
-        self.asked = True
-        return True
-
-    def offer(self, probe: Probe, elapsed: float) -> None:
-        """Called after each probe score, ``elapsed`` seconds into the run."""
-        if self.done or elapsed < self.seconds or probe.best["step"] == 0:
-            return
-        self.done = True
-        probe.lend_best(self.publish)
-
-
 class Budget:
     """When a run stops (--steps in total, --minutes of this run's wall time) and its progress bar.
 
@@ -1048,7 +521,7 @@ def train(cfg: TrainConfig, progress=None, interim: Interim | None = None, pause
 
 
 def main(argv=None):
-    path = train(parse_args(argv))
+    path = train(parse_args(argv, description=__doc__))
     print(f"checkpoint: {path}")
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from worker.bake import FORMATS as BAKE_FORMATS
 from worker.contract import MAX_BAKE_RESOLUTION, MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION, MIN_VOLUME_RESOLUTION
 from worker.files import extensions
-from worker.images import LIGHTING
+from worker.photo import LIGHTING
 from worker.regions import FORMATS as REGION_FORMATS
 from worker.shader import LANGUAGES
 from worker.tiles import COORD_LIMIT, PLANES, TILE_FORMATS
@@ -36,6 +36,7 @@ from worker.volume_writers import FORMATS as VOLUME_FORMATS
 from . import auth, db, processes
 from .context import build_services
 from .logs import setup_logging
+from .samplers import sampler_inputs
 from .schemas import BAKE_PROJECTIONS, bake_projection
 from .settings import FIT_SECONDS, MAX_FIT_SECONDS, Settings
 from .tables import Texture
@@ -161,15 +162,17 @@ class TextureSource:
             texture = session.get(Texture, ref)
         if texture is None:
             raise CliError(f"{ref!r} is neither an image file nor a texture id in {url}")
-        self.z, self.code = np.asarray(texture.code, np.float32), texture.sampling_code()
-        self.sampler, self.ppu = services.sampler_for(texture), services.pixels_per_unit(texture)
+        inputs = sampler_inputs(services, texture)
+        self.z = np.asarray(texture.code, np.float32)
+        self.sampler, self.code, self.ppu = inputs.sampler, inputs.code, inputs.pixels_per_unit
         self.model_version = texture.model_version
         self.structure = texture.served_structure()
         self.tileable_sampler = lambda: services.tileable_sampler_for(texture)
 
     def _encode(self, settings: Settings, path: Path, lighting: str) -> None:
         from worker.colour_match import texture_vector
-        from worker.images import encode_texture, read_image
+        from worker.encode import encode_texture
+        from worker.images import read_image
 
         if path.stat().st_size > settings.max_upload_bytes:
             raise CliError(f"{path}: {path.stat().st_size} bytes exceeds the limit of {settings.max_upload_bytes} "
@@ -192,8 +195,8 @@ class TextureSource:
         except ImportError:
             raise CliError("--refine needs PyTorch: pip install 'texspace[train]'", code=1) from None
         from worker.colour_match import texture_vector
-        from worker.images import working_photo
         from worker.contract import TILEABLE_SAMPLER
+        from worker.photo import working_photo
 
         from .job_kinds import fit_structure, fitted_colour, photo_to_fit
 

@@ -22,13 +22,15 @@ from worker.colour_match import COLOUR_CALIBRATION, calibrate_texture
 from worker.derived_maps import map_file, read_height_range
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, Paused
 from worker.files import extension, media_type
-from worker.images import read_image, working_photo, write_image
+from worker.images import read_image, write_image
+from worker.photo import working_photo
 
 from . import jobs, keys
 from .container import Services
 from .db import session_scope
 from .download_names import bake_name, region_name, sampler_name, volume_name
 from .limits import bake_limits
+from .samplers import sampler_inputs, tileable_inputs
 from .schemas import BakeParams, FitParams, RegionIn, VolumeIn, bake_projection
 from .tables import Job, Texture, utcnow
 from .vocabulary import JobKind, JobState
@@ -96,7 +98,8 @@ def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
     p = VolumeIn.model_validate(job.params)
     names = _names(volume_name, texture, resolution=p.resolution, seed=p.seed)
     out_path = workdir / f"{names[1]}{extension(p.format)}"
-    path = render_volume(services.sampler_for(texture), texture.sampling_code(), p.seed, resolution=p.resolution,
+    inputs = sampler_inputs(services, texture)
+    path = render_volume(inputs.sampler, inputs.code, p.seed, resolution=p.resolution,
                          bounds=p.bounds, fmt=p.format, out_path=out_path,
                          progress=progress, should_cancel=should_cancel)
     return _store_result(services, job, path, p.format, names)
@@ -112,14 +115,14 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
     names = _names(bake_name, texture, mesh_filename=p.filename, resolution=p.resolution, seed=p.seed)
     out_path = workdir / f"{names[1]}{extension(p.format)}"   # zip members are named after it
     limits = bake_limits(services.settings)
+    inputs = sampler_inputs(services, texture)
     scale = p.scale
     if p.unit_m is not None:  # at real size (the route checked the texture's width_m)
-        runtime = services.registry.get(texture.model_version)
-        scale = physical_scale(texture.width, texture.height, runtime.short_side, services.pixels_per_unit(texture),
-                               texture.width_m, p.unit_m)
-    result = bake_mesh(services.sampler_for(texture), texture.sampling_code(), p.seed, mesh_bytes=mesh_bytes,
+        scale = physical_scale(texture.width, texture.height, services.registry.get(texture.model_version).short_side,
+                               inputs.pixels_per_unit, texture.width_m, p.unit_m)
+    result = bake_mesh(inputs.sampler, inputs.code, p.seed, mesh_bytes=mesh_bytes,
                        filename=p.filename, resolution=p.resolution, scale=scale, fmt=p.format,
-                       out_path=out_path, limits=limits, pixels_per_unit=services.pixels_per_unit(texture),
+                       out_path=out_path, limits=limits, pixels_per_unit=inputs.pixels_per_unit,
                        atlas_cache_dir=services.settings.resolved_atlas_cache_dir,
                        atlas_cache_bytes=services.settings.atlas_cache_bytes,
                        maps=tuple(p.maps), gpu_format=p.gpu_format, normal_strength=p.normal_strength,
@@ -147,12 +150,12 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
     limits = RegionLimits(max_pixels=services.settings.max_region_pixels,
                           max_tiles=services.settings.max_region_tiles)
     # tileable: the texture's sampler_tileable.onnx, its period the image's side
-    sampler = services.tileable_sampler_for(texture) if p.tileable else services.sampler_for(texture)
-    path = render_region(sampler, texture.sampling_code(), p.seed, z=p.z, x0=p.x0, y0=p.y0, width=p.width,
+    inputs = tileable_inputs(services, texture) if p.tileable else sampler_inputs(services, texture)
+    path = render_region(inputs.sampler, inputs.code, p.seed, z=p.z, x0=p.x0, y0=p.y0, width=p.width,
                          height=p.height, fmt=p.format, out_path=out_path, size=p.size, min_zoom=p.min_zoom,
                          plane=p.plane, offset=p.offset, maps=maps, normal_strength=p.normal_strength,
                          wrap_maps=p.tileable, tileable=p.tileable,
-                         pixels_per_unit=services.pixels_per_unit(texture), limits=limits,
+                         pixels_per_unit=inputs.pixels_per_unit, limits=limits,
                          progress=progress, should_cancel=should_cancel)
     return _store_result(services, job, path, fmt, names, zipped_height_range(path) if "height" in maps else None)
 

@@ -28,7 +28,8 @@ from sqlalchemy import func, or_, select
 from sqlalchemy.orm import load_only
 
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures, calibrate_texture
-from worker.images import read_image, working_photo
+from worker.images import read_image
+from worker.photo import working_photo
 
 from .db import session_scope
 from .job_kinds import fitted_colour

@@ -23,7 +23,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import load_only
 
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures
-from worker.images import encode_texture, read_image
+from worker.encode import encode_texture
+from worker.images import read_image
 
 from . import jobs, keys
 from .db import session_scope

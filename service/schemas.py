@@ -12,7 +12,7 @@ from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_S
 from worker.bake import FORMATS as BAKE_FORMATS
 from worker.triplanar import PROJECTIONS
 from worker.gpu_textures import FORMATS as GPU_FORMATS
-from worker.images import LIGHTING
+from worker.photo import LIGHTING
 from worker.regions import FORMATS as REGION_FORMATS
 from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
 from worker.volume_writers import FORMATS as VOLUME_FORMATS

@@ -19,6 +19,7 @@ from worker.errors import Busy
 from worker.shader import emit_shader, shader_name
 
 from .container import Services
+from .samplers import sampler_inputs, sampling_code
 from .tables import Texture
 from .tilecache import TileCache
 
@@ -95,16 +96,16 @@ SOURCES = ShaderSources()
 def shader_etag(texture: Texture, language: str) -> str:
     """Strong ETag of a texture's shader: the inputs of its text (the texture's id is in the URL)."""
     key = "|".join((SHADER_VERSION, language, texture.model_version, texture.sampler_key or ""))
-    return '"' + hashlib.sha256(key.encode() + texture.sampling_code().tobytes()).hexdigest()[:32] + '"'
+    return '"' + hashlib.sha256(key.encode() + sampling_code(texture).tobytes()).hexdigest()[:32] + '"'
 
 
 def shader_source(services: Services, texture: Texture, language: str) -> bytes:
     """The texture's shader in ``language`` (UTF-8), from SOURCES or generated (Busy when
     too many wait)."""
     def make() -> bytes:
-        sampler = services.sampler_for(texture)
-        path = getattr(sampler, "sampler", sampler).path  # a model's runtime, or a fitted SamplerSession
+        inputs = sampler_inputs(services, texture)
+        path = getattr(inputs.sampler, "sampler", inputs.sampler).path  # a model's runtime, or a fitted SamplerSession
         header = f"texspace texture {texture.id}, model {texture.model_version}"
-        return emit_shader(path, texture.sampling_code(), shader_name(texture.id), language, header=header).encode()
+        return emit_shader(path, inputs.code, shader_name(texture.id), language, header=header).encode()
 
     return SOURCES.get(f"{texture.id}|{shader_etag(texture, language)}", make)

@@ -9,11 +9,8 @@ import datetime as dt
 import uuid
 from typing import Any
 
-import numpy as np
 from sqlalchemy import JSON, Boolean, DateTime, Float, Integer, String, Text, TypeDecorator, false
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
-
-from worker.colour_match import texture_vector
 
 from .vocabulary import JobState
 
@@ -104,7 +101,7 @@ class Texture(Base):
     # "lean": [degrees, stretch] | None (absent in rows from before: None),
     # "lattice": [ax, ay, bx, by] world units | None}. None for the encoder's code.
     structure: Mapped[dict | None] = mapped_column(JSON, nullable=True)
-    # How its photo is taken when encoded or fitted (worker.images.LIGHTING): "as-is", or
+    # How its photo is taken when encoded or fitted (worker.photo.LIGHTING): "as-is", or
     # "even" (its smooth shading divided out). The stored photo itself is never changed.
     lighting: Mapped[str] = mapped_column(String(8), default="as-is", server_default="as-is")
     # True while sampler_key is the interim a running refinement published part way through
@@ -112,10 +109,6 @@ class Texture(Base):
     sampler_interim: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
     updated_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow, onupdate=utcnow)
-
-    def sampling_code(self) -> np.ndarray:
-        """What this texture's sampler takes as its code: z, then the colour table if any."""
-        return texture_vector(self.code, self.colour)
 
     def refinement_may_replace_sampler(self) -> bool:
         """True while an in-place refinement may still give this texture another sampler: it

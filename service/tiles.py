@@ -24,6 +24,7 @@ from worker.tiles import NATIVE_ZOOM, exact_parent, parent_from_children, render
 from . import jobs
 from .container import Services
 from .errors import ClientGone
+from .samplers import sampler_inputs, sampling_code
 from .settings import Settings
 from .tables import Texture
 from .tilecache import TileCache
@@ -348,7 +349,7 @@ def tile_etag(texture: Texture, *, z: int, x: int, y: int, size: int, seed: int,
     mode = zoom_out if z < NATIVE_ZOOM and zoom_out != "supersample" else ""
     parts = (TILE_RENDER_VERSION, texture.model_version, texture.id, texture.sampler_key or "",
              seed, z, x, y, size, plane, repr(float(offset)), fmt) + ((mode,) if mode else ())
-    digest = hashlib.sha256("|".join(map(str, parts)).encode() + texture.sampling_code().tobytes())
+    digest = hashlib.sha256("|".join(map(str, parts)).encode() + sampling_code(texture).tobytes())
     return '"' + digest.hexdigest()[:32] + '"'
 
 
@@ -479,8 +480,9 @@ def render_tile_bytes(services: Services, texture: Texture, *, z: int, x: int, y
     ``background``: each band first waits for interactive tiles (BACKGROUND_YIELD_SECONDS)."""
     started = time.perf_counter()
     zoom_out = zoom_out or final_zoom_out(services.settings)
-    args = (services.sampler_for(texture), texture.sampling_code(), seed, z, x, y, size)
-    kwargs = dict(pixels_per_unit=services.pixels_per_unit(texture), plane=plane, offset=offset,
+    inputs = sampler_inputs(services, texture)
+    args = (inputs.sampler, inputs.code, seed, z, x, y, size)
+    kwargs = dict(pixels_per_unit=inputs.pixels_per_unit, plane=plane, offset=offset,
                   zoom_out=zoom_out, band_samples=BAND_SAMPLES)
 
     def check_cancel() -> None:

@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 
 from service import spawn
-from worker.decode import working_shape
+from worker.photo import working_shape
 
 PG_ADMIN_URL = os.environ.get("TEXSPACE_TEST_PG_URL", "postgresql://postgres@127.0.0.1:5432/test")
 REDIS_URL = os.environ.get("TEXSPACE_TEST_REDIS_URL", "redis://127.0.0.1:6379/0")
@@ -75,7 +75,7 @@ def wait_ready(base_url: str, procs: Iterable[subprocess.Popen], timeout: float,
 
 def pillow_lanczos(rgb8: np.ndarray, short_side: int) -> np.ndarray:
     """Pillow's 8-bit Lanczos resize to the working resolution, the resize the shipped space
-    was trained through (the oracle ``worker.decode.resize_short_side`` is held to)."""
+    was trained through (the oracle ``worker.photo.resize_short_side`` is held to)."""
     rows, cols = working_shape(*rgb8.shape[:2], short_side)
     if (rows, cols) != rgb8.shape[:2]:
         rgb8 = np.asarray(Image.fromarray(rgb8).resize((cols, rows), Image.Resampling.LANCZOS))

@@ -6,8 +6,9 @@ circle), and:
   the services container at the bottom, domain modules above them, process wiring above
   those, the CLI at the top;
 * ``worker/`` never imports ``service/``; ``model/`` never imports ``service/``, and of
-  ``worker/`` only the leaves (``WORKER_LEAVES``: the one image reader, the sRGB curves, the
-  domain errors, the names and bounds the parts agree on), which import nothing of the project but each other and no onnxruntime,
+  ``worker/`` only the leaves (``WORKER_LEAVES``: the one image reader, the working-resolution
+  photo, the sRGB curves, the domain errors, the names and bounds the parts agree on), which
+  import nothing of the project but each other and no onnxruntime,
   scikit-image or torch, so that training reads photos exactly as an upload is read;
 * torch is imported only under ``model/`` (the service and the worker run on ONNX).
 """
@@ -30,7 +31,7 @@ LAYERS = (
 
 
 #: modules of worker/ that model/ may import: numpy / OpenImageIO / Pillow / stdlib, and each other
-WORKER_LEAVES = {"worker.decode", "worker.colour", "worker.errors", "worker.contract"}
+WORKER_LEAVES = {"worker.decode", "worker.photo", "worker.colour", "worker.errors", "worker.contract"}
 LEAF_THIRD_PARTY = {"numpy", "OpenImageIO", "PIL"}
 
 

@@ -156,7 +156,7 @@ def calibrate_texture(sampler, code: np.ndarray, image: np.ndarray, curves: str 
 
     sampler : a SamplerSession (worker/runtime.py) whose graph has a colour input.
     image : (H, W, 3) float32 sRGB 0..1, the texture's exemplar at the model's working
-        resolution (``worker.images.resize_short_side(image, exemplar_short_side)``).
+        resolution (``worker.photo.resize_short_side(image, exemplar_short_side)``).
     Returns (sampler.colour_size,) float32; empty (0,) when the sampler has no colour stage.
     """
     size = getattr(sampler, "colour_size", 0)

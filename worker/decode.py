@@ -1,8 +1,7 @@
-"""The one image reader: upload, fit, training and evaluation all decode through ``read_image``,
-bring a photo to the model's working resolution through ``resize_short_side`` and cut the
-encoder's crops from it with ``encoder_crops`` (an upload's code and a fit's first code alike).
+"""The one image reader: upload, fit, training and evaluation all decode through ``read_image``
+(what they do with the pixels next, at the model's working resolution, is ``worker.photo``'s).
 
-A leaf module: numpy, OpenImageIO, Pillow and the standard library, plus the two other leaves
+A leaf module: numpy, OpenImageIO and the standard library, plus the two other leaves
 ``worker.errors`` and ``worker.colour`` (neither imports anything of the project), so
 ``model/`` may import it without reaching the rest of ``worker/`` (onnxruntime,
 scikit-image; tests/test_imports.py holds the rule).
@@ -41,7 +40,6 @@ import weakref
 
 import numpy as np
 import OpenImageIO as oiio
-from PIL import Image
 
 from worker.colour import linear_to_srgb, srgb_to_linear
 from worker.errors import Busy, InvalidImage, LimitExceeded
@@ -49,8 +47,6 @@ from worker.errors import Busy, InvalidImage, LimitExceeded
 MIN_SIDE = 16             # smaller uploads carry no usable texture
 MAX_ASPECT = 16           # long side / short side of an upload (else upscaling explodes)
 DECODE_BAND_PIXELS = 1 << 20   # pixels decoded (as float) at a time
-RESIZE_DIRECT_PIXELS = 1 << 22  # larger images are box-reduced in bands before resizing
-MAX_WORK_PIXELS = 1 << 24       # resize_short_side refuses to produce more pixels than this
 MID_GREY = np.float32(0.5)
 SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".webp", ".gif", ".bmp")  # names of those formats
 _MAGIC = (  # (prefix, offset, extension)
@@ -214,77 +210,3 @@ def _to_srgb_rgb(px: np.ndarray, is_float: bool, alpha_channel: int) -> np.ndarr
     if is_float:
         rgb = linear_to_srgb(rgb)
     return np.clip(rgb, 0.0, 1.0).astype(np.float32, copy=False)
-
-
-def working_shape(height: int, width: int, short_side: int) -> tuple[int, int]:
-    """(rows, cols) of an image of that size resized so its shorter side is ``short_side``
-    (the longer side rounded, never below the shorter)."""
-    scale = short_side / min(height, width)
-    return max(short_side, round(height * scale)), max(short_side, round(width * scale))
-
-
-def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
-    """Resize (H, W, 3) float32 sRGB 0..1 so min(H, W) == short_side: the model's working
-    resolution, for training, fitting, the upload's encoder crops and colour table, and
-    evaluation alike.
-
-    Lanczos-3 (Pillow's filter, support widened by the shrink factor): a pass along x, then
-    one along y, each clipped to 0..1, as the 8-bit Pillow resize the space was trained
-    through does. Another filter is not a detail: the upload path once used scikit-image's
-    bilinear resize with a Gaussian pre-blur, and on the validation gravel the VGG Gram error
-    between the two 256-px versions of the same photo (1.55) was most of a fit's error
-    against it (1.9): the encoder and the fits were judged against a softer photo than the
-    one they learnt from. Images over ``RESIZE_DIRECT_PIXELS`` that shrink by 2 or more are
-    first box-reduced in bands (bounded memory) to a short side in [short_side,
-    2 * short_side)."""
-    h, w = image.shape[:2]
-    shape = working_shape(h, w, short_side)
-    if shape == (h, w):
-        return image
-    if shape[0] * shape[1] > MAX_WORK_PIXELS:
-        raise LimitExceeded(f"resizing {w}x{h} to a short side of {short_side} gives "
-                            f"{shape[0] * shape[1]} pixels, limit is {MAX_WORK_PIXELS}")
-    factor = min(h, w) // short_side
-    if h * w > RESIZE_DIRECT_PIXELS and factor >= 2:
-        image = _box_reduce(image, factor)
-    out = np.empty(shape + (3,), np.float32)
-    for c in range(3):
-        channel = Image.fromarray(np.ascontiguousarray(image[..., c], dtype=np.float32))
-        across = np.clip(np.asarray(channel.resize((shape[1], channel.height), Image.Resampling.LANCZOS)), 0, 1)
-        down = Image.fromarray(across).resize((shape[1], shape[0]), Image.Resampling.LANCZOS)
-        out[..., c] = np.clip(np.asarray(down), 0, 1)
-    return out
-
-
-def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: int = 3) -> np.ndarray:
-    """Crops of an sRGB image for the encoder.
-
-    The image is resized so its shorter side is ``max(short_side, size)`` (the model's
-    working resolution: features keep the scale seen in training), then a regular
-    ``grid x grid`` lattice of ``size`` crops is taken, first and last flush with the
-    borders, evenly spaced between (a side with room for only one crop gives one
-    position; duplicates are dropped). Values map 0..1 -> -1..1 (``2x - 1``).
-
-    image : (H, W, 3) float32 sRGB 0..1. Returns (N, 3, size, size) float32, N <= grid^2.
-    """
-    work = resize_short_side(image, max(short_side, size))
-    h, w = work.shape[:2]
-    rows = np.unique(np.round(np.linspace(0, h - size, grid)).astype(int))
-    cols = np.unique(np.round(np.linspace(0, w - size, grid)).astype(int))
-    windows = np.lib.stride_tricks.sliding_window_view(work, (size, size), axis=(0, 1))
-    crops = windows[rows[:, None], cols[None, :]]          # (R, C, 3, size, size)
-    crops = crops.reshape(-1, 3, size, size)
-    return (crops * np.float32(2) - np.float32(1)).astype(np.float32)
-
-
-def _box_reduce(image: np.ndarray, factor: int) -> np.ndarray:
-    """Mean of factor x factor blocks of (H, W, 3) float32, a band of rows at a time
-    (trailing rows / columns that fill no whole block are dropped)."""
-    h, w = image.shape[0] // factor, image.shape[1] // factor
-    out = np.empty((h, w, 3), dtype=np.float32)
-    rows = max(1, DECODE_BAND_PIXELS // (w * factor * factor))
-    for r0 in range(0, h, rows):
-        r1 = min(h, r0 + rows)
-        band = image[r0 * factor:r1 * factor, :w * factor]
-        out[r0:r1] = band.reshape(r1 - r0, factor, w, factor, 3).mean(axis=(1, 3), dtype=np.float32)
-    return out

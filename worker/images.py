@@ -1,4 +1,4 @@
-"""Image I/O: decoding uploads, preparing encoder crops, encoding outputs.
+"""Image I/O: decoding uploads, encoding outputs.
 
 Reading (``read_image``) is ``worker/decode.py``'s, the one reader that fitting,
 training and evaluation use too (its docstring gives the conventions: float32 (H, W, 3)
@@ -8,15 +8,14 @@ concurrent decodes hold at most that many pixels together; a decode waits for ro
 most ``wait_seconds`` behind at most ``max_waiting`` others, else it raises ``Busy``
 (503 + Retry-After): a waiting upload holds a threadpool thread and its bytes.
 
-Preparing: ``working_photo`` is the photo as a texture is encoded and fitted from (the
-working resolution; with ``lighting="even"``, its smooth shading divided out by
-``even_lighting``); ``encode_texture`` turns it into a code and a colour table.
+What happens to a photo between the two (its working resolution, evened lighting, the
+encoder's crops, its code and colour table) is ``worker.photo``'s and ``worker.encode``'s.
 
 Writing (``write_image``) takes *linear* float RGB (the sampler's output) and returns
-bytes: PNG / WebP / JPEG are 8-bit sRGB (PNG: ``png_bytes``, Up filter + fast deflate;
-WebP / JPEG: Pillow; in memory, no metadata), EXR is half
-float linear (OIIO, zip), TIFF is 16-bit sRGB (OIIO, zip). No timestamps are written,
-so the same pixels always give the same bytes.
+bytes, its colour encoded first, then the file: PNG / WebP / JPEG are 8-bit sRGB (PNG:
+``png_bytes``, Up filter + fast deflate; WebP / JPEG: Pillow; in memory, no metadata), EXR
+is half float linear (OIIO, zip), TIFF is 16-bit sRGB (OIIO, zip). No timestamps are
+written, so the same pixels always give the same bytes.
 """
 from __future__ import annotations
 
@@ -33,21 +32,12 @@ from PIL import Image
 from skimage.transform import resize
 
 from worker import decode
-from worker.colour import even_lighting, linear_to_srgb, linear_to_srgb8, srgb_to_linear
-from worker.colour_match import calibrate_texture
-# resize_short_side and encoder_crops live beside the reader, which training and fits share
-from worker.decode import (MIN_SIDE, PixelBudget, encoder_crops, resize_short_side,
-                           sniff_format)  # noqa: F401 (sniff_format: API)
+from worker.colour import linear_to_srgb, linear_to_srgb8, srgb_to_linear
+from worker.decode import MIN_SIDE, PixelBudget
 from worker.errors import InvalidParameter
 from worker.files import IMAGE_DATETIME
-from worker.runtime import ModelRuntime
 
 OUTPUT_FORMATS = ("png", "webp", "jpeg", "exr", "tiff")
-# How an upload's photo is lit: "as-is" (taken as it is) or "even" (its smooth shading divided
-# out first: ``even_lighting``). Photo-sourced textures often carry a light falloff; without
-# evening, a shaded photo's tiles show its light and dark sides as blotches (a grass photo's
-# style error 0.014 -> 0.053; evened 0.030). Off by default: evening flattens a material's own tone.
-LIGHTING = ("as-is", "even")
 _budget: PixelBudget | None = None
 
 
@@ -68,36 +58,6 @@ def read_image(data: bytes, *, max_pixels: int, min_side: int = MIN_SIDE) -> np.
     return decode.read_image(data, max_pixels=max_pixels, min_side=min_side, budget=_budget)
 
 
-def encode_image(runtime: ModelRuntime, image: np.ndarray, *, grid: int = 3) -> np.ndarray:
-    """Texture code of an sRGB image: the mean of its crops' codes. Returns (8,) float32."""
-    crops = encoder_crops(image, short_side=runtime.short_side, size=runtime.input_size, grid=grid)
-    return runtime.encode(crops).mean(axis=0).astype(np.float32)
-
-
-def working_photo(image: np.ndarray, short_side: int, lighting: str = "as-is") -> np.ndarray:
-    """The photo as a texture is encoded and fitted from: at the model's working resolution
-    (``resize_short_side``), its shading evened out where ``lighting`` is "even" (evening
-    after the resize is the same, shading being smooth, and far cheaper)."""
-    if lighting not in LIGHTING:
-        raise InvalidParameter(f"lighting must be one of {', '.join(LIGHTING)}, got {lighting!r}")
-    working = resize_short_side(image, short_side)
-    return even_lighting(working) if lighting == "even" else working
-
-
-def encode_texture(runtime: ModelRuntime, image: np.ndarray, lighting: str = "as-is") -> tuple[np.ndarray, np.ndarray]:
-    """What a texture stores of an sRGB photo: its code (8,) float32 and its colour table
-    for the model's sampler (worker/colour_match.py; empty if the sampler has no colour stage),
-    from the photo as ``working_photo`` gives it."""
-    working = working_photo(image, runtime.short_side, lighting)
-    # The crops are cut at max(short_side, input size): where the crop fits (every model so
-    # far), that is the working image itself, so the photo is resized once, not twice.
-    if runtime.short_side >= runtime.input_size:
-        code = encode_image(runtime, working)
-    else:  # crops larger than the working image: cut from the photo (evened as a whole)
-        code = encode_image(runtime, even_lighting(image) if lighting == "even" else image)
-    return code, calibrate_texture(runtime.sampler, code, working)
-
-
 def write_image(rgb: np.ndarray, fmt: str, *, colour: str = "linear", quality: int = 90) -> bytes:
     """Encode an image to bytes.
 
@@ -112,21 +72,23 @@ def write_image(rgb: np.ndarray, fmt: str, *, colour: str = "linear", quality: i
     rgb = np.asarray(rgb, dtype=np.float32)
     if rgb.ndim != 3 or rgb.shape[2] != 3:
         raise InvalidParameter(f"rgb must be (H, W, 3), got {rgb.shape}")
-    if fmt == "exr":
-        linear = rgb if colour == "linear" else srgb_to_linear(rgb)
-        return _write_oiio(linear, "exr", "half", {"compression": "zip"})
-    if fmt == "tiff":
+    if fmt == "exr":  # half float linear
+        pixels = rgb if colour == "linear" else srgb_to_linear(rgb)
+    elif fmt == "tiff":  # 16-bit sRGB
         srgb = linear_to_srgb(rgb) if colour == "linear" else np.clip(rgb, 0, 1)
-        srgb16 = (srgb * 65535 + 0.5).astype(np.uint16)
-        return _write_oiio(srgb16, "tif", "uint16", {"compression": "zip", "oiio:ColorSpace": "sRGB"})
-    if colour == "linear":
-        srgb8 = linear_to_srgb8(rgb)
+        pixels = (srgb * 65535 + 0.5).astype(np.uint16)
+    elif colour == "linear":  # 8-bit sRGB
+        pixels = linear_to_srgb8(rgb)
     else:
-        srgb8 = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+        pixels = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+    if fmt == "exr":
+        return _write_oiio(pixels, "exr", "half", {"compression": "zip"})
+    if fmt == "tiff":
+        return _write_oiio(pixels, "tif", "uint16", {"compression": "zip", "oiio:ColorSpace": "sRGB"})
     if fmt == "png":
-        return png_bytes(srgb8)
+        return png_bytes(pixels)
     buf = io.BytesIO()
-    pil = Image.fromarray(srgb8, "RGB")
+    pil = Image.fromarray(pixels, "RGB")
     if fmt == "webp":
         pil.save(buf, "WEBP", quality=quality, method=4)
     else:

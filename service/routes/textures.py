@@ -1,7 +1,6 @@
 """Textures: upload (encode), list, read, rename, delete, exemplar, interpolate, shader."""
 from __future__ import annotations
 
-import hashlib
 import logging
 from typing import Annotated, Literal
 
@@ -11,8 +10,11 @@ from sqlalchemy import select
 
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures
 from worker.contract import MAX_WIDTH_M
+from worker.decode import sniff_format
+from worker.encode import encode_texture
 from worker.files import media_type, media_type_of_extension
-from worker.images import LIGHTING, encode_texture, read_image, sniff_format
+from worker.images import read_image
+from worker.photo import LIGHTING
 from worker.shader import LANGUAGES
 
 from .. import auth, jobs, keys

@@ -13,7 +13,8 @@ import pytest
 import torch
 from PIL import Image
 
-from model.train import TrainConfig, build, parse_args
+from model.train import build
+from model.train_config import TrainConfig, parse_args
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -8,12 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch", reason="model tests need the train extra")
-
 
 @pytest.fixture(scope="session")
 def vgg():
     """Frozen VGG16 returning the Gatys layers relu1_1..relu5_1."""
+    torch = pytest.importorskip("torch", reason="model tests need the train extra")
     from model.vgg import shared_vgg
 
     torch.set_num_threads(2)

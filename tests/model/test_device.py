@@ -9,7 +9,9 @@ torch = pytest.importorskip("torch")
 
 from model.fit import fit_exemplar, main as fit_main  # noqa: E402
 from model.networks import ModelConfig, TextureSpace, load_checkpoint  # noqa: E402
-from model.train import Objective, main as train_main, resolve_device  # noqa: E402
+from model.device import resolve_device  # noqa: E402
+from model.objective import Objective  # noqa: E402
+from model.train import main as train_main  # noqa: E402
 from model.vgg import shared_vgg  # noqa: E402
 
 TINY = ["--patch", "32", "--batch", "1", "--short-side", "128", "--crop", "64", "--quiet",

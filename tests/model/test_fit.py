@@ -245,7 +245,7 @@ def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, 
 
 
 def test_mean_cell_holds_the_grout_where_the_photo_has_it_and_reads_back_between_samples():
-    from model.train import lattice_mean_cell
+    from model.lattice import lattice_mean_cell
 
     rng = np.random.default_rng(0)
     photo = 0.8 + 0.05 * rng.standard_normal((128, 160, 3)).astype(np.float32)  # marbling: averages away
@@ -286,7 +286,8 @@ def test_a_lattice_fit_starts_drawing_the_mean_cell_dark_where_it_is_dark() -> N
     """start_on_mean_cell: from zero cell weights, the field's colour follows the mean cell's
     colour at each point's phase (same sign, about ``share`` of the texture's spread), and
     the rest of the texture makes room for it (the total spread stays about the same)."""
-    from model.train import mean_cell_share, start_on_mean_cell
+    from model.lattice import mean_cell_share
+    from model.train import start_on_mean_cell
 
     torch.manual_seed(0)
     lattice = (0.25, 0.0, 0.0, 0.25)
@@ -344,7 +345,8 @@ def test_a_fit_starts_from_the_code_an_upload_gets(tmp_path, skimage_textures):
     exported ONNX one), so a fit that keeps its start serves what the upload served."""
     from model.networks import load_checkpoint
     from model.train import initial_code
-    from worker.images import encode_image, resize_short_side
+    from worker.encode import encode_image
+    from worker.photo import resize_short_side
     from worker.runtime import ModelRuntime
 
     model, _ = load_checkpoint(space_checkpoint(tmp_path))

@@ -6,18 +6,16 @@ import numpy as np
 from scipy import ndimage
 import pytest
 
-pytest.importorskip("torch")  # model/structure.py folds lattices with model/train.py's helpers
-
-from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,  # noqa: E402
+from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,
                              detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
                              grain_turn, leaning_grain, photo_lean, photo_structure, same_lattice, shortest_basis,
                              straighten)
-from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,  # noqa: E402
+from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,
                              detect_direction_lattice, detect_long_lattice, peak_height, pixel_noise,
                              luminance_correlation, stripe_normal)
-from tests.model.photos import (banded_motifs, boards, corrugation, fibres, hexagonal_tiles, parquet,  # noqa: E402
+from tests.model.photos import (banded_motifs, boards, corrugation, fibres, hexagonal_tiles, parquet,
                                 running_bond, streaks)
-from worker.colour import even_lighting  # noqa: E402
+from worker.colour import even_lighting
 
 
 def test_detect_grain_finds_axis_aligned_streaks_only(skimage_textures):
@@ -459,7 +457,7 @@ def test_detect_even_tells_gravel_from_a_photo_with_large_patches(skimage_textur
     """Gravel at the working resolution is even at 32 px and larger (its 512-px original,
     pebbles twice the size, is not); the same gravel under a slow light-dark wave is not,
     nor is a flat photo (nothing varies)."""
-    from worker.decode import resize_short_side
+    from worker.photo import resize_short_side
 
     assert not detect_even(skimage_textures["gravel"])
     gravel = resize_short_side(skimage_textures["gravel"], 256)

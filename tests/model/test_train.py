@@ -11,11 +11,14 @@ from PIL import Image
 
 torch = pytest.importorskip("torch")
 
-from model.networks import VARIANTS, ModelConfig, TextureSpace, load_checkpoint  # noqa: E402
+from model.config import VARIANTS  # noqa: E402
+from model.networks import ModelConfig, TextureSpace, load_checkpoint  # noqa: E402
 from model.slices import random_planes, render_slices  # noqa: E402
 from model.vgg import shared_vgg  # noqa: E402
-from model.train import (LATTICE_CONTRAST_WEIGHT, Objective, TrainConfig, lattice_contrast,  # noqa: E402
-                         lattice_partners, main as train_main, parse_args, train)
+from model.objective import LATTICE_CONTRAST_WEIGHT, Objective  # noqa: E402
+from model.slices import lattice_partners  # noqa: E402
+from model.train import main as train_main, train  # noqa: E402
+from model.train_config import TrainConfig, parse_args  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -81,17 +84,6 @@ def test_probe_keeps_the_best_scoring_state(tmp_path, brick, vgg):
     best = min(scores, key=lambda s: s["probe"])
     assert ckpt["probe"]["step"] == best["step"] and ckpt["step"] == 4
     assert abs(ckpt["probe"]["score"] - best["probe"]) < 1e-4
-
-
-def test_lattice_contrast_counts_what_differs_between_repeats_not_the_grid():
-    rng = np.random.default_rng(0)
-    grid = np.ones((128, 128, 3), np.float32)
-    grid[::16] = grid[:, ::16] = 0.2  # grout every 16 px
-    assert lattice_contrast(grid, (16.0, 0.0, 0.0, 16.0)) == 0.0
-    assert lattice_contrast(grid, (15.6, 0.0, 0.3, 16.4)) == 0.0  # a vector a fraction of a pixel off
-    marbled = grid + 0.1 * np.kron(rng.standard_normal((8, 8, 1)), np.ones((16, 16, 3))).astype(np.float32)
-    # each tile its own shade: neighbours differ by 0.1^2 * 2 per channel, 3 channels
-    assert lattice_contrast(marbled, (16.0, 0.0, 0.0, 16.0)) == pytest.approx(0.06, rel=0.35)
 
 
 def test_lattice_partners_share_the_phases_not_the_place():
@@ -311,7 +303,7 @@ def test_lend_best_hands_the_best_state_and_puts_the_training_state_back():
     was (weights, code, train mode), and the optimiser still holds the same parameters."""
     from types import SimpleNamespace
 
-    from model.train import Probe
+    from model.probe import Probe
 
     model = torch.nn.Linear(2, 2)
     codes = torch.nn.Parameter(torch.zeros(1, 8))
@@ -333,7 +325,7 @@ def test_lend_best_hands_the_best_state_and_puts_the_training_state_back():
 def test_an_interim_is_published_once_at_the_first_probe_that_beats_the_start(tmp_path, brick, vgg):
     """train(interim=Interim(0, ...)) in a fit: one call, at the first probe whose best state
     is past step 0, with that state; training goes on to its last step afterwards."""
-    from model.train import Interim
+    from model.probe import Interim
 
     image = tmp_path / "brick.png"
     Image.fromarray((brick * 255).astype(np.uint8)).save(image)
@@ -355,7 +347,7 @@ def test_an_interim_is_published_once_at_the_first_probe_that_beats_the_start(tm
 def test_an_interim_waits_for_its_seconds():
     from types import SimpleNamespace
 
-    from model.train import Interim
+    from model.probe import Interim
 
     calls = []
     interim = Interim(60.0, None)
@@ -370,15 +362,15 @@ def test_an_interim_waits_for_its_seconds():
 
 
 def test_precision_auto_follows_the_hardware_and_named_precisions_are_kept(monkeypatch):
-    from model import train as train_module
+    from model import device as device_module
 
     cpu = torch.device("cpu")
-    assert train_module.resolve_precision("fp32", cpu) is None
-    assert train_module.resolve_precision("bf16", cpu) is torch.bfloat16
-    monkeypatch.setattr(train_module, "cpu_has_native_bf16", lambda: False)  # emulated bf16: no faster
-    assert train_module.resolve_precision("auto", cpu) is None
-    monkeypatch.setattr(train_module, "cpu_has_native_bf16", lambda: True)
-    assert train_module.resolve_precision("auto", cpu) is torch.bfloat16
+    assert device_module.resolve_precision("fp32", cpu) is None
+    assert device_module.resolve_precision("bf16", cpu) is torch.bfloat16
+    monkeypatch.setattr(device_module, "cpu_has_native_bf16", lambda: False)  # emulated bf16: no faster
+    assert device_module.resolve_precision("auto", cpu) is None
+    monkeypatch.setattr(device_module, "cpu_has_native_bf16", lambda: True)
+    assert device_module.resolve_precision("auto", cpu) is torch.bfloat16
     with pytest.raises(SystemExit):
         TrainConfig(out="x", precision="fp16")
 
@@ -399,7 +391,7 @@ def test_bf16_features_are_float32_and_their_gram_loss_stays_within_a_percent(vg
 def test_a_fit_paused_after_its_interim_resumes_to_the_uninterrupted_result(tmp_path, brick, vgg):
     """train(pause=...) stops right after the interim with a resumable checkpoint; training the
     same --out again ends where one uninterrupted run ends (same steps, code and best state)."""
-    from model.train import Interim
+    from model.probe import Interim
 
     image = tmp_path / "brick.png"
     Image.fromarray((brick * 255).astype(np.uint8)).save(image)
@@ -425,7 +417,7 @@ def test_a_fit_paused_after_its_interim_resumes_to_the_uninterrupted_result(tmp_
 
 
 def test_an_interim_asks_for_one_probe_at_its_second():
-    from model.train import Interim
+    from model.probe import Interim
 
     interim = Interim(10.0, None)
     assert not interim.due(9.9)
@@ -438,7 +430,7 @@ def test_an_interim_published_by_a_probe_that_straddles_its_second_is_still_due_
     for all 90 s when its 25th step came just before the tenth second)."""
     from types import SimpleNamespace
 
-    from model.train import Interim
+    from model.probe import Interim
 
     interim = Interim(10.0, lambda *state: None)
     assert not interim.due(9.6)
@@ -462,7 +454,7 @@ def test_a_fit_pauses_at_its_interims_second_even_when_its_start_stays_best(tmp_
     """A start that stays best (rates 0 here; the validation grass in practice) publishes no
     interim; the fit still pauses at the interim's second, or it held the uploads behind it
     for its whole budget."""
-    from model.train import Interim
+    from model.probe import Interim
 
     image = tmp_path / "brick.png"
     Image.fromarray((brick * 255).astype(np.uint8)).save(image)

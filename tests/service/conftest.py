@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,7 +14,7 @@ from service.context import Services, build_services
 from service.main import create_app
 from service.settings import Settings
 from tests.helpers import brick_png, fresh_postgres_database
-from tests.service.helpers import upload_photo
+from tests.service.helpers import MODEL_DIR, fake_fit_module, upload_photo
 
 
 @pytest.fixture(scope="session")
@@ -69,3 +70,41 @@ def cli_env(tmp_path: Path, monkeypatch) -> Path:
     monkeypatch.chdir(tmp_path)
     (tmp_path / "brick.png").write_bytes(brick_png())
     return tmp_path
+
+
+@pytest.fixture
+def fit_calls(monkeypatch) -> list[dict]:
+    """model.fit is the stand-in (``fake_fit_module``: no torch, a second), torch counts as
+    installed; the calls it gets, in order. A fit publishes no interim unless the test sets
+    ``sys.modules["model.fit"].during_interim`` (or takes ``fits_publish_interims``)."""
+    calls: list[dict] = []
+    monkeypatch.setitem(sys.modules, "model.fit", fake_fit_module(calls))
+    monkeypatch.setattr("service.routes.jobs.torch_available", lambda: True)
+    monkeypatch.setattr("service.job_kinds.torch_available", lambda: True)
+    return calls
+
+
+@pytest.fixture
+def fits_publish_interims(fit_calls) -> None:
+    """Every stand-in fit given an interim hook publishes an interim and goes on."""
+    sys.modules["model.fit"].during_interim = lambda: None
+
+
+@pytest.fixture
+def refining(settings, tmp_path, fit_calls):
+    """(client, services) with auto-fit on, a model that ships a space.pt, and a queue
+    that keeps its messages until the test runs them (``run_fit_lane``)."""
+    if not all((MODEL_DIR / f).is_file() for f in ("manifest.json", "encoder.onnx", "sampler.onnx")):
+        pytest.skip(f"no model export in {MODEL_DIR}")
+    model_dir = tmp_path / "model"
+    model_dir.mkdir()
+    for name in ("manifest.json", "encoder.onnx", "sampler.onnx"):
+        (model_dir / name).write_bytes((MODEL_DIR / name).read_bytes())
+    (model_dir / "space.pt").write_bytes(b"stand-in: the fake fit never reads it")
+    settings.model_dirs = [model_dir]
+    settings.auto_fit = True
+    settings.queue_backend = "memory"
+    services = build_services(settings)
+    with TestClient(create_app(services=services)) as client:
+        yield client, services
+    services.engine.dispose()

@@ -1,25 +1,13 @@
 """``texspace tile|volume|bake|tileable|shader IMAGE --refine [SECONDS]``: the photo is fitted
 first, as an upload's refinement is, and drawn with the fitted sampler, its code and a colour
-table made for it. The fit is test_fit_grain.py's stand-in (no torch)."""
+table made for it. The fit is the stand-in of tests/service/helpers.py (no torch)."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
-
-import pytest
 
 from service.cli import main
 from service.settings import FIT_SECONDS
 from tests.service.test_cli_errors import refused, tree
-
-from .test_fit_grain import fake_fit_module
-
-
-@pytest.fixture
-def fit_calls(monkeypatch) -> list[dict]:
-    calls: list[dict] = []
-    monkeypatch.setitem(sys.modules, "model.fit", fake_fit_module(calls))
-    return calls
 
 
 def test_refine_fits_the_photo_before_it_draws(cli_env: Path, fit_calls) -> None:

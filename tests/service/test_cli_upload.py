@@ -8,7 +8,7 @@ import pytest
 
 from service import cli
 from service.client import Client
-from tests.service.conftest import brick_png
+from tests.helpers import brick_png
 
 
 @pytest.fixture

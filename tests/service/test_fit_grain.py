@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
-import types
 from pathlib import Path
 
 import numpy as np
@@ -18,74 +16,9 @@ from fastapi.testclient import TestClient
 
 from service.context import build_services
 from service.main import create_app
+from tests.service.helpers import FAKE_LATTICE, FAKE_LEAN, FAKE_MUTED, FAKE_TURN, MODEL_DIR, fake_fit_module
 
 REPO = Path(__file__).resolve().parents[2]
-MODEL_DIR = REPO / "model" / "weights"
-
-
-FAKE_LATTICE = [0.5, 0.0, -0.21875, 0.166875]
-FAKE_TURN = -6.86  # degrees a leaning grain was turned (vpython_wood_old's lean)
-FAKE_MUTED = 4  # coarse octaves an even photo's fit mutes at 256 px a unit
-FAKE_LEAN = [-39.14, 1.258]  # the validation granite's (model.structure.photo_lean)
-
-
-FAKE_INTERIM_CODE = [0.5] * 8  # the code of the stand-in's interim
-
-
-def fake_fit_module(calls: list[dict]) -> types.ModuleType:
-    """A stand-in for model.fit (no torch): it writes the shipped sampler as the fit's and
-    reports what the real one would have used. With ``module.during_interim`` set (a
-    callable), a fit given a ``interim`` hook publishes an interim first (the shipped sampler
-    again, FAKE_INTERIM_CODE, step 25) and then calls it, as the real fit goes on meanwhile;
-    unset, it publishes none (a real fit whose start stayed best until then)."""
-    def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain=None,  # noqa: ANN001, ANN202
-                     loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu", lattice=None,
-                     rate="falling", spectrum=0.0, even="auto", lean="auto", interim=None, interim_seconds=60.0,
-                     precision="auto", run_dir=None, pause=None):
-        calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),
-                      "init_checkpoint": Path(init_checkpoint),
-                      "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice, "even": even,
-                      "lean": lean, "interim": interim, "interim_seconds": interim_seconds, "device": device,
-                      "precision": precision, "pause": pause})
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        # what model.fit reports it used: the grain asked for (straightened by FAKE_TURN), a
-        # lattice when asked to detect one
-        structure = {"grain": grain if grain in ("x", "y") else None,
-                     "straightened": FAKE_TURN if grain in ("x", "y") else 0.0,
-                     "grain_stretch": 16.0 if grain in ("x", "y") else None,
-                     "lattice": FAKE_LATTICE if lattice == "auto" else None,
-                     "muted_octaves": FAKE_MUTED if even == "auto" and not grain and not lattice else 0,
-                     "lean": FAKE_LEAN if lean == "auto" and not grain and not lattice else None}
-        if interim is not None and module.during_interim is not None:
-            (out_dir / "interim").mkdir()
-            shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "interim" / "sampler.onnx")
-            interim(out_dir / "interim", FAKE_INTERIM_CODE, 25, dict(structure))
-            module.during_interim()
-        if pause is not None and pause():  # as model.fit, at the interim's second, published or not:
-            Path(run_dir).mkdir(parents=True, exist_ok=True)  # the run's state kept in run_dir, nothing exported
-            (Path(run_dir) / "checkpoint.pt").write_bytes(b"paused at step 25")
-            return {"paused": True, "steps": 25, **structure}
-        shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
-        (out_dir / "code.json").write_text(json.dumps({"code": [0.0] * 8}))
-        if progress:
-            progress(1.0)
-        return {"code": [0.0] * 8, "sampler": str(out_dir / "sampler.onnx"), "version": "fake", "steps": 1,
-                **structure}
-
-    module = types.ModuleType("model.fit")
-    module.fit_exemplar = fit_exemplar
-    module.during_interim = None
-    return module
-
-
-@pytest.fixture
-def fit_calls(monkeypatch) -> list[dict]:
-    calls: list[dict] = []
-    monkeypatch.setitem(sys.modules, "model.fit", fake_fit_module(calls))
-    monkeypatch.setattr("service.routes.jobs.torch_available", lambda: True)
-    monkeypatch.setattr("service.job_kinds.torch_available", lambda: True)
-    return calls
 
 
 @pytest.fixture
@@ -264,7 +197,8 @@ def test_fit_of_an_evened_texture_sees_the_photo_as_its_encoding_did(fit_client,
     """A texture uploaded with lighting=even is fitted from its evened photo at the working
     resolution (16-bit TIFF; model.fit reads it with the service's reader), its colour table
     made from the same; the texture keeps the photo that was sent."""
-    from worker.images import read_image, working_photo
+    from worker.images import read_image
+    from worker.photo import working_photo
     from tests.helpers import shaded_png
 
     shaded = shaded_png()

@@ -3,43 +3,20 @@ its own (a refinement pauses after its interim, its state stored, and a continua
 it); among tenants, the one whose fits ran least recently goes first; the texture says where
 its refinement stands (position, estimates).
 
-The fit is the stand-in of test_fit_grain.py (no torch), which pauses as model.fit does when
+The fit is the stand-in of tests/service/helpers.py (no torch), which pauses as model.fit does when
 asked to after its interim; the queue keeps its messages (MemoryHuey) until a test runs them.
 """
 from __future__ import annotations
-
-import datetime as dt
-import sys
 
 import pytest
 
 from service import jobs, keys
 from service.db import session_scope
 from service.tables import Job, utcnow
-from tests.service.helpers import upload_photo
+from tests.service.helpers import FAKE_INTERIM_CODE, add_fit, drain_fit_lane, run_fit_lane, upload_photo
 
-from .test_refinement import refining, run_fit_lane  # noqa: F401 (fixtures)
-from .test_fit_grain import FAKE_INTERIM_CODE
-
-
-@pytest.fixture
-def fit_calls(monkeypatch) -> list[dict]:
-    from .test_fit_grain import fake_fit_module
-
-    calls: list[dict] = []
-    module = fake_fit_module(calls)
-    module.during_interim = lambda: None  # every fit publishes an interim
-    monkeypatch.setitem(sys.modules, "model.fit", module)
-    monkeypatch.setattr("service.job_kinds.torch_available", lambda: True)
-    return calls
-
-
-def drain_fit_lane(services, limit: int = 20) -> None:
-    for _ in range(limit):
-        if not services.fit_huey.pending_count():
-            return
-        run_fit_lane(services)
-    pytest.fail("the fit lane never emptied")
+# every fit publishes its interim before it pauses or goes on
+pytestmark = pytest.mark.usefixtures("fits_publish_interims")
 
 
 def test_waiting_uploads_reach_their_interims_before_any_fit_goes_on(refining, photo, fit_calls) -> None:
@@ -73,14 +50,6 @@ def test_a_paused_refinement_serves_its_interim_and_says_so(refining, photo, fit
     assert services.storage.exists(keys.paused_fit_key(first["refinement"]["job_id"]))
     second_now = client.get(f"/v1/textures/{second['id']}").json()["refinement"]
     assert second_now["queue_position"] == 0  # the second upload's first stage goes before the continuation
-
-
-def add_fit(services, owner: str | None, minutes_ago: float, **values) -> str:
-    job = Job(kind="fit", texture_id=None, params={"in_place": True, "seconds": 90.0}, state="queued",
-              owner_id=owner, created_at=utcnow() - dt.timedelta(minutes=minutes_ago), **values)
-    with session_scope(services.sessions) as session:
-        session.add(job)
-    return job.id
 
 
 def test_one_tenants_burst_delays_another_tenants_first_refinement_by_one_fit(refining) -> None:

@@ -9,10 +9,10 @@ import pytest
 from service import jobs, limits
 from service.auth import owner_var
 from service.errors import Problem
-from tests.service.helpers import upload_photo
+from tests.service.helpers import add_fit, drain_fit_lane, upload_photo
 
-from .test_fit_lane import add_fit, drain_fit_lane, fit_calls  # noqa: F401 (fixtures)
-from .test_refinement import refining  # noqa: F401 (fixture)
+# every fit publishes its interim before it pauses or goes on, as in test_fit_lane.py
+pytestmark = pytest.mark.usefixtures("fits_publish_interims")
 
 
 def as_tenant(owner: str | None):  # noqa: ANN201

@@ -22,7 +22,9 @@ from service.tables import Texture
 from tests.helpers import brick_png
 from tests.service.test_model_versions import second_model
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures, calibrate_texture, identity_colour
-from worker.images import encode_texture, read_image, working_photo
+from worker.encode import encode_texture
+from worker.images import read_image
+from worker.photo import working_photo
 from worker.runtime import SamplerSession
 
 TILE = "/v1/textures/{}/tiles/6/0/0.png?size=64"

@@ -20,7 +20,8 @@ from service.tables import Job, Texture
 from tests.helpers import brick_png
 from tests.service.test_model_versions import second_model
 from worker.colour_match import blend_textures
-from worker.images import encode_texture, read_image
+from worker.encode import encode_texture
+from worker.images import read_image
 
 
 @pytest.fixture

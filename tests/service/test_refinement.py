@@ -1,7 +1,7 @@
 """Refinement by default (TEXSPACE_AUTO_FIT): an upload queues a fit job on the fit lane
 that, when it succeeds, makes the same texture serve its own fitted sampler.
 
-The fit is the stand-in of test_fit_grain.py (no torch); the queue holds its messages
+The fit is the stand-in of tests/service/helpers.py (no torch); the queue holds its messages
 (MemoryHuey, not immediate) so a test sees the texture before and after the job runs.
 """
 from __future__ import annotations
@@ -13,54 +13,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
 
-from service.context import build_services
-from service.main import create_app
 from service.processes import start_lane
 from service.queue import worker_lanes
 from service.settings import Settings
 from service.tables import Texture
 from service.tiles import CACHE_CONTROL, REFINING_CACHE_CONTROL
-from tests.service.helpers import upload_photo
-
-from .test_fit_grain import FAKE_LATTICE, FAKE_INTERIM_CODE, MODEL_DIR, fake_fit_module
+from tests.service.helpers import FAKE_INTERIM_CODE, FAKE_LATTICE, MODEL_DIR, run_fit_lane, upload_photo
 
 TILE = "/v1/textures/{}/tiles/6/0/0.png?size=64"
-
-
-@pytest.fixture
-def fit_calls(monkeypatch) -> list[dict]:
-    calls: list[dict] = []
-    monkeypatch.setitem(sys.modules, "model.fit", fake_fit_module(calls))
-    monkeypatch.setattr("service.job_kinds.torch_available", lambda: True)
-    return calls
-
-
-@pytest.fixture
-def refining(settings, tmp_path, fit_calls):
-    """(client, services) with auto-fit on, a model that ships a space.pt, and a queue
-    that keeps its messages until the test runs them."""
-    if not all((MODEL_DIR / f).is_file() for f in ("manifest.json", "encoder.onnx", "sampler.onnx")):
-        pytest.skip(f"no model export in {MODEL_DIR}")
-    model_dir = tmp_path / "model"
-    model_dir.mkdir()
-    for name in ("manifest.json", "encoder.onnx", "sampler.onnx"):
-        (model_dir / name).write_bytes((MODEL_DIR / name).read_bytes())
-    (model_dir / "space.pt").write_bytes(b"stand-in: the fake fit never reads it")
-    settings.model_dirs = [model_dir]
-    settings.auto_fit = True
-    settings.queue_backend = "memory"
-    services = build_services(settings)
-    with TestClient(create_app(services=services)) as client:
-        yield client, services
-    services.engine.dispose()
-
-
-def run_fit_lane(services) -> None:
-    task = services.fit_huey.dequeue()
-    assert task is not None, "no message on the fit lane"
-    services.fit_huey.execute(task)
 
 
 def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:

@@ -29,9 +29,10 @@ def test_upload_encodes_and_stores(client, texture, photo) -> None:
 
 def test_upload_with_even_lighting_encodes_the_evened_photo(client, services) -> None:
     """lighting=even: the texture says so, its code and colour table are those of the photo
-    with its shading divided out (as worker.images.encode_texture makes them), and the
+    with its shading divided out (as worker.encode.encode_texture makes them), and the
     photo kept is the one sent. as-is is the default."""
-    from worker.images import encode_texture, read_image
+    from worker.encode import encode_texture
+    from worker.images import read_image
 
     shaded = shaded_png()
     runtime = services.registry.get(services.settings.default_model_version)

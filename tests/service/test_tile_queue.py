@@ -12,6 +12,7 @@ import pytest
 
 from service import tiles as service_tiles
 from service.errors import ClientGone
+from service.samplers import sampling_code
 from worker.errors import Busy
 from worker.images import write_image
 from worker.tiles import NATIVE_ZOOM, render_tile
@@ -152,7 +153,7 @@ def test_parent_from_cached_children_same_bytes_no_sampling(client, texture, ser
     runtime = services.registry.get(None)
     from service.routes.textures import load_texture
 
-    code = load_texture(services, texture["id"]).sampling_code()
+    code = sampling_code(load_texture(services, texture["id"]))
     expected = write_image(render_tile(runtime, code, 0, z, x, y, size), "png")
 
     def no_sampling(*args, **kwargs):  # noqa: ANN002, ANN003

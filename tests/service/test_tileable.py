@@ -1,7 +1,7 @@
 """Tileable regions through the API: the option, its 422 and 409 refusals, and
 fitted textures (whose fit stores a tileable sampler beside its sampler).
 
-The fit is a stand-in ``model.fit`` (as in test_fit_grain.py) that writes the shipped
+The fit is a stand-in ``model.fit`` (as in tests/service/helpers.py) that writes the shipped
 samplers, with or without the tileable one (a fit from before tileable textures).
 """
 from __future__ import annotations

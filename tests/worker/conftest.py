@@ -40,7 +40,7 @@ def brick() -> np.ndarray:
 
 @pytest.fixture(scope="session")
 def code(runtime, brick) -> np.ndarray:
-    from worker.images import encode_image
+    from worker.encode import encode_image
     return encode_image(runtime, brick)
 
 

@@ -9,7 +9,8 @@ from worker.colour import linear_to_srgb
 from worker.colour_match import (
     calibrate_texture, colour_table, compressed_colour, identity_colour, knots_of, texture_vector,
 )
-from worker.images import encode_texture, resize_short_side
+from worker.encode import encode_texture
+from worker.photo import resize_short_side
 from worker.tiles import render_tile
 
 

@@ -9,11 +9,13 @@ import OpenImageIO as oiio
 import pytest
 from PIL import Image
 
-from worker.colour import LUMA_709, linear_to_srgb, srgb_to_linear
+from worker.colour import LUMA_709, even_lighting, linear_to_srgb, srgb_to_linear
 from worker import decode, images
 from worker.errors import InvalidImage, InvalidParameter, LimitExceeded
-from worker.images import (encode_image, encoder_crops, png_bytes, read_image, resize_short_side, sniff_format,
-                           thumbnail, write_image)
+from worker.decode import sniff_format
+from worker.encode import encode_image
+from worker.images import png_bytes, read_image, thumbnail, write_image
+from worker.photo import encoder_crops, resize_short_side, working_photo
 
 MAX = 4096 * 4096
 RNG = np.random.default_rng(5)
@@ -129,7 +131,7 @@ def test_encoder_crops_grid_and_range(brick):
     assert crops.min() >= -1 and crops.max() <= 1
     # brick is 512x512 -> resized to 256x256; crop (0, 0) is the top-left corner, crop 8 the
     # bottom-right one
-    from worker.images import resize_short_side
+    from worker.photo import resize_short_side
     work = resize_short_side(brick, 256) * 2 - 1
     assert np.allclose(crops[0], work[:128, :128].transpose(2, 0, 1))
     assert np.allclose(crops[8], work[128:, 128:].transpose(2, 0, 1))
@@ -184,7 +186,7 @@ def test_banded_decode_matches_a_whole_decode(monkeypatch):
 def test_large_images_are_box_reduced_before_resizing(monkeypatch):
     smooth = np.linspace(0, 1, 1031 * 2063 * 3, dtype=np.float32).reshape(1031, 2063, 3)
     direct = resize_short_side(smooth, 256)
-    monkeypatch.setattr(decode, "RESIZE_DIRECT_PIXELS", 1000)
+    monkeypatch.setattr("worker.photo.RESIZE_DIRECT_PIXELS", 1000)
     reduced = resize_short_side(smooth, 256)
     assert reduced.shape == direct.shape == (256, 512, 3)
     assert np.abs(reduced - direct).max() < 0.01
@@ -259,7 +261,7 @@ def _block_luminance(linear, blocks=4):
 
 def test_even_lighting_divides_out_a_smooth_shading_and_keeps_the_detail():
     clean, shaded = _shaded_texture()
-    evened = srgb_to_linear(images.even_lighting(linear_to_srgb(shaded)))
+    evened = srgb_to_linear(even_lighting(linear_to_srgb(shaded)))
     assert evened.shape == shaded.shape and evened.dtype == np.float32
     spread = lambda lum: lum.max() / lum.min()  # noqa: E731
     assert spread(_block_luminance(shaded)) > 1.8                        # the light across the photo
@@ -268,19 +270,19 @@ def test_even_lighting_divides_out_a_smooth_shading_and_keeps_the_detail():
     ratio = np.log(np.maximum(evened, 1e-3) / np.maximum(clean, 1e-3)).mean(axis=-1)
     assert ratio.std() < 0.05
     # an evenly lit photo is left nearly as it is
-    kept = srgb_to_linear(images.even_lighting(linear_to_srgb(clean)))
+    kept = srgb_to_linear(even_lighting(linear_to_srgb(clean)))
     assert np.abs(kept - clean).mean() < 0.01
 
 
 def test_working_photo_evens_only_when_asked():
     _, shaded = _shaded_texture((300, 400))
     photo = linear_to_srgb(shaded)
-    as_is = images.working_photo(photo, 96)
+    as_is = working_photo(photo, 96)
     assert as_is.shape == (96, 128, 3) and np.array_equal(as_is, resize_short_side(photo, 96))
-    evened = images.working_photo(photo, 96, "even")
-    assert np.array_equal(evened, images.even_lighting(as_is))
+    evened = working_photo(photo, 96, "even")
+    assert np.array_equal(evened, even_lighting(as_is))
     with pytest.raises(InvalidParameter, match="lighting must be one of as-is, even"):
-        images.working_photo(photo, 96, "flat")
+        working_photo(photo, 96, "flat")
 
 
 def test_a_decoders_message_names_no_server_path(tmp_path) -> None:

@@ -1,4 +1,4 @@
-"""One working-resolution resize (``worker.decode.resize_short_side``) for training,
+"""One working-resolution resize (``worker.photo.resize_short_side``) for training,
 fitting, the upload's encoder crops and colour table, and evaluation.
 
 It replaced two: training's 8-bit Pillow Lanczos and the upload's scikit-image bilinear
@@ -14,7 +14,8 @@ from PIL import Image
 
 from model.data import DEFAULT_SHORT_SIDE, load_exemplar
 from tests.helpers import pillow_lanczos
-from worker.images import read_image, resize_short_side
+from worker.images import read_image
+from worker.photo import resize_short_side
 
 SHAPES = [(300, 500), (512, 512), (1000, 257)]  # (H, W): landscape, square, tall and odd
 SHORT_SIDES = [DEFAULT_SHORT_SIDE, 128, 384]     # training default, encoder crop size, upscaling

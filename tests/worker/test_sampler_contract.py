@@ -17,7 +17,7 @@ POINTS = 4096
 @pytest.fixture(scope="module")
 def texture(runtime, brick):
     """A real texture: an orange brick photo's code and colour table, as an upload gets them."""
-    from worker.images import encode_texture
+    from worker.encode import encode_texture
 
     code, colour = encode_texture(runtime, brick * np.array([1.0, 0.6, 0.3], np.float32))
     if not len(colour):

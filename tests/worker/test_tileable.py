@@ -15,7 +15,7 @@ from PIL import Image
 from worker.colour import srgb_to_linear
 from worker.errors import FeatureUnavailable, InvalidParameter
 from worker.colour_match import texture_vector
-from worker.images import encode_texture
+from worker.encode import encode_texture
 from worker.regions import render_region
 from worker.runtime import ModelRuntime, PeriodicSampler, periodic_sampler
 from worker.tiles import NATIVE_ZOOM
