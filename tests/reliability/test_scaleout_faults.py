@@ -147,3 +147,35 @@ def test_postgres_connection_drop_is_survived(tmp_path: Path, postgres_url: str,
             assert done["worker_id"].endswith(f":{worker.pid}")
     finally:
         cluster.stop()
+
+
+def test_two_sigterms_in_a_row_leave_the_job_queued_with_its_attempts(tmp_path: Path, postgres_url: str,
+                                                                      own_redis: OwnRedis) -> None:
+    """A graceful restart, twice, while a volume runs: each stopping worker hands the job back
+    and claims nothing more (it once claimed it again, crashed on shutdown, and the second
+    restart failed the job at attempt 4 of 3); the next worker finishes it at attempt 1."""
+    import signal
+
+    env = base_env(tmp_path / "data", TEXSPACE_DATABASE_URL=postgres_url, TEXSPACE_QUEUE_BACKEND="redis",
+                   TEXSPACE_QUEUE_URL=own_redis.url)
+    cluster = Cluster(tmp_path, env)
+    try:
+        cluster.start_api()
+        with cluster.client() as http:
+            texture = upload(http)
+            job = http.post(texture["links"]["volumes"], json={"resolution": LONG}).json()
+            for _ in range(2):
+                worker = cluster.start_worker()
+                wait_job(http, job["id"], lambda j: j["state"] == "running" and j["progress"] >= 0.02, timeout=60)
+                worker.send_signal(signal.SIGTERM)
+                assert worker.wait(20) is not None
+                after = http.get(f"/v1/jobs/{job['id']}").json()
+                assert after["state"] in ("queued", "succeeded"), after
+                if after["state"] == "succeeded":  # it finished before the signal landed: nothing to hand back
+                    break
+                assert after["attempt"] == 0 and after["worker_id"] is None and after["error"] is None, after
+            cluster.start_worker()
+            done = wait_job(http, job["id"], succeeded, timeout=90)
+            assert done["attempt"] == 1
+    finally:
+        cluster.stop()
