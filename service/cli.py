@@ -24,14 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from worker.bake import FORMATS as BAKE_FORMATS
+from worker.bake import BAKE_FORMATS
 from worker.contract import MAX_BAKE_RESOLUTION, MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION, MIN_VOLUME_RESOLUTION
 from worker.files import extensions
 from worker.photo import LIGHTING
-from worker.regions import FORMATS as REGION_FORMATS
+from worker.regions import REGION_FORMATS
 from worker.shader import LANGUAGES
 from worker.tiles import COORD_LIMIT, PLANES, TILE_FORMATS
-from worker.volume_writers import FORMATS as VOLUME_FORMATS
+from worker.volume_writers import VOLUME_FORMATS
 
 from . import auth, db, processes
 from .context import build_services

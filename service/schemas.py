@@ -8,14 +8,15 @@ from pydantic import BaseModel, Field, field_validator, model_validator
 
 from worker.contract import (MAX_VOLUME_RESOLUTION, MAX_WIDTH_M, MIN_BAKE_RESOLUTION, MIN_TILE_SIZE,
                              MIN_VOLUME_RESOLUTION)
+from worker.files import OFFERED
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH, MAX_WHOLE_PIXELS
-from worker.bake import FORMATS as BAKE_FORMATS
+from worker.bake import BAKE_FORMATS
 from worker.triplanar import PROJECTIONS
-from worker.gpu_textures import FORMATS as GPU_FORMATS
+from worker.gpu_textures import GPU_FORMATS
 from worker.photo import LIGHTING
-from worker.regions import FORMATS as REGION_FORMATS
+from worker.regions import REGION_FORMATS
 from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
-from worker.volume_writers import FORMATS as VOLUME_FORMATS
+from worker.volume_writers import VOLUME_FORMATS
 
 from .deps import SafeText
 from .settings import FIT_SECONDS, MAX_FIT_SECONDS, Settings
@@ -346,8 +347,8 @@ class RegionIn(BaseModel):
             raise ValueError(f"min_zoom {self.min_zoom} is above z {self.z}")
         if self.maps and self.format == "pyramid":
             raise ValueError("derived maps come with a single image, not a pyramid")
-        if (self.maps or self.format in ("dds", "ktx2")) and self.width * self.height > MAX_WHOLE_PIXELS:
-            raise ValueError(f"dds, ktx2 and derived maps are limited to {MAX_WHOLE_PIXELS} pixels")
+        if (self.maps or self.format in GPU_FORMATS) and self.width * self.height > MAX_WHOLE_PIXELS:
+            raise ValueError(f"{', '.join(GPU_FORMATS)} and derived maps are limited to {MAX_WHOLE_PIXELS} pixels")
         return self
 
 
@@ -476,6 +477,8 @@ class Limits(BaseModel):
     fit_seconds: float = Field(description="the time budget of a fit request that names none")
     max_fit_seconds: float = Field(description="the longest time budget a fit request may name")
     refinement_seconds: float = Field(description="the time budget of an upload's automatic refinement")
+    formats: dict[str, list[str]] = Field(description="the formats each output offers (tile, volume, region, bake, "
+                                                      "gpu_texture, shader), the default first")
 
     @classmethod
     def of(cls, settings: Settings) -> "Limits":
@@ -489,7 +492,8 @@ class Limits(BaseModel):
                    min_bake_resolution=MIN_BAKE_RESOLUTION, max_bake_resolution=s.max_bake_resolution,
                    max_region_pixels=s.max_region_pixels, max_region_tiles=s.max_region_tiles,
                    fit_seconds=FitIn.model_fields["seconds"].default, max_fit_seconds=s.max_fit_seconds,
-                   refinement_seconds=min(s.fit_seconds, s.max_fit_seconds))
+                   refinement_seconds=min(s.fit_seconds, s.max_fit_seconds),
+                   formats={output: list(names) for output, names in OFFERED.items()})
 
 
 class TileJSON(BaseModel):

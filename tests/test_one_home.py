@@ -200,6 +200,23 @@ def test_limits_are_spelled_only_in_their_homes() -> None:
     assert not spelled, "\n".join(spelled)
 
 
+def test_the_formats_each_output_offers_are_listed_only_in_the_registry() -> None:
+    """A tuple or list of two or more formats one output offers (worker.files.OFFERED) is a
+    copy of the registry anywhere but worker/files.py; the page reads them from /v1/limits."""
+    from worker.files import OFFERED
+
+    lists = {frozenset(names) for names in OFFERED.values()}
+    # the volume writers' table, one class per format, held equal to the registry by tests/worker/test_files.py
+    writers = ("worker/volume_writers.py", frozenset(OFFERED["volume"]))
+    spelled = [f"{rel(path)}:{line} lists the formats {sorted(value)}: use worker.files.OFFERED"
+               for path in python_files() if rel(path) != "worker/files.py"
+               for value, line, role in spellings(path)
+               if role == "collection" and value in lists and (rel(path), value) != writers]
+    quoted = re.compile(r"""\[\s*['"](?:npy|glb|png)['"]\s*,""")  # a JavaScript list of formats
+    spelled += [f"{rel(path)} lists formats" for path in page_files() if quoted.search(path.read_text())]
+    assert not spelled, "\n".join(spelled)
+
+
 def test_the_page_reads_its_limits_from_the_api() -> None:
     """The page (service/static) spells no bound, file name or plane list: GET /v1/limits
     answers them (main.js applyLimits)."""

@@ -68,13 +68,13 @@ from worker.bake_outputs import add_bake_outputs, check_options
 from worker.contract import MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH
 from worker.errors import Canceled, InvalidMesh, InvalidParameter, LimitExceeded
-from worker.files import ZIP_TIME, atomic_output, media_type, member_name, member_stem
+from worker.files import OFFERED, ZIP_TIME, atomic_output, media_type, member_name, member_stem
 from worker.images import png_bytes, write_image
 from worker.mesh_size import check_mesh_size
 from worker.runtime import Sampler
 from worker.triplanar import PROJECTIONS, sample_triplanar
 
-FORMATS = ("glb", "obj")  # extensions and media types: worker.files (an obj bake is a zip)
+BAKE_FORMATS = OFFERED["bake"]  # (an obj bake is a zip)
 MESH_TYPES = {"obj": "obj", "ply": "ply", "stl": "stl", "glb": "glb"}
 MAX_UV_OVERLAP = 0.01
 MAX_UV_DEGENERATE = 0.001  # share of 3D area allowed on faces whose UVs have no area
@@ -526,7 +526,7 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     ``atlas_cache_dir``: where xatlas results are kept per mesh content (``worker/atlas.py``);
     None runs xatlas every time.
     """
-    if fmt not in FORMATS:
+    if fmt not in BAKE_FORMATS:
         raise InvalidParameter(f"bake format must be 'glb' or 'obj', got {fmt!r}")
     if not MIN_BAKE_RESOLUTION <= resolution <= limits.max_resolution:
         raise LimitExceeded(f"texture resolution must be in [{MIN_BAKE_RESOLUTION}, {limits.max_resolution}]")

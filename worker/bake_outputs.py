@@ -41,8 +41,7 @@ import numpy as np
 from worker.derived_maps import check_maps, derived_maps, encode_normals8, grey8, map_file
 from worker.errors import InvalidParameter
 from worker.files import ZIP_TIME, atomic_output, extension, media_type, member_name, member_stem
-from worker.gpu_textures import FORMATS as GPU_FORMATS
-from worker.gpu_textures import gpu_texture_bytes
+from worker.gpu_textures import GPU_FORMATS, gpu_texture_bytes
 from worker.images import png_bytes
 
 GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942

@@ -3,10 +3,8 @@ type by format name), the fixed time stamped on zip members and images, and atom
 temporary name in the target folder, renamed into place only when complete, so readers
 never see half a file and a re-run simply overwrites).
 
-Which formats each output offers stays with its writer (``worker.tiles.TILE_FORMATS``,
-``worker.volume_writers.FORMATS``, ``worker.regions.FORMATS``, ``worker.bake.FORMATS``,
-``worker.gpu_textures.FORMATS``, ``worker.shader.LANGUAGES``); their extensions and media
-types are read here, and the API's and the CLI's lists are derived from those tuples.
+The table also says which formats each output offers (``OFFERED``): the writers, the API's
+schema, the CLI and the page (through ``GET /v1/limits``) all read them from here.
 """
 from __future__ import annotations
 
@@ -58,6 +56,18 @@ FORMATS: dict[str, FileFormat] = {
     "onnx": FileFormat(".onnx", OCTET_STREAM),
     "glsl": FileFormat(".glsl", "text/x-glsl; charset=utf-8"),
     "wgsl": FileFormat(".wgsl", "text/wgsl; charset=utf-8"),
+}
+
+
+#: output -> the formats it offers, in the order the API lists them (the first is the
+#: default where the output has one); each is a key of ``FORMATS``
+OFFERED: dict[str, tuple[str, ...]] = {
+    "tile": ("png", "webp", "exr"),
+    "volume": ("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb"),
+    "region": ("png", "exr", "tiff", "pyramid", "dds", "ktx2"),
+    "bake": ("glb", "obj"),
+    "gpu_texture": ("dds", "ktx2"),  # a bake's or a region's extra texture, a region format too
+    "shader": ("glsl", "wgsl"),
 }
 
 

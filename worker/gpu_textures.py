@@ -40,8 +40,9 @@ from quicktex.s3tc.bc3 import BC3Encoder
 
 from worker.colour import linear_to_srgb8
 from worker.errors import InvalidParameter
+from worker.files import OFFERED
 
-FORMATS = ("dds", "ktx2")  # extensions and media types: worker.files.FORMATS
+GPU_FORMATS = OFFERED["gpu_texture"]
 KTX2_IDENTIFIER = b"\xabKTX 20\xbb\r\n\x1a\n"
 UASTC_EFFORT = 2            # basisu 0-10: speed against the best reachable quality
 ZSTD_LEVEL = 6              # KTX2 Zstandard supercompression of the UASTC blocks
@@ -141,6 +142,6 @@ def ktx2_bytes(rgb: np.ndarray) -> bytes:
 
 def gpu_texture_bytes(rgb: np.ndarray, fmt: str) -> bytes:
     """``dds_bytes`` or ``ktx2_bytes`` by name."""
-    if fmt not in FORMATS:
-        raise InvalidParameter(f"GPU texture format must be one of {FORMATS}, got {fmt!r}")
+    if fmt not in GPU_FORMATS:
+        raise InvalidParameter(f"GPU texture format must be one of {GPU_FORMATS}, got {fmt!r}")
     return dds_bytes(rgb) if fmt == "dds" else ktx2_bytes(rgb)

@@ -50,16 +50,15 @@ import OpenImageIO as oiio
 from worker.colour import linear_to_srgb, linear_to_srgb8
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS, derived_map_files
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
-from worker.files import IMAGE_DATETIME, ZIP_TIME, atomic_output, extension, member_name, member_stem
-from worker.gpu_textures import FORMATS as GPU_FORMATS
-from worker.gpu_textures import gpu_texture_bytes
+from worker.files import IMAGE_DATETIME, OFFERED, ZIP_TIME, atomic_output, extension, member_name, member_stem
+from worker.gpu_textures import GPU_FORMATS, gpu_texture_bytes
 from worker.images import write_image
 from worker.runtime import Sampler, periodic_sampler
 from worker.tiles import (MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM, render_tile, render_window,
                           resolve_pixels_per_unit, supersample_for)
 from worker.volume_writers import PngStream
 
-FORMATS = ("png", "exr", "tiff", "pyramid") + GPU_FORMATS  # extensions: worker.files
+REGION_FORMATS = OFFERED["region"]
 BLOCK = 256                  # pixels per side of one sampler call / one EXR tile
 
 
@@ -108,8 +107,8 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
     ``SamplerSession`` of sampler_tileable.onnx); derived maps then wrap too.
     Returns the final path, written atomically.
     """
-    if fmt not in FORMATS:
-        raise InvalidParameter(f"region format must be one of {FORMATS}, got {fmt!r}")
+    if fmt not in REGION_FORMATS:
+        raise InvalidParameter(f"region format must be one of {REGION_FORMATS}, got {fmt!r}")
     if maps and fmt == "pyramid":
         raise InvalidParameter("derived maps come with a single image, not a pyramid")
     if set(maps) - set(MAP_NAMES):

@@ -35,9 +35,10 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InvalidParameter, ModelInvalid
+from .files import OFFERED
 from .triplanar import TRIPLANAR_DEPTHS, TRIPLANAR_MIN_WEIGHT, TRIPLANAR_SHARPNESS
 
-LANGUAGES = ("glsl", "wgsl")  # extensions and media types: worker.files.FORMATS
+LANGUAGES = OFFERED["shader"]
 
 # model/noise.py's hash, exactly (uint32 arithmetic): lowbias32 mixer, per-axis cell
 # constants (low 32 bits, bits above), seed and octave multipliers, and the channel

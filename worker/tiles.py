@@ -41,6 +41,7 @@ import numpy as np
 
 from worker.contract import MAX_TILE_SIZE, MIN_TILE_SIZE, PLANE_AXES, PLANES
 from worker.errors import InvalidParameter
+from worker.files import OFFERED
 from worker.runtime import Sampler
 
 NATIVE_ZOOM = 6      # one tile pixel == one exemplar pixel
@@ -48,7 +49,7 @@ MIN_ZOOM = 2         # 16 exemplar pixels per tile pixel
 MAX_ZOOM = 12        # 64x magnification
 SUPERSAMPLE_CAP = 4  # at most 4 x 4 sampler calls per output pixel
 COORD_LIMIT = 2 ** 36  # |x|, |y|: keeps 2*s*x*size + ... below 2^53 (exact in float64)
-TILE_FORMATS = ("png", "webp", "exr")  # what a tile can be served as (worker.images.write_image)
+TILE_FORMATS = OFFERED["tile"]  # (written by worker.images.write_image)
 ZOOM_OUT_MODES = ("supersample", "bounded")
 
 

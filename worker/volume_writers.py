@@ -59,10 +59,10 @@ import numpy as np
 import OpenImageIO as oiio
 
 from worker.colour import linear_to_srgb8
-from worker.files import IMAGE_DATETIME, ZIP_TIME
+from worker.files import IMAGE_DATETIME, OFFERED, ZIP_TIME
 from worker.vdb import write_vdb
 
-FORMATS = ("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb")  # extensions: worker.files
+VOLUME_FORMATS = OFFERED["volume"]
 
 
 def flipbook_grid(n: int) -> tuple[int, int]:

@@ -22,7 +22,7 @@ from worker.contract import MAX_VOLUME_RESOLUTION, MIN_VOLUME_RESOLUTION
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
 from worker.files import atomic_output, extension
 from worker.runtime import Sampler
-from worker.volume_writers import FORMATS, WRITERS
+from worker.volume_writers import VOLUME_FORMATS, WRITERS
 
 SLAB_POINTS = 2 ** 18          # default points per slab (~6 MB of positions)
 MAX_FLIPBOOK_SIDE = 16384      # PNG width/height a texture importer can take
@@ -58,8 +58,8 @@ def render_volume(sampler: Sampler, code: np.ndarray, seed: int, *, resolution: 
     Returns the final path.
     """
     n = int(resolution)
-    if fmt not in FORMATS:
-        raise InvalidParameter(f"volume format must be one of {FORMATS}, got {fmt!r}")
+    if fmt not in VOLUME_FORMATS:
+        raise InvalidParameter(f"volume format must be one of {VOLUME_FORMATS}, got {fmt!r}")
     if not MIN_VOLUME_RESOLUTION <= n <= MAX_VOLUME_RESOLUTION:
         raise InvalidParameter(f"resolution must be in [{MIN_VOLUME_RESOLUTION}, {MAX_VOLUME_RESOLUTION}], got {n}")
     if n ** 3 > max_voxels:

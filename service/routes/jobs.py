@@ -10,11 +10,11 @@ from fastapi.responses import FileResponse, StreamingResponse
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
-from worker.bake import FORMATS as BAKE_FORMATS
+from worker.bake import BAKE_FORMATS
 from worker.contract import MAX_BAKE_RESOLUTION, MAX_UNIT_M, MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, LimitExceeded
-from worker.gpu_textures import FORMATS as GPU_FORMATS
+from worker.gpu_textures import GPU_FORMATS
 from worker.tiles import MIN_ZOOM
 
 from .. import auth, jobs, keys

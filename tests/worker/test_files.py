@@ -62,18 +62,22 @@ def test_temp_removed_by_the_block_is_not_an_error(tmp_path):
 
 
 def test_every_format_offered_has_an_extension_and_a_media_type():
-    """Each writer's list of formats is read against the one table (worker.files.FORMATS):
-    a format added to a writer but not to the table would fail only when a job names it."""
+    """Every format an output offers (worker.files.OFFERED) is in the one table
+    (worker.files.FORMATS), and each writer takes what the registry says it offers: a format
+    added to one but not the other would fail only when a job names it."""
     from worker import decode
-    from worker.bake import FORMATS as BAKE
-    from worker.files import FORMATS, OCTET_STREAM, media_type_of_extension
-    from worker.gpu_textures import FORMATS as GPU
-    from worker.regions import FORMATS as REGION
+    from worker.bake import BAKE_FORMATS
+    from worker.files import FORMATS, OCTET_STREAM, OFFERED, media_type_of_extension
+    from worker.gpu_textures import GPU_FORMATS
+    from worker.regions import REGION_FORMATS
     from worker.shader import LANGUAGES
     from worker.tiles import TILE_FORMATS
-    from worker.volume_writers import FORMATS as VOLUME
+    from worker.volume_writers import VOLUME_FORMATS, WRITERS
 
-    offered = {*TILE_FORMATS, *VOLUME, *REGION, *BAKE, *GPU, *LANGUAGES, "zip", "onnx"}
+    assert (TILE_FORMATS, VOLUME_FORMATS, REGION_FORMATS, BAKE_FORMATS, GPU_FORMATS, LANGUAGES) == tuple(
+        OFFERED[output] for output in ("tile", "volume", "region", "bake", "gpu_texture", "shader"))
+    assert set(WRITERS) == set(VOLUME_FORMATS) and set(GPU_FORMATS) <= set(REGION_FORMATS)
+    offered = {fmt for formats in OFFERED.values() for fmt in formats} | {"zip", "onnx"}
     assert offered <= set(FORMATS), f"not in worker.files.FORMATS: {sorted(offered - set(FORMATS))}"
     for fmt in offered:
         assert FORMATS[fmt].extension.startswith(".") and "/" in FORMATS[fmt].media_type, fmt

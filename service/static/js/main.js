@@ -9,10 +9,6 @@ import { readView, writeView } from './permalink.js';
 import { GpuView } from './gpuview.js';
 
 const $ = (id) => document.getElementById(id);
-// VolumeIn.format in service/schemas.py
-const VOLUME_FORMATS = ['npy', 'exr', 'tiff', 'raw', 'nrrd', 'dds', 'flipbook', 'vdb'];
-// RegionIn.format in service/schemas.py, less pyramid (a square image here)
-const REGION_FORMATS = ['png', 'exr', 'tiff', 'dds', 'ktx2'];
 
 const state = {
   models: null,     // Promise of GET /v1/models, fetched once
@@ -468,7 +464,6 @@ $('bake-form').addEventListener('submit', async (event) => {
   }
 });
 
-$('volume-format').replaceChildren(...VOLUME_FORMATS.map((f) => new Option(f, f)));
 $('volume-form').addEventListener('submit', async (event) => {
   event.preventDefault();
   if (!requireTexture()) return;
@@ -484,7 +479,6 @@ $('volume-form').addEventListener('submit', async (event) => {
 });
 
 // A square image at native zoom (one pixel per exemplar pixel); tileable: it repeats seamlessly.
-$('region-format').replaceChildren(...REGION_FORMATS.map((f) => new Option(f, f)));
 $('region-form').addEventListener('submit', async (event) => {
   event.preventDefault();
   if (!requireTexture()) return;
@@ -627,11 +621,15 @@ for (const id of ['seed', 'plane', 'offset']) $(id).addEventListener('change', r
 
 // ---- the server's limits (GET /v1/limits): the page copies none of its numbers -------------
 
-/** The fit budget, the planes and the sizes offered, as the server allows them. */
+/** The fit budget, the planes, the formats and the sizes offered, as the server allows them. */
 function applyLimits(limits) {
   $('fit-seconds').max = limits.max_fit_seconds;
   $('fit-seconds').value = limits.fit_seconds;
   $('plane').replaceChildren(...limits.planes.map((plane) => new Option(plane, plane)));
+  const formats = (id, names) => $(id).replaceChildren(...names.map((f) => new Option(f, f)));
+  formats('bake-format', limits.formats.bake);
+  formats('volume-format', limits.formats.volume);
+  formats('region-format', limits.formats.region.filter((f) => f !== 'pyramid')); // (a square image here)
   const offer = (id, allowed) => {
     for (const option of [...$(id).options]) if (!allowed(Number(option.value))) option.remove();
   };
