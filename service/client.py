@@ -147,14 +147,16 @@ class Client:
 
     # --- textures -------------------------------------------------------------------
     def upload(self, image: str | os.PathLike | bytes, *, name: str | None = None,
-               filename: str | None = None, lighting: str = "as-is") -> dict[str, Any]:
+               filename: str | None = None, lighting: str = "as-is", width_m: float | None = None) -> dict[str, Any]:
         """Upload a photo (a path, or bytes with ``filename``); returns the texture.
-        ``lighting="even"``: its smooth shading is divided out before it is encoded and fitted."""
+        ``lighting="even"``: its smooth shading is divided out before it is encoded and fitted.
+        ``width_m``: the photo's real width in metres (bakes with ``unit_m`` then keep that size)."""
         if isinstance(image, bytes):
             data, filename = image, filename or "image.png"
         else:
             data, filename = Path(image).read_bytes(), filename or Path(image).name
-        form = {"lighting": lighting} | ({"name": name} if name is not None else {})
+        form = ({"lighting": lighting} | ({"name": name} if name is not None else {})
+                | ({"width_m": str(width_m)} if width_m is not None else {}))
         return self._call("POST", "/v1/textures", files={"image": (filename, data)}, data=form).json()
 
     def texture(self, texture_id: str) -> dict[str, Any]:
@@ -172,6 +174,10 @@ class Client:
 
     def rename(self, texture_id: str, name: str) -> dict[str, Any]:
         return self._call("PATCH", f"/v1/textures/{_segment(texture_id)}", json={"name": name}).json()
+
+    def set_width(self, texture_id: str, width_m: float) -> dict[str, Any]:
+        """Say how wide the texture's photo is in metres: bakes with ``unit_m`` keep that size."""
+        return self._call("PATCH", f"/v1/textures/{_segment(texture_id)}", json={"width_m": width_m}).json()
 
     def delete(self, texture_id: str) -> None:
         """Delete a texture with its jobs and their files."""
@@ -215,7 +221,8 @@ class Client:
     def bake(self, texture_id: str, mesh: str | os.PathLike | bytes, *, filename: str | None = None,
              idempotency_key: str | None = None, **params: Any) -> Job:
         """Submit a bake of a mesh file (OBJ, PLY, STL, GLB; bytes need ``filename``):
-        ``resolution``, ``seed``, ``scale``, ``format`` (glb or obj), ``projection`` (auto,
+        ``resolution``, ``seed``, ``scale`` or ``unit_m`` (metres per mesh unit: at the photo's real
+        size), ``format`` (glb or obj), ``projection`` (auto,
         solid or triplanar), ``maps`` (a list: ``["height", "normal", "roughness", "ao"]``),
         ``normal_strength``, ``after_refinement`` and the other form fields of openapi.yaml."""
         if isinstance(mesh, bytes):

@@ -211,3 +211,15 @@ def test_limits_are_the_servers_read_once() -> None:
     with client_for(handler) as ts:
         assert ts.limits() == served and ts.limits()["fit_seconds"] == 45.0
     assert calls == ["/v1/limits"]
+
+
+def test_a_photos_width_reaches_the_texture_and_bakes_at_real_size(client, photo) -> None:
+    """Against the app: ``upload(width_m=)`` and ``set_width`` store the photo's width; a bake
+    with ``unit_m`` then reports its texels per metre."""
+    mesh = Path(__file__).resolve().parents[1] / "data" / "meshes" / "cube.obj"
+    with Client("http://testserver", transport=client._transport) as ts:
+        texture = ts.upload(photo, filename="b.png", width_m=1.25)
+        assert texture["width_m"] == 1.25
+        assert ts.set_width(texture["id"], 0.5)["width_m"] == 0.5
+        done = ts.wait(ts.bake(texture["id"], mesh, resolution=64, unit_m=1.0), timeout=60)
+        assert done["result"]["texels_per_metre"] > 0 and done["params"]["unit_m"] == 1.0
