@@ -23,7 +23,7 @@ PNG) and read back at short side 256, so their repeats come out larger by 256 / 
   128-180 px at offsets 0, 20 and 37, so 2 to 2.8 tiles across; the true lattice is the
   square of 64 x 256 / side px, and a found lattice is right when it is the same lattice to
   a twentieth of a step (``same_lattice``);
-* **hexagonal tiles** (synthetic, ``tests/model/photos.py``): 9-45 px from centre to corner,
+* **hexagonal tiles** (synthetic, ``eval/synthetic_photos.py``): 9-45 px from centre to corner,
   turned 0, 7, 15 and 30 degrees, right to a twentieth of a step.
 
 Writes ``results.json`` (every photo's grain and lattice in px) and ``results.md``.
@@ -46,7 +46,7 @@ from model.structure import photo_structure, same_lattice, straighten
 from worker.decode import read_image
 from worker.photo import resize_short_side
 
-from tests.model.photos import hexagonal_tiles  # the synthetic tilings the tests use too
+from eval.synthetic_photos import hexagonal_tiles  # the synthetic tilings the tests use too
 
 SHORT_SIDE = 256
 CROP_SIDES, CROP_OFFSETS = (100, 128, 160, 200, 230), (0, 37)

@@ -145,7 +145,7 @@ BOARD_MIN_REPEATS = 2  # multiples within a third of the image: boards at most 1
 # Parquet (``detect_direction_lattice``): blocks of slats alternating between up-down and
 # left-right, each slat its own tone, repeat in the direction of their streaks only. Their
 # luminance correlation is the slats': synthetic parquet of 32-px blocks of 8-px slats
-# (tests/model/photos.py) peaks 0.49-0.51 at one slat across, both ways, a grid that no block
+# (eval/synthetic_photos.py) peaks 0.49-0.51 at one slat across, both ways, a grid that no block
 # repeats (support 0.2 < LATTICE_SUPPORT), and reads 0.42 at the blocks' checkerboard (32,
 # 32): no lattice, no grain (as many slats run each way), nothing. Read from the structure
 # tensor of DIRECTION_BLUR px derivatives averaged over DIRECTION_WINDOW px

@@ -107,11 +107,13 @@ def run_volume(services: Services, job: Job, workdir: Path, progress: Progress,
 
 def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
              should_cancel: ShouldCancel) -> dict[str, Any]:
-    from worker.bake import bake_mesh, physical_scale
+    from worker.bake import PARSED_MESH, bake_mesh, mesh_from_npz, physical_scale
 
     texture = _texture_to_render(services, job)
     p = BakeParams.model_validate(job.params)
-    mesh_bytes = services.storage.get_bytes(job.input_key)
+    stored = services.storage.get_bytes(job.input_key)
+    # the API's parsed mesh (a job queued before it stored one holds the uploaded file)
+    mesh = mesh_from_npz(stored) if job.input_key.endswith(PARSED_MESH) else None
     names = _names(bake_name, texture, mesh_filename=p.filename, resolution=p.resolution, seed=p.seed)
     out_path = workdir / f"{names[1]}{extension(p.format)}"   # zip members are named after it
     limits = bake_limits(services.settings)
@@ -120,7 +122,7 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
     if p.unit_m is not None:  # at real size (the route checked the texture's width_m)
         scale = physical_scale(texture.width, texture.height, services.registry.get(texture.model_version).short_side,
                                inputs.pixels_per_unit, texture.width_m, p.unit_m)
-    result = bake_mesh(inputs.sampler, inputs.code, p.seed, mesh_bytes=mesh_bytes,
+    result = bake_mesh(inputs.sampler, inputs.code, p.seed, mesh_bytes=None if mesh else stored, mesh=mesh,
                        filename=p.filename, resolution=p.resolution, scale=scale, fmt=p.format,
                        out_path=out_path, limits=limits, pixels_per_unit=inputs.pixels_per_unit,
                        atlas_cache_dir=services.settings.resolved_atlas_cache_dir,

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from sqlalchemy import func, select
 
-from worker.bake import MESH_TYPES, BakeLimits, load_mesh
+from worker.bake import MESH_TYPES, BakeLimits, Mesh, read_mesh
 from worker.errors import Busy, InsufficientStorage
 from worker.mesh_size import check_mesh_size
 
@@ -85,9 +85,10 @@ class ParseSlots:
 MESH_PARSE_SLOTS = ParseSlots(MESH_PARSES, MESH_PARSES_WAITING, MESH_PARSE_WAIT_SECONDS)
 
 
-def check_mesh(settings: Settings, data: bytes, filename: str) -> None:
-    """Raise InvalidMesh / LimitExceeded if the mesh cannot be baked (parse + validate only;
-    the UV atlas is made later by the job), Busy while ``MESH_PARSES`` others are parsed and
+def check_mesh(settings: Settings, data: bytes, filename: str) -> Mesh:
+    """The parsed mesh (the job's input: the worker does not parse the file again); raise
+    InvalidMesh / LimitExceeded if it cannot be baked (parse + validate only; the UV atlas is
+    made later by the job), Busy while ``MESH_PARSES`` others are parsed and
     ``MESH_PARSES_WAITING`` wait. The file's header is checked first, without waiting
     (``worker/mesh_size.py``: faces, vertices, a GLB's nodes and depth, in milliseconds), so
     the parse that follows is bounded by the limits: ~1 s for 200k faces or 4,096 nodes."""
@@ -96,7 +97,7 @@ def check_mesh(settings: Settings, data: bytes, filename: str) -> None:
     if ext in MESH_TYPES and data:        # (else load_mesh says what is wrong)
         check_mesh_size(data, ext, limits)
     with MESH_PARSE_SLOTS.slot():
-        load_mesh(data, filename, limits)   # (its header check again: milliseconds)
+        return read_mesh(data, filename, limits)   # (its header check again: milliseconds)
 
 
 def queued_jobs(services: Services, *, fits: bool = False, owner: str | None = None,

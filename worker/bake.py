@@ -76,6 +76,7 @@ from worker.triplanar import PROJECTIONS, sample_triplanar
 
 BAKE_FORMATS = OFFERED["bake"]  # (an obj bake is a zip)
 MESH_TYPES = {"obj": "obj", "ply": "ply", "stl": "stl", "glb": "glb"}
+PARSED_MESH = "mesh.npz"  # a bake job's input as the API parsed it (``mesh_npz``)
 MAX_UV_OVERLAP = 0.01
 MAX_UV_DEGENERATE = 0.001  # share of 3D area allowed on faces whose UVs have no area
 NORMAL_EPS = 1e-12         # a normal shorter than this (relative, for computed ones) is unusable
@@ -127,6 +128,24 @@ class Mesh:
     faces: np.ndarray                # (F, 3) int64
     uv: np.ndarray | None            # (V, 2) float64, v up
     normals: np.ndarray | None       # (V, 3) float64 unit vectors, the file's own; None if it has none
+
+
+def mesh_npz(mesh: Mesh) -> bytes:
+    """A parsed mesh as .npz bytes: what the API stores for the bake job, so the worker does
+    not parse the uploaded file a second time (``mesh_from_npz``)."""
+    buffer = io.BytesIO()
+    arrays = {"vertices": mesh.vertices, "faces": mesh.faces}
+    arrays |= {name: value for name, value in (("uv", mesh.uv), ("normals", mesh.normals)) if value is not None}
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def mesh_from_npz(data: bytes) -> Mesh:
+    """The mesh ``mesh_npz`` stored (no pickles: plain float and int arrays)."""
+    with np.load(io.BytesIO(data), allow_pickle=False) as arrays:
+        return Mesh(vertices=arrays["vertices"].astype(np.float64), faces=arrays["faces"].astype(np.int64),
+                    uv=arrays["uv"].astype(np.float64) if "uv" in arrays else None,
+                    normals=arrays["normals"].astype(np.float64) if "normals" in arrays else None)
 
 
 def read_mesh(mesh_bytes: bytes, filename: str, limits: BakeLimits = BakeLimits()) -> Mesh:
@@ -511,7 +530,8 @@ def _scatter_texels(atlas: np.ndarray, texels: np.ndarray, values: np.ndarray,
     flat[dst] = flat[src]
 
 
-def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: bytes, filename: str,
+def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: bytes | None = None, filename: str,
+              mesh: Mesh | None = None,
               resolution: int = 1024, scale: float | None = None, fmt: str = "glb",
               exr: bool = False, out_path: str | os.PathLike, padding: int = 8,
               pixels_per_unit: float | None = None, limits: BakeLimits = BakeLimits(),
@@ -523,6 +543,8 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
               normal_strength: float = DEFAULT_NORMAL_STRENGTH, projection: str = "solid") -> BakeResult:
     """Bake the texture (code, seed) onto the uploaded mesh; see the module docstring.
 
+    The mesh: ``mesh_bytes`` (the file, parsed here; ``filename``'s extension says its type),
+    or ``mesh``, one ``read_mesh`` parsed already (``filename`` is then not read).
     ``atlas_cache_dir``: where xatlas results are kept per mesh content (``worker/atlas.py``);
     None runs xatlas every time.
     """
@@ -543,7 +565,8 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
 
     timings: dict[str, float] = {"atlas": 0.0}
     clock = time.perf_counter()
-    mesh = read_mesh(mesh_bytes, filename, limits)
+    if mesh is None:  # (a mesh parsed already: the API's, from the job's input)
+        mesh = read_mesh(mesh_bytes or b"", filename, limits)
     vertices, faces, uv = mesh.vertices, mesh.faces, mesh.uv
     step(0.05)
     timings["load"], clock = time.perf_counter() - clock, time.perf_counter()

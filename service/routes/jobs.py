@@ -10,7 +10,7 @@ from fastapi.responses import FileResponse, StreamingResponse
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
-from worker.bake import BAKE_FORMATS
+from worker.bake import BAKE_FORMATS, PARSED_MESH, mesh_npz
 from worker.contract import MAX_BAKE_RESOLUTION, MAX_UNIT_M, MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, LimitExceeded
@@ -114,11 +114,11 @@ def submit_bake(
     fingerprint = jobs.request_hash(JobKind.BAKE, texture_id, params, sha256(data).encode())
     if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:
         return accepted(response, jobs.same_request(existing, fingerprint), False)
-    check_mesh(services.settings, data, filename)  # a bad mesh is refused now, nothing stored
+    parsed = check_mesh(services.settings, data, filename)  # a bad mesh is refused now, nothing stored
     check_queue_room(services, JobKind.BAKE)
     job_id = new_id()
-    input_key = keys.job_input_key(job_id, filename)
-    services.storage.put_bytes(input_key, data)
+    input_key = keys.job_input_key(job_id, PARSED_MESH)  # parsed once, here: the worker reads the arrays
+    services.storage.put_bytes(input_key, mesh_npz(parsed))
     try:
         job, created = jobs.submit(services, kind=JobKind.BAKE, texture_id=texture_id, params=params,
                                    input_key=input_key, idempotency_key=key, fingerprint=fingerprint, job_id=job_id)

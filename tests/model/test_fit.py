@@ -16,7 +16,7 @@ from model.export import export_model  # noqa: E402
 from model.fit import fit_exemplar  # noqa: E402
 from model.structure import detect_boards, detect_stripes  # noqa: E402
 from worker.colour import even_lighting  # noqa: E402
-from tests.model.photos import boards, corrugation, running_bond  # noqa: E402
+from eval.synthetic_photos import boards, corrugation, running_bond  # noqa: E402
 from model.evaluate import load_candidates  # noqa: E402
 from model.networks import ModelConfig, TextureSpace  # noqa: E402
 
@@ -129,7 +129,7 @@ def test_a_leaning_grain_is_fitted_straightened(tmp_path, monkeypatch):
     axis test misses) is found on the turned photo and turned too."""
     from model.structure import GRAIN_TILT_MIN, grain_tilt
     from model.train import load_exemplars
-    from tests.model.photos import streaks
+    from eval.synthetic_photos import streaks
 
     space = space_checkpoint(tmp_path)
     seen = stop_before_training(monkeypatch, lambda cfg: (cfg.grain, load_exemplars(cfg)[1][0]))
@@ -400,7 +400,7 @@ def test_a_strong_grain_is_fitted_with_longer_noise_cells(tmp_path, monkeypatch)
     """model.structure.grain_stretch picks the stretch the fit trains and exports: 16 for long
     fibres, 8 for a weak grain; the result and manifest say which (null without grain)."""
     from model.networks import load_checkpoint
-    from tests.model.photos import fibres
+    from eval.synthetic_photos import fibres
 
     space = space_checkpoint(tmp_path)
     seen = stop_before_training(monkeypatch, lambda cfg: (cfg.grain, cfg.grain_stretch))

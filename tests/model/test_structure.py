@@ -13,7 +13,7 @@ from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelatio
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,
                              detect_direction_lattice, detect_long_lattice, peak_height, pixel_noise,
                              luminance_correlation, stripe_normal)
-from tests.model.photos import (banded_motifs, boards, corrugation, fibres, hexagonal_tiles, parquet,
+from eval.synthetic_photos import (banded_motifs, boards, corrugation, fibres, hexagonal_tiles, parquet,
                                 running_bond, streaks)
 from worker.colour import even_lighting
 

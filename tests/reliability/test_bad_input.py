@@ -156,7 +156,7 @@ def test_mesh_filename_with_path_separators_stays_inside_storage(client, module_
     assert job["params"]["filename"] == "cube.obj"
     root = module_services.storage.root
     assert all(p.resolve().is_relative_to(root) for p in root.rglob("*"))
-    assert any(f.startswith(f"jobs/{job['id']}/input/cube.obj") for f in stored_files(module_services))
+    assert any(f.startswith(f"jobs/{job['id']}/input/mesh.npz") for f in stored_files(module_services))
     assert not list(root.parent.glob("etc")) and not list(root.parent.parent.glob("etc"))
 
 
