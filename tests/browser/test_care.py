@@ -76,3 +76,26 @@ def test_view_in_3d_reads_a_zipped_glb_bake(page, base_url: str) -> None:
     assert "Bake loaded" in page.text_content("#status")
     assert page_errors(page) == []
     forget_textures(page, base_url, lambda other: other["id"] == texture["id"])
+
+
+def test_a_photo_uploaded_with_its_width_bakes_at_real_size(page, base_url: str) -> None:
+    """The upload's "Photo width in metres" reaches the texture; a bake with "Mesh unit:
+    metres" is made at real size and says its texels per metre."""
+    page.goto(base_url)
+    page.wait_for_selector("#map.leaflet-container")
+    page.fill("#upload-width-m", "0.8")
+    page.set_input_files("#upload-file", files=[{"name": "real-size.png", "mimeType": "image/png",
+                                                 "buffer": texture_photo_png()}])
+    page.wait_for_selector('#upload-queue li[data-state="done"]', timeout=60_000)
+    api = page.request
+    texture = next(t for t in api.get(f"{base_url}v1/textures?limit=100").json()["items"] if t["name"] == "real-size")
+    assert texture["width_m"] == 0.8
+    page.select_option("#bake-resolution", "256")
+    page.select_option("#bake-unit", "1")
+    page.click("#bake-start")
+    page.wait_for_selector('#jobs li[data-state="succeeded"]', timeout=BAKE_TIMEOUT_MS)
+    job_id = page.get_attribute('#jobs li[data-state="succeeded"]', "data-job-id")
+    job = api.get(f"{base_url}v1/jobs/{job_id}").json()
+    assert job["params"]["unit_m"] == 1.0 and job["result"]["texels_per_metre"] > 0, job
+    assert page_errors(page) == []
+    forget_textures(page, base_url, lambda other: other["id"] == texture["id"])

@@ -249,11 +249,12 @@ export async function listTextures(cursor, limit = 50) {
   };
 }
 
-export async function uploadTexture(file, name, lighting = 'as-is') {
+export async function uploadTexture(file, name, lighting = 'as-is', widthM = null) {
   const form = new FormData();
   form.append('image', file);
   if (name) form.append('name', name);
   form.append('lighting', lighting);
+  if (widthM) form.append('width_m', widthM);
   return (await request('textures', { method: 'POST', body: form })).body;
 }
 
@@ -311,10 +312,10 @@ async function submitJob(path, init) {
 // an export or bake made while an upload is refined should look like the refined tiles.
 const AFTER_REFINEMENT = true;
 
-export function startBake(textureId, meshFile, { resolution, seed, scale, format, projection }) {
+export function startBake(textureId, meshFile, { resolution, seed, scale, unitM, format, projection }) {
   const form = new FormData();
   form.append('mesh', meshFile, meshFile.name);
-  const fields = { resolution, seed, scale, format, projection, after_refinement: AFTER_REFINEMENT };
+  const fields = { resolution, seed, scale, unit_m: unitM, format, projection, after_refinement: AFTER_REFINEMENT };
   for (const [key, value] of Object.entries(fields)) {
     if (value !== undefined && value !== null) form.append(key, value);
   }

@@ -348,6 +348,7 @@ function queueItem(file) {
 async function uploadAll(files) {
   const typed = $('upload-name').value.trim();
   const lighting = $('upload-even-lighting').checked ? 'even' : 'as-is';
+  const widthM = Number($('upload-width-m').value) || null; // (the same width for every photo of a batch)
   const queue = files.map((file) => ({ file, ...queueItem(file) }));
   $('upload-queue').replaceChildren(...queue.map((q) => q.item));
   $('upload-queue').hidden = false;
@@ -363,7 +364,7 @@ async function uploadAll(files) {
     set('encoding', 'encoding...');
     say(files.length > 1 ? `Encoding ${index + 1} of ${files.length}: ${file.name}...` : `Encoding ${file.name}...`);
     try {
-      const texture = await api.uploadTexture(file, name, lighting);
+      const texture = await api.uploadTexture(file, name, lighting, widthM);
       state.textures = [texture, ...state.textures.filter((t) => t.id !== texture.id)];
       renderLibrary();
       set('done', 'uploaded');
@@ -452,6 +453,7 @@ $('bake-form').addEventListener('submit', async (event) => {
     seed: tileParams().seed,
     // Empty = the server's default (the mesh spans 512 exemplar pixels).
     scale: Number($('bake-scale').value) || undefined,
+    unitM: Number($('bake-unit').value) || undefined, // at real size: the server needs the photo's width
     format,
     projection: $('bake-projection').value,
   };
