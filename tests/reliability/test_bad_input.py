@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import time
 import tracemalloc
+from unittest import mock
 
 import pytest
 
@@ -124,16 +125,19 @@ COSTLY_GLBS = {
 
 @pytest.mark.parametrize("name", sorted(COSTLY_GLBS))
 def test_costly_glb_is_refused_from_its_json(client, module_services, texture, name: str) -> None:
-    """Within 1 s and 100 MB on the request thread, nothing stored (the 5,000-node chain once
-    held the API for 22 minutes, then the worker; 100k instances took 173 s and 850 MB)."""
+    """From the JSON, never parsed, and under 100 MB on the request thread, nothing stored
+    (the 5,000-node chain once held the API for 22 minutes, then the worker; 100k instances
+    took 173 s and 850 MB). Under 1 s on an idle machine; the CPU bound leaves room for a
+    CI machine whose cores are shared (a parse still fails it by minutes)."""
     make, status, slug, word = COSTLY_GLBS[name]
     data = make()
     before_files, before_rows = stored_files(module_services), row_counts(module_services)
     started = time.process_time()     # CPU seconds of this process (client and app): not slowed by neighbours
-    res = client.post(texture["links"]["bakes"], files={"mesh": (name, data)}, data={"resolution": "32"})
+    with mock.patch("trimesh.load", side_effect=AssertionError("parsed")):
+        res = client.post(texture["links"]["bakes"], files={"mesh": (name, data)}, data={"resolution": "32"})
     elapsed = time.process_time() - started
     assert_problem(res, status, slug, word)
-    assert elapsed < 1.0, f"{elapsed:.2f} s of CPU"
+    assert elapsed < 3.0, f"{elapsed:.2f} s of CPU"
     tracemalloc.start()    # again, traced (tracing slows allocations several times over)
     try:
         again = client.post(texture["links"]["bakes"], files={"mesh": (name, data)}, data={"resolution": "32"})

@@ -79,7 +79,7 @@ def test_a_burst_holds_its_share_and_another_tenant_goes_after_one_fit(burst: Se
     # alice's deferred refinements stay deferred while her share is full; the reaper's pass is cheap
     started = time.perf_counter()
     assert jobs.reap(services)["refinements"] == 0
-    assert time.perf_counter() - started < 2.0
+    assert time.perf_counter() - started < 5.0  # (about 0.05 s here: one query, no submit)
     with session_scope(services.sessions) as session:
         deferred = session.scalar(select(func.count()).select_from(Texture).where(Texture.refinement_deferred.is_not(None)))
     assert deferred == BURST - order.count("alice")

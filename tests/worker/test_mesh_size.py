@@ -6,6 +6,7 @@ import io
 import struct
 import time
 import tracemalloc
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -17,12 +18,18 @@ from worker.errors import InvalidMesh, LimitExceeded
 from worker.mesh_size import MAX_GLTF_JSON_BYTES, check_mesh_size
 
 
+CPU_SECONDS = 3.0  # see refused_quickly
+
+
 def refused_quickly(data: bytes, ext: str, limits: BakeLimits, error: type, match: str) -> None:
-    """``read_mesh`` raises ``error`` within 1 s of CPU (a shared machine's neighbours do not
-    count), and with a tracemalloc peak under 100 MB (measured in a second call: tracing
-    slows allocations several times over)."""
+    """``read_mesh`` raises ``error`` from the header, before any parse (trimesh is never
+    called), within a few CPU seconds, and with a tracemalloc peak under 100 MB (measured in
+    a second call: tracing slows allocations several times over). The figure the issue asked
+    for, under 1 s, holds on an idle machine (0.2-0.34 s); the bound here leaves room for a
+    CI machine whose two cores are shared (1.33 s seen there), and still fails on a parse
+    (a 5,000-node chain took 22 minutes)."""
     started = time.process_time()
-    with pytest.raises(error, match=match):
+    with pytest.raises(error, match=match), mock.patch("trimesh.load", side_effect=AssertionError("parsed")):
         read_mesh(data, f"mesh.{ext}", limits)
     elapsed = time.process_time() - started
     tracemalloc.start()
@@ -32,7 +39,7 @@ def refused_quickly(data: bytes, ext: str, limits: BakeLimits, error: type, matc
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-    assert elapsed < 1.0, f"{elapsed:.2f} s"
+    assert elapsed < CPU_SECONDS, f"{elapsed:.2f} s"
     assert peak < 100 * 2**20, f"{peak / 2**20:.0f} MB"
 
 
@@ -47,9 +54,10 @@ def test_a_hundred_thousand_instances_are_refused_from_the_json():
     data = instanced_glb(100_000)
     refused_quickly(data, "glb", BakeLimits(), LimitExceeded, "has 100001 nodes, limit is 4096")
     started = time.process_time()
-    with pytest.raises(LimitExceeded, match=r"scene places 400000 faces \(100000 mesh instances\), limit is 200000"):
+    with pytest.raises(LimitExceeded, match=r"scene places 400000 faces \(100000 mesh instances\), limit is 200000"), \
+            mock.patch("trimesh.load", side_effect=AssertionError("parsed")):
         read_mesh(data, "mesh.glb", BakeLimits(max_nodes=200_000, max_faces=200_000))
-    assert time.process_time() - started < 1.0
+    assert time.process_time() - started < CPU_SECONDS
 
 
 def test_instanced_faces_count_every_placement():
