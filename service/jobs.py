@@ -75,30 +75,35 @@ def queue_refinement(services: Services, texture: Texture, params: dict[str, Any
     its owner's share of it full, the refinement is deferred (``Texture.refinement_deferred``:
     the texture says so and serves the encoder's code until ``queue_deferred_refinements``
     queues it); with any other error the texture keeps its encoder code, unrefined."""
+    queued, deferred = False, None
     token = owner_var.set(texture.owner_id)
     try:
         if not texture.refinement_deferred and owner_has_deferred(services, texture.owner_id):
             # first come, first refined: a new upload does not take the room an older deferred one waits for
-            raise Problem(429, "earlier uploads of this tenant wait for room in the fit queue", slug="queue-share-used")
-        submit(services, kind=JobKind.FIT, texture_id=texture.id, params=params, job_id=texture.refinement_job_id)
-        deferred, queued = None, True
+            log.warning("refinement deferred: earlier uploads of this tenant wait for room in the fit queue",
+                        extra={"texture_id": texture.id})
+            deferred = params
+        else:
+            submit(services, kind=JobKind.FIT, texture_id=texture.id, params=params, job_id=texture.refinement_job_id)
+            queued = True
     except Problem as exc:
         full = exc.slug in ("queue-full", "queue-share-used")
         log.warning("refinement %s: %s", "deferred" if full else "not queued", exc.detail,
                     extra={"texture_id": texture.id})
-        deferred, queued = (params if full else None), False
+        deferred = params if full else None
     except Exception as exc:
         log.warning("texture not refined: %s", exc, extra={"texture_id": texture.id})
-        deferred, queued = None, False
     finally:
         owner_var.reset(token)
-    if not queued:
-        values = {"refinement_deferred": deferred} if deferred else {"refinement_job_id": None}
+    if queued:
+        values = {"refinement_deferred": None} if texture.refinement_deferred else {}
+    elif deferred:
+        values = {"refinement_deferred": deferred}
+    else:  # not refined: neither a job nor a deferral (a deferred one the reaper would take again and again)
+        values = {"refinement_job_id": None, "refinement_deferred": None}
+    if values:
         with session_scope(services.sessions) as session:
             session.execute(update(Texture).where(Texture.id == texture.id).values(**values))
-    elif texture.refinement_deferred:
-        with session_scope(services.sessions) as session:
-            session.execute(update(Texture).where(Texture.id == texture.id).values(refinement_deferred=None))
     return queued
 
 

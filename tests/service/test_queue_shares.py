@@ -82,3 +82,20 @@ def test_one_tenant_fills_at_most_its_share_of_each_queue(refining) -> None:
     with as_tenant("c"), pytest.raises(Problem) as full:
         limits.check_queue_room(services, "fit")
     assert full.value.status == 503 and full.value.slug == "queue-full" and "4 fits" in full.value.detail
+
+
+def test_a_deferred_refinement_that_cannot_be_queued_for_another_reason_is_dropped(refining, photo,
+                                                                                  monkeypatch) -> None:
+    """An error other than a full queue (here the database's) leaves the upload unrefined, and
+    not deferred: the reaper would otherwise try it again on every pass."""
+    client, services = refining
+    services.settings.max_queued_fits, services.settings.tenant_queue_share = 1, 1.0
+    upload_photo(client, photo)
+    deferred = upload_photo(client, photo)
+    assert deferred["refinement"]["stage"] == "deferred"
+    drain_fit_lane(services)
+    tries = []
+    monkeypatch.setattr(jobs, "submit", lambda *a, **k: tries.append(1) or (_ for _ in ()).throw(RuntimeError("db")))
+    assert jobs.reap(services)["refinements"] == 0 and tries == [1]
+    assert client.get(f"/v1/textures/{deferred['id']}").json()["refinement"] is None
+    assert jobs.reap(services)["refinements"] == 0 and tries == [1]  # not tried again
