@@ -69,12 +69,15 @@ def _store_result(services: Services, job: Job, path: Path, fmt: str, names: tup
     shown, stored = names
     key = keys.result_key(job.id, stored + path.suffix)
     size = services.storage.put_file(key, path)
-    details = {key: value for key, value in (("height_range", list(height_range) if height_range else None),
-                                             ("texels_per_metre", round(texels_per_metre, 2)
-                                              if texels_per_metre else None),
-                                             ("scale", scale)) if value is not None} or None
+    details = {}
+    if height_range is not None:
+        details["height_range"] = list(height_range)
+    if texels_per_metre:
+        details["texels_per_metre"] = round(texels_per_metre, 2)
+    if scale is not None:
+        details["scale"] = scale
     return {"result_key": key, "result_filename": shown + path.suffix, "result_size": size,
-            "result_media_type": media_type(fmt), "result_details": details}
+            "result_media_type": media_type(fmt), "result_details": details or None}
 
 
 def zipped_height_range(path: Path) -> tuple[float, float] | None:
