@@ -71,6 +71,7 @@ from worker.errors import Canceled, InvalidMesh, InvalidParameter, LimitExceeded
 from worker.files import OFFERED, ZIP_TIME, atomic_output, media_type, member_name, member_stem
 from worker.images import png_bytes, write_image
 from worker.mesh_size import check_mesh_size
+from worker.photo import working_shape
 from worker.runtime import Sampler
 from worker.triplanar import PROJECTIONS, sample_triplanar
 
@@ -87,9 +88,10 @@ def physical_scale(photo_width_px: int, photo_height_px: int, short_side: int, p
                    photo_width_m: float, mesh_unit_m: float) -> float:
     """World units per mesh unit that bake a photo ``photo_width_m`` metres wide at its real
     size on a mesh whose unit is ``mesh_unit_m`` metres (1 for metres, 0.01 for centimetres).
-    The space reads the photo with its short side at ``short_side`` pixels, ``pixels_per_unit``
-    of them per world unit, so its width spans ``working width / pixels_per_unit`` world units."""
-    working_width = photo_width_px * short_side / min(photo_width_px, photo_height_px)
+    The space reads the photo with its short side at ``short_side`` pixels
+    (``worker.photo.working_shape``), ``pixels_per_unit`` of them per world unit, so its width
+    spans ``working width / pixels_per_unit`` world units."""
+    working_width = working_shape(photo_height_px, photo_width_px, short_side)[1]
     return working_width / pixels_per_unit / photo_width_m * mesh_unit_m
 AREA_EPS = 1e-20           # squared-length scale below which a face counts as degenerate
 # |coordinate| limit: beyond it xatlas (float32) spins for minutes and extent ** 4 overflows

@@ -34,9 +34,10 @@ def cube_obj(side: float) -> bytes:
 
 
 def test_physical_scale_is_world_units_of_the_photo_per_metre_times_the_unit():
-    # a 1024 x 768 photo read at short side 256: 341.3 px wide, 128 px per world unit = 2.67 units;
-    # 2 m wide: 1.33 world units per metre; a mesh in centimetres: 0.0133 per mesh unit
-    assert physical_scale(1024, 768, 256, 128.0, 2.0, 0.01) == pytest.approx(1024 * 256 / 768 / 128 / 2 * 0.01)
+    # a 1024 x 768 photo read at short side 256: 341 px wide (worker.photo.working_shape), 128 px
+    # per world unit = 2.66 units; 2 m wide: 1.33 world units per metre; a mesh in centimetres:
+    # 0.0133 per mesh unit
+    assert physical_scale(1024, 768, 256, 128.0, 2.0, 0.01) == pytest.approx(341 / 128 / 2 * 0.01)
     assert physical_scale(1024, 768, 256, 128.0, 2.0, 1.0) == pytest.approx(
         100 * physical_scale(1024, 768, 256, 128.0, 2.0, 0.01))
 
