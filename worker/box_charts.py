@@ -30,15 +30,21 @@ MAX_TILT_COS = 0.34
 SIDE_AXES = {(0, 1): (1, 2), (1, 1): (2, 0), (2, 1): (0, 1), (0, -1): (2, 1), (1, -1): (0, 2), (2, -1): (1, 0)}
 
 
-def smoothed_face_normals(vertices: np.ndarray, faces: np.ndarray, passes: int = SMOOTHING_PASSES) -> np.ndarray:
-    """(F, 3) face normals (area-weighted) averaged ``passes`` times through the shared vertices."""
+def area_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) face normals, each as long as twice its face's area."""
     tri = vertices[faces]
-    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 x area
+    return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+
+def smoothed_face_normals(normals: np.ndarray, faces: np.ndarray, n_vertices: int,
+                          passes: int = SMOOTHING_PASSES) -> np.ndarray:
+    """(F, 3) unit normals of ``normals`` (``area_normals``) averaged ``passes`` times through
+    the shared vertices (area-weighted)."""
     corners = faces.reshape(-1)
     for _ in range(passes):
-        at_vertex = np.zeros((len(vertices), 3))
+        at_vertex = np.zeros((n_vertices, 3))
         for axis in range(3):
-            at_vertex[:, axis] = np.bincount(corners, np.repeat(normals[:, axis], 3), minlength=len(vertices))
+            at_vertex[:, axis] = np.bincount(corners, np.repeat(normals[:, axis], 3), minlength=n_vertices)
         normals = at_vertex[faces].sum(axis=1)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return normals / np.where(length > 0, length, 1.0)
@@ -54,8 +60,9 @@ def box_sides(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     down that axis), by its smoothed normal; a face whose own normal leans more than
     ``MAX_TILT_COS`` off that side's axis takes its own side instead (else it would be a
     sliver in UV, with almost no texels)."""
-    own = smoothed_face_normals(vertices, faces, passes=0)
-    side = _side_of(smoothed_face_normals(vertices, faces))
+    normals = area_normals(vertices, faces)
+    own = smoothed_face_normals(normals, faces, len(vertices), passes=0)
+    side = _side_of(smoothed_face_normals(normals, faces, len(vertices)))
     axis, sign = side // 2, np.where(side % 2, -1.0, 1.0)
     facing = own[np.arange(len(faces)), axis] * sign
     return np.where(facing >= MAX_TILT_COS, side, _side_of(own))
