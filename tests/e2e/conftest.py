@@ -19,8 +19,7 @@ import pytest
 
 from service import spawn
 from service.spawn import free_port
-from tests.helpers import PG_ADMIN_URL, REDIS_URL
-from tests.helpers import wait_ready
+from tests.helpers import REDIS_URL, fresh_postgres_database, wait_ready
 
 READY_TIMEOUT = 120.0
 
@@ -73,23 +72,6 @@ def embedded(tmp_path_factory) -> Iterator[Deployment]:
         _stop(dep)
 
 
-def _postgres_database() -> tuple[str, callable]:
-    """A fresh database on the local server, and a function that drops it."""
-    import psycopg  # a dependency: a missing one fails; only an absent server skips
-    try:
-        admin = psycopg.connect(PG_ADMIN_URL, autocommit=True, connect_timeout=3)
-    except psycopg.Error as exc:
-        pytest.skip(f"PostgreSQL unreachable at {PG_ADMIN_URL}: {exc}")
-    name = f"texspace_e2e_{uuid.uuid4().hex[:10]}"
-    admin.execute(f'CREATE DATABASE "{name}"')
-
-    def drop() -> None:
-        admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
-        admin.close()
-
-    return PG_ADMIN_URL.rsplit("/", 1)[0] + "/" + name, drop
-
-
 def _require_redis() -> None:
     import redis  # a dependency: a missing one fails; only an absent server skips
     try:
@@ -101,7 +83,11 @@ def _require_redis() -> None:
 @pytest.fixture(scope="module")
 def scaleout(tmp_path_factory, moto_s3_url: str) -> Iterator[Deployment]:
     _require_redis()
-    database_url, drop_database = _postgres_database()
+    with fresh_postgres_database("texspace_e2e") as database_url:
+        yield from _scaleout(tmp_path_factory, moto_s3_url, database_url)
+
+
+def _scaleout(tmp_path_factory, moto_s3_url: str, database_url: str) -> Iterator[Deployment]:
     root = tmp_path_factory.mktemp("scaleout")
     run = uuid.uuid4().hex[:8]
     port = free_port()
@@ -120,7 +106,6 @@ def scaleout(tmp_path_factory, moto_s3_url: str) -> Iterator[Deployment]:
         yield dep
     finally:
         _stop(dep)
-        drop_database()
         import redis
 
         client = redis.Redis.from_url(REDIS_URL)
