@@ -1,13 +1,14 @@
 """Quality a fit reaches per time budget (``make bench-fit-budget``; not part of ``make test``).
 
     .venv/bin/python bench/fit_budget.py [--photos A.png B.png ...] [--seconds 30 60 120]
-                                         [--precision auto] [--reference-seconds 240]
+                                         [--precision auto] [--threads 0] [--reference-seconds 240]
 
-Each photo is fitted (``python -m model.fit``, one at a time, one thread, as the fit lane runs
-them) for every budget, then scored as ``make quality`` scores fits: the VGG Gram style error
+Each photo is fitted (``python -m model.fit``, one at a time, on every core as the fit lane runs
+them by default: ``--threads``) for every budget, then scored as ``make quality`` scores fits: the VGG Gram style error
 of its native-zoom tiles against the whole photo, and their error over the photo's own floor
 (``eval/style_floor.py``). The reference, measured in the same run: a float32 fit of
-``--reference-seconds`` (240: the refinement before bfloat16), and the encoder code. Prints a
+``--reference-seconds`` on one thread (240: the refinement before bfloat16 and before fits
+took every core), and the encoder code. Prints a
 table and merges it into bench/out/results.json under ``fit_budget``.
 """
 from __future__ import annotations
@@ -35,9 +36,9 @@ def quality_module():
     return eval.quality
 
 
-def fit(photo: Path, out: Path, seconds: float, precision: str) -> dict:
+def fit(photo: Path, out: Path, seconds: float, precision: str, threads: int) -> dict:
     subprocess.run([sys.executable, "-m", "model.fit", str(photo), str(out), "--minutes", str(seconds / 60),
-                    "--threads", "1", "--precision", precision], check=True, cwd=ROOT,
+                    "--threads", str(threads), "--precision", precision], check=True, cwd=ROOT,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return json.loads((out / "manifest.json").read_text())
 
@@ -63,26 +64,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--photos", type=Path, nargs="+", default=[VAL / name for name in PHOTOS])
     parser.add_argument("--seconds", type=float, nargs="+", default=[30.0, 60.0, 120.0])
     parser.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"])
-    parser.add_argument("--reference-seconds", type=float, default=240.0, help="float32 reference (0: none)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads of the fits (0: every core, as the "
+                        "service's TEXSPACE_FIT_THREADS default)")
+    parser.add_argument("--reference-seconds", type=float, default=240.0,
+                        help="float32 reference on one thread (0: none)")
     args = parser.parse_args(argv)
     q = quality_module()
     model = q.ModelRuntime(ROOT / "model" / "weights")
-    runs = [(seconds, args.precision) for seconds in args.seconds]
+    runs = [(seconds, args.precision, args.threads) for seconds in args.seconds]
     if args.reference_seconds:
-        runs.append((args.reference_seconds, "fp32"))
+        runs.append((args.reference_seconds, "fp32", 1))
     rows = []
     with tempfile.TemporaryDirectory(prefix="texspace-fit-budget-") as folder:
         for photo in args.photos:
             encoder = score(q, model, photo)
             rows.append({"photo": photo.stem, "run": "encoder code", "steps": 0, "style": encoder[0],
                          "floor_ratio": encoder[1]})
-            for seconds, precision in runs:
+            for seconds, precision, threads in runs:
                 out = Path(folder) / f"{photo.stem}-{precision}-{seconds:g}"
-                manifest = fit(photo, out, seconds, precision)
+                manifest = fit(photo, out, seconds, precision, threads)
                 style, ratio = score(q, q.FittedRuntime(model, out), photo)
-                rows.append({"photo": photo.stem, "run": f"{seconds:g} s {manifest['precision']}",
+                cores = "every core" if threads == 0 else f"{threads} thread" + "s" * (threads > 1)
+                rows.append({"photo": photo.stem, "run": f"{seconds:g} s {manifest['precision']}, {cores}",
                              "steps": manifest["steps"], "style": style, "floor_ratio": ratio})
-                print(f"{photo.stem:28s} {rows[-1]['run']:>12s} {manifest['steps']:4d} steps  style "
+                print(f"{photo.stem:28s} {rows[-1]['run']:>26s} {manifest['steps']:4d} steps  style "
                       f"{style:.4f}  / floor {ratio if ratio is None else round(ratio, 2)}", flush=True)
     print(f"\n| photo | run | steps | style error | over the photo's floor |\n|---|---|---|---|---|")
     for row in rows:

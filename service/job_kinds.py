@@ -305,7 +305,7 @@ def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path
     checkpoint = services.registry.get(texture.model_version).model_dir / "space.pt"
     if not checkpoint.is_file():
         raise FeatureUnavailable(f"model {texture.model_version} ships no space.pt checkpoint to fit from")
-    # TEXSPACE_FIT_THREADS: a fit must not take the cores tiles need
+    # TEXSPACE_FIT_THREADS (default every core): the worker is niced, so tiles still come first
     settings = services.settings
     extra = {"interim": interim, "interim_seconds": settings.fit_interim_seconds, "pause": pause} if interim else {}
     return fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0,

@@ -120,7 +120,8 @@ class Settings(BaseSettings):
     # --- per-exemplar fits (the train extra) ------------------------------------------
     auto_fit: bool = Field(True, description="refine every upload in place with a fit job; effective where "
                            "torch is installed on the API and the model ships its space.pt")
-    fit_threads: int = Field(1, ge=0, description="torch threads of a fit job (0: torch's default, every core)")
+    fit_threads: int = Field(0, ge=0, description="torch threads of a fit job (0: torch's default, every core; the "
+                             "worker's niceness gives tiles the cores first)")
     fit_device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="where a fit job's steps run: auto takes the worker's CUDA GPU when torch sees one")
     fit_precision: Literal["auto", "bf16", "fp32"] = Field(

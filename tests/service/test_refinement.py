@@ -42,7 +42,7 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     assert before.headers["cache-control"] == REFINING_CACHE_CONTROL  # its bytes will change
 
     run_fit_lane(services)
-    assert len(fit_calls) == 1 and fit_calls[0]["threads"] == services.settings.fit_threads == 1
+    assert len(fit_calls) == 1 and fit_calls[0]["threads"] == services.settings.fit_threads == 0
     job = client.get(f"/v1/jobs/{refinement['job_id']}").json()
     assert job["state"] == "succeeded", job
     assert job["output_texture_id"] == texture["id"]           # the same texture, refined
@@ -321,7 +321,7 @@ def test_defaults(monkeypatch) -> None:
     for key in ("TEXSPACE_AUTO_FIT", "TEXSPACE_FIT_THREADS", "TEXSPACE_WORKER_KINDS"):
         monkeypatch.delenv(key, raising=False)
     settings = Settings()
-    assert settings.auto_fit and settings.fit_threads == 1
+    assert settings.auto_fit and settings.fit_threads == 0
     assert worker_lanes(settings) == ["main", "fit"]
 
 
