@@ -30,8 +30,8 @@ Steps, each reported through ``progress`` and preceded by a ``should_cancel`` ch
    ``<stem>`` being the result file's own stem (``worker.files.member_stem``), so two bakes
    extracted into one folder keep their files. With ``exr=True`` a linear half-float
    ``<stem>_basecolor.exr`` is added to the OBJ zip, or written next to a GLB as ``<out_path>.exr``. ``maps`` (height,
-   normal, roughness, ao) and ``gpu_format`` (dds, ktx2) add derived maps and a mipmapped texture of the
-   atlas (``worker/bake_outputs.py``: a GLB embeds normal, roughness and AO in its material and a KTX2 as
+   normal, roughness, ao) and ``gpu_format`` (dds, ktx2; a DDS in BC1 or, with ``dds_compression="bc7"``,
+   BC7) add derived maps and a mipmapped texture of the atlas (``worker/bake_outputs.py``: a GLB embeds normal, roughness and AO in its material and a KTX2 as
    its base colour's KHR_texture_basisu source, and becomes a zip with a height map or a DDS).
 
 Projection: a solid texture is one 3D material, the right thing for isotropic ones (stone,
@@ -541,7 +541,7 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
               should_cancel: Callable[[], bool] | None = None,
               atlas_cache_dir: str | os.PathLike | None = None,
               atlas_cache_bytes: int = atlas.DEFAULT_CACHE_BYTES,
-              maps: tuple[str, ...] = (), gpu_format: str | None = None,
+              maps: tuple[str, ...] = (), gpu_format: str | None = None, dds_compression: str = "bc1",
               normal_strength: float = DEFAULT_NORMAL_STRENGTH, projection: str = "solid") -> BakeResult:
     """Bake the texture (code, seed) onto the uploaded mesh; see the module docstring.
 
@@ -556,7 +556,7 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
         raise LimitExceeded(f"texture resolution must be in [{MIN_BAKE_RESOLUTION}, {limits.max_resolution}]")
     if projection not in PROJECTIONS:
         raise InvalidParameter(f"projection must be one of {PROJECTIONS}, got {projection!r}")
-    check_options(maps, gpu_format)
+    check_options(maps, gpu_format, dds_compression)
     extras = bool(maps) or gpu_format is not None
     report = progress or (lambda _f: None)
 
@@ -618,7 +618,7 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     height_range = None
     if extras:
         outputs = add_bake_outputs(out_path, fmt, image, maps=maps, gpu_format=gpu_format,
-                                   strength=normal_strength, mask=covered)
+                                   dds_compression=dds_compression, strength=normal_strength, mask=covered)
         out_path, height_range = outputs.path, outputs.height_range
     timings["write"] = time.perf_counter() - clock
     report(1.0)

@@ -39,9 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from worker.derived_maps import check_maps, derived_maps, encode_normals8, grey8, map_file
-from worker.errors import InvalidParameter
 from worker.files import ZIP_TIME, atomic_output, extension, media_type, member_name, member_stem
-from worker.gpu_textures import GPU_FORMATS, gpu_texture_bytes
+from worker.gpu_textures import check_gpu_options, gpu_texture_bytes
 from worker.images import png_bytes
 
 GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
@@ -53,18 +52,19 @@ class BakeOutputs:
     height_range: tuple[float, float] | None     # the height map's luminance (min, max), if one was made
 
 
-def check_options(maps, gpu_format) -> None:
+def check_options(maps, gpu_format, dds_compression: str = "bc1") -> None:
+    """InvalidParameter unless the extras asked for can be made (before any baking)."""
     check_maps(maps)
-    if gpu_format is not None and gpu_format not in GPU_FORMATS:
-        raise InvalidParameter(f"GPU texture format must be one of {GPU_FORMATS}, got {gpu_format!r}")
+    check_gpu_options(gpu_format, dds_compression)
 
 
 def add_bake_outputs(path: Path, fmt: str, image: np.ndarray, *, maps=(), gpu_format: str | None = None,
-                     strength: float, mask: np.ndarray | None = None) -> BakeOutputs:
+                     dds_compression: str = "bc1", strength: float, mask: np.ndarray | None = None) -> BakeOutputs:
     """Add the requested outputs to the bake result at ``path`` (see module doc); returns
     the result's path (a GLB becomes ``<stem>.zip`` when it cannot hold everything) and the
-    height map's luminance range. ``mask``: (R, R) bool, the texels the mesh covers."""
-    check_options(maps, gpu_format)
+    height map's luminance range. ``mask``: (R, R) bool, the texels the mesh covers;
+    ``dds_compression``: bc1 or bc7 for a DDS (``worker/gpu_textures.py``)."""
+    check_options(maps, gpu_format, dds_compression)
     stem = member_stem(path)
     derived = derived_maps(image, maps, strength=strength, mask=mask)
     done = BakeOutputs(path, derived.height_range)
@@ -74,7 +74,8 @@ def add_bake_outputs(path: Path, fmt: str, image: np.ndarray, *, maps=(), gpu_fo
         files = derived.files(stem) if "height" in maps else {}
         files = {name: data for name, data in files.items() if name == map_file("height", stem)}
     if gpu_format is not None:
-        files[member_name(stem, "basecolor", extension(gpu_format))] = gpu_texture_bytes(image, gpu_format)
+        files[member_name(stem, "basecolor", extension(gpu_format))] = gpu_texture_bytes(image, gpu_format,
+                                                                                         dds_compression)
     if fmt == "obj":
         if files:
             _rewrite_zip(path, path, files, {}, mtl=(member_name(stem, "", ".mtl"), _mtl_lines(files, stem)))

@@ -395,6 +395,36 @@ def test_region_gpu_textures_and_maps(client, texture) -> None:
         assert client.post(texture["links"]["regions"], json=body).status_code == 422, body
 
 
+def test_bc7_dds_region_and_bake(client, texture) -> None:
+    """``dds_compression: bc7`` gives a DX10 BC7 DDS, for a region and a bake's texture; asked
+    for without a DDS it is a 422 problem, before any job."""
+    from tests.worker.gpu_readers import read_bc7_dds
+
+    rect = {"z": 6, "x0": 0, "y0": 0, "width": 40, "height": 24}
+    res = client.post(texture["links"]["regions"], json={**rect, "format": "dds", "dds_compression": "bc7"})
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded" and job["result"]["media_type"] == "image/vnd-ms.dds", job
+    header, levels = read_bc7_dds(client.get(job["links"]["result"]).content)
+    assert (header["dxgi_format"], header["width"], header["height"], len(levels)) == (99, 40, 24, 6)
+    mesh = (MESHES / "cube.obj").read_bytes()
+    res = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                      data={"resolution": "64", "format": "obj", "gpu_format": "dds", "dds_compression": "bc7"})
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded" and job["params"]["dds_compression"] == "bc7", job
+    with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
+        dds = next(name for name in z.namelist() if name.endswith("_basecolor.dds"))
+        assert read_bc7_dds(z.read(dds))[0]["dxgi_format"] == 99
+    before = len(client.get("/v1/jobs").json()["items"])
+    refused = [client.post(texture["links"]["regions"], json={**rect, "format": "png", "dds_compression": "bc7"}),
+               client.post(texture["links"]["regions"], json={**rect, "format": "dds", "dds_compression": "bc5"}),
+               client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                           data={"resolution": "64", "gpu_format": "ktx2", "dds_compression": "bc7"})]
+    for res in refused:
+        assert res.status_code == 422 and res.headers["content-type"].startswith("application/problem+json"), res.text
+    assert "dds_compression" in refused[2].json()["detail"]
+    assert len(client.get("/v1/jobs").json()["items"]) == before
+
+
 def test_worker_shutdown_hands_running_jobs_back(held, photo) -> None:
     client, services = held
     job = submit_volume(client, upload(client, photo))
