@@ -51,7 +51,7 @@ OFFSET_LIMIT = 1e9
 SCALE_MAX = 1e6
 #: the longest `upload --timeout`, seconds per photo: a wait of this client, no server limit
 UPLOAD_WAIT_MAX = 60.0 * 60
-#: output formats by extension (tile: the tile route's; bake: obj is a zip of obj + mtl + png)
+#: output formats by extension (tile: the tile route's; bake: obj is a zip of obj + mtl + mtlx + png)
 TILE_EXTENSIONS = extensions(TILE_FORMATS)
 BAKE_EXTENSIONS = extensions(BAKE_FORMATS)
 TILEABLE_EXTENSIONS = extensions(f for f in REGION_FORMATS if f != "pyramid")

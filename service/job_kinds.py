@@ -137,8 +137,9 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
     # texel density over the surface in metres, for a bake at real size
     density = (math.sqrt(float(result.covered.sum()) / (result.surface_area * p.unit_m ** 2))
                if p.unit_m is not None and result.surface_area > 0 else None)
-    # a GLB with a height map or a DDS comes back as a zip (a KTX2 goes inside the GLB)
-    return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip", names,
+    # a GLB or USDZ with a height map or a DDS comes back as a zip (a KTX2 goes inside the GLB)
+    fmt = p.format if result.path.suffix == extension(p.format) else "zip"
+    return _store_result(services, job, result.path, fmt, names,
                          result.height_range, texels_per_metre=density, scale=result.scale)
 
 

@@ -75,7 +75,9 @@ def submit_bake(
     unit_m: Annotated[float | None, Form(gt=0, le=MAX_UNIT_M, description="metres per mesh unit (1: a mesh in "
                                          "metres, 0.01: in centimetres): the texture is baked at its photo's real "
                                          "size (the texture's width_m); not with scale")] = None,
-    format: Annotated[Literal[BAKE_FORMATS], Form(description="glb, or a zip of obj + mtl + png")] = "glb",
+    format: Annotated[Literal[BAKE_FORMATS], Form(
+        description="glb; a zip of obj + mtl + mtlx (MaterialX standard_surface) + png; or usdz (mesh and "
+                    "UsdPreviewSurface material with its textures inside)")] = "glb",
     maps: Annotated[list[Literal[MAP_NAMES]], Form(
         description="derived maps of the atlas (repeat the field for each): normal = tangent-space, OpenGL "
                     "convention (+Y up), embedded in a GLB as its normalTexture (with TANGENTs) or added to "

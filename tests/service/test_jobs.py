@@ -425,6 +425,37 @@ def test_bc7_dds_region_and_bake(client, texture) -> None:
     assert len(client.get("/v1/jobs").json()["items"]) == before
 
 
+def test_usdz_bake(client, texture, tmp_path) -> None:
+    """``format: usdz`` gives a USDZ (its own media type and name) that USD opens with the
+    material bound; with a height map it comes as a zip of the USDZ and the map."""
+    from pxr import Usd, UsdShade
+
+    mesh = (MESHES / "cube.obj").read_bytes()
+    res = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                      data={"resolution": "64", "format": "usdz", "maps": ["normal", "roughness"]})
+    job = client.get(res.json()["links"]["self"]).json()
+    stem = "brick_cube_bake_64px_seed0"
+    assert job["state"] == "succeeded", job
+    assert job["result"]["media_type"] == "model/vnd.usdz+zip" and job["result"]["filename"] == f"{stem}.usdz"
+    res = client.get(job["links"]["result"])
+    assert res.headers["content-type"] == "model/vnd.usdz+zip"
+    with zipfile.ZipFile(io.BytesIO(res.content)) as z:
+        assert z.namelist()[0] == f"{stem}.usdc"
+        assert sorted(z.namelist()[1:]) == [f"{stem}_basecolor.png", f"{stem}_normal.png", f"{stem}_roughness.png"]
+    package = tmp_path / f"{stem}.usdz"
+    package.write_bytes(res.content)
+    stage = Usd.Stage.Open(str(package))
+    mesh_prim = stage.GetPrimAtPath("/texspace/mesh")
+    material, _ = UsdShade.MaterialBindingAPI(mesh_prim).ComputeBoundMaterial()
+    assert material.GetPath() == "/texspace/material" and len(mesh_prim.GetAttribute("faceVertexCounts").Get()) == 12
+    with_height = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                              data={"resolution": "64", "format": "usdz", "maps": ["height"]})
+    job = client.get(with_height.json()["links"]["self"]).json()
+    assert job["result"]["media_type"] == "application/zip" and job["result"]["filename"] == f"{stem}.zip"
+    with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
+        assert sorted(z.namelist()) == [f"{stem}.usdz", f"{stem}_height.png"]
+
+
 def test_worker_shutdown_hands_running_jobs_back(held, photo) -> None:
     client, services = held
     job = submit_volume(client, upload(client, photo))

@@ -16,6 +16,7 @@ from worker.bake import bake_mesh
 from worker.bake_outputs import vertex_tangents
 from worker.derived_maps import ROUGHNESS_RANGE, decode_normals8, read_height_range
 from worker.errors import InvalidParameter
+from worker.files import extension
 from worker.gpu_textures import mip_sizes
 
 RES = 64
@@ -23,7 +24,7 @@ RES = 64
 
 def bake(waves, meshes, tmp_path, fmt, **options):
     return bake_mesh(waves, None, 0, mesh_bytes=(meshes / "bunny_uv.obj").read_bytes(), filename="bunny_uv.obj",
-                     resolution=RES, fmt=fmt, out_path=tmp_path / f"baked.{'glb' if fmt == 'glb' else 'zip'}",
+                     resolution=RES, fmt=fmt, out_path=tmp_path / f"baked{extension(fmt)}",
                      **options)
 
 
