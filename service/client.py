@@ -214,7 +214,8 @@ class Client:
                           headers=self._key(idempotency_key)).json()
 
     def region(self, texture_id: str, *, idempotency_key: str | None = None, **params: Any) -> Job:
-        """Submit a region export (``z``, ``x0``, ``y0``, ``width``, ``height``, ``format``, ...)."""
+        """Submit a region export (``z``, ``x0``, ``y0``, ``width``, ``height``, ``format``,
+        ``dds_compression`` (bc1, bc7) with format dds, ...)."""
         return self._call("POST", f"/v1/textures/{_segment(texture_id)}/regions", json=params,
                           headers=self._key(idempotency_key)).json()
 
@@ -222,9 +223,10 @@ class Client:
              idempotency_key: str | None = None, **params: Any) -> Job:
         """Submit a bake of a mesh file (OBJ, PLY, STL, GLB; bytes need ``filename``):
         ``resolution``, ``seed``, ``scale`` or ``unit_m`` (metres per mesh unit: at the photo's real
-        size), ``format`` (glb or obj), ``projection`` (auto,
+        size), ``format`` (glb, obj or usdz), ``projection`` (auto,
         solid or triplanar), ``maps`` (a list: ``["height", "normal", "roughness", "ao"]``),
-        ``normal_strength``, ``after_refinement`` and the other form fields of openapi.yaml."""
+        ``gpu_format`` (dds, ktx2) with ``dds_compression`` (bc1, bc7), ``normal_strength``,
+        ``after_refinement`` and the other form fields of openapi.yaml."""
         if isinstance(mesh, bytes):
             data, filename = mesh, filename or "mesh.obj"
         else:

@@ -130,14 +130,16 @@ def run_bake(services: Services, job: Job, workdir: Path, progress: Progress,
                        out_path=out_path, limits=limits, pixels_per_unit=inputs.pixels_per_unit,
                        atlas_cache_dir=services.settings.resolved_atlas_cache_dir,
                        atlas_cache_bytes=services.settings.atlas_cache_bytes,
-                       maps=tuple(p.maps), gpu_format=p.gpu_format, normal_strength=p.normal_strength,
+                       maps=tuple(p.maps), gpu_format=p.gpu_format, dds_compression=p.dds_compression,
+                       normal_strength=p.normal_strength,
                        projection=bake_projection(p.projection, texture.served_structure()),
                        progress=progress, should_cancel=should_cancel)
     # texel density over the surface in metres, for a bake at real size
     density = (math.sqrt(float(result.covered.sum()) / (result.surface_area * p.unit_m ** 2))
                if p.unit_m is not None and result.surface_area > 0 else None)
-    # a GLB with a height map or a DDS comes back as a zip (a KTX2 goes inside the GLB)
-    return _store_result(services, job, result.path, "glb" if result.path.suffix == ".glb" else "zip", names,
+    # a GLB or USDZ with a height map or a DDS comes back as a zip (a KTX2 goes inside the GLB)
+    fmt = p.format if result.path.suffix == extension(p.format) else "zip"
+    return _store_result(services, job, result.path, fmt, names,
                          result.height_range, texels_per_metre=density, scale=result.scale)
 
 
@@ -159,7 +161,7 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
     path = render_region(inputs.sampler, inputs.code, p.seed, z=p.z, x0=p.x0, y0=p.y0, width=p.width,
                          height=p.height, fmt=p.format, out_path=out_path, size=p.size, min_zoom=p.min_zoom,
                          plane=p.plane, offset=p.offset, maps=maps, normal_strength=p.normal_strength,
-                         wrap_maps=p.tileable, tileable=p.tileable,
+                         wrap_maps=p.tileable, tileable=p.tileable, dds_compression=p.dds_compression,
                          pixels_per_unit=inputs.pixels_per_unit, limits=limits,
                          progress=progress, should_cancel=should_cancel)
     return _store_result(services, job, path, fmt, names, zipped_height_range(path) if "height" in maps else None)

@@ -12,7 +12,7 @@ from worker.files import OFFERED
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH, MAX_WHOLE_PIXELS
 from worker.bake import BAKE_FORMATS
 from worker.triplanar import PROJECTIONS
-from worker.gpu_textures import GPU_FORMATS
+from worker.gpu_textures import DDS_COMPRESSIONS, GPU_FORMATS
 from worker.photo import LIGHTING
 from worker.regions import REGION_FORMATS
 from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
@@ -279,6 +279,11 @@ def bake_projection(requested: str, structure: dict | None) -> str:
     return "triplanar" if structure and structure.get("lattice") else "solid"
 
 
+DDS_COMPRESSION_HELP = ("a DDS's blocks: bc1 (the default: BC1, 4 bits a texel, BC3 where a texel is not "
+                        "opaque, in the legacy header every DDS reader knows) or bc7 (8 bits a texel, about "
+                        "half BC1's error; DX10 header, DXGI_FORMAT_BC7_UNORM_SRGB: Debian 12's Blender 3.4, "
+                        "ImageMagick 6 and iinfo 2.4 cannot read it, docs/API.md)")
+
 NORMAL_STRENGTH_HELP = ("normal map: how many pixels the height map's full range rises (its gradient times this); "
                         "the default gives a mean |xy| of 0.14-0.46 (median 0.25) on the validation photos")
 
@@ -294,6 +299,7 @@ class BakeParams(BaseModel):
     filename: str = "mesh.obj"
     maps: list[Literal[MAP_NAMES]] = []
     gpu_format: Literal[GPU_FORMATS] | None = None
+    dds_compression: Literal[DDS_COMPRESSIONS] = "bc1"
     normal_strength: float = DEFAULT_NORMAL_STRENGTH
     projection: Literal[BAKE_PROJECTIONS] = "auto"
     after_refinement: bool = False
@@ -321,7 +327,8 @@ class RegionIn(BaseModel):
     format: Literal[REGION_FORMATS] = Field(
         "png", description="png: 8-bit sRGB; tiff: scanline 16-bit sRGB; exr: tiled half linear; pyramid: zip of "
                            "{z}/{x}/{y}.png tiles from min_zoom to z plus tilejson.json; dds: BC1 (legacy DXT1 "
-                           "header); ktx2: Basis Universal UASTC + Zstandard; GPU textures with the full mip chain (averaged in linear light)")
+                           "header) or BC7 (DX10 header, dds_compression); ktx2: Basis Universal UASTC + Zstandard; GPU textures with the full mip chain (averaged in linear light)")
+    dds_compression: Literal[DDS_COMPRESSIONS] = Field("bc1", description=DDS_COMPRESSION_HELP + "; format dds only")
     size: int = Field(256, ge=MIN_TILE_SIZE, le=MAX_TILE_SIZE, description="pyramid tile size")
     min_zoom: int | None = Field(None, ge=MIN_ZOOM, le=MAX_ZOOM,
                                  description="pyramid: lowest zoom, at most z (default: the minimum zoom)")
@@ -347,6 +354,8 @@ class RegionIn(BaseModel):
             raise ValueError(f"min_zoom {self.min_zoom} is above z {self.z}")
         if self.maps and self.format == "pyramid":
             raise ValueError("derived maps come with a single image, not a pyramid")
+        if self.dds_compression != "bc1" and self.format != "dds":
+            raise ValueError(f"dds_compression {self.dds_compression} applies to format dds only")
         if (self.maps or self.format in GPU_FORMATS) and self.width * self.height > MAX_WHOLE_PIXELS:
             raise ValueError(f"{', '.join(GPU_FORMATS)} and derived maps are limited to {MAX_WHOLE_PIXELS} pixels")
         return self

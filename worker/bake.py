@@ -1,4 +1,4 @@
-"""Bake the solid texture onto a mesh's UV atlas (GLB or OBJ+MTL+PNG).
+"""Bake the solid texture onto a mesh's UV atlas (GLB, OBJ+MTL+MaterialX+PNG or USDZ).
 
 Steps, each reported through ``progress`` and preceded by a ``should_cancel`` check:
 
@@ -25,13 +25,16 @@ Steps, each reported through ``progress`` and preceded by a ``should_cancel`` ch
    fill the gutter: uncovered texels within ``padding`` of a chart copy the nearest
    covered texel, so bilinear filtering and mipmaps near seams never read background.
 5. Write atomically: GLB (written here: POSITION, NORMAL, TEXCOORD_0, PBR material, base
-   colour factor 1, embedded 8-bit sRGB PNG) or a zip of ``<stem>.obj`` (with ``vn``) +
-   ``<stem>.mtl`` (``Kd 1 1 1``, ``map_Kd <stem>_basecolor.png``) + ``<stem>_basecolor.png``,
-   ``<stem>`` being the result file's own stem (``worker.files.member_stem``), so two bakes
-   extracted into one folder keep their files. With ``exr=True`` a linear half-float
-   ``<stem>_basecolor.exr`` is added to the OBJ zip, or written next to a GLB as ``<out_path>.exr``. ``maps`` (height,
-   normal, roughness, ao) and ``gpu_format`` (dds, ktx2) add derived maps and a mipmapped texture of the
-   atlas (``worker/bake_outputs.py``: a GLB embeds normal, roughness and AO in its material and a KTX2 as
+   colour factor 1, embedded 8-bit sRGB PNG), a zip of ``<stem>.obj`` (with ``vn``) +
+   ``<stem>.mtl`` (``Kd 1 1 1``, ``map_Kd <stem>_basecolor.png``) + ``<stem>.mtlx`` (a
+   MaterialX standard_surface naming the same files, ``worker/material_files.py``) +
+   ``<stem>_basecolor.png``, or a USDZ (mesh, UVs, normals and a bound UsdPreviewSurface
+   with its textures inside, ``worker/material_files.py``), ``<stem>`` being the result
+   file's own stem (``worker.files.member_stem``), so two bakes extracted into one folder
+   keep their files. With ``exr=True`` a linear half-float ``<stem>_basecolor.exr`` is
+   added to the OBJ zip, or written next to a GLB or USDZ as ``<out_path>.exr``. ``maps`` (height,
+   normal, roughness, ao) and ``gpu_format`` (dds, ktx2; a DDS in BC1 or, with ``dds_compression="bc7"``,
+   BC7) add derived maps and a mipmapped texture of the atlas (``worker/bake_outputs.py``: a GLB embeds normal, roughness and AO in its material and a KTX2 as
    its base colour's KHR_texture_basisu source, and becomes a zip with a height map or a DDS).
 
 Projection: a solid texture is one 3D material, the right thing for isotropic ones (stone,
@@ -64,18 +67,19 @@ from typing import Callable
 import numpy as np
 import trimesh
 from worker import atlas, raster
-from worker.bake_outputs import add_bake_outputs, check_options
+from worker.bake_outputs import add_bake_outputs, check_options, write_usdz_bake
 from worker.contract import MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH
 from worker.errors import Canceled, InvalidMesh, InvalidParameter, LimitExceeded
 from worker.files import OFFERED, ZIP_TIME, atomic_output, media_type, member_name, member_stem
 from worker.images import png_bytes, write_image
+from worker.material_files import materialx_document
 from worker.mesh_size import check_mesh_size
 from worker.photo import working_shape
 from worker.runtime import Sampler
 from worker.triplanar import PROJECTIONS, sample_triplanar
 
-BAKE_FORMATS = OFFERED["bake"]  # (an obj bake is a zip)
+BAKE_FORMATS = OFFERED["bake"]  # (an obj bake is a zip; glb and usdz become one with extra files)
 MESH_TYPES = {"obj": "obj", "ply": "ply", "stl": "stl", "glb": "glb"}
 PARSED_MESH = "mesh.npz"  # a bake job's input as the API parsed it (``mesh_npz``)
 MAX_UV_OVERLAP = 0.01
@@ -541,7 +545,7 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
               should_cancel: Callable[[], bool] | None = None,
               atlas_cache_dir: str | os.PathLike | None = None,
               atlas_cache_bytes: int = atlas.DEFAULT_CACHE_BYTES,
-              maps: tuple[str, ...] = (), gpu_format: str | None = None,
+              maps: tuple[str, ...] = (), gpu_format: str | None = None, dds_compression: str = "bc1",
               normal_strength: float = DEFAULT_NORMAL_STRENGTH, projection: str = "solid") -> BakeResult:
     """Bake the texture (code, seed) onto the uploaded mesh; see the module docstring.
 
@@ -551,12 +555,12 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     None runs xatlas every time.
     """
     if fmt not in BAKE_FORMATS:
-        raise InvalidParameter(f"bake format must be 'glb' or 'obj', got {fmt!r}")
+        raise InvalidParameter(f"bake format must be one of {BAKE_FORMATS}, got {fmt!r}")
     if not MIN_BAKE_RESOLUTION <= resolution <= limits.max_resolution:
         raise LimitExceeded(f"texture resolution must be in [{MIN_BAKE_RESOLUTION}, {limits.max_resolution}]")
     if projection not in PROJECTIONS:
         raise InvalidParameter(f"projection must be one of {PROJECTIONS}, got {projection!r}")
-    check_options(maps, gpu_format)
+    check_options(maps, gpu_format, dds_compression)
     extras = bool(maps) or gpu_format is not None
     report = progress or (lambda _f: None)
 
@@ -605,20 +609,24 @@ def bake_mesh(sampler: Sampler, code: np.ndarray, seed: int, *, mesh_bytes: byte
     normals = normals if vmap is None else normals[vmap]
     timings["normals"], clock = time.perf_counter() - clock, time.perf_counter()   # the wait for them
     out_path = Path(out_path)
-    exr_path = out_path.with_name(out_path.name + ".exr") if exr and fmt == "glb" else None
+    exr_path = out_path.with_name(out_path.name + ".exr") if exr and fmt != "obj" else None
     png = png_bytes(srgb)
     exr_bytes = write_image(image, "exr") if exr else None
-    if fmt == "glb":
-        payload = glb_bytes(vertices, faces, uv, normals, png)
-    else:
-        payload = _obj_zip_bytes(vertices, faces, uv, normals, png, exr_bytes, member_stem(out_path))
-    _atomic_write(out_path, payload)
     if exr_path is not None:
         _atomic_write(exr_path, exr_bytes)
     height_range = None
-    if extras:
+    if fmt == "usdz":   # the material needs the maps: written whole, with them, in one go
+        outputs = write_usdz_bake(out_path, vertices, faces, uv, normals, png, image if extras else None,
+                                  maps=maps, gpu_format=gpu_format, dds_compression=dds_compression,
+                                  strength=normal_strength, mask=covered)
+        out_path, height_range = outputs.path, outputs.height_range
+    elif fmt == "glb":
+        _atomic_write(out_path, glb_bytes(vertices, faces, uv, normals, png))
+    else:
+        _atomic_write(out_path, _obj_zip_bytes(vertices, faces, uv, normals, png, exr_bytes, member_stem(out_path)))
+    if extras and fmt != "usdz":
         outputs = add_bake_outputs(out_path, fmt, image, maps=maps, gpu_format=gpu_format,
-                                   strength=normal_strength, mask=covered)
+                                   dds_compression=dds_compression, strength=normal_strength, mask=covered)
         out_path, height_range = outputs.path, outputs.height_range
     timings["write"] = time.perf_counter() - clock
     report(1.0)
@@ -677,8 +685,10 @@ def glb_bytes(vertices, faces, uv, normals, png: bytes) -> bytes:
 
 
 def _obj_zip_bytes(vertices, faces, uv, normals, png: bytes, exr: bytes | None, stem: str) -> bytes:
-    """OBJ with one vt and one vn per v (same indices), an MTL with Kd 1 1 1, and the
-    textures (stored: PNG and EXR are compressed already), every member named after ``stem``."""
+    """OBJ with one vt and one vn per v (same indices), an MTL with Kd 1 1 1, a MaterialX
+    document of the base colour (``worker.material_files.materialx_document``; the maps
+    rewrite it, ``worker/bake_outputs.py``) and the textures (stored: PNG and EXR are
+    compressed already), every member named after ``stem``."""
     f = faces + 1
     obj, mtl_name, colour = (member_name(stem, "", ".obj"), member_name(stem, "", ".mtl"),
                              member_name(stem, "basecolor", ".png"))
@@ -694,6 +704,7 @@ def _obj_zip_bytes(vertices, faces, uv, normals, png: bytes, exr: bytes | None, 
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as z:
         members = [(obj, text.encode(), zipfile.ZIP_DEFLATED), (mtl_name, mtl.encode(), zipfile.ZIP_DEFLATED),
+                   (member_name(stem, "", ".mtlx"), materialx_document(stem).encode(), zipfile.ZIP_DEFLATED),
                    (colour, png, zipfile.ZIP_STORED)]
         members += [(member_name(stem, "basecolor", ".exr"), exr, zipfile.ZIP_STORED)] if exr else []
         for name, data, method in members:

@@ -14,7 +14,8 @@ their files. Where each output goes:
   <stem>_roughness.png`` (PBR MTL roughness, which Blender reads) and a comment naming the
   AO map (MTL has no occlusion keyword). The height map is not referenced from the MTL
   (MTL's ``bump`` is a height map to some tools and a normal map to others, and the normal
-  map holds the same relief).
+  map holds the same relief). The zip's MaterialX document ``<stem>.mtlx`` is rewritten to
+  connect the normal and roughness maps too (``worker/material_files.py``).
 * GLB: the normal map is embedded as the material's ``normalTexture`` (glTF's own
   convention: tangent space, +Y up, which is what ``normal_map`` writes) with a TANGENT
   attribute; roughness and AO are packed into one embedded "ORM" PNG (R = occlusion, G =
@@ -25,6 +26,11 @@ their files. Where each output goes:
   extension load the KTX2, others (Blender 3.4) the PNG beside it. glTF has no height map
   and no DDS, so when ``height`` or ``dds`` is asked for the result becomes a zip of
   ``<stem>.glb`` plus ``<stem>_height.png`` / ``<stem>_basecolor.dds``.
+* USDZ (``write_usdz_bake``): the normal, roughness and AO maps go inside the package
+  beside the base colour, connected to its UsdPreviewSurface (``normal``, ``roughness``,
+  ``occlusion``). USDZ takes neither a height map (not connected: no scene-unit scale) nor
+  DDS / KTX2 files, so when they are asked for the result becomes a zip of
+  ``<stem>.usdz`` plus ``<stem>_height.png`` / ``<stem>_basecolor.dds|ktx2``.
 
 All rewrites are atomic (``worker/files.py``).
 """
@@ -38,11 +44,11 @@ from pathlib import Path
 
 import numpy as np
 
-from worker.derived_maps import check_maps, derived_maps, encode_normals8, grey8, map_file
-from worker.errors import InvalidParameter
+from worker.derived_maps import DerivedMaps, check_maps, derived_maps, encode_normals8, grey8, map_file
 from worker.files import ZIP_TIME, atomic_output, extension, media_type, member_name, member_stem
-from worker.gpu_textures import GPU_FORMATS, gpu_texture_bytes
+from worker.gpu_textures import check_gpu_options, gpu_texture_bytes
 from worker.images import png_bytes
+from worker.material_files import MATERIAL_MAPS, base_colour_file, materialx_document, usdz_bytes
 
 GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
 
@@ -53,18 +59,19 @@ class BakeOutputs:
     height_range: tuple[float, float] | None     # the height map's luminance (min, max), if one was made
 
 
-def check_options(maps, gpu_format) -> None:
+def check_options(maps, gpu_format, dds_compression: str = "bc1") -> None:
+    """InvalidParameter unless the extras asked for can be made (before any baking)."""
     check_maps(maps)
-    if gpu_format is not None and gpu_format not in GPU_FORMATS:
-        raise InvalidParameter(f"GPU texture format must be one of {GPU_FORMATS}, got {gpu_format!r}")
+    check_gpu_options(gpu_format, dds_compression)
 
 
 def add_bake_outputs(path: Path, fmt: str, image: np.ndarray, *, maps=(), gpu_format: str | None = None,
-                     strength: float, mask: np.ndarray | None = None) -> BakeOutputs:
+                     dds_compression: str = "bc1", strength: float, mask: np.ndarray | None = None) -> BakeOutputs:
     """Add the requested outputs to the bake result at ``path`` (see module doc); returns
     the result's path (a GLB becomes ``<stem>.zip`` when it cannot hold everything) and the
-    height map's luminance range. ``mask``: (R, R) bool, the texels the mesh covers."""
-    check_options(maps, gpu_format)
+    height map's luminance range. ``mask``: (R, R) bool, the texels the mesh covers;
+    ``dds_compression``: bc1 or bc7 for a DDS (``worker/gpu_textures.py``)."""
+    check_options(maps, gpu_format, dds_compression)
     stem = member_stem(path)
     derived = derived_maps(image, maps, strength=strength, mask=mask)
     done = BakeOutputs(path, derived.height_range)
@@ -74,8 +81,11 @@ def add_bake_outputs(path: Path, fmt: str, image: np.ndarray, *, maps=(), gpu_fo
         files = derived.files(stem) if "height" in maps else {}
         files = {name: data for name, data in files.items() if name == map_file("height", stem)}
     if gpu_format is not None:
-        files[member_name(stem, "basecolor", extension(gpu_format))] = gpu_texture_bytes(image, gpu_format)
+        files[member_name(stem, "basecolor", extension(gpu_format))] = gpu_texture_bytes(image, gpu_format,
+                                                                                         dds_compression)
     if fmt == "obj":
+        if maps:   # the MaterialX document connects the maps now in the zip
+            files[member_name(stem, "", ".mtlx")] = materialx_document(stem, maps).encode()
         if files:
             _rewrite_zip(path, path, files, {}, mtl=(member_name(stem, "", ".mtl"), _mtl_lines(files, stem)))
         return done
@@ -96,6 +106,34 @@ def add_bake_outputs(path: Path, fmt: str, image: np.ndarray, *, maps=(), gpu_fo
     zip_path = path.with_suffix(".zip")
     _rewrite_zip(None, zip_path, files, {member_name(stem, "", ".glb"): glb})
     path.unlink()
+    return BakeOutputs(zip_path, derived.height_range)
+
+
+def write_usdz_bake(path: Path, vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, normals: np.ndarray,
+                    png: bytes, image: np.ndarray | None, *, maps=(), gpu_format: str | None = None,
+                    dds_compression: str = "bc1", strength: float, mask: np.ndarray | None = None) -> BakeOutputs:
+    """Write a USDZ bake to ``path`` (module doc): the mesh (``vertices`` (V, 3), ``faces``
+    (F, 3), ``uv`` (V, 2) v up, ``normals`` (V, 3)), the base colour ``png`` and the
+    requested maps of the linear atlas ``image`` (None when no map and no GPU texture is
+    asked for) inside; a zip of ``<stem>.usdz`` and the files USDZ cannot hold when a height
+    map or a GPU texture is asked for. Returns the result's path and the height range."""
+    check_options(maps, gpu_format, dds_compression)
+    stem = member_stem(path)
+    derived = derived_maps(image, maps, strength=strength, mask=mask) if maps else DerivedMaps()
+    files = derived.files(stem)
+    inside = {base_colour_file(stem): png}
+    inside.update({name: data for name, data in files.items() if name in {map_file(m, stem) for m in MATERIAL_MAPS}})
+    package = usdz_bytes(vertices, faces, uv, normals, stem, inside)
+    beside = {name: data for name, data in files.items() if name not in inside}
+    if gpu_format is not None:
+        beside[member_name(stem, "basecolor", extension(gpu_format))] = gpu_texture_bytes(image, gpu_format,
+                                                                                          dds_compression)
+    if not beside:
+        with atomic_output(path) as tmp, open(tmp, "wb") as f:
+            f.write(package)
+        return BakeOutputs(path, derived.height_range)
+    zip_path = path.with_suffix(".zip")
+    _rewrite_zip(None, zip_path, beside, {member_name(stem, "", ".usdz"): package})
     return BakeOutputs(zip_path, derived.height_range)
 
 

@@ -33,7 +33,7 @@ class FileFormat:
 
 
 #: format name -> file format. Zips: a raw volume (volume.raw + volume.json), an obj bake
-#: (obj + mtl + png), a tile pyramid, and any output with extra files (maps, GPU textures)
+#: (obj + mtl + mtlx + png), a tile pyramid, and any output with extra files (maps, GPU textures)
 FORMATS: dict[str, FileFormat] = {
     "png": FileFormat(".png", "image/png"),
     "webp": FileFormat(".webp", "image/webp"),
@@ -49,6 +49,7 @@ FORMATS: dict[str, FileFormat] = {
     "dds": FileFormat(".dds", "image/vnd-ms.dds"),
     "ktx2": FileFormat(".ktx2", "image/ktx2"),
     "glb": FileFormat(".glb", "model/gltf-binary"),
+    "usdz": FileFormat(".usdz", "model/vnd.usdz+zip"),
     "zip": FileFormat(".zip", "application/zip"),
     "raw": FileFormat(".zip", "application/zip"),
     "obj": FileFormat(".zip", "application/zip"),
@@ -65,7 +66,7 @@ OFFERED: dict[str, tuple[str, ...]] = {
     "tile": ("png", "webp", "exr"),
     "volume": ("npy", "exr", "tiff", "raw", "nrrd", "dds", "flipbook", "vdb"),
     "region": ("png", "exr", "tiff", "pyramid", "dds", "ktx2"),
-    "bake": ("glb", "obj"),
+    "bake": ("glb", "obj", "usdz"),
     "gpu_texture": ("dds", "ktx2"),  # a bake's or a region's extra texture, a region format too
     "shader": ("glsl", "wgsl"),
 }

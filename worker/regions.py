@@ -13,7 +13,8 @@ Formats:
   ``min_zoom`` to ``z`` (the tiles covering the rectangle at each level, each rendered exactly like the tile
   endpoint, so the bytes match it) plus ``tilejson.json`` (TileJSON 3.0.0, xyz scheme,
   plus a ``texspace`` object with the box and tile size).
-* ``dds`` / ``ktx2``: mipmapped GPU textures (BC1 blocks / Basis Universal UASTC) with the full mip chain
+* ``dds`` / ``ktx2``: mipmapped GPU textures (BC1 or, ``dds_compression="bc7"``, BC7 blocks / Basis
+  Universal UASTC) with the full mip chain
   averaged in linear light (``worker/gpu_textures.py``).
 
 Derived maps (``maps``: any of ``height``, ``normal``, ``roughness``, ``ao``,
@@ -51,7 +52,7 @@ from worker.colour import linear_to_srgb, linear_to_srgb8
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_WHOLE_PIXELS, derived_map_files
 from worker.errors import Canceled, InvalidParameter, LimitExceeded
 from worker.files import IMAGE_DATETIME, OFFERED, ZIP_TIME, atomic_output, extension, member_name, member_stem
-from worker.gpu_textures import GPU_FORMATS, gpu_texture_bytes
+from worker.gpu_textures import GPU_FORMATS, check_gpu_options, gpu_texture_bytes
 from worker.images import write_image
 from worker.runtime import Sampler, periodic_sampler
 from worker.tiles import (MAX_ZOOM, MIN_ZOOM, NATIVE_ZOOM, render_tile, render_window,
@@ -95,7 +96,8 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
                   size: int = 256, min_zoom: int | None = None, plane: str = "xy",
                   offset: float = 0.0, pixels_per_unit: float | None = None,
                   maps: tuple[str, ...] = (), normal_strength: float = DEFAULT_NORMAL_STRENGTH,
-                  wrap_maps: bool = False, tileable: bool = False, limits: RegionLimits = RegionLimits(),
+                  wrap_maps: bool = False, tileable: bool = False, dds_compression: str = "bc1",
+                  limits: RegionLimits = RegionLimits(),
                   progress: Callable[[float], None] | None = None,
                   should_cancel: Callable[[], bool] | None = None) -> Path:
     """Render pixels [x0, x0+width) x [y0, y0+height) of zoom z into ``out_path``.
@@ -105,12 +107,14 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
     tileable : the image repeats seamlessly (module doc): needs plane xy,
     width == height, a single image, and a tileable sampler (a ``ModelRuntime`` or a
     ``SamplerSession`` of sampler_tileable.onnx); derived maps then wrap too.
+    dds_compression : bc1 or bc7, for ``fmt="dds"`` (``worker/gpu_textures.py``).
     Returns the final path, written atomically.
     """
     if fmt not in REGION_FORMATS:
         raise InvalidParameter(f"region format must be one of {REGION_FORMATS}, got {fmt!r}")
     if maps and fmt == "pyramid":
         raise InvalidParameter("derived maps come with a single image, not a pyramid")
+    check_gpu_options(fmt if fmt in GPU_FORMATS else None, dds_compression)
     if set(maps) - set(MAP_NAMES):
         raise InvalidParameter(f"unknown derived maps {sorted(set(maps) - set(MAP_NAMES))}; choose from {MAP_NAMES}")
     if not MIN_ZOOM <= z <= MAX_ZOOM:
@@ -163,7 +167,8 @@ def render_region(sampler: Sampler, code: np.ndarray, seed: int, *, z: int, x0: 
                     raise LimitExceeded(f"{fmt} or derived maps of {width}x{height} pixels exceed "
                                         f"{limits.max_whole_pixels} pixels")
                 image = np.concatenate(list(stripes()), axis=0)
-                _write_whole(tmp, fmt, image, maps, normal_strength, wrap_maps, member_stem(out_path))
+                _write_whole(tmp, fmt, image, maps, normal_strength, wrap_maps, member_stem(out_path),
+                             dds_compression)
             else:
                 _write_image_stripes(tmp, fmt, width, height, stripes())
     return out_path
@@ -181,16 +186,17 @@ def check_tileable(*, z: int, width: int, height: int, fmt: str, plane: str) -> 
         raise InvalidParameter("a tileable region is one image, not a pyramid")
 
 
-def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, wrap: bool, stem: str) -> None:
+def _write_whole(path: str, fmt: str, image: np.ndarray, maps, strength: float, wrap: bool, stem: str,
+                 dds_compression: str = "bc1") -> None:
     """One image in memory: a GPU texture, or the zip of the colour image and its maps
     (members named after ``stem``)."""
     files = derived_map_files(image, maps, strength=strength, wrap=wrap, stem=stem)   # checks maps first
     if not maps:
         with open(path, "wb") as f:
-            f.write(gpu_texture_bytes(image, fmt))
+            f.write(gpu_texture_bytes(image, fmt, dds_compression))
         return
     if fmt in GPU_FORMATS:
-        colour = gpu_texture_bytes(image, fmt)
+        colour = gpu_texture_bytes(image, fmt, dds_compression)
     else:
         colour_path = f"{path}.colour{extension(fmt)}"
         try:

@@ -14,7 +14,7 @@ from worker.bake import BAKE_FORMATS, PARSED_MESH, mesh_npz
 from worker.contract import MAX_BAKE_RESOLUTION, MAX_UNIT_M, MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, LimitExceeded
-from worker.gpu_textures import GPU_FORMATS
+from worker.gpu_textures import DDS_COMPRESSIONS, GPU_FORMATS
 from worker.tiles import MIN_ZOOM
 
 from .. import auth, jobs, keys
@@ -24,7 +24,8 @@ from ..deps import JobId, PageParams, SafeText, ServicesDep, TextureId, apply_cu
 from ..errors import Problem, not_found, problem_for, problem_responses
 from ..job_kinds import torch_available
 from ..limits import check_mesh, check_queue_room
-from ..schemas import BAKE_PROJECTIONS, NORMAL_STRENGTH_HELP, BakeParams, FitIn, JobOut, JobPage, RegionIn, VolumeIn
+from ..schemas import (BAKE_PROJECTIONS, DDS_COMPRESSION_HELP, NORMAL_STRENGTH_HELP, BakeParams, FitIn, JobOut, JobPage,
+                       RegionIn, VolumeIn)
 from ..tables import Job, new_id
 from ..uploads import read_limited, safe_filename, sha256
 from ..vocabulary import TERMINAL_STATES, JobKind, JobState
@@ -74,7 +75,9 @@ def submit_bake(
     unit_m: Annotated[float | None, Form(gt=0, le=MAX_UNIT_M, description="metres per mesh unit (1: a mesh in "
                                          "metres, 0.01: in centimetres): the texture is baked at its photo's real "
                                          "size (the texture's width_m); not with scale")] = None,
-    format: Annotated[Literal[BAKE_FORMATS], Form(description="glb, or a zip of obj + mtl + png")] = "glb",
+    format: Annotated[Literal[BAKE_FORMATS], Form(
+        description="glb; a zip of obj + mtl + mtlx (MaterialX standard_surface) + png; or usdz (mesh and "
+                    "UsdPreviewSurface material with its textures inside)")] = "glb",
     maps: Annotated[list[Literal[MAP_NAMES]], Form(
         description="derived maps of the atlas (repeat the field for each): normal = tangent-space, OpenGL "
                     "convention (+Y up), embedded in a GLB as its normalTexture (with TANGENTs) or added to "
@@ -83,9 +86,12 @@ def submit_bake(
                     "stretched to 16 bits, <stem>_height.png (a GLB result becomes a zip; its range: "
                     "result.height_range)")] = [],
     gpu_format: Annotated[Literal[GPU_FORMATS] | None, Form(
-        description="add a mipmapped <stem>_basecolor.dds (BC1) / .ktx2 (Basis Universal UASTC) of the atlas "
+        description="add a mipmapped <stem>_basecolor.dds (BC1, or BC7: dds_compression) / .ktx2 (Basis "
+                    "Universal UASTC) of the atlas "
                     "(<stem>: the result's name); a GLB embeds the KTX2 (KHR_texture_basisu, PNG fallback) "
                     "and stays a GLB, with dds it becomes a zip of <stem>.glb and the texture")] = None,
+    dds_compression: Annotated[Literal[DDS_COMPRESSIONS], Form(
+        description=DDS_COMPRESSION_HELP + "; with gpu_format dds only")] = "bc1",
     normal_strength: Annotated[float, Form(gt=0, le=MAX_NORMAL_STRENGTH,
                                            description=NORMAL_STRENGTH_HELP)] = DEFAULT_NORMAL_STRENGTH,
     projection: Annotated[Literal[BAKE_PROJECTIONS], Form(
@@ -104,12 +110,15 @@ def submit_bake(
     if unit_m is not None and texture.width_m is None:
         raise InvalidParameter(f"texture {texture_id} has no width_m: say how wide its photo is in metres "
                                f"(PATCH /v1/textures/{texture_id} {{\"width_m\": ...}}) to bake it at real size")
+    if dds_compression != "bc1" and gpu_format != "dds":
+        raise InvalidParameter(f"dds_compression {dds_compression} applies to gpu_format dds only")
     if resolution > services.settings.max_bake_resolution:
         raise LimitExceeded(f"resolution {resolution} exceeds the limit of {services.settings.max_bake_resolution}")
     data = read_limited(mesh, services.settings.max_mesh_bytes, "the mesh")
     filename = safe_filename(mesh.filename, "mesh.obj")
     params = BakeParams(resolution=resolution, seed=seed, scale=scale, unit_m=unit_m, format=format, filename=filename,
-                        maps=sorted(set(maps)), gpu_format=gpu_format, normal_strength=normal_strength,
+                        maps=sorted(set(maps)), gpu_format=gpu_format, dds_compression=dds_compression,
+                        normal_strength=normal_strength,
                         projection=projection, after_refinement=after_refinement).model_dump()
     fingerprint = jobs.request_hash(JobKind.BAKE, texture_id, params, sha256(data).encode())
     if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:

@@ -12,6 +12,7 @@ from service.cli import main
 from service.settings import Settings
 from tests.helpers import brick_png
 from tests.service.test_cli_errors import refused, tree
+from tests.worker.gpu_readers import read_bc7_dds
 
 
 def test_cli_tileable_of_stored_texture_matches_api(cli_env: Path, capsys) -> None:
@@ -39,6 +40,9 @@ def test_cli_tileable_of_an_image_file(cli_env: Path) -> None:
     assert np.abs(image[:, 0] - image[:, -1]).mean() < 2 * interior   # no seam at the wrap
     main(["tileable", "brick.png", "--size", "64", "-o", "t.exr"])
     assert (cli_env / "t.exr").read_bytes()[:4] == b"\x76\x2f\x31\x01"
+    main(["tileable", "brick.png", "--size", "64", "--dds-compression", "bc7", "-o", "t.dds"])
+    header, levels = read_bc7_dds((cli_env / "t.dds").read_bytes())
+    assert (header["dxgi_format"], header["width"], len(levels)) == (99, 64, 7)
 
 
 @pytest.mark.parametrize(("argv", "words"), [
@@ -46,6 +50,7 @@ def test_cli_tileable_of_an_image_file(cli_env: Path) -> None:
     (["tileable", "brick.png", "--size", "4097", "-o", "t.dds"], "exceed 16777216 pixels"),
     (["tileable", "brick.png", "-o", "t.jpg"], "cannot tell the format"),
     (["tileable", "brik.png"], "neither an image file nor a texture id"),
+    (["tileable", "brick.png", "--dds-compression", "bc7", "-o", "t.png"], "applies to a .dds output only"),
 ])
 def test_cli_tileable_refusals(cli_env: Path, capsys, argv, words) -> None:
     before = tree(cli_env)

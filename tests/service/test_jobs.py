@@ -395,6 +395,67 @@ def test_region_gpu_textures_and_maps(client, texture) -> None:
         assert client.post(texture["links"]["regions"], json=body).status_code == 422, body
 
 
+def test_bc7_dds_region_and_bake(client, texture) -> None:
+    """``dds_compression: bc7`` gives a DX10 BC7 DDS, for a region and a bake's texture; asked
+    for without a DDS it is a 422 problem, before any job."""
+    from tests.worker.gpu_readers import read_bc7_dds
+
+    rect = {"z": 6, "x0": 0, "y0": 0, "width": 40, "height": 24}
+    res = client.post(texture["links"]["regions"], json={**rect, "format": "dds", "dds_compression": "bc7"})
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded" and job["result"]["media_type"] == "image/vnd-ms.dds", job
+    header, levels = read_bc7_dds(client.get(job["links"]["result"]).content)
+    assert (header["dxgi_format"], header["width"], header["height"], len(levels)) == (99, 40, 24, 6)
+    mesh = (MESHES / "cube.obj").read_bytes()
+    res = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                      data={"resolution": "64", "format": "obj", "gpu_format": "dds", "dds_compression": "bc7"})
+    job = client.get(res.json()["links"]["self"]).json()
+    assert job["state"] == "succeeded" and job["params"]["dds_compression"] == "bc7", job
+    with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
+        dds = next(name for name in z.namelist() if name.endswith("_basecolor.dds"))
+        assert read_bc7_dds(z.read(dds))[0]["dxgi_format"] == 99
+    before = len(client.get("/v1/jobs").json()["items"])
+    refused = [client.post(texture["links"]["regions"], json={**rect, "format": "png", "dds_compression": "bc7"}),
+               client.post(texture["links"]["regions"], json={**rect, "format": "dds", "dds_compression": "bc5"}),
+               client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                           data={"resolution": "64", "gpu_format": "ktx2", "dds_compression": "bc7"})]
+    for res in refused:
+        assert res.status_code == 422 and res.headers["content-type"].startswith("application/problem+json"), res.text
+    assert "dds_compression" in refused[2].json()["detail"]
+    assert len(client.get("/v1/jobs").json()["items"]) == before
+
+
+def test_usdz_bake(client, texture, tmp_path) -> None:
+    """``format: usdz`` gives a USDZ (its own media type and name) that USD opens with the
+    material bound; with a height map it comes as a zip of the USDZ and the map."""
+    from pxr import Usd, UsdShade
+
+    mesh = (MESHES / "cube.obj").read_bytes()
+    res = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                      data={"resolution": "64", "format": "usdz", "maps": ["normal", "roughness"]})
+    job = client.get(res.json()["links"]["self"]).json()
+    stem = "brick_cube_bake_64px_seed0"
+    assert job["state"] == "succeeded", job
+    assert job["result"]["media_type"] == "model/vnd.usdz+zip" and job["result"]["filename"] == f"{stem}.usdz"
+    res = client.get(job["links"]["result"])
+    assert res.headers["content-type"] == "model/vnd.usdz+zip"
+    with zipfile.ZipFile(io.BytesIO(res.content)) as z:
+        assert z.namelist()[0] == f"{stem}.usdc"
+        assert sorted(z.namelist()[1:]) == [f"{stem}_basecolor.png", f"{stem}_normal.png", f"{stem}_roughness.png"]
+    package = tmp_path / f"{stem}.usdz"
+    package.write_bytes(res.content)
+    stage = Usd.Stage.Open(str(package))
+    mesh_prim = stage.GetPrimAtPath("/texspace/mesh")
+    material, _ = UsdShade.MaterialBindingAPI(mesh_prim).ComputeBoundMaterial()
+    assert material.GetPath() == "/texspace/material" and len(mesh_prim.GetAttribute("faceVertexCounts").Get()) == 12
+    with_height = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
+                              data={"resolution": "64", "format": "usdz", "maps": ["height"]})
+    job = client.get(with_height.json()["links"]["self"]).json()
+    assert job["result"]["media_type"] == "application/zip" and job["result"]["filename"] == f"{stem}.zip"
+    with zipfile.ZipFile(io.BytesIO(client.get(job["links"]["result"]).content)) as z:
+        assert sorted(z.namelist()) == [f"{stem}.usdz", f"{stem}_height.png"]
+
+
 def test_worker_shutdown_hands_running_jobs_back(held, photo) -> None:
     client, services = held
     job = submit_volume(client, upload(client, photo))

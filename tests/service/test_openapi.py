@@ -104,6 +104,14 @@ def test_enums_match(spec, app_spec) -> None:
 
     assert enum_of(spec, "VolumeRequest", "format") == enum_of(app_spec, "VolumeIn", "format")
     assert enum_of(spec, "RegionRequest", "format") == enum_of(app_spec, "RegionIn", "format")
+    assert enum_of(spec, "RegionRequest", "dds_compression") == enum_of(app_spec, "RegionIn", "dds_compression")
+    bake_form = [resolve(doc, operations(doc)[("/v1/textures/{texture_id}/bakes", "post")]["requestBody"])
+                 ["content"]["multipart/form-data"]["schema"] for doc in (spec, app_spec)]
+    bake_form[1] = resolve(app_spec, bake_form[1])
+    for field in ("format", "dds_compression"):
+        spec_field, app_field = (resolve(doc, form["properties"][field])
+                                 for doc, form in zip((spec, app_spec), bake_form))
+        assert set(spec_field["enum"]) == set(app_field["enum"]), field
     tile_op = operations(app_spec)[("/v1/textures/{texture_id}/tiles/{z}/{x}/{y}.{fmt}", "get")]
     fmt = next(resolve(app_spec, p) for p in tile_op["parameters"] if resolve(app_spec, p)["name"] == "fmt")
     spec_op = operations(spec)[("/v1/textures/{texture_id}/tiles/{z}/{x}/{y}.{fmt}", "get")]

@@ -1,8 +1,10 @@
 """Readers for the GPU texture files the tests check: DDS through OpenImageIO (every mip
-level, BC blocks decoded); KTX2's layout by the KTX 2.0 specification and its pixels through
-Basis Universal's transcoder (``alktx2``). Khronos's libktx installs from no registry here
-(PyPI's pyktx has no Linux wheel and needs it built; Debian has no package):
-tests/tools/ checks the files with the Khronos glTF validator and ``ktx-parse`` instead."""
+level, BC blocks decoded), a BC7 DDS's DX10 header by the DDS specification and its blocks
+through ``texture2ddecoder`` (a decoder independent of the encoder); KTX2's layout by the
+KTX 2.0 specification and its pixels through Basis Universal's transcoder (``alktx2``).
+Khronos's libktx installs from no registry here (PyPI's pyktx has no Linux wheel and needs
+it built; Debian has no package): tests/tools/ checks the files with the Khronos glTF
+validator and ``ktx-parse`` instead."""
 from __future__ import annotations
 
 import io
@@ -11,6 +13,7 @@ import struct
 import alktx2
 import numpy as np
 import OpenImageIO as oiio
+import texture2ddecoder
 from PIL import Image
 
 KTX2_ID = b"\xabKTX 20\xbb\r\n\x1a\n"
@@ -25,6 +28,35 @@ def read_dds_levels(path) -> list[np.ndarray]:
         levels.append(inp.read_image(0, len(levels), 0, 4, "uint8"))
     inp.close()
     return levels
+
+
+def read_bc7_dds(data: bytes) -> tuple[dict, list[np.ndarray]]:
+    """(header fields, [(h, w, 4) uint8 RGBA per level, level 0 first]) of a BC7 DDS with
+    the DX10 header, checking its layout: the legacy header's size, flags and FourCC, the
+    DX10 header, and that the levels' blocks (16 bytes per 4 x 4, each level padded to whole
+    blocks) fill the file to its end."""
+    assert data[:4] == b"DDS "
+    size, flags, height, width, linear_size, _depth, mips = struct.unpack_from("<7I", data, 4)
+    pf_size, pf_flags, four_cc = struct.unpack_from("<2I4s", data, 76)
+    caps, = struct.unpack_from("<I", data, 108)
+    assert (size, pf_size, pf_flags, four_cc) == (124, 32, 0x4, b"DX10")      # DDPF_FOURCC
+    assert flags & 0x20000 and caps & 0x400000                                  # MIPMAPCOUNT, MIPMAP
+    dxgi_format, dimension, misc, array_size, alpha_mode = struct.unpack_from("<5I", data, 128)
+    header = dict(width=width, height=height, mips=mips, linear_size=linear_size, dxgi_format=dxgi_format,
+                  dimension=dimension, misc=misc, array_size=array_size, alpha_mode=alpha_mode)
+    levels, at = [], 148
+    for k in range(mips):
+        w, h = max(1, width >> k), max(1, height >> k)
+        pw, ph = -(-w // 4) * 4, -(-h // 4) * 4
+        blocks = data[at:at + 16 * (pw // 4) * (ph // 4)]
+        assert len(blocks) == 16 * (pw // 4) * (ph // 4), f"level {k} is cut short"
+        if k == 0:
+            assert linear_size == len(blocks)
+        bgra = np.frombuffer(texture2ddecoder.decode_bc7(blocks, pw, ph), np.uint8).reshape(ph, pw, 4)
+        levels.append(bgra[:h, :w, [2, 1, 0, 3]])           # the decoder gives BGRA, padded to blocks
+        at += len(blocks)
+    assert at == len(data)
+    return header, levels
 
 
 def assert_block_compressed_close(got: np.ndarray, want: np.ndarray, mean: float, worst: int) -> None:

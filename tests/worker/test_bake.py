@@ -129,7 +129,7 @@ def test_obj_zip_with_exr(runtime, code, meshes, tmp_path):
     folder = tmp_path / "unzipped"
     zipfile.ZipFile(result.path).extractall(folder)
     # members named after the result, so two bakes extracted into one folder keep their files
-    assert sorted(os.listdir(folder)) == ["c.mtl", "c.obj", "c_basecolor.exr", "c_basecolor.png"]
+    assert sorted(os.listdir(folder)) == ["c.mtl", "c.mtlx", "c.obj", "c_basecolor.exr", "c_basecolor.png"]
     mtl = (folder / "c.mtl").read_text()
     assert "Kd 1 1 1" in mtl and "map_Kd c_basecolor.png" in mtl and "mtllib c.mtl" in (folder / "c.obj").read_text()
     mesh = trimesh.load(str(folder / "c.obj"), process=False, force="mesh")

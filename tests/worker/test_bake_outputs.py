@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests.worker.gpu_readers import assert_block_compressed_close, read_dds_levels, read_ktx2
+from tests.worker.gpu_readers import assert_block_compressed_close, read_bc7_dds, read_dds_levels, read_ktx2
 from worker.bake import bake_mesh
 from worker.bake_outputs import vertex_tangents
 from worker.derived_maps import ROUGHNESS_RANGE, decode_normals8, read_height_range
 from worker.errors import InvalidParameter
+from worker.files import extension
 from worker.gpu_textures import mip_sizes
 
 RES = 64
@@ -23,7 +24,7 @@ RES = 64
 
 def bake(waves, meshes, tmp_path, fmt, **options):
     return bake_mesh(waves, None, 0, mesh_bytes=(meshes / "bunny_uv.obj").read_bytes(), filename="bunny_uv.obj",
-                     resolution=RES, fmt=fmt, out_path=tmp_path / f"baked.{'glb' if fmt == 'glb' else 'zip'}",
+                     resolution=RES, fmt=fmt, out_path=tmp_path / f"baked{extension(fmt)}",
                      **options)
 
 
@@ -146,6 +147,19 @@ def test_obj_zip_gets_the_maps_and_a_dds(waves, meshes, tmp_path):
     assert_block_compressed_close(levels[0][..., :3], png, mean=16, worst=255)
 
 
+def test_glb_with_a_bc7_dds_becomes_a_zip(waves, meshes, tmp_path):
+    """``dds_compression="bc7"``: the zip's DDS is BC7 in the DX10 header, sRGB, every level."""
+    result = bake(waves, meshes, tmp_path, "glb", gpu_format="dds", dds_compression="bc7")
+    with zipfile.ZipFile(result.path) as z:
+        assert sorted(z.namelist()) == ["baked.glb", "baked_basecolor.dds"]
+        header, levels = read_bc7_dds(z.read("baked_basecolor.dds"))
+        gltf, binary = glb_parts(z.read("baked.glb"))
+    assert (header["dxgi_format"], header["width"], header["height"], header["mips"]) == (99, RES, RES, 7)
+    png = np.asarray(image_of(gltf, binary, 0).convert("RGB"))
+    # chart edges hold three colours in a block (see the BC1 test): bounded, and far closer on average
+    assert_block_compressed_close(levels[0][..., :3], png, mean=8, worst=255)
+
+
 def test_glb_material_uses_roughness_and_occlusion(waves, meshes, tmp_path):
     """Every embedded map has its glTF slot: roughness in G and occlusion in R of one ORM
     image (metallic 0 in B); trimesh reads the same slots back."""
@@ -193,6 +207,8 @@ def test_bad_options_are_refused_before_baking(waves, meshes, tmp_path):
         bake(waves, meshes, tmp_path, "glb", maps=("gloss",))
     with pytest.raises(InvalidParameter):
         bake(waves, meshes, tmp_path, "obj", gpu_format="astc")
+    with pytest.raises(InvalidParameter):
+        bake(waves, meshes, tmp_path, "obj", gpu_format="ktx2", dds_compression="bc7")
     assert waves.calls == [] and list(tmp_path.iterdir()) == []
 
 

@@ -260,7 +260,8 @@ def test_obj_zip_imports_into_blender(tmp_path):
     with zipfile.ZipFile(result.path) as z:
         z.extractall(folder)
         names = z.namelist()
-    assert sorted(names) == ["bake.mtl", "bake.obj", "bake_basecolor.png", "bake_normal.png", "bake_roughness.png"]
+    assert sorted(names) == ["bake.mtl", "bake.mtlx", "bake.obj", "bake_basecolor.png", "bake_normal.png",
+                             "bake_roughness.png"]
     obj = folder / "bake.obj"
     mtl = (folder / "bake.mtl").read_text()
     faces = sum(1 for line in obj.read_text().splitlines() if line.startswith("f "))
