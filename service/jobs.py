@@ -11,6 +11,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
+from pydantic import BaseModel
 from sqlalchemy import and_, func, select, update
 from sqlalchemy.exc import IntegrityError
 
@@ -27,8 +28,12 @@ from .vocabulary import TERMINAL_STATES, JobKind, JobState
 log = logging.getLogger(__name__)
 
 
-def request_hash(kind: str, texture_id: str | None, params: dict[str, Any], extra: bytes = b"") -> str:
-    """Fingerprint of a submission, to tell an idempotent retry from a different request."""
+def request_hash(kind: str, texture_id: str | None, params: BaseModel | dict[str, Any], extra: bytes = b"") -> str:
+    """Fingerprint of a submission, to tell an idempotent retry from a different request.
+    Parameters left at their defaults are not part of it: a retry sent again after an upgrade
+    that added an option is still the same request."""
+    if isinstance(params, BaseModel):
+        params = params.model_dump(mode="json", exclude_defaults=True)
     blob = json.dumps([kind, texture_id, params], sort_keys=True).encode() + extra
     return hashlib.sha256(blob).hexdigest()
 

@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, File, Form, Query, Request, Response, UploadFile, status
 from fastapi.responses import FileResponse, StreamingResponse
+from pydantic import BaseModel
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
@@ -43,9 +44,10 @@ def accepted(response: Response, job: Job, created: bool) -> JobOut:
     return JobOut.of(job)
 
 
-def _submit(services, response: Response, kind: str, texture_id: str, params: dict,  # noqa: ANN001
+def _submit(services, response: Response, kind: str, texture_id: str, body: BaseModel,  # noqa: ANN001
             key: str | None) -> JobOut:
-    job, created = jobs.submit(services, kind=kind, texture_id=texture_id, params=params, idempotency_key=key)
+    job, created = jobs.submit(services, kind=kind, texture_id=texture_id, params=body.model_dump(),
+                               idempotency_key=key, fingerprint=jobs.request_hash(kind, texture_id, body))
     return accepted(response, job, created)
 
 
@@ -57,7 +59,7 @@ def submit_volume(services: ServicesDep, response: Response, texture_id: Texture
     if body.resolution > services.settings.max_volume_resolution:
         raise LimitExceeded(f"resolution {body.resolution} exceeds the limit of "
                             f"{services.settings.max_volume_resolution}")
-    return _submit(services, response, JobKind.VOLUME, texture_id, body.model_dump(), key)
+    return _submit(services, response, JobKind.VOLUME, texture_id, body, key)
 
 
 @router.post("/v1/textures/{texture_id}/bakes", **ACCEPTED, responses=problem_responses(404, 413, 422, 503, 507))
@@ -119,8 +121,9 @@ def submit_bake(
     params = BakeParams(resolution=resolution, seed=seed, scale=scale, unit_m=unit_m, format=format, filename=filename,
                         maps=sorted(set(maps)), gpu_format=gpu_format, dds_compression=dds_compression,
                         normal_strength=normal_strength,
-                        projection=projection, after_refinement=after_refinement).model_dump()
+                        projection=projection, after_refinement=after_refinement)
     fingerprint = jobs.request_hash(JobKind.BAKE, texture_id, params, sha256(data).encode())
+    params = params.model_dump()
     if key and (existing := jobs.find_by_idempotency_key(services, key)) is not None:
         return accepted(response, jobs.same_request(existing, fingerprint), False)
     parsed = check_mesh(services.settings, data, filename)  # a bad mesh is refused now, nothing stored
@@ -152,7 +155,7 @@ def submit_fit(services: ServicesDep, response: Response, texture_id: TextureId,
     texture = load_texture(services, texture_id)
     if not texture.exemplar_key:
         raise Problem(409, "this texture has no exemplar image to fit", slug="no-exemplar")
-    return _submit(services, response, JobKind.FIT, texture_id, body.model_dump(), key)
+    return _submit(services, response, JobKind.FIT, texture_id, body, key)
 
 
 @router.post("/v1/textures/{texture_id}/regions", **ACCEPTED,
@@ -179,7 +182,7 @@ def submit_region(services: ServicesDep, response: Response, texture_id: Texture
         check_tileable(z=body.z, width=body.width, height=body.height, fmt=body.format, plane=body.plane)
         if (reason := services.tileable_available(texture)) is not None:
             raise Problem(409, reason, slug="not-tileable", title="This texture has no tileable sampler")
-    return _submit(services, response, JobKind.REGION, texture_id, body.model_dump(), key)
+    return _submit(services, response, JobKind.REGION, texture_id, body, key)
 
 
 @router.get("/v1/jobs", response_model=JobPage, responses=problem_responses(422))

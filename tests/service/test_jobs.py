@@ -70,6 +70,17 @@ def test_idempotency_key_returns_same_job(client, texture) -> None:
     assert different.status_code == 422 and "Idempotency-Key" in different.json()["detail"]
 
 
+def test_idempotency_fingerprint_leaves_out_defaults(client, texture) -> None:
+    # A retry that spells out a default, or one sent again after an upgrade added an option
+    # with a default, is the same request; a value off the default is not.
+    headers = {"Idempotency-Key": "vol-defaults"}
+    first = client.post(texture["links"]["volumes"], json={"resolution": 8}, headers=headers)
+    spelled = client.post(texture["links"]["volumes"], json={"resolution": 8, "seed": 0}, headers=headers)
+    assert spelled.status_code == 202 and spelled.json()["id"] == first.json()["id"]
+    other_seed = client.post(texture["links"]["volumes"], json={"resolution": 8, "seed": 5}, headers=headers)
+    assert other_seed.status_code == 422
+
+
 def test_bake_glb_loads_with_texture(client, texture) -> None:
     mesh = (MESHES / "cube.obj").read_bytes()
     res = client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", mesh)},
