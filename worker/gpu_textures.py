@@ -40,7 +40,10 @@ the plain 2 x 2 average; odd sides are averaged with fractional pixel weights.
   level (basisu's own mip filter would average sRGB codes). UASTC transcodes on the GPU
   side to BC7 / ASTC / ETC2 at near its own quality; ETC1S (smaller, blockier) is not
   offered. Encoding costs 3-6 s per 1024 x 1024 on one core (effort 2; measured on a
-  brick photo: mean error 1.86 codes in 5.8 s, effort 4: 1.84 in 15.4 s).
+  brick photo: mean error 1.86 codes in 5.8 s, effort 4: 1.84 in 15.4 s). Binomial's
+  ``basisu`` 1.16.4 validates these files (a region's and a GLB bake's) and transcodes
+  them (tests/worker/test_open_in_tools.py); Khronos's libktx (``ktx validate``) is not
+  installable here: Debian has no package and PyPI's pyktx needs libktx built.
 """
 from __future__ import annotations
 

@@ -3,8 +3,9 @@ level, BC blocks decoded), a BC7 DDS's DX10 header by the DDS specification and 
 through ``texture2ddecoder`` (a decoder independent of the encoder); KTX2's layout by the
 KTX 2.0 specification and its pixels through Basis Universal's transcoder (``alktx2``).
 Khronos's libktx installs from no registry here (PyPI's pyktx has no Linux wheel and needs
-it built; Debian has no package): tests/tools/ checks the files with the Khronos glTF
-validator and ``ktx-parse`` instead."""
+it built; Debian has no package): tests/worker/test_open_in_tools.py validates and
+transcodes the files with Binomial's ``basisu`` 1.16.4 and reads them with ``ktx-parse``
+instead."""
 from __future__ import annotations
 
 import io
