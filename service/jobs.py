@@ -11,6 +11,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 from pydantic import BaseModel
 from sqlalchemy import and_, func, select, update
 from sqlalchemy.exc import IntegrityError
@@ -361,7 +362,12 @@ def release_worker(services: Services) -> list[str]:
 # them. The lane runs first stages before continuations and whole fits, and among tenants the
 # one whose fits ran least recently first, so that a burst of one tenant's uploads delays
 # another tenant's first refinement by at most one stage.
-FIT_STAGE_OVERHEAD_SECONDS = 6.0  # start (photo, structure, VGG targets) and the interim's export, 2 cores
+# Each stage holds the lane for its share of the budget and an overhead (the start: photo,
+# structure, VGG targets, the first probe; the end: last probe, export, colour table). The
+# estimates take the median overhead of the last succeeded fits (``lane_time``), which varies
+# with the CPU: 6 s on a 2-core AVX-512 EPYC, 15-20 s on a 2-core AVX2 one (2026-12-02).
+FIT_STAGE_OVERHEAD_SECONDS = 6.0  # before any fit has finished
+RECENT_FITS = 5
 
 
 def _first_stage(job: Job) -> bool:
@@ -426,31 +432,58 @@ def fits_waiting_for_interim(services: Services, job_id: str) -> bool:
     return any(_first_stage(job) and job.id != job_id for job in queued_fits(services))
 
 
+def lane_time(job: Job, details: dict[str, Any] | None, seconds: float) -> dict[str, Any]:
+    """A fit's result details after a stage of ``seconds`` on the lane: ``lane_seconds`` and
+    ``stages`` add up over its pause and continuation (the estimates' measure)."""
+    before = job.result_details or {}
+    return {**before, **(details or {}), "lane_seconds": round(before.get("lane_seconds", 0.0) + seconds, 1),
+            "stages": before.get("stages", 0) + 1}
+
+
+def fit_budget_seconds(services: Services, job: Job) -> float:
+    """The seconds of fitting ``job`` asked for (an upload's refinement: the server's budget)."""
+    return float((job.params or {}).get("seconds", services.settings.fit_seconds))
+
+
+def stage_overhead(services: Services) -> float:
+    """Seconds a fit stage holds the lane beyond its budget: the median over the last
+    succeeded fits that recorded their lane time (``FIT_STAGE_OVERHEAD_SECONDS`` before any)."""
+    with session_scope(services.sessions) as session:
+        recent = session.scalars(select(Job).where(Job.kind == JobKind.FIT, Job.state == JobState.SUCCEEDED)
+                                 .order_by(Job.finished_at.desc()).limit(4 * RECENT_FITS)).all()
+    samples = [(d["lane_seconds"] - fit_budget_seconds(services, j)) / d["stages"]
+               for j in recent if "lane_seconds" in (d := j.result_details or {}) and d.get("stages")][:RECENT_FITS]
+    return max(0.0, float(np.median(samples))) if samples else FIT_STAGE_OVERHEAD_SECONDS
+
+
 @dataclass
 class FitLane:
-    """The fit lane now: its queued fits in run order and its running ones (``fit_lane``)."""
+    """The fit lane now: its queued fits in run order, its running ones and the seconds a
+    stage takes beyond its budget (``fit_lane``)."""
 
     order: list[Job]
     running: list[Job]
+    overhead: float = FIT_STAGE_OVERHEAD_SECONDS
 
 
 def fit_lane(services: Services) -> FitLane:
     with session_scope(services.sessions) as session:
         running = session.scalars(select(Job).where(Job.kind == JobKind.FIT, Job.state == JobState.RUNNING)).all()
-    return FitLane(order=fit_order(services), running=list(running))
+    return FitLane(order=fit_order(services), running=list(running), overhead=stage_overhead(services))
 
 
 def refinement_wait(services: Services, job: Job, lane: FitLane | None = None) -> dict[str, Any]:
     """Where an upload's refinement stands in the fit lane: ``position`` (fits that run before
     it starts; 0: next or running) and estimates, in seconds from now, of when its interim
     and its final sampler arrive (None once there, or unknown). Estimates assume one fit lane
-    and stages as long as the settings make them (``fit_interim_seconds``, each job's seconds).
+    and stages as long as the settings make them (``fit_interim_seconds``, each job's seconds)
+    plus the overhead recent fits measured (``stage_overhead``).
     ``lane``: ``fit_lane(services)``, read once for many textures."""
     lane = lane or fit_lane(services)
-    interim, overhead = services.settings.fit_interim_seconds, FIT_STAGE_OVERHEAD_SECONDS
+    interim, overhead = services.settings.fit_interim_seconds, lane.overhead
 
     def whole(j: Job) -> float:
-        return float((j.params or {}).get("seconds", services.settings.fit_seconds)) + overhead
+        return fit_budget_seconds(services, j) + overhead
 
     def rest(j: Job) -> float:  # (progress: the share of its budget spent, kept over a pause)
         return whole(j) * (1.0 - j.progress)

@@ -143,6 +143,9 @@ def run_job_attempt(services: Services, job_id: str) -> str | None:
                 state, values = (JobState.QUEUED if retry else JobState.FAILED), {"error": problem}
         finally:
             shutil.rmtree(workdir, ignore_errors=True)
+        if claim.job.kind == JobKind.FIT and state in (JobState.QUEUED, JobState.SUCCEEDED) and "error" not in values:
+            values["result_details"] = jobs.lane_time(claim.job, values.get("result_details"),
+                                                      time.monotonic() - started)
         if jobs.finish(services, claim, state, **values):
             log.info("job %s", state, extra={"seconds": round(time.monotonic() - started, 3)})
             if state == JobState.QUEUED and resend:

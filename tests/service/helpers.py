@@ -102,9 +102,9 @@ def drain_fit_lane(services, limit: int = 20) -> None:
 
 def add_fit(services, owner: str | None, minutes_ago: float, **values) -> str:
     """A queued in-place fit job of tenant ``owner``, created ``minutes_ago``, with no message
-    on the lane (``values``: other columns); its id."""
-    job = Job(kind="fit", texture_id=None, params={"in_place": True, "seconds": 90.0}, state="queued",
-              owner_id=owner, created_at=utcnow() - dt.timedelta(minutes=minutes_ago), **values)
+    on the lane (``values``: other columns, ``state`` too); its id."""
+    job = Job(kind="fit", texture_id=None, params={"in_place": True, "seconds": 90.0},
+              owner_id=owner, created_at=utcnow() - dt.timedelta(minutes=minutes_ago), **{"state": "queued", **values})
     with session_scope(services.sessions) as session:
         session.add(job)
     return job.id

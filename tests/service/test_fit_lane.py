@@ -33,6 +33,30 @@ def test_waiting_uploads_reach_their_interims_before_any_fit_goes_on(refining, p
         job = client.get(f"/v1/jobs/{texture['refinement']['job_id']}").json()
         assert job["state"] == "succeeded" and job["attempt"] == 1  # a pause spends no attempt
         assert not services.storage.exists(keys.paused_fit_key(job["id"]))  # the paused state is gone
+    # each job counts the stages it held the lane for and their seconds (the estimates' measure)
+    with session_scope(services.sessions) as session:
+        details = [session.get(Job, t["refinement"]["job_id"]).result_details for t in textures]
+    assert [d["stages"] for d in details] == [2, 2, 1]
+    assert all(d["lane_seconds"] > 0 for d in details)
+
+
+def test_estimates_take_the_stage_overhead_recent_fits_measured(refining) -> None:
+    _, services = refining
+    assert jobs.stage_overhead(services) == jobs.FIT_STAGE_OVERHEAD_SECONDS  # no fit finished yet
+    # 90-s fits that held the lane 130 s over 2 stages (20 s each) and 105 s in one (15 s)
+    finished = {"state": "succeeded", "finished_at": utcnow()}
+    add_fit(services, "a", 3, result_details={"lane_seconds": 130.0, "stages": 2}, **finished)
+    add_fit(services, "a", 2, result_details={"lane_seconds": 105.0, "stages": 1}, **finished)
+    add_fit(services, "a", 1, result_details={"lane_seconds": 130.0, "stages": 2}, **finished)
+    add_fit(services, "a", 1, result_details=None, **finished)  # before lane times were kept
+    assert jobs.stage_overhead(services) == pytest.approx(20.0)
+    queued = add_fit(services, "b", 0)
+    with session_scope(services.sessions) as session:
+        job = session.get(Job, queued)
+    wait = jobs.refinement_wait(services, job)
+    interim = services.settings.fit_interim_seconds
+    assert wait["position"] == 0 and wait["interim_eta_seconds"] == pytest.approx(interim + 20.0)
+    assert wait["final_eta_seconds"] == pytest.approx(90.0 + 20.0)
 
 
 def test_a_paused_refinement_serves_its_interim_and_says_so(refining, photo, fit_calls) -> None:
