@@ -20,11 +20,11 @@ from worker.contract import (MAX_BAKE_RESOLUTION, MAX_TILE_SIZE, MAX_VOLUME_RESO
 from .vocabulary import JobKind
 
 #: a fit's time budget unless one is asked for: an upload's refinement and ``POST .../fit``.
-#: 90 s: bf16 steps buy back most of a 4-minute float32 fit (9 validation photos: geometric
-#: mean 1.07x its style error) for four uploads' finals in ~400 s instead of ~17 minutes
-#: (docs/DECISIONS.md, "An upload's fit is 90 s"). Fits have a queue of their own
+#: 70 s on every core: as many steps as the 90-s one-thread fit before it, at the same style
+#: error, so that four uploads at once have their finals in about 330 s instead of 420 s
+#: (docs/DECISIONS.md, "An upload's fit is 70 s"). Fits have a queue of their own
 #: (service/queue.py), so a longer one holds up no tile, volume or bake.
-FIT_SECONDS = 90.0
+FIT_SECONDS = 70.0
 #: the longest fit any server may allow (``max_fit_seconds`` is its own limit, at most this)
 MAX_FIT_SECONDS = 3600.0
 #: the model export shipped inside the package (``model/weights``)

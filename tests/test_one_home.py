@@ -236,6 +236,6 @@ def test_the_fit_scripts_default_is_the_services_budget() -> None:
     """``python -m model.fit`` keeps a default of its own (model/ may not import the service):
     it is the service's budget, read from the source so that torch need not be imported."""
     tree = ast.parse((ROOT / "model" / "fit.py").read_text())
-    minutes = next(node.value.value for node in tree.body if isinstance(node, ast.Assign)
-                   and any(getattr(t, "id", None) == "DEFAULT_MINUTES" for t in node.targets))
-    assert minutes * 60 == FIT_SECONDS
+    seconds = next(node.value.value for node in tree.body if isinstance(node, ast.Assign)
+                   and any(getattr(t, "id", None) == "DEFAULT_SECONDS" for t in node.targets))
+    assert seconds == FIT_SECONDS
