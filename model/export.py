@@ -271,10 +271,28 @@ def export_model(model: TextureSpace, outdir: Path, training: dict | None = None
     return write_manifest(outdir, model.cfg.to_dict(), training, {"tileable_sampler": TILEABLE_SAMPLER})
 
 
+REPO_ROOT = Path(__file__).resolve().parent.parent
+#: training arguments that name files or folders (a manifest records them as the repository sees them)
+PATH_ARGS = ("data", "init", "exemplar", "out")
+
+
+def portable_path(value: str | None, root: Path = REPO_ROOT) -> str | None:
+    """``value`` relative to the repository ``root`` when it lies inside it, else its last
+    part: a shipped manifest names no folder of the machine that trained it."""
+    if not value or not Path(value).is_absolute():
+        return value
+    try:
+        return Path(value).relative_to(root).as_posix()
+    except ValueError:
+        return Path(value).name
+
+
 def training_summary(ckpt: dict) -> dict:
     keys = ("mode", "steps", "wall_seconds", "data", "loss", "final_loss", "args")
     summary = {k: ckpt[k] for k in keys if k in ckpt}
     summary.setdefault("steps", ckpt.get("step", 0))
+    if isinstance(summary.get("args"), dict):
+        summary["args"] = {k: portable_path(v) if k in PATH_ARGS else v for k, v in summary["args"].items()}
     return summary
 
 

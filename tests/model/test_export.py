@@ -382,3 +382,14 @@ def test_a_grain_fields_tileable_image_keeps_its_stretch_and_repeats_exactly():
         moved = field(points + torch.tensor([1.0, -2.0, 0.0], dtype=torch.float64), z, seed, period=period)
     assert stretch(plane) > 8 and 0.6 < stretch(tiled) / stretch(plane) < 1.6  # (with turns of c up to 17: 0.3)
     assert np.array_equal(moved.reshape(256, 256, 3).numpy(), tiled)
+
+
+def test_a_manifest_names_training_paths_as_the_repository_sees_them() -> None:
+    from model.export import REPO_ROOT, training_summary
+
+    ckpt = {"mode": "space", "step": 3, "args": {"data": str(REPO_ROOT / "gpu" / "data"), "init": "/elsewhere/x.pt",
+                                                "exemplar": None, "batch": 16}}
+    args = training_summary(ckpt)["args"]
+    assert args == {"data": "gpu/data", "init": "x.pt", "exemplar": None, "batch": 16}
+    shipped = json.loads((REPO_ROOT / "model" / "weights" / "manifest.json").read_text())
+    assert not any(str(v).startswith("/") for v in shipped["training"]["args"].values())
