@@ -8,10 +8,10 @@ import datetime as dt
 import hashlib
 import json
 import logging
+import statistics
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 from pydantic import BaseModel
 from sqlalchemy import and_, func, select, update
 from sqlalchemy.exc import IntegrityError
@@ -453,7 +453,7 @@ def stage_overhead(services: Services) -> float:
                                  .order_by(Job.finished_at.desc()).limit(4 * RECENT_FITS)).all()
     samples = [(d["lane_seconds"] - fit_budget_seconds(services, j)) / d["stages"]
                for j in recent if "lane_seconds" in (d := j.result_details or {}) and d.get("stages")][:RECENT_FITS]
-    return max(0.0, float(np.median(samples))) if samples else FIT_STAGE_OVERHEAD_SECONDS
+    return max(0.0, statistics.median(samples)) if samples else FIT_STAGE_OVERHEAD_SECONDS
 
 
 @dataclass

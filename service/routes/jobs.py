@@ -15,7 +15,7 @@ from worker.bake import BAKE_FORMATS, PARSED_MESH, mesh_npz
 from worker.contract import MAX_BAKE_RESOLUTION, MAX_UNIT_M, MIN_BAKE_RESOLUTION
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH
 from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, LimitExceeded
-from worker.gpu_textures import DDS_COMPRESSIONS, GPU_FORMATS
+from worker.gpu_textures import DDS_COMPRESSIONS, GPU_FORMATS, check_gpu_options
 from worker.tiles import MIN_ZOOM
 
 from .. import auth, jobs, keys
@@ -112,8 +112,7 @@ def submit_bake(
     if unit_m is not None and texture.width_m is None:
         raise InvalidParameter(f"texture {texture_id} has no width_m: say how wide its photo is in metres "
                                f"(PATCH /v1/textures/{texture_id} {{\"width_m\": ...}}) to bake it at real size")
-    if dds_compression != "bc1" and gpu_format != "dds":
-        raise InvalidParameter(f"dds_compression {dds_compression} applies to gpu_format dds only")
+    check_gpu_options(gpu_format, dds_compression)  # a BC7 DDS asked for without a DDS: 422 before the upload
     if resolution > services.settings.max_bake_resolution:
         raise LimitExceeded(f"resolution {resolution} exceeds the limit of {services.settings.max_bake_resolution}")
     data = read_limited(mesh, services.settings.max_mesh_bytes, "the mesh")
