@@ -365,7 +365,7 @@ def release_worker(services: Services) -> list[str]:
 # Each stage holds the lane for its share of the budget and an overhead (the start: photo,
 # structure, VGG targets, the first probe; the end: last probe, export, colour table). The
 # estimates take the median overhead of the last succeeded fits (``lane_time``), which varies
-# with the CPU: 6 s on a 2-core AVX-512 EPYC, 15-20 s on a 2-core AVX2 one (2026-12-02).
+# with the CPU: 6 s on a 2-core AVX-512 EPYC, 15-20 s on a 2-core AVX2 one.
 FIT_STAGE_OVERHEAD_SECONDS = 6.0  # before any fit has finished
 RECENT_FITS = 5
 
