@@ -38,7 +38,7 @@ from . import auth, db, processes
 from .context import build_services
 from .logs import setup_logging
 from .samplers import sampler_inputs
-from .schemas import BAKE_PROJECTIONS, bake_projection
+from .schemas import BAKE_PROJECTIONS, FitIn, bake_projection
 from .settings import FIT_SECONDS, MAX_FIT_SECONDS, Settings
 from .tables import Texture
 
@@ -210,11 +210,15 @@ class TextureSource:
         folder = Path(tempfile.mkdtemp(prefix="texspace-refine-"))
         atexit.register(shutil.rmtree, folder, ignore_errors=True)  # the samplers are read until the end
         photo = photo_to_fit(path, image, lighting, folder)  # as the service's fit sees it
+        # the structure an upload's fit builds in (grain, lattice, even, lean: FitIn's defaults, "auto");
+        # fit_exemplar's own defaults leave grain and lattice off, and a brick photo came out without bricks
+        structure = FitIn().model_dump(include={"grain", "lattice", "even", "lean"})
         bar, report = _progress_bar(f"refine ({seconds:g} s)")
         with bar, warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the ONNX exporter's tracer warnings say nothing to a user
             fitted = fit_exemplar(photo, folder / "fit", init_checkpoint=checkpoint, minutes=seconds / 60.0,
-                                  progress=report, device=settings.fit_device, precision=settings.fit_precision)
+                                  progress=report, threads=settings.fit_threads, device=settings.fit_device,
+                                  precision=settings.fit_precision, **structure)
         code = json.loads((folder / "fit" / "code.json").read_text())["code"]
         self.sampler = registry.fitted_sampler(folder / "fit" / "sampler.onnx")
         colour = fitted_colour(self.sampler, code, image)

@@ -17,6 +17,9 @@ def test_refine_fits_the_photo_before_it_draws(cli_env: Path, fit_calls) -> None
     (call,) = fit_calls
     assert call["minutes"] == 0.5 and call["image_path"].name == "brick.png"
     assert call["interim"] is None and call["pause"] is None  # nothing to serve part way
+    # the structure an upload's fit looks for: without it a brick photo was refined without its bricks
+    assert {key: call[key] for key in ("grain", "lattice", "even", "lean")} == dict.fromkeys(
+        ("grain", "lattice", "even", "lean"), "auto")
     # the stand-in fits code zeros: another code through the sampler, other pixels
     assert (cli_env / "refined.png").read_bytes() != (cli_env / "plain.png").read_bytes()
     main(["shader", "brick.png", "-o", "s.glsl", "--refine"])  # SECONDS defaults to an upload's budget
