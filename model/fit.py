@@ -71,7 +71,8 @@ PROBE_EVERY = 25
 # 0.052 -> 0.0032.
 PATCH = 128
 # An upload's refinement serves a first result this many seconds into its fit (``interim``):
-# the probe's best state then, if it beats the start. With the start, the export and the
+# the probe's best state then (its start too, if the fit builds structure in: model/probe.py,
+# ``Interim``). With the start, the export and the
 # colour table it is served about 20 s after the fit starts; lattice fits start on the photo's
 # mean cell, so even ~20 steps show the bond or grid the encoder's patches lack. Uploads queued
 # together each get theirs before any fit goes on (the service pauses a fit at its interim's second).
@@ -116,7 +117,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``interim``: ``interim(folder, code, step, structure)`` is called once, ``interim_seconds``
     into the fit, with the best state so far written to ``folder`` (``OUTDIR/interim``: its
     ``sampler.onnx`` and tileable sampler), its code (list of floats), the step it is from and
-    the structure keys of the result; not at all if no state beats the start by then or before
+    the structure keys of the result. That state is the start (step 0) when nothing beats it
+    yet and the fit builds structure in (a lattice, grain or lean the encoder's tiles lack);
+    without structure, not until a state beats the start, and not at all if none does before
     the end. The fit goes on meanwhile; an exception from ``interim`` stops it.
     ``run_dir``: the training run's folder (default: a temporary one). A fit whose ``run_dir``
     holds a paused run continues it, with the rest of its ``minutes``.
@@ -144,7 +147,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         folder = out_dir / "interim"
         folder.mkdir(exist_ok=True)
         write_samplers(model.field, folder)
-        interim(folder, code.reshape(-1).tolist(), step, dict(structure))
+        # the start the probe scores is unmuted (as at the end, below)
+        interim(folder, code.reshape(-1).tolist(), step, dict(structure) | ({"muted_octaves": 0} if step == 0 else {}))
     if pause is not None and interim is None:
         raise ValueError("pause is asked at the interim's second: give an interim too")
     with contextlib.nullcontext(str(run_dir)) if run_dir else tempfile.TemporaryDirectory() as run_dir:
@@ -157,7 +161,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                          patch=patch, rate=rate, seed=seed, loss=loss, device=device, quiet=quiet,
                          precision=precision, threads=threads, spectrum=spectrum)
         ckpt_path = train(cfg, progress=progress, pause=pause,
-                          interim=Interim(interim_seconds, publish) if interim is not None else None)
+                          interim=Interim(interim_seconds, publish, start_counts=found.builds_structure)
+                          if interim is not None else None)
         model, ckpt = load_checkpoint(ckpt_path)
         if ckpt.get("paused"):
             return {"paused": True, "steps": ckpt["step"], **structure}
@@ -179,6 +184,11 @@ class FitStructure:
     lattice: tuple[float, float, float, float] | None  # world units
     muted: int  # coarse octaves muted (an even photo)
     lean: tuple[float, float] | None  # [degrees, stretch] the warp starts at
+
+    @property
+    def builds_structure(self) -> bool:
+        """Whether the fit's start differs from the space's sampler for the photo's code."""
+        return bool(self.turned or self.grain or self.lattice or self.lean)
 
     def summary(self) -> dict:
         """The structure keys of the fit's result and manifest."""

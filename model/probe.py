@@ -89,12 +89,19 @@ class Probe:
 
 class Interim:
     """A fit's first result, published while it goes on (``train(interim=...)``): at the first
-    probe at least ``seconds`` into the run whose best state beats the start (step > 0),
-    ``publish(model, code, step)`` gets that state, once. An upload's refinement serves it,
-    so its tiles look like the photo in about a minute instead of at the fit's end."""
+    probe at least ``seconds`` into the run, ``publish(model, code, step)`` gets the best state
+    so far, once. An upload's refinement serves it, so its tiles look like the photo seconds
+    into the fit instead of at its end.
 
-    def __init__(self, seconds: float, publish):  # noqa: ANN001
+    ``start_counts``: the start (step 0) may be that state. A fit that builds structure in
+    (a lattice's mean cell, a grain, a lean) starts on a sampler the upload's encoder tiles
+    lack, and when no trained state beats it yet that start is the fit's best answer: the
+    validation grass's 70-s and 4-min fits both kept it. Without structure the start is the
+    upload's own sampler, and publishing it would call the encoder's tiles refined."""
+
+    def __init__(self, seconds: float, publish, start_counts: bool = False):  # noqa: ANN001
         self.seconds, self.publish, self.done, self.asked = float(seconds), publish, False, False
+        self.start_counts = start_counts
 
     def due(self, elapsed: float) -> bool:
         """True once, at the first step ``seconds`` in, published or not: a probe then, off the
@@ -110,7 +117,7 @@ class Interim:
 
     def offer(self, probe: Probe, elapsed: float) -> None:
         """Called after each probe score, ``elapsed`` seconds into the run."""
-        if self.done or elapsed < self.seconds or probe.best["step"] == 0:
+        if self.done or elapsed < self.seconds or (probe.best["step"] == 0 and not self.start_counts):
             return
         self.done = True
         probe.lend_best(self.publish)

@@ -498,8 +498,8 @@ def train(cfg: TrainConfig, progress=None, interim: Interim | None = None, pause
                 probe.update()
                 if interim is not None and not interim.done:
                     interim.offer(probe, budget.elapsed())
-            # at the interim's second, published or not (a start that stays best, like the grass's,
-            # has none): a fit that went on held the uploads behind it for its whole budget
+            # at the interim's second, published or not (a start that stays best and holds no
+            # structure has none): a fit that went on held the uploads behind it for its whole budget
             if due and pause is not None and pause():
                 run.paused = True
                 break

@@ -486,3 +486,34 @@ def test_a_fit_publishes_its_interim_as_a_contract_sampler_with_its_structure(tm
         assert np.isfinite(session.run(None, feeds)[0]).all()
     assert json.loads((tmp_path / "fit" / "code.json").read_text())["code"] == [0.0] * 8  # the end's, not the interim's
 
+
+
+@pytest.mark.parametrize("lean, start_counts", [("auto", True), (None, False)])
+def test_an_interim_may_be_the_start_only_when_the_fit_builds_structure_in(tmp_path, monkeypatch, skimage_textures,
+                                                                           lean, start_counts):
+    """The leaning gravel's fit starts on a sampler the encoder's tiles lack (its lean), so its
+    start may be the interim, served unmuted as the probe scored it; without lean, grain or
+    lattice the start is the upload's own sampler and is never published as refined."""
+    import model.fit as fit
+    from model.networks import load_checkpoint
+
+    space = space_checkpoint(tmp_path)
+
+    def train(cfg, progress=None, interim=None, pause=None):  # noqa: ANN001, ANN202
+        assert interim.start_counts is start_counts
+        model, _ = load_checkpoint(space)
+        interim.publish(model, torch.zeros(1, 8), 0)  # as Probe.lend_best does for a start still best
+        ckpt = torch.load(space, weights_only=False)
+        path = Path(cfg.out) / "end.pt"
+        torch.save({**ckpt, "code": torch.zeros(1, 8), "step": 50, "wall_seconds": 1.0,
+                    "probe": {"score": 1.0, "step": 50}}, path)
+        return path
+
+    monkeypatch.setattr(fit, "train", train)
+    saved_png(tmp_path / "gravel.png", skimage_textures["gravel"])
+    published = []
+    result = fit_exemplar(tmp_path / "gravel.png", tmp_path / "fit", init_checkpoint=space, lean=lean,
+                          interim=lambda *args: published.append(args))
+    ((_, _, step, structure),) = published
+    assert step == 0 and structure["muted_octaves"] == 0  # the probe's start is unmuted
+    assert result["muted_octaves"] == 4  # the end (step 50) trained muted

@@ -361,6 +361,22 @@ def test_an_interim_waits_for_its_seconds():
     assert len(calls) == 1 and interim.done
 
 
+def test_an_interim_of_a_fit_with_structure_may_be_its_start():
+    """``start_counts``: a start still best at the interim's second is published then."""
+    from types import SimpleNamespace
+
+    from model.probe import Interim
+
+    calls = []
+    interim = Interim(10.0, None, start_counts=True)
+    start = SimpleNamespace(best={"step": 0}, lend_best=calls.append)
+    interim.offer(start, 9.0)
+    assert calls == []
+    interim.offer(start, 11.0)
+    interim.offer(SimpleNamespace(best={"step": 25}, lend_best=calls.append), 20.0)  # once
+    assert calls == [None] and interim.done
+
+
 def test_precision_auto_follows_the_hardware_and_named_precisions_are_kept(monkeypatch):
     from model import device as device_module
 
