@@ -475,37 +475,58 @@ def fit_lane(services: Services) -> FitLane:
 def refinement_wait(services: Services, job: Job, lane: FitLane | None = None) -> dict[str, Any]:
     """Where an upload's refinement stands in the fit lane: ``position`` (fits that run before
     it starts; 0: next or running) and estimates, in seconds from now, of when its interim
-    and its final sampler arrive (None once there, or unknown). Estimates assume one fit lane
-    and stages as long as the settings make them (``fit_interim_seconds``, each job's seconds)
-    plus the overhead recent fits measured (``stage_overhead``).
+    and its final sampler arrive (None once there, or unknown), from ``lane_schedule``.
     ``lane``: ``fit_lane(services)``, read once for many textures."""
     lane = lane or fit_lane(services)
-    interim, overhead = services.settings.fit_interim_seconds, lane.overhead
-
-    def whole(j: Job) -> float:
-        return fit_budget_seconds(services, j) + overhead
-
-    def rest(j: Job) -> float:  # (progress: the share of its budget spent, kept over a pause)
-        return whole(j) * (1.0 - j.progress)
-
-    def first(j: Job) -> float:  # an upload's first stage, up to its interim
-        return interim + overhead if interim > 0 and _first_stage(j) else rest(j)
-
     if job.state == JobState.RUNNING:
-        spent = job.progress * whole(job)
-        to_interim = max(0.0, interim + overhead - spent) if job.stage is None and interim > 0 else None
-        return {"position": 0, "interim_eta_seconds": to_interim, "final_eta_seconds": rest(job)}
-    ids = [j.id for j in lane.order]
-    if job.state != JobState.QUEUED or job.id not in ids:
+        position = 0
+    elif job.state == JobState.QUEUED and job.id in (ids := [j.id for j in lane.order]):
+        position = ids.index(job.id)
+    else:
         return {"position": None, "interim_eta_seconds": None, "final_eta_seconds": None}
-    k, order = ids.index(job.id), lane.order
-    start = sum(rest(j) for j in lane.running) + sum(first(j) for j in order[:k])
-    if not _first_stage(job):
-        return {"position": k, "interim_eta_seconds": None, "final_eta_seconds": start + rest(job)}
-    reached = start + first(job)
-    # then the first stages behind it, the continuations of those ahead, every other queued fit
-    behind = sum(first(j) for j in order[k + 1:] if _first_stage(j))
-    others = sum(rest(j) - first(j) for j in order[:k] if _first_stage(j)) + sum(
-        rest(j) for j in order if not _first_stage(j))
-    return {"position": k, "interim_eta_seconds": reached,
-            "final_eta_seconds": reached + behind + others + rest(job) - first(job)}
+    interim_at, final_at = lane_schedule(services, lane)[job.id]
+    return {"position": position, "interim_eta_seconds": interim_at, "final_eta_seconds": final_at}
+
+
+def lane_schedule(services: Services, lane: FitLane) -> dict[str, tuple[float | None, float]]:
+    """Seconds from now at which each running and queued fit's interim (None: none to come)
+    and final sampler arrive, the lane run as ``pick_fit`` and ``fits_waiting_for_interim``
+    run it: the running fits, then the first stages in order (each pauses at its interim while
+    another first stage waits; the last goes on to its end), then the continuations and whole
+    fits, oldest first (one tenant's order; tenants in fact take turns). A stage holds the lane
+    for its share of the budget plus ``lane.overhead``; one lane (more workers end sooner).
+    Uploads yet to come are not foreseen: one that arrives pauses the fit in its first stage."""
+    interim, overhead = services.settings.fit_interim_seconds, lane.overhead
+    first_stages = [j for j in lane.order if interim > 0 and _first_stage(j)]
+    later = [j for j in lane.order if j not in first_stages]
+
+    def budget(j: Job) -> float:
+        return fit_budget_seconds(services, j)
+
+    def continuation(j: Job) -> float:  # the stage after a pause at the interim
+        return budget(j) - interim + overhead
+
+    t, schedule, paused = 0.0, {}, []
+    for j in lane.running:  # (progress: the share of its budget spent, kept over a pause)
+        spent = j.progress * budget(j)
+        to_interim = interim + overhead - spent if interim > 0 and _first_stage(j) and spent < interim else None
+        if to_interim is not None and first_stages:  # it pauses at its interim for them
+            t += max(0.0, to_interim)
+            schedule[j.id] = (t, None)
+            paused.append(j)
+        else:
+            schedule[j.id] = (t + max(0.0, to_interim) if to_interim is not None else None,
+                              t + (budget(j) + overhead) * (1.0 - j.progress))
+            t = schedule[j.id][1]
+    for k, j in enumerate(first_stages):
+        t += interim + overhead
+        if k < len(first_stages) - 1:
+            schedule[j.id] = (t, None)
+            paused.append(j)
+        else:  # no one waits for an interim behind it: it goes on without a pause
+            schedule[j.id] = (t, t + budget(j) - interim)
+            t = schedule[j.id][1]
+    for j in sorted(later + paused, key=lambda j: (j.created_at, j.id)):
+        t += continuation(j) if j in paused else (budget(j) + overhead) * (1.0 - j.progress)
+        schedule[j.id] = (schedule.get(j.id, (None, None))[0], t)
+    return schedule
