@@ -129,7 +129,8 @@ class Settings(BaseSettings):
         "with native bfloat16 (AVX-512 BF16, AMX), float32 elsewhere")
     fit_interim_seconds: float = Field(
         10.0, ge=0, description="an upload's refinement serves its fit's best state this many seconds in (if it "
-        "beats the encoder's code by then), until the finished fit replaces it; 0: only the finished fit")
+        "beats the encoder's code by then, or is its start with a lattice, grain or lean built in), until the "
+        "finished fit replaces it; 0: only the finished fit")
 
     # --- HTTP ----------------------------------------------------------------------------
     tile_cache_bytes: int = Field(64 * 2**20, ge=0)
