@@ -38,3 +38,28 @@ def test_export_a_tileable_image(page, base_url: str, artifacts: Path) -> None:
     assert np.abs(image[:, 0] - image[:, -1]).mean() < 2 * interior, "no seam where copies meet"
     shoot(page, artifacts, "tileable-export")
     assert page_errors(page) == []
+
+
+def test_export_a_bc7_dds_from_the_page(page, base_url: str) -> None:
+    """The format list offers DDS twice; "dds (BC7)" asks for BC7 blocks (``dds_compression``)
+    and the download is a DX10 DDS of the asked size in DXGI_FORMAT_BC7_UNORM_SRGB."""
+    page.goto(base_url)
+    page.wait_for_selector("#map.leaflet-container")
+    upload(page, "brick", texture_photo_png())
+    labels = page.eval_on_selector_all("#region-format option", "options => options.map(o => o.textContent)")
+    assert "dds (BC1)" in labels and "dds (BC7)" in labels
+    page.select_option("#region-size", "512")
+    page.select_option("#region-format", "dds:bc7")
+    with page.expect_response(lambda r: r.url.endswith("/regions") and r.request.method == "POST") as submitted:
+        page.click("#region-start")
+    job = submitted.value.json()
+    assert submitted.value.status == 202
+    assert (job["params"]["format"], job["params"]["dds_compression"]) == ("dds", "bc7")
+    item = page.locator(f'#jobs li[data-job-id="{job["id"]}"]')
+    item.locator("xpath=self::li[@data-state='succeeded']").wait_for(timeout=JOB_TIMEOUT_MS)
+    body = page.request.get(item.locator("a[download]").get_attribute("href")).body()
+    header = np.frombuffer(body[:148], dtype="<u4")
+    assert body[:4] == b"DDS " and body[84:88] == b"DX10"
+    assert (header[3], header[4]) == (512, 512)  # height, width
+    assert header[32] == 99  # DXGI_FORMAT_BC7_UNORM_SRGB
+    assert page_errors(page) == []

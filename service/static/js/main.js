@@ -486,8 +486,10 @@ $('region-form').addEventListener('submit', async (event) => {
   if (!requireTexture()) return;
   const size = Number($('region-size').value);
   const tileable = $('region-tileable').checked;
+  const [format, blocks] = $('region-format').value.split(':'); // "dds:bc7": a DDS of BC7 blocks
   const params = {
-    z: 6, x0: 0, y0: 0, width: size, height: size, seed: tileParams().seed, format: $('region-format').value, tileable,
+    z: 6, x0: 0, y0: 0, width: size, height: size, seed: tileParams().seed, format, tileable,
+    ...(blocks ? { dds_compression: blocks } : {}),
   };
   try {
     const job = await api.startRegion(state.current.id, params);
@@ -628,10 +630,15 @@ function applyLimits(limits) {
   $('fit-seconds').max = limits.max_fit_seconds;
   $('fit-seconds').value = limits.fit_seconds;
   $('plane').replaceChildren(...limits.planes.map((plane) => new Option(plane, plane)));
-  const formats = (id, names) => $(id).replaceChildren(...names.map((f) => new Option(f, f)));
+  const formats = (id, names, labels = {}) =>
+    $(id).replaceChildren(...names.map((f) => new Option(labels[f] ?? f, f)));
   formats('bake-format', limits.formats.bake);
   formats('volume-format', limits.formats.volume);
-  formats('region-format', limits.formats.region.filter((f) => f !== 'pyramid')); // (a square image here)
+  // (a square image here). DDS twice: BC1 in the legacy header every reader opens, BC7 (about
+  // half BC1's error) in the DX10 header that newer tools read (docs/API.md)
+  const regionFormats = limits.formats.region.filter((f) => f !== 'pyramid')
+    .flatMap((f) => (f === 'dds' ? ['dds', 'dds:bc7'] : [f]));
+  formats('region-format', regionFormats, { dds: 'dds (BC1)', 'dds:bc7': 'dds (BC7)' });
   const offer = (id, allowed) => {
     for (const option of [...$(id).options]) if (!allowed(Number(option.value))) option.remove();
   };
