@@ -45,10 +45,16 @@ class Probe:
         return {"score": self.best_score, **self.best}
 
     def score(self) -> float:
-        """The objective on the fixed planes, at twice the training patch size."""
-        with torch.no_grad(), autocast(self.run.device, self.run.precision):
-            patches = render_slices(self.run.model.field, self.run.codes.expand(4, -1), self.seeds, self.origins,
-                                    self.axes, self.run.cfg.patch * 2).float()
+        """The objective on the fixed planes, at twice the training patch size. Rendered in the
+        run's precision, scored as training scores (outside autocast: the objective runs its VGG in
+        that precision itself and keeps its colour moments and Gram matrices float32). Scored inside
+        it, a bfloat16 colour covariance of the validation gravel's muted fit (seed 2) came out not
+        positive-definite and its Cholesky failed, ending the fit; and bfloat16 Gram entries are off
+        by up to 0.4%, a good fit's whole error, when the probe compares nearby states."""
+        with torch.no_grad():
+            with autocast(self.run.device, self.run.precision):
+                patches = render_slices(self.run.model.field, self.run.codes.expand(4, -1), self.seeds, self.origins,
+                                        self.axes, self.run.cfg.patch * 2).float()
             return float(self.run.objective(patches, np.zeros(4, dtype=np.int64), pairs=self.pairs))
 
     def snapshot(self) -> dict:

@@ -322,6 +322,39 @@ def test_lend_best_hands_the_best_state_and_puts_the_training_state_back():
     assert model.training and model.weight is parameter
 
 
+def test_a_probe_renders_in_the_runs_precision_and_scores_outside_autocast(monkeypatch):
+    """Probe.score: the planes render under the run's autocast (bf16 here), the objective is
+    called outside it, as in training, so its colour moments and Grams stay float32. Inside it,
+    a bf16 colour covariance came out not positive-definite and its Cholesky ended a fit."""
+    from types import SimpleNamespace
+
+    import model.probe as probe_module
+    from model.colour import transfer_colour_moments
+    from model.probe import Probe
+
+    seen = {}
+
+    def render(*args):  # noqa: ANN002, ANN202
+        seen["render"] = torch.is_autocast_enabled("cpu")
+        return torch.rand(4, 3, 16, 16).to(torch.bfloat16)
+
+    def objective(patches, indices, pairs):  # noqa: ANN001, ANN202
+        seen["objective"] = torch.is_autocast_enabled("cpu")
+        seen["dtype"] = patches.dtype
+        flat = torch.full((4, 3, 16, 16), 0.5)  # a flat patch: only the ridge keeps it invertible
+        flat[:, 0, 0, 0] = 0.5001
+        return transfer_colour_moments(flat, torch.full((4, 3), 0.5), torch.eye(3).repeat(4, 1, 1) * 1e-3).mean()
+
+    monkeypatch.setattr(probe_module, "render_slices", render)
+    probe = object.__new__(Probe)
+    probe.run = SimpleNamespace(model=SimpleNamespace(field=None), codes=torch.zeros(1, 8), device=torch.device("cpu"),
+                                precision=torch.bfloat16, cfg=SimpleNamespace(patch=8), objective=objective)
+    probe.seeds = probe.origins = probe.axes = None
+    probe.pairs = False
+    assert np.isfinite(probe.score())
+    assert seen == {"render": True, "objective": False, "dtype": torch.float32}
+
+
 def test_an_interim_is_published_once_at_the_first_probe_that_beats_the_start(tmp_path, brick, vgg):
     """train(interim=Interim(0, ...)) in a fit: one call, at the first probe whose best state
     is past step 0, with that state; training goes on to its last step afterwards."""
