@@ -147,8 +147,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         folder = out_dir / "interim"
         folder.mkdir(exist_ok=True)
         write_samplers(model.field, folder)
-        # the start the probe scores is unmuted (as at the end, below)
-        interim(folder, code.reshape(-1).tolist(), step, dict(structure) | ({"muted_octaves": 0} if step == 0 else {}))
+        interim(folder, code.reshape(-1).tolist(), step, served_structure(structure, step))
     if pause is not None and interim is None:
         raise ValueError("pause is asked at the interim's second: give an interim too")
     with contextlib.nullcontext(str(run_dir)) if run_dir else tempfile.TemporaryDirectory() as run_dir:
@@ -166,11 +165,15 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         model, ckpt = load_checkpoint(ckpt_path)
         if ckpt.get("paused"):
             return {"paused": True, "steps": ckpt["step"], **structure}
-    # The probe scores the unmuted start first; a fit that kept it serves no muted octave.
-    if (ckpt.get("probe") or {}).get("step", 1) == 0:
-        structure["muted_octaves"] = 0
+    structure = served_structure(structure, (ckpt.get("probe") or {}).get("step"))
     return write_fit_outputs(out_dir, model, ckpt, structure, init=init, space_cfg=space_cfg, patch=patch,
                              rate=rate, device=steps_on, precision=precision, spectrum=spectrum)
+
+
+def served_structure(structure: dict, step: int | None) -> dict:
+    """The structure keys of a state the fit serves from ``step``: the probe scores the unmuted
+    start first, so a start it kept (step 0, an interim or the end) serves no muted octave."""
+    return (structure | {"muted_octaves": 0}) if step == 0 else dict(structure)
 
 
 @dataclass

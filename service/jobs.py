@@ -506,8 +506,11 @@ def lane_schedule(services: Services, lane: FitLane) -> dict[str, tuple[float | 
     def continuation(j: Job) -> float:  # the stage after a pause at the interim
         return budget(j) - interim + overhead
 
+    def rest(j: Job) -> float:  # the rest of a fit that does not pause (progress: its budget's share spent)
+        return (budget(j) + overhead) * (1.0 - j.progress)
+
     t, schedule, paused = 0.0, {}, []
-    for j in lane.running:  # (progress: the share of its budget spent, kept over a pause)
+    for j in lane.running:
         spent = j.progress * budget(j)
         to_interim = interim + overhead - spent if interim > 0 and _first_stage(j) and spent < interim else None
         if to_interim is not None and first_stages:  # it pauses at its interim for them
@@ -516,7 +519,7 @@ def lane_schedule(services: Services, lane: FitLane) -> dict[str, tuple[float | 
             paused.append(j)
         else:
             schedule[j.id] = (t + max(0.0, to_interim) if to_interim is not None else None,
-                              t + (budget(j) + overhead) * (1.0 - j.progress))
+                              t + rest(j))
             t = schedule[j.id][1]
     for k, j in enumerate(first_stages):
         t += interim + overhead
@@ -527,6 +530,6 @@ def lane_schedule(services: Services, lane: FitLane) -> dict[str, tuple[float | 
             schedule[j.id] = (t, t + budget(j) - interim)
             t = schedule[j.id][1]
     for j in sorted(later + paused, key=lambda j: (j.created_at, j.id)):
-        t += continuation(j) if j in paused else (budget(j) + overhead) * (1.0 - j.progress)
+        t += continuation(j) if j in paused else rest(j)
         schedule[j.id] = (schedule.get(j.id, (None, None))[0], t)
     return schedule
