@@ -84,8 +84,8 @@ INTERIM_SECONDS = 10.0
 
 
 def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: float = DEFAULT_MINUTES,
-                 patch: int | None = None, grain: str | None = None, loss: str = "gram", progress=None,
-                 quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = None,
+                 patch: int | None = None, grain: str | None = "auto", loss: str = "gram", progress=None,
+                 quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = "auto",
                  rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto",
                  lean: str | None = "auto", interim=None, interim_seconds: float = INTERIM_SECONDS,
                  precision: str = "auto", run_dir: str | Path | None = None, pause=None) -> dict:
@@ -93,8 +93,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     'straightened', 'grain_stretch', 'lattice', 'muted_octaves', 'lean'}.
 
     ``patch``: side of the training patches; None: ``PATCH``.
-    ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"``; ``lattice``: ``"auto"`` or
-    None: what ``model.structure.photo_structure`` detects on the photo. A grain leaning
+    ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"`` (the default, as the CLI's and
+    the service's); ``lattice``: ``"auto"`` (the default) or None: what
+    ``model.structure.photo_structure`` detects on the photo. A grain leaning
     3-45 degrees off its nearer axis (``model.structure.grain_turn``) is straightened first: the
     fit learns from the turned photo, and its tiles show the grain straight (``straightened``:
     the degrees turned, 0 when not). The manifest and the result say what was used (the

@@ -47,6 +47,23 @@ def stop_before_training(monkeypatch, read) -> dict:  # noqa: ANN001
     return seen
 
 
+def training_that_publishes(space: Path, code: torch.Tensor, step: int, seen):  # noqa: ANN001
+    """A stand-in for ``model.train.train`` that publishes the space's own model with ``code``
+    from ``step`` through the fit's Interim (as ``Probe.lend_best`` does; ``seen`` gets the
+    Interim), then ends at step 50 on a zero code (the probe's state)."""
+    from model.networks import load_checkpoint
+
+    def train(cfg, progress=None, interim=None, pause=None):  # noqa: ANN001, ANN202
+        seen(interim)
+        model, _ = load_checkpoint(space)
+        interim.publish(model, code, step)
+        path = Path(cfg.out) / "end.pt"
+        torch.save({**torch.load(space, weights_only=False), "code": torch.zeros(1, 8), "step": 50,
+                    "wall_seconds": 1.0, "probe": {"score": 1.0, "step": 50}}, path)
+        return path
+    return train
+
+
 def saved_png(path: Path, photo: np.ndarray) -> np.ndarray:
     """Write ``photo`` (0..1) as an 8-bit PNG at ``path``; the pixels as a fit reads them back."""
     Image.fromarray((photo * 255).round().astype(np.uint8)).save(path)
@@ -376,6 +393,17 @@ def test_an_even_photo_is_fitted_with_its_coarse_octaves_muted(tmp_path, monkeyp
     assert fit.coarse_octaves(256.0, 8) == 4 and fit.coarse_octaves(128.0, 8) == 3
 
 
+def test_the_library_detects_structure_by_default_as_the_cli_and_service_do(tmp_path, monkeypatch):
+    """``fit_exemplar`` called with no grain or lattice argument looks for both, as
+    ``python -m model.fit`` and an upload's refinement do: a running bond gets its lattice."""
+    space = space_checkpoint(tmp_path)
+    seen = stop_before_training(monkeypatch, lambda cfg: cfg.lattice)
+    saved_png(tmp_path / "bricks.png", running_bond())
+    with pytest.raises(StopFit):
+        fit_exemplar(tmp_path / "bricks.png", tmp_path / "bricks", init_checkpoint=space)
+    assert seen["bricks"] is not None
+
+
 def test_a_photo_without_grain_or_lattice_is_fitted_from_its_lean(tmp_path, monkeypatch, skimage_textures):
     """An isotropic fit trains a warp that starts at the photo's lean (photo_lean); a lattice
     photo, or lean=None, trains none."""
@@ -451,27 +479,16 @@ def test_a_fit_publishes_its_interim_as_a_contract_sampler_with_its_structure(tm
     the sampler pair under OUTDIR/interim and passed on with the code and the result's
     structure; the fit then ends as usual."""
     import model.fit as fit
-    from model.networks import load_checkpoint
 
     space = space_checkpoint(tmp_path)
-    lent = torch.full((1, 8), 0.25)
-
-    def train(cfg, progress=None, interim=None, pause=None):  # noqa: ANN001, ANN202
-        assert interim is not None and interim.seconds == 12.0
-        model, _ = load_checkpoint(space)
-        interim.publish(model, lent, 25)  # as Probe.lend_best does
-        ckpt = torch.load(space, weights_only=False)
-        path = Path(cfg.out) / "end.pt"
-        torch.save({**ckpt, "code": torch.zeros(1, 8), "step": 50, "wall_seconds": 1.0,
-                    "probe": {"score": 1.0, "step": 50}}, path)
-        return path
-
-    monkeypatch.setattr(fit, "train", train)
+    interims = []
+    monkeypatch.setattr(fit, "train", training_that_publishes(space, torch.full((1, 8), 0.25), 25, interims.append))
     saved_png(tmp_path / "gravel.png", skimage_textures["gravel"])
     published = []
     result = fit_exemplar(tmp_path / "gravel.png", tmp_path / "fit", init_checkpoint=space,
                           interim=lambda *args: published.append(args), interim_seconds=12.0)
     ((folder, code, step, structure),) = published
+    assert interims[0].seconds == 12.0
     assert folder == tmp_path / "fit" / "interim" and step == 25 and code == [0.25] * 8
     assert structure == {k: result[k] for k in structure}  # gravel: even, leaning; as the result says
     assert structure["muted_octaves"] == 4 and structure["lean"] is not None and structure["lattice"] is None
@@ -495,25 +512,15 @@ def test_an_interim_may_be_the_start_only_when_the_fit_builds_structure_in(tmp_p
     start may be the interim, served unmuted as the probe scored it; without lean, grain or
     lattice the start is the upload's own sampler and is never published as refined."""
     import model.fit as fit
-    from model.networks import load_checkpoint
 
     space = space_checkpoint(tmp_path)
-
-    def train(cfg, progress=None, interim=None, pause=None):  # noqa: ANN001, ANN202
-        assert interim.start_counts is start_counts
-        model, _ = load_checkpoint(space)
-        interim.publish(model, torch.zeros(1, 8), 0)  # as Probe.lend_best does for a start still best
-        ckpt = torch.load(space, weights_only=False)
-        path = Path(cfg.out) / "end.pt"
-        torch.save({**ckpt, "code": torch.zeros(1, 8), "step": 50, "wall_seconds": 1.0,
-                    "probe": {"score": 1.0, "step": 50}}, path)
-        return path
-
-    monkeypatch.setattr(fit, "train", train)
+    interims = []  # the start still best: Probe.lend_best hands step 0
+    monkeypatch.setattr(fit, "train", training_that_publishes(space, torch.zeros(1, 8), 0, interims.append))
     saved_png(tmp_path / "gravel.png", skimage_textures["gravel"])
     published = []
     result = fit_exemplar(tmp_path / "gravel.png", tmp_path / "fit", init_checkpoint=space, lean=lean,
                           interim=lambda *args: published.append(args))
     ((_, _, step, structure),) = published
+    assert interims[0].start_counts is start_counts
     assert step == 0 and structure["muted_octaves"] == 0  # the probe's start is unmuted
     assert result["muted_octaves"] == 4  # the end (step 50) trained muted
