@@ -87,7 +87,7 @@ TRAIN_STEPS ?= 20000
 TRAIN_INIT ?= $(SHIPPED_CHECKPOINT)
 TRAIN_WEIGHTS ?= model/weights/space.pt
 TRAIN_ARGS ?= --patch 64 --batch 4 --lr 2e-4 --warmup 200 --no-nearest --smooth --colour-normalise --isotropic-transforms --threads 2 --ckpt-every 100
-.PHONY: data data-large train export evaluate
+.PHONY: data data-large train export evaluate quality-large fits-large
 
 data: install-test
 	$(PY) -m model.data fetch
@@ -248,6 +248,19 @@ QUALITY_ARGS ?=
 quality: data
 	$(PY) -m eval.quality --model-dir model/weights --label shipped $(QUALITY_ARGS) \
 		--exemplars data/textures/val --out docs/eval/quality
+
+# The same on photos of the large corpus (make data-large) never trained on: one from each of
+# QUALITY_FAMILIES validation families (eval/quality.py --families). fits-large fits the same
+# photos into runs/fits-large; then QUALITY_ARGS='--fits runs/fits-large' measures them too.
+QUALITY_FAMILIES ?= 40
+LARGE_VAL = data/textures-large/val
+quality-large: install-test
+	$(PY) -m eval.quality --model-dir model/weights --label shipped $(QUALITY_ARGS) \
+		--exemplars $(LARGE_VAL) --families $(QUALITY_FAMILIES) --out docs/eval/quality-large
+
+fits-large: install-test
+	$(PY) -m eval.quality --model-dir model/weights --exemplars $(LARGE_VAL) --families $(QUALITY_FAMILIES) \
+		--list | xargs -P $(FIT_JOBS) -I {} sh -c '$(PY) -m model.fit {} runs/fits-large/$$(basename {} .png) $(FIT_ARGS)'
 
 # The by-example baseline's triangle edge: its style error over the floor per edge, per photo
 tune-by-example: data

@@ -50,11 +50,17 @@ model's working resolution, short side ``exemplar_short_side``):
   cross-section, stretched; no solid shows one 2D lattice on every plane. Their ratios are
   reported beside the target. Grain fits (wood) are anisotropic too but stay in it.
 
+``--families N`` measures one photo from each of N families of a corpus with an index
+(``index.json`` beside the exemplar folder, ``model/corpus.py``): the large corpus's
+validation families, never trained on (``make quality-large``). ``--list`` prints the chosen
+photos and stops (``make fits-large`` fits the same ones).
+
 Writes ``results.json`` (settings, per-photo numbers, summary) and ``results.md``.
 """
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
@@ -406,6 +412,21 @@ def to_markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def one_per_family(exemplars: Path, families: int) -> list[Path]:
+    """One photo (the first by name) from each of ``families`` families of ``exemplars``, by the
+    corpus's ``index.json`` beside it: the families first by the sha256 of their names, a fixed
+    spread over the sources that no choice of ours steers."""
+    index = json.loads((exemplars.parent / "index.json").read_text())
+    by_family: dict[str, list[str]] = {}
+    for entry in index["exemplars"]:
+        if Path(entry["path"]).parent.name == exemplars.name:
+            by_family.setdefault(entry["family"], []).append(entry["path"])
+    if families > len(by_family):
+        raise ValueError(f"{exemplars} has {len(by_family)} families, not {families}")
+    chosen = sorted(by_family, key=lambda family: hashlib.sha256(family.encode()).hexdigest())[:families]
+    return sorted(exemplars.parent / min(by_family[family]) for family in chosen)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model-dir", type=Path, action="append", required=True, help="exported model (repeatable)")
@@ -414,19 +435,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("docs/eval/quality"))
     parser.add_argument("--fits", type=Path, help="folder of model.fit outputs, one per photo (FITS/<photo stem>/), "
                                                  "fitted from the first --model-dir: measured as one more model")
+    parser.add_argument("--families", type=int, help="one photo from each of this many families (the corpus's "
+                                                     "index.json beside --exemplars; default: every photo)")
+    parser.add_argument("--list", action="store_true", help="print the photos measured and stop")
     args = parser.parse_args(argv)
     if len(args.label) > len(args.model_dir):
         parser.error("more --label than --model-dir")
     labels = args.label + [d.name for d in args.model_dir[len(args.label):]]
-    photos = sorted(p for p in args.exemplars.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    photos = (one_per_family(args.exemplars, args.families) if args.families else
+              sorted(p for p in args.exemplars.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg")))
     if not photos:
         parser.error(f"no photos in {args.exemplars}")
+    if args.list:
+        print("\n".join(str(p) for p in photos))
+        return 0
     torch.set_num_threads(2)
     images = {p.stem: read_image(p.read_bytes(), max_pixels=MAX_PIXELS) for p in photos}
     baselines: dict[str, dict] = {name: {} for name in images}
     report = {"settings": {"tile": TILE, "zoom": NATIVE_ZOOM, "positions": POSITIONS, "seeds": SEEDS,
                            "octaves": OCTAVES, "slice_planes": SLICE_PLANES, "plane_seed": PLANE_SEED,
-                           "layers": GATYS_LAYERS, "exemplars": str(args.exemplars),
+                           "layers": GATYS_LAYERS, "exemplars": str(args.exemplars), "families": args.families,
                            "floor_crop": CROP, "by_example_triangle_edge": TRIANGLE_EDGE}, "models": {}}
     for label, model_dir in zip(labels, args.model_dir):
         runtime, start = ModelRuntime(model_dir), time.perf_counter()

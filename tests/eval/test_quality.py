@@ -113,3 +113,21 @@ def test_the_markdown_has_a_floor_table_with_medians_and_an_empty_fit_column(qua
     assert "| bricks | 0.0100 | 3.00 | 0.50 | 2.00 | 40.00 (lum) |" in markdown
     assert "| gravel | 0.0100 | 1.50 |  | 4.00 | 10.00 (lum) |" in markdown
     assert "no --fits given" not in markdown
+
+
+def test_one_photo_per_family_from_the_corpus_index(quality, tmp_path):
+    """--families N: N families of the split beside index.json, one photo each (the first by
+    name), the same choice every time; a train photo never comes from the val folder."""
+    import json
+
+    entries = [{"family": f"fam{i % 5}", "path": f"val/p{i:02d}.png"} for i in range(20)]
+    entries.append({"family": "fam0", "path": "train/a00.png"})
+    (tmp_path / "index.json").write_text(json.dumps({"exemplars": entries}))
+    chosen = quality.one_per_family(tmp_path / "val", 3)
+    assert len(chosen) == 3 and chosen == quality.one_per_family(tmp_path / "val", 3)
+    families = {int(p.stem[1:]) % 5 for p in chosen}
+    assert len(families) == 3  # three different families
+    assert all(p.parent == tmp_path / "val" and int(p.stem[1:]) < 5 for p in chosen)  # each family's first
+    assert set(quality.one_per_family(tmp_path / "val", 5)) == {tmp_path / "val" / f"p{i:02d}.png" for i in range(5)}
+    with pytest.raises(ValueError, match="5 families"):
+        quality.one_per_family(tmp_path / "val", 6)
