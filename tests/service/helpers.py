@@ -31,8 +31,8 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
     callable), a fit given a ``interim`` hook publishes an interim first (the shipped sampler
     again, FAKE_INTERIM_CODE, step 25) and then calls it, as the real fit goes on meanwhile;
     unset, it publishes none (a real fit whose start stayed best until then)."""
-    def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain=None,  # noqa: ANN001, ANN202
-                     loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu", lattice=None,
+    def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain="auto",  # noqa: ANN001, ANN202
+                     loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu", lattice="auto",
                      rate="falling", spectrum=0.0, even="auto", lean="auto", interim=None, interim_seconds=60.0,
                      precision="auto", run_dir=None, pause=None):
         calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),

@@ -33,7 +33,7 @@ SQUARE = {"z": 6, "x0": 0, "y0": 0, "width": 128, "height": 128, "tileable": Tru
 
 def fake_fit_module(tileable: bool) -> types.ModuleType:
     def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, progress=None,  # noqa: ANN001, ANN202
-                     threads=0, grain=None, lattice=None, even="auto", lean="auto", interim=None, interim_seconds=60.0,
+                     threads=0, grain="auto", lattice="auto", even="auto", lean="auto", interim=None, interim_seconds=60.0,
                      **_):
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
