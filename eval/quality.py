@@ -70,6 +70,7 @@ import numpy as np
 import torch
 from skimage.color import deltaE_ciede2000, rgb2lab
 
+from model.data import INDEX_FILE
 from model.losses import feature_distance, gram_loss, gram_matrices
 from model.slices import fixed_planes
 from model.vgg import GATYS_LAYERS
@@ -416,7 +417,7 @@ def one_per_family(exemplars: Path, families: int) -> list[Path]:
     """One photo (the first by name) from each of ``families`` families of ``exemplars``, by the
     corpus's ``index.json`` beside it: the families first by the sha256 of their names, a fixed
     spread over the sources that no choice of ours steers."""
-    index = json.loads((exemplars.parent / "index.json").read_text())
+    index = json.loads((exemplars.parent / INDEX_FILE).read_text())
     by_family: dict[str, list[str]] = {}
     for entry in index["exemplars"]:
         if Path(entry["path"]).parent.name == exemplars.name:
