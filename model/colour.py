@@ -37,6 +37,12 @@ import torch
 
 KNOTS = 64  # samples of each channel's curve
 FLOOR = 1.0 / 256.0  # compressed colour is (rgb + FLOOR) ** (1/4): a finite slope at black
+# The moment transfer's ridge, a share of each covariance's mean variance (at least
+# RIDGE_FLOOR), as worker/colour_match.py's table adds it: a fixed 1e-6 was the size of a
+# near-grey fit's raw colour variance, and both narrowed its chroma (CIELAB a/b std 0.56-0.69x
+# the photo's on four of 40 validation photos).
+RIDGE = 1e-6
+RIDGE_FLOOR = 1e-8
 _MIN_STEP = 1e-12  # a grid step used as a divisor (zero only in hand-made tables)
 
 
@@ -121,19 +127,24 @@ def _moments(flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return mean, centred @ centred.transpose(1, 2) / flat.shape[2]
 
 
+def ridged(covariance: torch.Tensor) -> torch.Tensor:
+    """Covariances [N,3,3] plus ``RIDGE`` times each one's mean variance (at least ``RIDGE_FLOOR``)."""
+    share = (RIDGE * torch.diagonal(covariance, dim1=-2, dim2=-1).mean(-1)).clamp_min(RIDGE_FLOOR)
+    return covariance + share[..., None, None] * torch.eye(3, dtype=covariance.dtype, device=covariance.device)
+
+
 def transfer_colour_moments(linear: torch.Tensor, mean: torch.Tensor, covariance: torch.Tensor) -> torch.Tensor:
     """Give images [N,3,H,W] (linear RGB) a compressed-colour mean [N,3] and covariance
     [N,3,3] by an affine map in compressed colour (Cholesky whitening, then colouring).
 
     Training's stand-in for the colour table: the loss then judges structure under the
     exemplar's colours, whatever colours the decoder produced, as the sampler will show
-    them. Differentiable; a tiny ridge keeps flat patches finite.
+    them. Differentiable; a ridge (``ridged``) keeps flat patches finite.
     """
-    eye = torch.eye(3, dtype=linear.dtype, device=linear.device)
     flat = compress(linear).flatten(2)  # [N,3,HW]
     own_mean, own_covariance = _moments(flat)
-    own = torch.linalg.cholesky(own_covariance + 1e-6 * eye)
-    target = torch.linalg.cholesky(covariance + 1e-6 * eye)
+    own = torch.linalg.cholesky(ridged(own_covariance))
+    target = torch.linalg.cholesky(ridged(covariance))
     white = torch.linalg.solve_triangular(own, flat - own_mean.unsqueeze(2), upper=False)
     # clamped at 0 first: a negative compressed value would square back to a bright colour
     return expand((target @ white + mean.unsqueeze(2)).clamp_min(0.0)).reshape(linear.shape)

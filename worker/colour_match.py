@@ -41,16 +41,20 @@ CALIBRATION_SEEDS = (0, 1, 2, 3)
 MAX_PHOTO_PIXELS = 1 << 16  # photo pixels used for its statistics (a fixed-stride subset)
 FLOOR = 1.0 / 256.0  # as model/colour.py (the sampler graph applies the same)
 MIN_STEP = 1e-6  # the smallest raw range a curve spans (a flat raw channel)
-# Ridge added to both covariances before their Cholesky factors, as training's moment
-# transfer adds it (model.colour.transfer_colour_moments): a flat raw channel stays finite.
+# Ridge added to each covariance before its Cholesky factor, a share of its mean variance
+# (and at least RIDGE_FLOOR), as training's moment transfer adds it (model/colour.py): a flat
+# raw channel stays finite. (A fixed 1e-6 was the size of a near-grey fit's raw colour
+# variance and took ~30% of its tiles' chroma spread.)
 RIDGE = 1e-6
+RIDGE_FLOOR = 1e-8
 CURVES = ("quantile", "linear")  # an encoder code's table, a fit's (the module docstring)
 # The recipe a stored table was made by, kept with it (service: Texture.colour_calibration).
 # 1: the symmetric whitening on the photo's axes and quantile curves for every sampler;
-# 2: the moment whitening above, quantile curves for an encoder code, linear for a fit.
+# 2: the moment whitening above, quantile curves for an encoder code, linear for a fit;
+# 3: as 2 with a ridge relative to each covariance's scale (``RIDGE``), not a fixed 1e-6.
 # Bump it whenever calibrate_texture makes different tables for the same inputs:
 # ``texspace recolour`` then brings the stored ones up to date.
-COLOUR_CALIBRATION = 2
+COLOUR_CALIBRATION = 3
 
 
 def knots_of(colour_size: int) -> int:
@@ -131,11 +135,15 @@ def moment_whitening(photo: np.ndarray, raw: np.ndarray, axes: np.ndarray) -> np
     (Cholesky factors of the photo's and the raw colours' covariances). ``axes.T @ Lp`` is
     ``diag(std) Q`` with Q orthogonal (its rows are orthogonal: ``axes`` diagonalise the
     photo's covariance), so ``A = Q Lr^-1``; Q is taken as the orthogonal polar factor."""
-    eye = np.eye(3)
-    raw_factor = np.linalg.cholesky(np.cov(raw, rowvar=False) + RIDGE * eye)
-    photo_factor = np.linalg.cholesky(np.cov(photo, rowvar=False) + RIDGE * eye)
+    raw_factor, photo_factor = (np.linalg.cholesky(ridged_covariance(colours)) for colours in (raw, photo))
     left, _, right = np.linalg.svd(axes.T @ photo_factor)
     return (left @ right) @ np.linalg.inv(raw_factor)
+
+
+def ridged_covariance(colours: np.ndarray) -> np.ndarray:
+    """Covariance (3, 3) of colours (N, 3) plus ``RIDGE`` times its mean variance (at least ``RIDGE_FLOOR``)."""
+    covariance = np.cov(colours, rowvar=False)
+    return covariance + max(RIDGE * np.trace(covariance) / 3, RIDGE_FLOOR) * np.eye(3)
 
 
 def photo_pixels(image: np.ndarray) -> np.ndarray:
