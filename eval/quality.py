@@ -288,7 +288,10 @@ def summarise(rows: list[dict]) -> dict:
     """Worst cases over photos and pass / fail against the targets, for one model."""
     ratios = np.array([[r["colour"][w]["std_ratio"] for w in ("pooled", "worst_tile")] for r in rows])  # (P, 2, 3)
     wins = sum(r["style"]["win"] for r in rows)
-    oblique = np.mean([r["style_oblique"] for r in rows]) / np.mean([r["style_axis"] for r in rows])
+    # the target is for solids that are not a 2D pattern carried through depth (a lattice or stripes fit:
+    # its oblique cuts shear the pattern, as a cut through a brick wall would); those are listed apart
+    solids = [r for r in rows if not r.get("pattern_2d")] or rows
+    oblique = np.mean([r["style_oblique"] for r in solids]) / np.mean([r["style_axis"] for r in solids])
     summary = {
         "max_de76_pooled": max(r["colour"]["pooled"]["de76"] for r in rows),
         "max_de76_worst_tile": max(r["colour"]["worst_tile"]["de76"] for r in rows),
@@ -380,9 +383,9 @@ def to_markdown(report: dict) -> str:
     lines = ["# Product quality", "", "Through encoder.onnx + sampler.onnx (worker/). Colour: CIELAB of the "
              "photo vs native-zoom tiles (x, y in {0,1}, seeds 1, 2). Std ratio: tile / photo, L/a/b. Style: VGG Gram "
              "error, ours vs the stronger colour-matched value-noise baseline. Targets: dE76 < 5, std ratio in "
-             "[0.7, 1.4], wins >= 80%, diversity > 0, oblique / axis <= 1.5 (pooled over photos, and the "
-             "worst photo's, leaving out fits on a lattice or stripes: a 2D pattern carried through depth, "
-             "reported beside it). **x**: target missed.", "",
+             "[0.7, 1.4], wins >= 80%, diversity > 0, oblique / axis <= 1.5 (pooled over the photos and for "
+             "the worst photo, both leaving out fits on a lattice or stripes, a 2D pattern carried through depth: "
+             "their ratios are listed beside). **x**: target missed.", "",
              "| model | max dE76 pooled | max dE76 worst tile | max dE2000 pooled | std ratio pooled min..max "
              "| std ratio worst tile min..max | wins | min diversity | oblique / axis | mean style |",
              "|---|---|---|---|---|---|---|---|---|---|"]
