@@ -138,3 +138,30 @@ def parquet(block: int = 32, slats: int = 4, size: int = 256, turn_degrees: floa
     lattice = (rotation @ np.array([[block, -block], [block, block]], np.float64)).T.ravel()  # rows: the vectors
     wood = np.clip(image[..., None] * np.array([1.1, 0.85, 0.6]), 0, 1)
     return wood, tuple(float(c) for c in lattice)
+
+
+def crop_rows(period: float = 10.16, size: int = 256, rows: float = 0.02, lean: float = 0.3, seed: int = 3
+              ) -> np.ndarray:
+    """Rows of crops seen from above (0ad's farmland_a): a faint brightness wave of ``period``
+    px across x under leaves, noise streaked 4 px up-down and sheared by ``lean`` px across
+    per px down, so the photo's gradients lean off the rows while its rows run straight."""
+    rng = np.random.default_rng(seed)
+    x = np.arange(size, dtype=np.float64)[None, :]
+    leaves = ndimage.gaussian_filter(rng.standard_normal((size, size)), (4.0, 0.7))
+    leaves = ndimage.affine_transform(leaves, [[1.0, 0.0], [lean, 1.0]], mode="wrap")
+    image = (0.45 + rows * np.cos(2 * np.pi * x / period) + 0.02 * leaves / leaves.std()
+             + 0.03 * rng.standard_normal((size, size)))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+
+def two_by_two(size: int = 256, blend: float = 0.0, seed: int = 4) -> np.ndarray:
+    """A game texture made of 2 x 2 copies of one tile of half the photo (0ad's terrains), each
+    copy mixed ``blend`` of the way towards its own noise (0: exact copies)."""
+    rng = np.random.default_rng(seed)
+    half = size // 2
+    tile = ndimage.gaussian_filter(rng.standard_normal((half, half)), 3.0, mode="wrap")
+    copies = np.tile(tile, (2, 2))
+    own = ndimage.gaussian_filter(rng.standard_normal((size, size)), 3.0, mode="wrap")
+    image = 0.5 + 0.12 * ((1 - blend) * copies / tile.std() + blend * own / own.std())
+    image += 0.01 * rng.standard_normal((size, size))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)

@@ -13,8 +13,8 @@ from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelatio
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,
                              detect_direction_lattice, detect_long_lattice, peak_height, pixel_noise,
                              luminance_correlation, stripe_normal)
-from eval.synthetic_photos import (banded_motifs, boards, corrugation, fibres, hexagonal_tiles, parquet,
-                                running_bond, streaks)
+from eval.synthetic_photos import (banded_motifs, boards, corrugation, crop_rows, fibres, hexagonal_tiles,
+                                parquet, running_bond, streaks, two_by_two)
 from worker.colour import even_lighting
 
 
@@ -364,6 +364,31 @@ def test_detect_stripes_measures_the_period_across_the_stripes(skimage_textures)
     # a brick wall's courses are stripes too; fit_exemplar asks for stripes only where
     # detect_lattice finds no lattice, and it finds the bond
     assert detect_lattice(running_bond()) is not None
+
+
+def test_faint_rows_under_leaning_leaves_are_stripes_straight_across_them():
+    """0ad's farmland_a: rows of crops 10 px apart whose repeat reads 0.24-0.29 (under a
+    lattice's 0.3), with leaves whose gradients lean off the rows. Before, the faint rows gave
+    a chance lattice of 60-130 px, and stronger ones a period leaning 6 degrees (the photo's
+    gradients); the rows' own correlation sets the direction now."""
+    for rows, lean in ((0.02, 0.3), (0.04, 0.5)):
+        grain, found = photo_structure(crop_rows(rows=rows, lean=lean))
+        assert grain is None and found is not None, (rows, lean)
+        ax, ay, bx, by = found
+        assert abs(ax - 10.16) < 0.15 and abs(np.degrees(np.arctan2(ay, ax))) < 0.5, found
+        assert (bx, by) == pytest.approx((-ay, ax))
+
+
+@pytest.mark.parametrize("blend, found", [(0.0, True), (0.3, True), (0.5, False)])
+def test_a_photo_of_two_by_two_copies_is_a_lattice_of_half_of_it(blend, found):
+    """Game terrains made of 2 x 2 copies of one tile repeat at exactly half the photo, as far
+    as the correlation reaches: such a lattice was never supported (its points were counted
+    only under half the photo). Found when the copies repeat strongly (0.83 with 30% own
+    noise); copies half their own (0.47) are too often chance for two repeats in view."""
+    result = photo_structure(two_by_two(blend=blend))[1]
+    assert (result is not None) == found, result
+    if found:
+        assert same_lattice(result, (128.0, 0.0, 0.0, 128.0), tolerance=0.01), result
 
 
 def test_detect_boards_measures_the_board_width_across_the_grain(skimage_textures):
