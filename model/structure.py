@@ -225,11 +225,11 @@ def autocorrelation(values: np.ndarray) -> np.ndarray:
     return full[grid] / overlap
 
 
-def luminance_correlation(image: np.ndarray, wrap: bool = False, within: float = LATTICE_REACH
-                          ) -> tuple[np.ndarray, list[tuple]] | None:
+def luminance_correlation(image: np.ndarray, wrap: bool = False, within: float = LATTICE_REACH,
+                          least: float = LATTICE_PEAK) -> tuple[np.ndarray, list[tuple]] | None:
     """The photo's luminance autocorrelation, normalised to 1 at the origin ([0, 0]) less
     its white noise (``pixel_noise``, so values can pass 1 there; NOISE_SHARE_MAX),
-    and its repeat peaks: local maxima of at least LATTICE_PEAK, at least
+    and its repeat peaks: local maxima of at least ``least``, at least
     LATTICE_MIN_OFFSET px from the origin and within ``within`` of the image, as (value,
     length, dx, dy). None for a flat photo. ``wrap``: circular (the photo taken as a tile,
     exact where it is one), else over each offset's overlap (``autocorrelation``)."""
@@ -246,7 +246,7 @@ def luminance_correlation(image: np.ndarray, wrap: bool = False, within: float =
     # repeats of a faint pattern in a noisy photo read as high as in the clean one.
     noise = min(pixel_noise(luminance) ** 2 / max(float(np.mean(luminance ** 2)), 1e-12), NOISE_SHARE_MAX)
     correlation /= correlation[0, 0] * (1.0 - noise)
-    return correlation, repeat_peaks(correlation, within)
+    return correlation, repeat_peaks(correlation, within, least)
 
 
 def repeat_peaks(correlation: np.ndarray, within: float = LATTICE_REACH, least: float = LATTICE_PEAK
@@ -657,12 +657,11 @@ def detect_stripes(image: np.ndarray) -> tuple[float, float, float, float] | Non
 
 def _stripes_on(image: np.ndarray, wrap: bool) -> tuple[float, float, float, float] | None:
     """``detect_stripes`` on the wrapped or unwrapped autocorrelation."""
-    measured, across = luminance_correlation(image, wrap), stripe_normal(image)
+    measured, across = luminance_correlation(image, wrap, least=STRIPE_PEAK), stripe_normal(image)
     if measured is None or across is None:
         return None
-    correlation = measured[0]
+    correlation, found = measured
     across = correlation_normal(correlation, across)
-    found = repeat_peaks(correlation, least=STRIPE_PEAK)
     # Any repeat a + t s (s along the stripes) shows the same stripes, and the peak found can
     # be any of them (the validation cardboard's is (2, 9) px, not (0, 9)): the period is
     # the repeat's part across the stripes. Peaks along the stripes (a brick wall's bricks
