@@ -171,7 +171,10 @@ def learned_codes(cfg: TrainConfig, model: TextureSpace, images: list[np.ndarray
     exemplar (``initial_code``).
     space: one code per exemplar [N, code_size], an auto-decoder table: N(0, 0.5^2) from
     --seed (a generator of its own), or --init's table where it has the same shape (warm
-    start: the decoder knows these codes). The encoder is trained to predict them from crops.
+    start: the decoder knows these codes). With --init on other photos (a larger corpus) the
+    table starts at --init's encoder codes of them (``initial_code``): codes the decoder
+    already renders as those photos, where random rows would first undo what it learned.
+    The encoder is trained to predict them from crops.
     Gradients reach each code directly; through the encoder alone they were too weak, and
     a CPU-hours space ignored the code and collapsed to one texture.
     """
@@ -185,6 +188,8 @@ def learned_codes(cfg: TrainConfig, model: TextureSpace, images: list[np.ndarray
                                             generator=torch.Generator().manual_seed(cfg.seed)) * 0.5).to(device))
     if init_codes is not None and tuple(init_codes.shape) == tuple(table.shape):
         table.data.copy_(init_codes)
+    elif cfg.init:
+        table.data.copy_(torch.cat([initial_code(model, image, crop) for image in images]))
     return table
 
 

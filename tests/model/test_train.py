@@ -230,6 +230,35 @@ def test_colour_normalised_run_warm_starts_codes_and_decays(tmp_path, brick, vgg
     assert learning_rate(5, 1.0, 10, time_done=1.0) == pytest.approx(0.06)  # still warming up, and at the floor
 
 
+def test_a_space_on_new_photos_starts_its_codes_at_the_encoders(tmp_path, brick, vgg):
+    # --init from a space of two photos onto a corpus of three: the table cannot be copied,
+    # so each row starts at the init encoder's code of its photo (the code an upload of it
+    # gets), not at random rows the decoder has never rendered.
+    from model.data import TextureDataset
+    from model.train import initial_code
+
+    def write(folder, tints):
+        folder.mkdir()
+        for k, tint in enumerate(tints):
+            image = np.roll(brick, 17 * k, axis=1) * np.array(tint)
+            Image.fromarray((image * 255).astype(np.uint8)).save(folder / f"t{k}.png")
+
+    write(tmp_path / "two", [(1.0, 0.6, 0.3), (0.4, 0.5, 1.0)])
+    write(tmp_path / "three", [(1.0, 1.0, 1.0), (0.2, 0.9, 0.4), (0.9, 0.9, 0.2)])
+    common = ["--patch", "32", "--batch", "2", "--short-side", "128", "--crop", "64", "--quiet",
+              "--layers", "relu1_1", "--exclude", "", "--colour-normalise"]
+    train_main(common + ["--data", str(tmp_path / "two"), "--out", str(tmp_path / "space"), "--steps", "2"])
+    init, _ = load_checkpoint(tmp_path / "space" / "checkpoint.pt")
+    train_main(common + ["--data", str(tmp_path / "three"), "--out", str(tmp_path / "big"), "--steps", "1",
+                         "--code-lr", "1e-9", "--init", str(tmp_path / "space" / "checkpoint.pt")])
+    _, ckpt = load_checkpoint(tmp_path / "big" / "checkpoint.pt")
+    images = TextureDataset(str(tmp_path / "three"), short_side=128).images
+    expected = torch.cat([initial_code(init, image, 64) for image in images])
+    assert ckpt["codes"].shape == (3, init.cfg.code_size)
+    assert torch.allclose(ckpt["codes"], expected, atol=1e-4)
+    assert not torch.allclose(expected[0], expected[1], atol=1e-3)  # the photos' own codes
+
+
 def test_a_timed_run_decaying_by_time_ends_near_its_floor(tmp_path, brick, vgg):
     image = tmp_path / "brick.png"
     Image.fromarray((brick * 255).astype(np.uint8)).save(image)
