@@ -183,6 +183,28 @@ gpu-large-back:
 gpu-large-export: install-test
 	$(PY) -m model.export runs/space-gpu-large/checkpoint.pt runs/space-gpu-large/weights
 
+# The shipped space fine-tuned on a lent GPU, in one call (docs/DATA.md, "Fine-tuning the
+# shipped space"): the large corpus's non-GPL training photos (10 MiB of them) + the default
+# training photos, starting from the shipped checkpoint; the default validation photos are
+# fitted on the GPU beside it. gpu-finetune-pack, then the device call it prints, then
+# make gpu-finetune-back FROM=<files_at>: runs/space-large-ft/{checkpoint.pt,log.jsonl,weights},
+# runs/fits-gpu/<photo>.
+GPU_FINETUNE_PACK_ARGS ?= --quality 90 --max-long 384 --photo-mib 10 --val 8 --add-default
+.PHONY: gpu-finetune-pack gpu-finetune-back
+gpu-finetune-pack: install-test $(SHIPPED_CHECKPOINT)
+	@test -f data/textures-large/index.json -a -f data/textures/index.json || { echo "make data data-large first"; exit 1; }
+	rm -rf gpu
+	$(PY) -m eval.gpu_pack pack gpu --corpus large --licences non-gpl $(GPU_FINETUNE_PACK_ARGS)
+	$(PY) eval/gpu_pack.py slim $(SHIPPED_CHECKPOINT) gpu/init.pt
+	cp eval/gpu_finetune.sh gpu/
+	@echo 'device run: carry ["gpu"], timeout_s 590, command: bash gpu/gpu_finetune.sh 7 0.33 cuda'
+gpu-finetune-back:
+	@test -f "$(FROM)/run/checkpoint.pt" || { echo "FROM=<files_at>: the call's run/ and fits.tar"; exit 1; }
+	mkdir -p runs/space-large-ft runs/fits-gpu
+	cp "$(FROM)/run/checkpoint.pt" "$(FROM)/run/log.jsonl" runs/space-large-ft/
+	tar xf "$(FROM)/fits.tar" -C runs/fits-gpu
+	$(PY) -m model.export runs/space-large-ft/checkpoint.pt runs/space-large-ft/weights
+
 # The comparison: every variant trained as a space from scratch with the same settings and
 # the same number of steps (runs/compare/<variant>), then evaluated on the validation
 # exemplars together with the shipped space. One thread per run: `make -j2 compare` runs two at once

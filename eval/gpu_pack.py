@@ -58,8 +58,12 @@ MIB = 2**20
 
 
 def pack(out: str, corpus: str = "default", licences: str = "all", quality: int = 0, max_long: int | None = None,
-         photo_mib: float | None = None, val: int | None = None, short_side: int = 256) -> dict:
-    """Write the pack (module docstring) into ``out``; returns its manifest."""
+         photo_mib: float | None = None, val: int | None = None, short_side: int = 256,
+         add_default: bool = False) -> dict:
+    """Write the pack (module docstring) into ``out``; returns its manifest. ``add_default``:
+    the default corpus's photos too (PNG at the working size, outside ``photo_mib``): its
+    training photos in ``data/`` (a space fine-tuned on a large corpus keeps what it knew) and
+    its validation photos in ``fitval/`` (GPU fits of the photos ``make quality`` measures)."""
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / VGG_FILE).write_bytes(_quantised_vgg())
@@ -87,6 +91,15 @@ def pack(out: str, corpus: str = "default", licences: str = "all", quality: int 
             "families": len({e.get("family") for e in written}),
             "licence_kinds": _counts(licence_kind(e) for e in written),
             "names": [e["name"] for e in written]}
+    if add_default:
+        default = Path(CORPORA["default"])
+        for folder, split in (("data", "train"), ("fitval", "val")):
+            (out_dir / folder).mkdir(exist_ok=True)
+            names = sorted(p.stem for p in (default / split).glob("*.png"))
+            for name in names:
+                (out_dir / folder / f"{name}.png").write_bytes(encode_photo(default / split / f"{name}.png", short_side,
+                                                                            None, 0))
+            manifest["splits"][f"default {split}"] = {"photos": len(names), "folder": folder, "names": names}
     shutil.copy(__file__, out_dir / "gpu_pack.py")
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
     return manifest
@@ -280,9 +293,15 @@ def _pack_cli(argv: list[str]) -> None:
     p.add_argument("--max-long", type=int, help="centre-crop the long side to this at the working resolution")
     p.add_argument("--photo-mib", type=float, help="bound on the photos' bytes (train + val), MiB")
     p.add_argument("--val", type=int, help="at most this many validation photos")
+    p.add_argument("--add-default", action="store_true",
+                   help="the default corpus's training photos in data/ too, its validation photos in fitval/")
     args = p.parse_args(argv)
-    manifest = pack(args.out, args.corpus, args.licences, args.quality, args.max_long, args.photo_mib, args.val)
+    manifest = pack(args.out, args.corpus, args.licences, args.quality, args.max_long, args.photo_mib, args.val,
+                    add_default=args.add_default)
     for folder, split in manifest["splits"].items():
+        if "of" not in split:  # (--add-default's)
+            print(f"{folder}: {split['photos']} photos in {split['folder']}/")
+            continue
         print(f"{folder}: {split['photos']} of {split['of']} photos, {split['families']} families, "
               f"{split['bytes'] / MIB:.2f} MiB, {split['licence_kinds']}")
     total = sum(p.stat().st_size for p in Path(args.out).rglob("*") if p.is_file())

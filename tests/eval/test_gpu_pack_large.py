@@ -97,6 +97,31 @@ def test_pack_stays_within_its_photo_bound(gpu_pack, tmp_path, monkeypatch):
     assert again["splits"] == manifest["splits"]
 
 
+def test_pack_adds_the_default_corpus_outside_the_bound(gpu_pack, tmp_path, monkeypatch):
+    # --add-default: the default corpus's training photos join the large ones in data/ (a
+    # fine-tuned space keeps what it knew), its validation photos go to fitval/ (GPU fits of
+    # what make quality measures); lossless at the working size, not counted in --photo-mib.
+    large, default = tmp_path / "large", tmp_path / "default"
+    entries = [_entry(f"f{f}", f"f{f}", "share-alike", split) for split, f in (("train", 0), ("train", 1), ("val", 2))]
+    for k, entry in enumerate(entries):
+        (large / entry["split"]).mkdir(parents=True, exist_ok=True)
+        _noise_photo(large / entry["path"], (320, 256), k)
+    (large / "index.json").write_text(json.dumps({"exemplars": entries}))
+    for split, names in (("train", ["d_a", "d_b"]), ("val", ["d_v"])):
+        (default / split).mkdir(parents=True)
+        for k, name in enumerate(names):
+            _noise_photo(default / split / f"{name}.png", (600, 512), 10 + k)
+    monkeypatch.setattr(gpu_pack, "_quantised_vgg", lambda: b"vgg")
+    monkeypatch.setitem(gpu_pack.CORPORA, "default", str(default))
+    bound = 1.5 * len(gpu_pack.encode_photo(large / entries[0]["path"], 256, 384, 90)) / gpu_pack.MIB
+    manifest = gpu_pack.pack(str(tmp_path / "gpu"), str(large), "non-gpl", 90, 384, bound, val=0, add_default=True)
+    assert sorted(p.name for p in (tmp_path / "gpu" / "data").iterdir()) == ["d_a.png", "d_b.png", "f0.jpg"]
+    assert [p.name for p in (tmp_path / "gpu" / "fitval").iterdir()] == ["d_v.png"]
+    with Image.open(tmp_path / "gpu" / "fitval" / "d_v.png") as image:
+        assert image.size == (300, 256)  # the working size, lossless
+    assert manifest["splits"]["default train"] == {"photos": 2, "folder": "data", "names": ["d_a", "d_b"]}
+
+
 def test_slim_checkpoint_keeps_buffers_exact_and_drops_adam_moments(gpu_pack, tmp_path):
     cfg = parse_args(["--out", str(tmp_path), "--code-size", "16"])
     torch.manual_seed(0)
