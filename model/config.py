@@ -77,6 +77,12 @@ class ModelConfig:
     # colour at the point's phase: grout lines and bonds drawn exactly where the photo has
     # them, while what differs from one repeat to the next averages away and is left to noise.
     lattice_cell: tuple[int, int] | None = None
+    # Each repeat cell its own shade: three values hashed from the cell's index on the
+    # lattice and the seed (``model/noise.py: cell_shade``), the same over the whole cell, as
+    # more decoder inputs. Phases and the mean cell are the same in every cell, and the noise
+    # knows no cell borders, so a fitted tile floor had one shade in every tile where the
+    # photo's tiles, bricks and planks each have their own.
+    lattice_shade: bool = False
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -94,6 +100,8 @@ class ModelConfig:
             self.lattice_cell = tuple(int(v) for v in self.lattice_cell)
             if self.lattice is None or len(self.lattice_cell) != 2 or min(self.lattice_cell) < 2:
                 raise ValueError(f"lattice_cell needs a lattice and two sizes >= 2, got {self.lattice_cell!r}")
+        if self.lattice_shade and self.lattice is None:
+            raise ValueError("lattice_shade needs a lattice")
 
     @property
     def flags(self) -> Variant:

@@ -88,7 +88,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                  quiet: bool = True, seed: int = 0, threads: int = 0, device: str = "cpu", lattice: str | None = "auto",
                  rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto",
                  lean: str | None = "auto", interim=None, interim_seconds: float = INTERIM_SECONDS,
-                 precision: str = "auto", run_dir: str | Path | None = None, pause=None) -> dict:
+                 precision: str = "auto", run_dir: str | Path | None = None, pause=None,
+                 shade: str | None = "auto") -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
     'straightened', 'grain_stretch', 'lattice', 'muted_octaves', 'lean'}.
 
@@ -115,6 +116,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``lean``: ``"auto"``: a photo with no grain or lattice is fitted with a learned linear map of
     world (x, y) (``ModelConfig.warp``) that starts at its lean (``model.structure.photo_lean``:
     [degrees, stretch] in the result); None: never.
+    ``shade``: ``"on"``: a fit on a lattice, stripes or boards gives each repeat cell its own
+    hashed shade (``ModelConfig.lattice_shade``); ``"auto"``: on where the steps run on CUDA;
+    ``"none"``: never.
     ``interim``: ``interim(folder, code, step, structure)`` is called once, ``interim_seconds``
     into the fit, with the best state so far written to ``folder`` (``OUTDIR/interim``: its
     ``sampler.onnx`` and tileable sampler), its code (list of floats), the step it is from and
@@ -159,7 +163,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
             Image.fromarray((found.photo * 255 + 0.5).astype(np.uint8)).save(exemplar)
         cfg = fit_config(found, space_cfg, exemplar=exemplar, run_dir=run_dir, init=init, minutes=minutes,
                          patch=patch, rate=rate, seed=seed, loss=loss, device=device, quiet=quiet,
-                         precision=precision, threads=threads, spectrum=spectrum)
+                         precision=precision, threads=threads, spectrum=spectrum,
+                         shade="on" if shade == "on" or (shade == "auto" and steps_on.type == "cuda") else None)
         ckpt_path = train(cfg, progress=progress, pause=pause,
                           interim=Interim(interim_seconds, publish, start_counts=found.builds_structure)
                           if interim is not None else None)
@@ -225,7 +230,7 @@ def detect_structure(photo: np.ndarray, space_cfg: ModelConfig, *, grain: str | 
 
 def fit_config(found: FitStructure, space_cfg: ModelConfig, *, exemplar: Path, run_dir: str, init: Path,
                minutes: float, patch: int, rate: str, seed: int, loss: str, device: str, quiet: bool,
-               precision: str, threads: int, spectrum: float) -> TrainConfig:
+               precision: str, threads: int, spectrum: float, shade: str | None = None) -> TrainConfig:
     """The single-mode training run of a fit: the space's architecture, the fit's rates and
     budget, and what ``detect_structure`` found."""
     return TrainConfig(
@@ -241,7 +246,7 @@ def fit_config(found: FitStructure, space_cfg: ModelConfig, *, exemplar: Path, r
         seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
         precision=precision,
         grain=found.grain or None, grain_stretch=found.stretch, lattice=found.lattice,
-        lattice_cell=bool(found.lattice),
+        lattice_cell=bool(found.lattice), lattice_shade=bool(found.lattice) and shade == "on",
         threads=threads or 0,
         spectrum=spectrum, mute_octaves=found.muted, warp=found.lean is not None,
         warp_start=found.lean)
@@ -332,6 +337,11 @@ def main(argv=None):
                    help="auto (default): a photo with no grain or lattice is fitted with a learned linear map "
                         "of world x, y that starts at the photo's lean (model.structure.photo_lean: the "
                         "direction its features run and how much longer they are along it); none: never")
+    p.add_argument("--shade", choices=["auto", "on", "none"], default="auto",
+                   help="on: a fit on a repeat lattice, stripes or boards gives each repeat cell its own hashed "
+                        "shade input (ModelConfig.lattice_shade); none: every cell alike; auto (default): on "
+                        "where the fit runs on CUDA (hundreds of steps), none on the CPU, where 60-step fits "
+                        "scored worse with it (docs/DECISIONS.md)")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
@@ -340,7 +350,8 @@ def main(argv=None):
                           precision=args.precision,
                           lattice=None if args.lattice == "none" else args.lattice, rate=args.rate,
                           spectrum=args.spectrum, even=None if args.even == "none" else args.even,
-                          lean=None if args.lean == "none" else args.lean)
+                          lean=None if args.lean == "none" else args.lean,
+                          shade=args.shade)
     print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "straightened", "grain_stretch", "lattice",
                                              "muted_octaves", "lean", "sampler")}))
 

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from model.config import ModelConfig
-from model.noise import noise_features, octave_seeds
+from model.noise import cell_shade, noise_features, octave_seeds
 
 
 # ----------------------------------------------------------------------------- encoder
@@ -246,7 +246,8 @@ class TextureField(nn.Module):
         k, d = cfg.n_octaves, cfg.dims
         self.translator = Translator(cfg)
         n_noise = k * 3 * (2 if cfg.nearest_input else 1) if flags.noise else 0
-        n_phase = (4 * cfg.lattice_harmonics if cfg.lattice else 0) + (3 if cfg.lattice_cell else 0)
+        n_phase = ((4 * cfg.lattice_harmonics if cfg.lattice else 0) + (3 if cfg.lattice_shade else 0)
+                   + (3 if cfg.lattice_cell else 0))
         self.decoder = (
             Decoder(n_noise, d if flags.position else 0, cfg.extended_size, cfg.hidden, cfg.n_hidden_layers, n_phase)
             if flags.decoder
@@ -277,26 +278,40 @@ class TextureField(nn.Module):
         d = self.cfg.dims
         return torch.eye(d, dtype=torch.float64, device=self.warp.device) + F.pad(self.warp, (0, d - 2, 0, d - 2))
 
-    def lattice_phases(self, points: torch.Tensor, period: torch.Tensor | None = None) -> torch.Tensor:
-        """float64 [B,P,>=2] -> float32 [B,P,4*H (+3)]: sin and cos of 2 pi k u, u the point's
-        (x, y) in lattice coordinates, k = 1..H (``lattice_harmonics``), then, with a
-        ``lattice_cell``, the mean cell's colour at the phase. Exactly periodic on the
-        lattice; u is taken in float64 so far-away points keep their phase.
+    def lattice_phases(self, points: torch.Tensor, period: torch.Tensor | None = None,
+                       shade_seed: torch.Tensor | None = None) -> torch.Tensor:
+        """float64 [B,P,>=2] -> float32 [B,P,4*H (+3) (+3)]: sin and cos of 2 pi k u, u the
+        point's (x, y) in lattice coordinates, k = 1..H (``lattice_harmonics``); with
+        ``lattice_shade`` the cell's three shade values in [-1, 1] (``cell_shade`` of floor(u)
+        and ``shade_seed``, int32 [] or [B,1]); with a ``lattice_cell`` the mean cell's colour at
+        the phase (last: ``start_on_mean_cell`` sets those columns). Exactly periodic on the
+        lattice but for the shades; u is taken in float64 so far-away points keep their phase.
 
         ``period`` (float64 [], world units; tileable synthesis): the lattice nudged so that
         it also repeats every ``period`` in x and y: period x the inverse basis rounded to
         whole numbers (how many cells a period crosses along each lattice axis), divided by
-        the period. A 256-px tile of the brick wall moves its bond offset by half a pixel."""
+        the period. A 256-px tile of the brick wall moves its bond offset by half a pixel.
+        The shades repeat with it: cells a period apart are one cell (``wrap_cells``)."""
         inverse = self.lattice_inverse
+        crossed = None
         if period is not None:
-            inverse = torch.round(period * inverse) / period
+            crossed = torch.round(period * inverse)  # [2,2]: cells crossed per period, column j along world axis j
+            inverse = crossed / period
         u = points[..., :2] @ inverse.t()  # [B,P,2]
         k = torch.arange(1, self.cfg.lattice_harmonics + 1, dtype=torch.float64, device=points.device)
         # the fractional part first: sin/cos of a small float32 angle, exact at any distance
-        phase = u - torch.floor(u)
+        # (one Floor, subtracted from its own input: worker/shader.py finds u that way)
+        cell = torch.floor(u)
+        phase = u - cell
         angle = (2.0 * math.pi) * phase.unsqueeze(-1) * k  # [B,P,2,H]
         angle = angle.to(torch.float32).reshape(*u.shape[:-1], -1)
         features = [torch.sin(angle), torch.cos(angle)]
+        if self.cfg.lattice_shade:
+            if shade_seed is None:
+                raise ValueError("a field with lattice_shade needs the shade_seed (forward: octave_seeds' one more)")
+            wrap = crossed.t() if crossed is not None else None  # rows: the cell shifts of a period along x, y
+            shade = cell_shade(cell[..., 0], cell[..., 1], shade_seed, wrap)
+            features.append((shade - 0.5) * 2.0)  # centred, as the noise inputs
         if self.cfg.lattice_cell:
             features.append(self.mean_cell_colour(phase))
         return torch.cat(features, dim=-1)
@@ -423,7 +438,9 @@ class TextureField(nn.Module):
         extended, transforms, mix = self.translator(z)
         b, p = points.shape[0], points.shape[1]
 
-        noise = None
+        noise, shade_seed = None, None
+        if cfg.lattice_shade:  # the seed of one octave more: the shades differ with the seed, as the noise
+            shade_seed = octave_seeds(seed, cfg.n_octaves + 1)[..., -1:]  # [1] or [B,1]
         if flags.noise:
             seeds = octave_seeds(seed, cfg.n_octaves)  # [K] or [B,K]
             if seeds.dim() == 2:
@@ -444,7 +461,7 @@ class TextureField(nn.Module):
                 # Centred to [-1, 1]: zero-mean inputs suit the ReLU layers' init.
                 features = (torch.cat(parts, dim=-1).reshape(b, p, -1) - 0.5) * 2.0
             position = points.to(torch.float32) if flags.position else None
-            phase = self.lattice_phases(points, period) if cfg.lattice else None
+            phase = self.lattice_phases(points, period, shade_seed) if cfg.lattice else None
             logits = self.decoder(features, position, extended, phase)
         return torch.sigmoid(2.0 * logits)  # = (tanh + 1) / 2, the authors' output range
 

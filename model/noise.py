@@ -197,6 +197,17 @@ def wrap_cells(i: torch.Tensor, j: torch.Tensor, wrap: torch.Tensor) -> tuple[to
     return i - alpha * ux - beta * vx, j - alpha * uy - beta * vy
 
 
+def cell_shade(i: torch.Tensor, j: torch.Tensor, seed: torch.Tensor, wrap: torch.Tensor | None = None) -> torch.Tensor:
+    """Three uniform values in [0, 1] for each cell (i, j) of a 2D lattice, the same at every
+    point of the cell: float64 (integer-valued) i, j [...], int32 seed broadcastable to them
+    -> float32 [..., 3]. The hash is the one a noise octave gives its cell (i, j, 0), so a
+    shader reproduces it with the noise's own functions. ``wrap`` (``wrap_cells``): the cells
+    repeat with those integer periods (tileable synthesis)."""
+    if wrap is not None:
+        i, j = wrap_cells(i, j, wrap)
+    return channel_values(cell_mix(seed + _cell_term(i, 0) + _cell_term(j, 1)))
+
+
 def _corner_hashes_major(cells: torch.Tensor, seeds: torch.Tensor, wrap: torch.Tensor | None = None) -> torch.Tensor:
     """Corner-major form of ``corner_hashes``: float64 [D, ...] -> int32 [2, 2(, 2), ...].
 

@@ -115,6 +115,7 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
                             grain_stretch=cfg.grain_stretch,
                             colour_blind_encoder=cfg.colour_normalise, isotropic_transforms=cfg.isotropic_transforms,
                             warp=cfg.warp, lattice=cfg.lattice,
+                            lattice_shade=cfg.lattice_shade and cfg.lattice is not None,
                             lattice_cell=mean_cell.shape[:2] if mean_cell is not None else None)
     model = TextureSpace(model_cfg)
     if mean_cell is not None:
@@ -129,7 +130,8 @@ def build(cfg: TrainConfig, mean_cell: np.ndarray | None = None) -> tuple[Textur
                              "colour_blind_encoder": model_cfg.colour_blind_encoder,
                              "isotropic_transforms": model_cfg.isotropic_transforms,
                              "warp": model_cfg.warp,
-                             "lattice": model_cfg.lattice, "lattice_cell": model_cfg.lattice_cell} != model_cfg.to_dict():
+                             "lattice": model_cfg.lattice, "lattice_cell": model_cfg.lattice_cell,
+                             "lattice_shade": model_cfg.lattice_shade} != model_cfg.to_dict():
         raise SystemExit(f"--init config {init.cfg.to_dict()} differs from this run's {model_cfg.to_dict()}")
     missing, unexpected = model.load_state_dict(init.state_dict(), strict=False)
     new = {"field.decoder.from_phase.weight"} if model_cfg.lattice and not init.cfg.lattice else set()

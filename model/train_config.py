@@ -67,6 +67,7 @@ class TrainConfig:
     grain_stretch: float = ModelConfig.grain_stretch  # of a grain fit (model.fit picks it: model.structure)
     lattice: tuple[float, float, float, float] | None = None
     lattice_cell: bool = False
+    lattice_shade: bool = False
     seed: int = 0
     probe_every: int = 0
     spectrum: float = 0.0
@@ -163,6 +164,9 @@ def parse_args(argv=None, description: str | None = None) -> TrainConfig:
     p.add_argument("--lattice-cell", action="store_true",
                    help="with --lattice: the decoder also reads the exemplar's mean repeat cell at each point's "
                         "phase (lattice_mean_cell; model.fit turns it on for every lattice fit)")
+    p.add_argument("--lattice-shade", action="store_true",
+                   help="with --lattice: the decoder also reads each repeat cell's own hashed shade "
+                        "(ModelConfig.lattice_shade; model.fit turns it on for every lattice fit)")
     p.add_argument("--seed", type=int)
     p.add_argument("--probe-every", type=int,
                    help="single mode: every N steps (and at the start and end) score the exemplar on fixed "

@@ -202,6 +202,7 @@ class SamplerWeights:
     harmonics: int  # per repeat-lattice axis (model/networks.py lattice_phases); 0: no repeat lattice
     fields: str = "multiply"  # how a cell hash gives its colour values: "multiply" or "mask" (before 2026-11-26)
     mean_cell: np.ndarray | None = None  # float32 [n_a, n_b, 3]: the photo's mean repeat cell, read at the phase
+    shade: bool = False  # each repeat cell's own hashed shade, 3 inputs after the phases (model/noise.py cell_shade)
 
 
 @dataclass(frozen=True)
@@ -248,8 +249,15 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
     cells = [v for k, v in init.items() if k.endswith("lattice_mean_cell")]
     mean_cell = cells[0] if len(cells) == 1 and phase and cells[0].ndim == 3 and cells[0].shape[2] == 3 else None
     first = np.concatenate([noise, *phase], axis=1)
-    if mean_cell is not None:  # its 3 inputs come last; one zero column makes whole vec4s
-        first = np.concatenate([first, np.zeros((first.shape[0], 1), first.dtype)], axis=1)
+    # After the 4 * harmonics phase inputs: 3 cell shades (lattice_shade), then 3 for the mean
+    # cell; whatever is left of 4 after the mean cell's tells the shades apart.
+    extra = (int(phase[0].shape[1]) - (3 if mean_cell is not None else 0)) % 4 if phase else 0
+    if extra not in (0, 3):
+        raise ModelInvalid(f"{Path(path).name}: {phase[0].shape[1]} phase inputs are not the sines, cosines, "
+                           "cell shades and mean cell this shader emitter knows")
+    shade = extra == 3
+    pad = -first.shape[1] % 4  # zero columns that make whole vec4s
+    first = np.concatenate([first, np.zeros((first.shape[0], pad), first.dtype)], axis=1)
     if first.shape[1] % 4 or noise.shape[1] % 4 or len(cells) != (mean_cell is not None):
         raise ModelInvalid(f"{Path(path).name}: decoder inputs ({noise.shape[1]} noise, {first.shape[1]} in all, "
                            f"{len(cells)} mean cells) are not whole vec4s this shader emitter knows")
@@ -275,8 +283,8 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
         code_size=int(z.shape[1]),
         probe_model=_with_outputs(data, {biases[0]: 1, **{name: 11 for name in lattices}}),
         biases_name=biases[0], lattice_names=tuple(lattices), n_noise=int(noise.shape[1]),
-        harmonics=(int(phase[0].shape[1]) - (3 if mean_cell is not None else 0)) // 4 if phase else 0,
-        fields=fields, mean_cell=mean_cell)
+        harmonics=(int(phase[0].shape[1]) - (3 if mean_cell is not None else 0) - (3 if shade else 0)) // 4
+        if phase else 0, fields=fields, mean_cell=mean_cell, shade=shade)
 
 
 def sampler_weights(path: str | os.PathLike) -> SamplerWeights:
@@ -486,19 +494,25 @@ def _phases(w: SamplerWeights, c: TextureConstants, s: _Syntax, n: str) -> str:
         return ""
     h, first = w.harmonics, w.n_noise
     rows = [s.ctor(s.vec3, c.repeat[i, :3]) for i in range(2)]
+    at = first + 4 * h + (3 if w.shade else 0)  # the mean cell's first input
+    used = at + (3 if w.mean_cell is not None else 0)
+    zeros = "".join(f" x[{i}] = 0.0;" for i in range(used, w.first.shape[1]))  # (the last vec4's rest)
+    pad = f" {zeros}\n" if zeros else ""
     if s.f32 == "float":
         return f"""  // phase on the photo's repeat lattice
   vec2 ph = vec2(dot({rows[0]}, p), dot({rows[1]}, p)) + vec2({_num(c.repeat[0, 3])}, {_num(c.repeat[1, 3])});
-  ph -= floor(ph);
+  vec2 pc = floor(ph);
+  ph -= pc;
   for (int i = 0; i < 2; ++i) for (int k = 1; k <= {h}; ++k) {{
     float angle = {_num(2 * np.pi)} * ph[i] * float(k);
     x[{first} + i * {h} + k - 1] = sin(angle);
     x[{first + 2 * h} + i * {h} + k - 1] = cos(angle);
   }}
-{_mean_cell(w, s, n, first + 4 * h)}"""
+{_shade(w, c, s, n, first + 4 * h)}{_mean_cell(w, s, n, at)}{pad}"""
     return f"""  // phase on the photo's repeat lattice
   var ph = vec2<f32>(dot({rows[0]}, p), dot({rows[1]}, p)) + vec2<f32>({_num(c.repeat[0, 3])}, {_num(c.repeat[1, 3])});
-  ph -= floor(ph);
+  let pc = floor(ph);
+  ph -= pc;
   for (var i = 0; i < 2; i++) {{
     for (var k = 1; k <= {h}; k++) {{
       let angle = {_num(2 * np.pi)} * ph[i] * f32(k);
@@ -506,12 +520,32 @@ def _phases(w: SamplerWeights, c: TextureConstants, s: _Syntax, n: str) -> str:
       x[{first + 2 * h} + i * {h} + k - 1] = cos(angle);
     }}
   }}
-{_mean_cell(w, s, n, first + 4 * h)}"""
+{_shade(w, c, s, n, first + 4 * h)}{_mean_cell(w, s, n, at)}{pad}"""
+
+
+def _shade(w: SamplerWeights, c: TextureConstants, s: _Syntax, n: str, at: int) -> str:
+    """The repeat cell's own shade (model/noise.py cell_shade), into x[at..at+2]: the hash of
+    cell (pc, 0) with the seed of one octave past the noise's, as the noise hashes a cell."""
+    if not w.shade:
+        return ""
+    scale = _cell_hash(w, s, n)[1]
+    k = len(c.matrices) + 1
+    head = (f"  uint ss = {n}_mix(base ^ (uint({k}) * {OCTAVE_MULT:#010x}u));\n"
+            f"  uvec2 ti = {n}_terms(pc.x, {COORD_LO[0]:#010x}u, {COORD_HI[0]:#010x}u);\n"
+            f"  uvec2 tj = {n}_terms(pc.y, {COORD_LO[1]:#010x}u, {COORD_HI[1]:#010x}u);\n"
+            f"  vec3 sh = ({n}_fields({n}_cell(ss + ti.x + tj.x)){scale} - 0.5) * 2.0;\n"
+            if s.f32 == "float" else
+            f"  let ss = {n}_mix(base ^ (u32({k}) * {OCTAVE_MULT:#010x}u));\n"
+            f"  let ti = {n}_terms(pc.x, {COORD_LO[0]:#010x}u, {COORD_HI[0]:#010x}u);\n"
+            f"  let tj = {n}_terms(pc.y, {COORD_LO[1]:#010x}u, {COORD_HI[1]:#010x}u);\n"
+            f"  let sh = ({n}_fields({n}_cell(ss + ti.x + tj.x)){scale} - 0.5) * 2.0;\n")
+    return (f"  // this repeat cell's own shade\n{head}"
+            f"  x[{at}] = sh.x; x[{at + 1}] = sh.y; x[{at + 2}] = sh.z;\n")
 
 
 def _mean_cell(w: SamplerWeights, s: _Syntax, n: str, at: int) -> str:
     """The mean repeat cell's colour at phase ``ph``, bilinear and wrapping (model/networks.py
-    mean_cell_colour), into x[at..at+2]; x[at+3] is the zero column that completes the vec4."""
+    mean_cell_colour), into x[at..at+2]."""
     if w.mean_cell is None:
         return ""
     na, nb = w.mean_cell.shape[:2]
@@ -524,7 +558,7 @@ def _mean_cell(w: SamplerWeights, s: _Syntax, n: str, at: int) -> str:
   vec3 top = {n}_CELL[a0 * {nb} + b0] + ct.x * ({n}_CELL[a1 * {nb} + b0] - {n}_CELL[a0 * {nb} + b0]);
   vec3 bottom = {n}_CELL[a0 * {nb} + b1] + ct.x * ({n}_CELL[a1 * {nb} + b1] - {n}_CELL[a0 * {nb} + b1]);
   vec3 mc = top + ct.y * (bottom - top);
-  x[{at}] = mc.x; x[{at + 1}] = mc.y; x[{at + 2}] = mc.z; x[{at + 3}] = 0.0;
+  x[{at}] = mc.x; x[{at + 1}] = mc.y; x[{at + 2}] = mc.z;
 """
     return f"""  // the photo's mean repeat cell at this phase
   let cx = ph * vec2<f32>({na}.0, {nb}.0) - 0.5;
@@ -537,7 +571,7 @@ def _mean_cell(w: SamplerWeights, s: _Syntax, n: str, at: int) -> str:
   let top = {n}_CELL[a0 * {nb} + b0] + ct.x * ({n}_CELL[a1 * {nb} + b0] - {n}_CELL[a0 * {nb} + b0]);
   let bottom = {n}_CELL[a0 * {nb} + b1] + ct.x * ({n}_CELL[a1 * {nb} + b1] - {n}_CELL[a0 * {nb} + b1]);
   let mc = top + ct.y * (bottom - top);
-  x[{at}] = mc.x; x[{at + 1}] = mc.y; x[{at + 2}] = mc.z; x[{at + 3}] = 0.0;
+  x[{at}] = mc.x; x[{at + 1}] = mc.y; x[{at + 2}] = mc.z;
 """
 
 

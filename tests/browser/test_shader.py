@@ -81,15 +81,16 @@ def structured_sampler(folder: Path, **structure) -> Path:
 
 @pytest.fixture(scope="module")
 def lattice_sampler(tmp_path_factory) -> Path:
-    """Fitted on a running bond (world units), as a fit of a brick wall is."""
+    """Fitted on a running bond (world units), as a fit of a brick wall is: each brick its own
+    shade (lattice_shade, as fits since 2026-12-04 have)."""
     return structured_sampler(tmp_path_factory.mktemp("lattice-sampler"), lattice=(0.125, 0.0, -0.054, 0.0417),
-                              lattice_cell=(32, 13))
+                              lattice_cell=(32, 13), lattice_shade=True)
 
 
 @pytest.fixture(scope="module")
 def boards_sampler(tmp_path_factory) -> Path:
-    """Fitted on boards, as a fit of a plank floor is: grain along y (a strong one: cells 16x
-    longer along it) and stripes across it."""
+    """Fitted on boards, as a fit of a plank floor was before 2026-12-04: grain along y (a
+    strong one: cells 16x longer along it) and stripes across it, no cell shades."""
     return structured_sampler(tmp_path_factory.mktemp("boards-sampler"), lattice=(0.1, 0.0, 0.0, 0.1),
                               lattice_cell=(26, 26), grain="y", grain_stretch=16.0)
 

@@ -294,6 +294,54 @@ def test_a_warped_field_leans_exports_and_tiles(tmp_path):
     assert variation(tiled_along) * 2.5 < variation(tiled_across)  # the rounded warp still leans
 
 
+def test_cell_shades_are_one_per_cell_export_and_tile(tmp_path):
+    # ModelConfig.lattice_shade: every repeat cell (a brick, a tile) its own three hashed
+    # values, the same over the whole cell, other ones in the next cell and for another seed;
+    # the sampler and torch agree, and the tileable sampler still repeats exactly (the cells a
+    # period apart are one cell) while neighbouring cells differ.
+    from model.export import TILEABLE_SAMPLER, TileableSamplerGraph, export_sampler, export_tileable_sampler
+
+    torch.manual_seed(5)
+    cfg = ModelConfig(variant="ours", nearest_input=False, smooth=True, lattice=(0.125, 0.0, -0.054, 0.0417),
+                      lattice_cell=(8, 4), lattice_shade=True)
+    field = TextureSpace(cfg).field.eval()
+    with torch.no_grad():
+        field.decoder.from_phase.weight.normal_(std=0.5)
+    rng = np.random.default_rng(6)
+    points = torch.from_numpy(rng.random((1, 4000, 3)) * 2)
+    harmonics = 4 * cfg.lattice_harmonics
+    shades = field.lattice_phases(points, None, torch.tensor([11], dtype=torch.int32))[0, :, harmonics:harmonics + 3]
+    cells = torch.floor(points[0, :, :2] @ field.lattice_inverse.t())
+    _, index = torch.unique(cells, dim=0, return_inverse=True)
+    per_cell = torch.zeros(int(index.max()) + 1, 3, dtype=shades.dtype).index_reduce_(0, index, shades, "amax",
+                                                                                      include_self=False)
+    assert torch.equal(per_cell[index], shades)  # one value per cell
+    assert per_cell.shape[0] > 100 and per_cell.std(0).min() > 0.4  # uniform in [-1, 1]: std 0.58
+    other = field.lattice_phases(points, None, torch.tensor([12], dtype=torch.int32))[0, :, harmonics:harmonics + 3]
+    assert (other - shades).abs().mean() > 0.3
+
+    export_sampler(field, tmp_path / "sampler.onnx")
+    export_tileable_sampler(field, tmp_path / TILEABLE_SAMPLER)
+    session = ort.InferenceSession(str(tmp_path / "sampler.onnx"), providers=["CPUExecutionProvider"])
+    z = rng.standard_normal((1, 8)).astype(np.float32)
+    with torch.no_grad():
+        ref = field(points, torch.from_numpy(z), torch.tensor(4))[0].numpy()
+    assert np.abs(run(session, points[0].numpy(), z, 4) - ref).max() < 1e-4
+    tileable = ort.InferenceSession(str(tmp_path / TILEABLE_SAMPLER), providers=["CPUExecutionProvider"])
+    colour = identity_colour()[None].numpy()
+    feed = {"points": points[0].numpy(), "z": z, "seed": np.asarray(4), "colour": colour, "period": np.asarray(1.0)}
+    rgb = tileable.run(None, feed)[0]
+    for shift in ([1.0, 0, 0], [0, -3.0, 0], [5.0, 2.0, 0]):
+        assert np.array_equal(tileable.run(None, feed | {"points": points[0].numpy() + shift})[0], rgb), shift
+    with torch.no_grad():
+        ref = TileableSamplerGraph(field)(*(torch.from_numpy(np.asarray(feed[k])) for k in
+                                           ("points", "z", "seed", "colour", "period"))).numpy()
+    assert np.abs(rgb - ref).max() < 1e-4
+    # a whole cell along the first lattice axis away (not a period): another shade, another colour
+    step = np.array([0.125, 0.0, 0.0])
+    assert np.abs(tileable.run(None, feed | {"points": points[0].numpy() + step})[0] - rgb).mean() > 1e-3
+
+
 def test_noise_hash_runs_in_uint32_without_casts(exported):
     # The 32-bit hash is the sampler's hottest part: its shifts must be plain uint32
     # BitShifts (no Cast pairs around them) and no tensor of the graph may stay int32.

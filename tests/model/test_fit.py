@@ -209,7 +209,7 @@ def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, 
     image = tmp_path / "bricks.png"
     Image.fromarray((running_bond() * 255).astype(np.uint8)).save(image)
     result = fit_exemplar(image, tmp_path / "fit", init_checkpoint=space,
-                          minutes=0.05, patch=32, lattice="auto", grain="auto")
+                          minutes=0.05, patch=32, lattice="auto", grain="auto", shade="on")
     ppu = ModelConfig().pixels_per_unit
     assert result["grain"] is None and result["lattice"] is not None
     ax, ay, bx, by = np.array(result["lattice"]) * ppu  # world units: one exemplar pixel = 1 / ppu
@@ -218,12 +218,18 @@ def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, 
     assert manifest["lattice"] == result["lattice"] and manifest["tileable_sampler"] == TILEABLE_SAMPLER
     (fitted,) = [load_checkpoint(tmp_path / "fit" / "fit.pt")[0]]
     field = fitted.field
-    # the phases repeat exactly on the lattice, far from the origin too
+    # the phases repeat exactly on the lattice, far from the origin too; each cell has its own
+    # shade (3 inputs after the 16 phases), the same for one seed within a period
+    assert fitted.cfg.lattice_shade
+    seed = torch.tensor([9], dtype=torch.int32)
+    features_at = lambda at, period=None: field.lattice_phases(at, period, seed)  # noqa: E731
+    periodic = lambda features: torch.cat([features[..., :16], features[..., 19:]], dim=-1)  # noqa: E731
     a, b = np.array(result["lattice"][:2]), np.array(result["lattice"][2:])
     points = torch.from_numpy(np.random.default_rng(1).uniform(-1e4, 1e4, (1, 50, 3)))
     moved = points.clone()
     moved[..., :2] += torch.from_numpy(3 * a - 7 * b)
-    assert torch.allclose(field.lattice_phases(points), field.lattice_phases(moved), atol=1e-4)
+    assert torch.allclose(periodic(features_at(points)), periodic(features_at(moved)), atol=1e-4)
+    assert not torch.allclose(features_at(points)[..., 16:19], features_at(moved)[..., 16:19], atol=1e-2)
     # the tileable sampler repeats every period in x and y, lattice phases included
     tileable = PeriodicSampler(SamplerSession(tmp_path / "fit" / TILEABLE_SAMPLER, threads=1), period=0.9)
     vector = np.concatenate([np.asarray(result["code"], np.float32), identity_colour(216)])
@@ -237,8 +243,8 @@ def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, 
     at = torch.from_numpy(near)[None]
     for shift in ((0.9, 0.0, 0.0), (0.0, 2.7, 0.0)):
         moved = at + torch.tensor(shift, dtype=torch.float64)
-        assert torch.allclose(field.lattice_phases(moved, period), field.lattice_phases(at, period), atol=1e-4)
-        assert not torch.allclose(field.lattice_phases(moved), field.lattice_phases(at), atol=1e-2)
+        assert torch.allclose(features_at(moved, period), features_at(at, period), atol=1e-4)
+        assert not torch.allclose(features_at(moved), features_at(at), atol=1e-2)
     # the shader reads the lattice out of the sampler: its phase features are the field's
     code = np.asarray(result["code"], np.float32)
     vector = np.concatenate([code, np.zeros(216, np.float32)])
@@ -250,7 +256,7 @@ def test_lattice_fit_reads_phases_has_a_shader_and_a_tileable_sampler(tmp_path, 
     u = near @ repeat[:, :3].T + repeat[:, 3]
     angle = 2 * np.pi * (u - np.floor(u))[:, :, None] * np.arange(1, 5)          # [P, axis, k]
     phases = np.concatenate([np.sin(angle).reshape(40, -1), np.cos(angle).reshape(40, -1)], axis=1)
-    want = field.lattice_phases(torch.from_numpy(near)[None]).numpy()[0]
+    want = features_at(torch.from_numpy(near)[None]).numpy()[0]
     assert np.allclose(phases, want[:, :16], atol=1e-5)  # (then the mean cell's colour: 3 more)
     # the fit measured the photo's mean repeat cell, and the shader carries it
     assert fitted.cfg.lattice_cell == tuple(field.lattice_mean_cell.shape[:2])
