@@ -78,13 +78,14 @@ clean-data:
 
 # --- the model (torch, the train extra) --------------------------------------------
 # make train resumes runs/space, stops after TRAIN_STEPS steps in total, then exports to
-# model/weights/. An empty runs/space is seeded from TRAIN_INIT when that file exists, a full
-# training checkpoint (weights, Adam state, code table) resumed as it is: by default the run
-# the shipped space was exported from (make shipped-checkpoint gets it from git history).
-# Without one the run starts from TRAIN_WEIGHTS, the shipped weights by default (--init:
-# Adam and the code table start afresh); TRAIN_WEIGHTS= (empty) trains a space from scratch.
+# model/weights/. An empty runs/space is seeded from TRAIN_INIT when one is given, a training
+# checkpoint of the same photos resumed as it is. Without one the run starts from
+# TRAIN_WEIGHTS, the shipped weights by default (--init: Adam starts afresh, the code table at
+# the encoder's codes of the photos); TRAIN_WEIGHTS= (empty) trains a space from scratch. (The
+# shipped space's own run, make shipped-checkpoint, was trained on a GPU pack's 369 photos,
+# not data/textures: make gpu-finetune-pack.)
 TRAIN_STEPS ?= 20000
-TRAIN_INIT ?= $(SHIPPED_CHECKPOINT)
+TRAIN_INIT ?=
 TRAIN_WEIGHTS ?= model/weights/space.pt
 TRAIN_ARGS ?= --patch 64 --batch 4 --lr 2e-4 --warmup 200 --no-nearest --smooth --colour-normalise --isotropic-transforms --threads 2 --ckpt-every 100
 .PHONY: data data-large train export evaluate quality-large fits-large
@@ -120,23 +121,20 @@ $(SHIPPED_CHECKPOINT):
 # make train-gpu: the same space on a CUDA GPU, in bounded calls. Each call resumes
 # runs/space-gpu for GPU_MINUTES of steps (default 9, so that one call with its start and
 # export fits a 10-minute command limit; call again to go on), then exports to GPU_EXPORT
-# (runs/space-gpu/weights; GPU_EXPORT=model/weights ships it). An empty runs/space-gpu is
-# seeded from GPU_INIT, a full training checkpoint (weights, Adam state, code table; not an
-# exported space.pt): by default the run that model/weights/space.pt was exported from
-# (make shipped-checkpoint).
+# (runs/space-gpu/weights; GPU_EXPORT=model/weights ships it). An empty runs/space-gpu starts
+# from GPU_INIT (--init: its weights; its code table where it has the same photos, else the
+# encoder's codes of them), the shipped weights by default.
 # It installs nothing: the install targets keep torch CPU-only, so PY must be a Python whose
 # torch sees CUDA, with data/textures (make data) and the VGG16 cache (python -m model.vgg
 # fetch, TEXSPACE_CACHE_DIR) already in place.
-GPU_INIT ?= $(SHIPPED_CHECKPOINT)
+GPU_INIT ?= model/weights/space.pt
 GPU_MINUTES ?= 9
 GPU_STEPS ?= 100000
 GPU_EXPORT ?= runs/space-gpu/weights
 GPU_ARGS ?= --batch 16 --patch 256 --lr 2e-4 --warmup 100 --no-nearest --smooth --colour-normalise --isotropic-transforms --ckpt-every 500 --quiet
 .PHONY: train-gpu
 train-gpu:
-	@if [ ! -f runs/space-gpu/checkpoint.pt ] && [ -f "$(GPU_INIT)" ]; then \
-		mkdir -p runs/space-gpu && cp "$(GPU_INIT)" runs/space-gpu/checkpoint.pt; fi
-	$(PY) -m model.train --out runs/space-gpu --device cuda --steps $(GPU_STEPS) --minutes $(GPU_MINUTES) $(GPU_ARGS)
+	$(PY) -m model.train --out runs/space-gpu $(if $(wildcard runs/space-gpu/checkpoint.pt),,--init $(GPU_INIT)) --device cuda --steps $(GPU_STEPS) --minutes $(GPU_MINUTES) $(GPU_ARGS)
 	$(PY) -m model.export runs/space-gpu/checkpoint.pt $(GPU_EXPORT)
 
 # make gpu-pack: for a lent GPU machine that takes 64 MiB of files and has no network (the
