@@ -75,22 +75,24 @@ def baked(client, texture: dict, side: float, unit_m: str | None) -> tuple[dict,
     return done["result"], atlas
 
 
-def test_a_ten_times_bigger_mesh_gets_ten_times_the_features(client, texture, services):
-    # by default a texture is fitted to the mesh's bounds: a cube 10x bigger, a 10x smaller scale
-    fitted_small, fitted_big = baked(client, texture, 0.2, None)[0], baked(client, texture, 2.0, None)[0]
-    assert fitted_small["scale"] == pytest.approx(10 * fitted_big["scale"]) and fitted_small["texels_per_metre"] is None
+def test_a_hundred_times_bigger_mesh_gets_a_hundred_times_the_features(client, texture, services):
+    # by default a texture is fitted to the mesh's bounds: a cube 100x bigger, a 100x smaller
+    # scale. (100x, not 10x: the brick's texture has detail down to a few exemplar pixels, so a
+    # 0.2-m cube's magnified texels differ nearly as much as a 2-m cube's; at 0.02 m they blur.)
+    fitted_small, fitted_big = baked(client, texture, 0.02, None)[0], baked(client, texture, 2.0, None)[0]
+    assert fitted_small["scale"] == pytest.approx(100 * fitted_big["scale"]) and fitted_small["texels_per_metre"] is None
     client.patch(f"/v1/textures/{texture['id']}", json={"width_m": 0.5})
-    (small_result, small), (big_result, big) = baked(client, texture, 0.2, "1"), baked(client, texture, 2.0, "1")
+    (small_result, small), (big_result, big) = baked(client, texture, 0.02, "1"), baked(client, texture, 2.0, "1")
     runtime = services.registry.get(None)
     real = physical_scale(texture["width"], texture["height"], runtime.short_side, runtime.pixels_per_unit, 0.5, 1.0)
     assert small_result["scale"] == pytest.approx(real) and big_result["scale"] == pytest.approx(real)
-    assert small_result["texels_per_metre"] == pytest.approx(10 * big_result["texels_per_metre"], rel=1e-3)
+    assert small_result["texels_per_metre"] == pytest.approx(100 * big_result["texels_per_metre"], rel=1e-3)
 
     def detail(atlas: np.ndarray) -> float:  # mean step between neighbouring texels on the faces
         both = (atlas[:, 1:] > 0) & (atlas[:, :-1] > 0)
         return float(np.abs(np.diff(atlas, axis=1))[both].mean())
-    assert detail(big) > 1.2 * detail(small)  # the same texels hold ten times the texture's width
-    # a mesh in centimetres 20 units wide is the same bake as one in metres 0.2 units wide
-    cm_result, cm = baked(client, texture, 20.0, "0.01")
+    assert detail(big) > 2 * detail(small)  # the same texels hold a hundred times the texture's width
+    # a mesh in centimetres 2 units wide is the same bake as one in metres 0.02 units wide
+    cm_result, cm = baked(client, texture, 2.0, "0.01")
     assert cm_result["texels_per_metre"] == pytest.approx(small_result["texels_per_metre"])
     assert np.array_equal(cm, small)

@@ -64,8 +64,10 @@ def test_gpu_formats_carry_the_mip_chain(runtime, code, expected, tmp_path, fmt)
     sizes = [(70, 150), (35, 75), (17, 37), (8, 18), (4, 9), (2, 4), (1, 2), (1, 1)]
     assert [lv.shape[:2] for lv in levels] == sizes
     for got, want in zip(levels, mip_chain(expected)):
-        # BC1 / UASTC blocks: near, not equal
-        assert_block_compressed_close(got[..., :3], linear_to_srgb8(want), mean=6, worst=64)
+        # BC1 / the KTX2 blocks: near, not equal. The KTX2 ones err more on a busy texture (the
+        # 7dc44253 space's brick: level means 4.9-6.9, worst 70 codes; BC1 4.0, 28)
+        mean, worst = (6, 64) if fmt == "dds" else (8, 80)
+        assert_block_compressed_close(got[..., :3], linear_to_srgb8(want), mean=mean, worst=worst)
     assert os.listdir(tmp_path) == [f"r.{fmt}"]
 
 
