@@ -95,11 +95,11 @@ def pack(out: str, corpus: str = "default", licences: str = "all", quality: int 
         default = Path(CORPORA["default"])
         for folder, split in (("data", "train"), ("fitval", "val")):
             (out_dir / folder).mkdir(exist_ok=True)
-            names = sorted(p.stem for p in (default / split).glob("*.png"))
-            for name in names:
-                (out_dir / folder / f"{name}.png").write_bytes(encode_photo(default / split / f"{name}.png", short_side,
-                                                                            None, 0))
-            manifest["splits"][f"default {split}"] = {"photos": len(names), "folder": folder, "names": names}
+            photos = sorted((default / split).glob("*.png"))
+            for photo in photos:
+                (out_dir / folder / photo.name).write_bytes(encode_photo(photo, short_side, None, 0))
+            manifest["splits"][f"default {split}"] = {"photos": len(photos), "folder": folder,
+                                                      "names": [photo.stem for photo in photos]}
     shutil.copy(__file__, out_dir / "gpu_pack.py")
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
     return manifest

@@ -164,7 +164,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         cfg = fit_config(found, space_cfg, exemplar=exemplar, run_dir=run_dir, init=init, minutes=minutes,
                          patch=patch, rate=rate, seed=seed, loss=loss, device=device, quiet=quiet,
                          precision=precision, threads=threads, spectrum=spectrum,
-                         shade="on" if shade == "on" or (shade == "auto" and steps_on.type == "cuda") else None)
+                         shade=shade == "on" or (shade == "auto" and steps_on.type == "cuda"))
         ckpt_path = train(cfg, progress=progress, pause=pause,
                           interim=Interim(interim_seconds, publish, start_counts=found.builds_structure)
                           if interim is not None else None)
@@ -230,7 +230,7 @@ def detect_structure(photo: np.ndarray, space_cfg: ModelConfig, *, grain: str | 
 
 def fit_config(found: FitStructure, space_cfg: ModelConfig, *, exemplar: Path, run_dir: str, init: Path,
                minutes: float, patch: int, rate: str, seed: int, loss: str, device: str, quiet: bool,
-               precision: str, threads: int, spectrum: float, shade: str | None = None) -> TrainConfig:
+               precision: str, threads: int, spectrum: float, shade: bool = False) -> TrainConfig:
     """The single-mode training run of a fit: the space's architecture, the fit's rates and
     budget, and what ``detect_structure`` found."""
     return TrainConfig(
@@ -246,7 +246,7 @@ def fit_config(found: FitStructure, space_cfg: ModelConfig, *, exemplar: Path, r
         seed=seed, loss=loss, ckpt_every=1_000_000, probe_every=PROBE_EVERY, device=device, quiet=quiet,
         precision=precision,
         grain=found.grain or None, grain_stretch=found.stretch, lattice=found.lattice,
-        lattice_cell=bool(found.lattice), lattice_shade=bool(found.lattice) and shade == "on",
+        lattice_cell=bool(found.lattice), lattice_shade=bool(found.lattice) and shade,
         threads=threads or 0,
         spectrum=spectrum, mute_octaves=found.muted, warp=found.lean is not None,
         warp_start=found.lean)

@@ -439,10 +439,13 @@ class TextureField(nn.Module):
         b, p = points.shape[0], points.shape[1]
 
         noise, shade_seed = None, None
-        if cfg.lattice_shade:  # the seed of one octave more: the shades differ with the seed, as the noise
-            shade_seed = octave_seeds(seed, cfg.n_octaves + 1)[..., -1:]  # [1] or [B,1]
+        if flags.noise or cfg.lattice_shade:
+            # one seed per octave; with lattice_shade one more, for the cell shades (they differ
+            # with the seed, as the noise does)
+            seeds = octave_seeds(seed, cfg.n_octaves + int(cfg.lattice_shade))  # [K(+1)] or [B,K(+1)]
+            if cfg.lattice_shade:
+                seeds, shade_seed = seeds[..., :cfg.n_octaves], seeds[..., cfg.n_octaves:]  # shade: [1] or [B,1]
         if flags.noise:
-            seeds = octave_seeds(seed, cfg.n_octaves)  # [K] or [B,K]
             if seeds.dim() == 2:
                 seeds = seeds.unsqueeze(1)  # [B,1,K]
             if period is None:

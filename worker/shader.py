@@ -251,11 +251,11 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
     first = np.concatenate([noise, *phase], axis=1)
     # After the 4 * harmonics phase inputs: 3 cell shades (lattice_shade), then 3 for the mean
     # cell; whatever is left of 4 after the mean cell's tells the shades apart.
-    extra = (int(phase[0].shape[1]) - (3 if mean_cell is not None else 0)) % 4 if phase else 0
-    if extra not in (0, 3):
+    before_cell = int(phase[0].shape[1]) - (3 if mean_cell is not None else 0) if phase else 0
+    if before_cell % 4 not in (0, 3):
         raise ModelInvalid(f"{Path(path).name}: {phase[0].shape[1]} phase inputs are not the sines, cosines, "
                            "cell shades and mean cell this shader emitter knows")
-    shade = extra == 3
+    shade = before_cell % 4 == 3
     pad = -first.shape[1] % 4  # zero columns that make whole vec4s
     first = np.concatenate([first, np.zeros((first.shape[0], pad), first.dtype)], axis=1)
     if first.shape[1] % 4 or noise.shape[1] % 4 or len(cells) != (mean_cell is not None):
@@ -283,8 +283,7 @@ def _weights(path: str, _mtime: float) -> SamplerWeights:
         code_size=int(z.shape[1]),
         probe_model=_with_outputs(data, {biases[0]: 1, **{name: 11 for name in lattices}}),
         biases_name=biases[0], lattice_names=tuple(lattices), n_noise=int(noise.shape[1]),
-        harmonics=(int(phase[0].shape[1]) - (3 if mean_cell is not None else 0) - (3 if shade else 0)) // 4
-        if phase else 0, fields=fields, mean_cell=mean_cell, shade=shade)
+        harmonics=before_cell // 4, fields=fields, mean_cell=mean_cell, shade=shade)
 
 
 def sampler_weights(path: str | os.PathLike) -> SamplerWeights:
