@@ -23,7 +23,6 @@ from .settings import FIT_SECONDS, MAX_FIT_SECONDS, Settings
 from .tables import Job, Texture
 from .vocabulary import TERMINAL_STATES, JobKind, JobState
 
-CODE_SIZE = 8
 Seed = Annotated[int, Field(ge=0, le=2**31 - 1, description="texture instance; same seed, same texture")]
 
 
@@ -118,7 +117,8 @@ class Structure(BaseModel):
 class TextureOut(BaseModel):
     id: str
     name: str
-    code: list[float] = Field(min_length=CODE_SIZE, max_length=CODE_SIZE)
+    code: list[float] = Field(min_length=1, description="the texture's point in its model's space: as many numbers as "
+                              "that model's code_size (GET /v1/models, each manifest; 8 for the shipped space)")
     colour: list[float] | None = Field(
         None, description="the colour table the sampler applies last: the photo's colour statistics matched to "
                           "this texture's sampler (docs/ARCHITECTURE.md, Contract 1); null: the identity")

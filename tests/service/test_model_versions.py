@@ -70,3 +70,23 @@ def test_new_model_leaves_old_textures_alone(tmp_path: Path) -> None:
         assert gone.status_code == 503 and gone.json()["type"].endswith("model-unavailable")
         listed = {m["version"]: m["loaded"] for m in client.get("/v1/models").json()["items"]}
         assert listed == {old["model_version"]: False, new["model_version"]: True}
+
+
+def test_a_space_with_a_longer_code_is_served(tmp_path: Path) -> None:
+    """A space whose code has 16 numbers (the shipped one has 8) encodes, stores and serves
+    its textures: the service takes the code's length from the model, not from a constant."""
+    torch = pytest.importorskip("torch", reason="exporting a space needs the train extra")
+    from model.export import export_model
+    from model.networks import ModelConfig, TextureSpace
+
+    torch.manual_seed(0)
+    folder = tmp_path / "models" / "code16"
+    export_model(TextureSpace(ModelConfig(variant="ours", code_size=16)), folder, {"mode": "untrained"})
+    with app_with(tmp_path, [folder]) as client:
+        assert client.get("/v1/models").json()["items"][0]["manifest"]["code_size"] == 16
+        created = client.post("/v1/textures", files={"image": ("b.png", brick_png())})
+        assert created.status_code == 201, created.text
+        texture = created.json()
+        assert len(texture["code"]) == 16 and client.get(f"/v1/textures/{texture['id']}").json() == texture
+        tile = client.get(f"/v1/textures/{texture['id']}/tiles/6/0/0.png?size=64")
+        assert tile.status_code == 200 and tile.headers["content-type"] == "image/png"
