@@ -35,14 +35,12 @@ from __future__ import annotations
 
 import torch
 
+# The compressed colour's FLOOR, and the moment transfer's ridge (a share RIDGE of each
+# covariance's mean variance, at least RIDGE_FLOOR), are the serving colour table's own: the
+# transfer training applies is exactly the table the service stores (tests/model/test_colour.py).
+from worker.colour_match import FLOOR, RIDGE, RIDGE_FLOOR
+
 KNOTS = 64  # samples of each channel's curve
-FLOOR = 1.0 / 256.0  # compressed colour is (rgb + FLOOR) ** (1/4): a finite slope at black
-# The moment transfer's ridge, a share of each covariance's mean variance (at least
-# RIDGE_FLOOR), as worker/colour_match.py's table adds it: a fixed 1e-6 was the size of a
-# near-grey fit's raw colour variance, and both narrowed its chroma (CIELAB a/b std 0.56-0.69x
-# the photo's on four of 40 validation photos).
-RIDGE = 1e-6
-RIDGE_FLOOR = 1e-8
 _MIN_STEP = 1e-12  # a grid step used as a divisor (zero only in hand-made tables)
 
 

@@ -31,7 +31,8 @@ LAYERS = (
 
 
 #: modules of worker/ that model/ may import: numpy / OpenImageIO / Pillow / stdlib, and each other
-WORKER_LEAVES = {"worker.decode", "worker.photo", "worker.colour", "worker.errors", "worker.contract"}
+WORKER_LEAVES = {"worker.decode", "worker.photo", "worker.colour", "worker.colour_match", "worker.errors",
+                 "worker.contract"}
 LEAF_THIRD_PARTY = {"numpy", "OpenImageIO", "PIL"}
 
 

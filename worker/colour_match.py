@@ -39,12 +39,13 @@ CALIBRATION_EXTENT = 64.0
 CALIBRATION_POINTS = 4096
 CALIBRATION_SEEDS = (0, 1, 2, 3)
 MAX_PHOTO_PIXELS = 1 << 16  # photo pixels used for its statistics (a fixed-stride subset)
-FLOOR = 1.0 / 256.0  # as model/colour.py (the sampler graph applies the same)
+FLOOR = 1.0 / 256.0  # compressed colour is (rgb + FLOOR) ** (1/4): a finite slope at black
 MIN_STEP = 1e-6  # the smallest raw range a curve spans (a flat raw channel)
 # Ridge added to each covariance before its Cholesky factor, a share of its mean variance
-# (and at least RIDGE_FLOOR), as training's moment transfer adds it (model/colour.py): a flat
-# raw channel stays finite. (A fixed 1e-6 was the size of a near-grey fit's raw colour
-# variance and took ~30% of its tiles' chroma spread.)
+# (and at least RIDGE_FLOOR); training's moment transfer (model/colour.py) imports all three. A
+# flat raw channel stays finite. (A fixed 1e-6 was the size of a near-grey fit's raw colour
+# variance and took ~30% of its tiles' chroma spread: CIELAB a/b std 0.56-0.69x the photo's
+# on four of 40 validation photos.)
 RIDGE = 1e-6
 RIDGE_FLOOR = 1e-8
 CURVES = ("quantile", "linear")  # an encoder code's table, a fit's (the module docstring)

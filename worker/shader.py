@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .colour_match import FLOOR  # compressed colour is (rgb + FLOOR) ** (1/4), as the table stores it
 from .errors import InvalidParameter, ModelInvalid
 from .files import OFFERED
 from .triplanar import TRIPLANAR_DEPTHS, TRIPLANAR_MIN_WEIGHT, TRIPLANAR_SHARPNESS
@@ -54,7 +55,6 @@ FIELD_SCALE = 2.0**-32
 CHANNEL_LOW_BIT, CHANNEL_BITS = (1, 11, 21), 10
 HALF_BIN = 0.5 / (1 << CHANNEL_BITS)
 MASKS = tuple(((1 << CHANNEL_BITS) - 1) << b for b in CHANNEL_LOW_BIT)
-FLOOR = 1.0 / 256.0  # model/colour.py: compressed colour is (rgb + FLOOR) ** (1/4)
 MIN_STEP = 1e-12
 FINEST_CELLS_PER_UNIT = 128
 
