@@ -7,8 +7,8 @@ circle), and:
   those, the CLI at the top;
 * ``worker/`` never imports ``service/``; ``model/`` never imports ``service/``, and of
   ``worker/`` only the leaves (``WORKER_LEAVES``: the one image reader, the working-resolution
-  photo, the sRGB curves, the domain errors, the names and bounds the parts agree on), which
-  import nothing of the project but each other and no onnxruntime,
+  photo, the sRGB curves, the colour table, the domain errors, the names and bounds the parts
+  agree on), which import nothing of the project but each other and no onnxruntime,
   scikit-image or torch, so that training reads photos exactly as an upload is read;
 * torch is imported only under ``model/`` (the service and the worker run on ONNX).
 """
