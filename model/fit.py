@@ -26,6 +26,7 @@ from PIL import Image
 
 from model.config import ModelConfig
 from model.data import load_exemplar
+from model.detail import detail_factor, fit_detail
 from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
 from model.device import resolve_device, resolve_precision
 from model.networks import load_checkpoint
@@ -34,6 +35,8 @@ from model.structure import (EVEN_BLOCK, GRAIN_STRETCH, detect_even, grain_stret
                              photo_structure, straighten)
 from model.train import train
 from model.train_config import TrainConfig
+from worker.contract import DETAIL_SAMPLER, DETAIL_SECONDS
+from worker.photo import resize_short_side
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
 # An upload's refinement is the product's latency: 70 s on every core (the service's budget,
@@ -89,9 +92,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                  rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto",
                  lean: str | None = "auto", interim=None, interim_seconds: float = INTERIM_SECONDS,
                  precision: str = "auto", run_dir: str | Path | None = None, pause=None,
-                 shade: str | None = "auto") -> dict:
+                 shade: str | None = "auto", detail_seconds: float = 0.0) -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
-    'straightened', 'grain_stretch', 'lattice', 'muted_octaves', 'lean'}.
+    'straightened', 'grain_stretch', 'lattice', 'muted_octaves', 'lean', 'detail'}.
 
     ``patch``: side of the training patches; None: ``PATCH``.
     ``grain``: ``"x"``, ``"y"``, None (isotropic) or ``"auto"`` (the default, as the CLI's and
@@ -126,6 +129,10 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     yet and the fit builds structure in (a lattice, grain or lean the encoder's tiles lack);
     without structure, not until a state beats the start, and not at all if none does before
     the end. The fit goes on meanwhile; an exception from ``interim`` stops it.
+    ``detail_seconds``: where IMAGE is at least twice the working size, a detail stage of that
+    many seconds after the fit (``model/detail.py``) writes ``OUTDIR/sampler_detail.onnx``, the
+    fit with finer octaves learned on the photo at up to 4x the working size (``detail`` in the
+    result and manifest: its factor, steps and probe scores; None without a stage). 0: none.
     ``run_dir``: the training run's folder (default: a temporary one). A fit whose ``run_dir``
     holds a paused run continues it, with the rest of its ``minutes``.
     ``pause()``: asked once, ``interim_seconds`` in (after the interim, if one is published): True
@@ -147,6 +154,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     found = detect_structure(photo, space_cfg, grain=grain, lattice=lattice, even=even, lean=lean)
     patch = patch or PATCH
     structure = found.summary()
+    # progress runs over the fit and its detail stage together (the service's estimates count both)
+    share = minutes * 60 / (minutes * 60 + detail_seconds) if detail_seconds > 0 else 1.0
+    fit_progress = (lambda fraction: progress(fraction * share)) if progress is not None and share < 1 else progress
 
     def publish(model, code, step):  # noqa: ANN001, ANN202 (train's Interim hands the best state)
         folder = out_dir / "interim"
@@ -165,15 +175,47 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                          patch=patch, rate=rate, seed=seed, loss=loss, device=device, quiet=quiet,
                          precision=precision, threads=threads, spectrum=spectrum,
                          shade=shade == "on" or (shade == "auto" and steps_on.type == "cuda"))
-        ckpt_path = train(cfg, progress=progress, pause=pause,
+        ckpt_path = train(cfg, progress=fit_progress, pause=pause,
                           interim=Interim(interim_seconds, publish, start_counts=found.builds_structure)
                           if interim is not None else None)
         model, ckpt = load_checkpoint(ckpt_path)
         if ckpt.get("paused"):
             return {"paused": True, "steps": ckpt["step"], **structure}
     structure = served_structure(structure, (ckpt.get("probe") or {}).get("step"))
-    return write_fit_outputs(out_dir, model, ckpt, structure, init=init, space_cfg=space_cfg, patch=patch,
-                             rate=rate, device=steps_on, precision=precision, spectrum=spectrum)
+    result = write_fit_outputs(out_dir, model, ckpt, structure, init=init, space_cfg=space_cfg, patch=patch,
+                               rate=rate, device=steps_on, precision=precision, spectrum=spectrum)
+    detail = None
+    if detail_seconds > 0:
+        detail = write_detail(out_dir, image_path, model, ckpt["code"], found, seconds=detail_seconds,
+                              device=steps_on, precision=precision, seed=seed,
+                              progress=(lambda f: progress(share + (1 - share) * f)) if progress is not None else None)
+        if progress is not None:  # (a photo under twice the working size has no stage: done now)
+            progress(1.0)
+    return result | {"detail": detail}
+
+
+def write_detail(out_dir: Path, image_path, model, code: torch.Tensor, found: FitStructure, *,  # noqa: ANN001
+                 seconds: float, device: torch.device, precision: str, seed: int, progress=None) -> dict | None:
+    """A fit's detail stage (``model.detail.fit_detail``) where its photo is at least twice the
+    working size: ``OUTDIR/sampler_detail.onnx`` and the manifest's ``detail`` where the stage
+    beat its start; returns the stage's figures, or None without a stage."""
+    full = load_exemplar(image_path, None, quantise=False)
+    short_side = model.cfg.exemplar_short_side
+    factor = detail_factor(*full.shape[:2], short_side)
+    if factor < 2:
+        return None
+    full = resize_short_side(full, short_side * factor)  # (one resize, as the working photo's)
+    if found.turned:  # the fit learned the straightened photo
+        full = straighten(full, found.turned)
+    grown, stats = fit_detail(model, code, full, factor, seconds=seconds, device=device,
+                              precision=resolve_precision(precision, device), seed=seed, grain=found.grain,
+                              photo_plane=bool(found.lattice), progress=progress)
+    if stats["kept"]:
+        export_sampler(grown.field, out_dir / DETAIL_SAMPLER)
+        stats["sampler"] = DETAIL_SAMPLER
+    manifest = json.loads((out_dir / "manifest.json").read_text())
+    (out_dir / "manifest.json").write_text(json.dumps(manifest | {"detail": stats}, indent=2) + "\n")
+    return stats
 
 
 def served_structure(structure: dict, step: int | None) -> dict:
@@ -342,6 +384,10 @@ def main(argv=None):
                         "shade input (ModelConfig.lattice_shade); none: every cell alike; auto (default): on "
                         "where the fit runs on CUDA (hundreds of steps), none on the CPU, where 60-step fits "
                         "scored worse with it (docs/DECISIONS.md)")
+    p.add_argument("--detail-seconds", type=float, default=DETAIL_SECONDS,
+                   help="a photo at least twice the working size: seconds of the detail stage after the fit, "
+                        f"finer octaves learned on the photo at up to 4x the working size (model/detail.py; "
+                        f"default {DETAIL_SECONDS:g}; 0: none)")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
@@ -351,9 +397,9 @@ def main(argv=None):
                           lattice=None if args.lattice == "none" else args.lattice, rate=args.rate,
                           spectrum=args.spectrum, even=None if args.even == "none" else args.even,
                           lean=None if args.lean == "none" else args.lean,
-                          shade=args.shade)
+                          shade=args.shade, detail_seconds=args.detail_seconds)
     print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "straightened", "grain_stretch", "lattice",
-                                             "muted_octaves", "lean", "sampler")}))
+                                             "muted_octaves", "lean", "sampler", "detail")}))
 
 
 if __name__ == "__main__":

@@ -119,20 +119,22 @@ def srgb_to_linear(srgb: torch.Tensor) -> torch.Tensor:
 
 
 def render_slices(
-    field, z: torch.Tensor, seeds: torch.Tensor, origins: torch.Tensor, axes: torch.Tensor, size: int
+    field, z: torch.Tensor, seeds: torch.Tensor, origins: torch.Tensor, axes: torch.Tensor, size: int,
+    pixels_per_unit: float | None = None,
 ) -> torch.Tensor:
     """Synthesise square patches on planes: sRGB-encoded images [B,3,size,size].
 
-    field : a TextureField (its config gives pixels_per_unit); z float32 [B,8];
-    seeds int64 [B]; origins/axes from ``random_planes`` or ``fixed_planes``.
+    field : a TextureField; z float32 [B,8]; seeds int64 [B]; origins/axes from
+    ``random_planes`` or ``fixed_planes``; pixels_per_unit: the patches' pixel spacing
+    (default: the field's config, one patch pixel per exemplar pixel; model/detail.py renders finer).
     """
     if not torch.is_grad_enabled() and len(origins) > 1:
         # Without gradients (a fit's probe), one plane at a time: the field's per-octave
         # tensors for four 256-px planes at once outgrow the caches (one thread, idle
         # machine: 2.91 s at once, 1.68 s a plane; bench/run.py --only fit).
-        return torch.cat([render_slices(field, z[k:k + 1], seeds[k:k + 1], origins[k:k + 1], axes[k:k + 1], size)
-                          for k in range(len(origins))])
-    points = plane_points(origins, axes, size, field.cfg.pixels_per_unit)
+        return torch.cat([render_slices(field, z[k:k + 1], seeds[k:k + 1], origins[k:k + 1], axes[k:k + 1], size,
+                                        pixels_per_unit) for k in range(len(origins))])
+    points = plane_points(origins, axes, size, pixels_per_unit or field.cfg.pixels_per_unit)
     # anchored at each plane's origin: same colours, gradients without the far-field shift term
     rgb = field(points, z, seeds, anchor=origins if torch.is_grad_enabled() else None)  # [B, S*S, 3] linear
     return linear_to_srgb(rgb).reshape(-1, size, size, 3).permute(0, 3, 1, 2)

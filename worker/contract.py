@@ -12,6 +12,11 @@ from __future__ import annotations
 #: the tileable sampler's file name beside sampler.onnx (a model export, a fit's folder, a
 #: fitted texture's storage folder); the manifest names it under ``tileable_sampler``
 TILEABLE_SAMPLER = "sampler_tileable.onnx"
+#: a fit's sampler with finer octaves for a photo above the working size (model/detail.py), beside
+#: sampler.onnx; tiles above the native zoom draw with it. The fit's manifest names it under ``detail``
+DETAIL_SAMPLER = "sampler_detail.onnx"
+#: seconds of a fit job's detail stage by default (model.fit, the service's fit jobs)
+DETAIL_SECONDS = 20.0
 
 #: the axis-aligned slice planes: the world axes that receive a plane's u (columns), v (rows)
 #: and its offset
