@@ -25,13 +25,14 @@ from pathlib import Path
 import numpy as np
 
 from worker.bake import BAKE_FORMATS
-from worker.contract import MAX_BAKE_RESOLUTION, MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION, MIN_VOLUME_RESOLUTION
+from worker.contract import (DETAIL_SECONDS, MAX_BAKE_RESOLUTION, MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION,
+                             MIN_VOLUME_RESOLUTION)
 from worker.files import extensions
 from worker.gpu_textures import DDS_COMPRESSIONS
 from worker.photo import LIGHTING
 from worker.regions import REGION_FORMATS
 from worker.shader import LANGUAGES
-from worker.tiles import COORD_LIMIT, PLANES, TILE_FORMATS
+from worker.tiles import COORD_LIMIT, NATIVE_ZOOM, PLANES, TILE_FORMATS
 from worker.volume_writers import VOLUME_FORMATS
 
 from . import auth, db, processes
@@ -139,14 +140,18 @@ def _sqlite_file(url: str) -> Path | None:
 class TextureSource:
     """A texture named on the command line: an image file (encoded now, and with ``refine``
     seconds fitted as an upload's refinement is) or a stored id. Looking an id up never
-    creates a database: a mistyped path is refused instead."""
+    creates a database: a mistyped path is refused instead. ``zoom`` (a tile's): above the
+    native one, the fit's detail sampler draws (model/detail.py; ``refine`` then runs the
+    fit's detail stage too, for a photo of twice the working size and more)."""
 
-    def __init__(self, settings: Settings, ref: str, lighting: str = "as-is", refine: float | None = None) -> None:
+    def __init__(self, settings: Settings, ref: str, lighting: str = "as-is", refine: float | None = None,
+                 zoom: int | None = None) -> None:
         path = Path(ref)
+        above_native = zoom is not None and zoom > NATIVE_ZOOM
         if path.is_file():
             self._encode(settings, path, lighting)
             if refine:
-                self._refine(settings, path, lighting, refine)
+                self._refine(settings, path, lighting, refine, DETAIL_SECONDS if above_native else 0.0)
             return
         if refine:
             raise CliError(f"--refine applies to an image file; a stored texture ({ref!r}) is refined by the "
@@ -163,7 +168,7 @@ class TextureSource:
             texture = session.get(Texture, ref)
         if texture is None:
             raise CliError(f"{ref!r} is neither an image file nor a texture id in {url}")
-        inputs = sampler_inputs(services, texture)
+        inputs = sampler_inputs(services, texture, zoom=zoom)
         self.z = np.asarray(texture.code, np.float32)
         self.sampler, self.code, self.ppu = inputs.sampler, inputs.code, inputs.pixels_per_unit
         self.model_version = texture.model_version
@@ -188,15 +193,16 @@ class TextureSource:
         self.tileable_sampler = runtime.tileable_sampler
         self.image = image
 
-    def _refine(self, settings: Settings, path: Path, lighting: str, seconds: float) -> None:
+    def _refine(self, settings: Settings, path: Path, lighting: str, seconds: float, detail_seconds: float) -> None:
         """Fit the photo for ``seconds`` (model.fit, the train extra) and draw with the fitted
-        sampler, its code and a colour table made for it, as a refined upload is drawn."""
+        sampler, its code and a colour table made for it, as a refined upload is drawn; with
+        ``detail_seconds``, the fit's detail sampler where its stage made one."""
         try:
             from model.fit import fit_exemplar  # torch lives in model/, imported only here
         except ImportError:
             raise CliError("--refine needs PyTorch: pip install 'texspace[train]'", code=1) from None
         from worker.colour_match import texture_vector
-        from worker.contract import TILEABLE_SAMPLER
+        from worker.contract import DETAIL_SAMPLER, TILEABLE_SAMPLER
         from worker.photo import working_photo
 
         from .job_kinds import fit_structure, fitted_colour, photo_to_fit
@@ -218,13 +224,15 @@ class TextureSource:
             warnings.simplefilter("ignore")  # the ONNX exporter's tracer warnings say nothing to a user
             fitted = fit_exemplar(photo, folder / "fit", init_checkpoint=checkpoint, minutes=seconds / 60.0,
                                   progress=report, threads=settings.fit_threads, device=settings.fit_device,
-                                  precision=settings.fit_precision, **structure)
+                                  precision=settings.fit_precision, detail_seconds=detail_seconds, **structure)
         code = json.loads((folder / "fit" / "code.json").read_text())["code"]
         self.sampler = registry.fitted_sampler(folder / "fit" / "sampler.onnx")
         colour = fitted_colour(self.sampler, code, image)
         self.z, self.code = np.asarray(code, np.float32), texture_vector(code, colour)
         self.structure = fit_structure(fitted)
         self.tileable_sampler = lambda: registry.fitted_sampler(folder / "fit" / TILEABLE_SAMPLER)
+        if (folder / "fit" / DETAIL_SAMPLER).is_file():  # (its colour table is the fit's, made above)
+            self.sampler = registry.fitted_sampler(folder / "fit" / DETAIL_SAMPLER)
 
 
 @contextmanager
@@ -354,7 +362,7 @@ def cmd_tile(args: argparse.Namespace, settings: Settings) -> None:
     out, fmt = output(args, TILE_EXTENSIONS, f"tile-{args.z}-{args.x}-{args.y}")
     _at_most(args.size, settings.max_tile_size, "tile size", "TEXSPACE_MAX_TILE_SIZE")
     check_tile_work(settings, args.z, args.size)
-    source = TextureSource(settings, args.texture, args.lighting, args.refine)
+    source = TextureSource(settings, args.texture, args.lighting, args.refine, zoom=args.z)
     rgb = render_tile(source.sampler, source.code, args.seed, args.z, args.x, args.y, args.size,
                       pixels_per_unit=source.ppu, plane=args.plane, offset=args.offset)
     out.write_bytes(write_image(rgb, fmt))
@@ -403,7 +411,6 @@ def cmd_bake(args: argparse.Namespace, settings: Settings) -> None:
 def cmd_tileable(args: argparse.Namespace, settings: Settings) -> None:
     """A seamlessly tiling square image (the API's region with ``tileable: true``)."""
     from worker.regions import RegionLimits, render_region
-    from worker.tiles import NATIVE_ZOOM
 
     out, fmt = output(args, TILEABLE_EXTENSIONS, f"tileable-{args.size}")
     if args.dds_compression != "bc1" and fmt != "dds":

@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from worker.errors import FeatureUnavailable
 
 from . import db
-from .keys import tileable_key
+from .keys import detail_key, tileable_key
 from .metrics import Metrics
 from .queue import lane_of
 from .settings import Settings
@@ -46,6 +46,8 @@ class Services:
     # set when this worker process begins to stop: it claims nothing from then on
     stopping: threading.Event = field(default_factory=threading.Event)
     _registry: object | None = None
+    # detail sampler keys storage does not hold (a key names one attempt's files, which never change)
+    _no_detail: set[str] = field(default_factory=set)
     _registry_lock: threading.Lock = field(default_factory=threading.Lock)
 
     @property
@@ -121,6 +123,22 @@ class Services:
         if not cached.is_file():
             if not self.storage.exists(key):
                 raise FeatureUnavailable(self.tileable_available(texture) or f"no tileable sampler at {key}")
+            self.storage.get_file(key, cached)
+        return self.registry.fitted_sampler(cached)
+
+    def detail_sampler_for(self, texture: Texture):  # -> worker.runtime.SamplerSession | None
+        """The detail sampler (finer octaves learned on the photo above the working size,
+        model/detail.py) stored beside ``texture``'s fitted sampler, or None where its fit has none."""
+        if not texture.sampler_key:
+            return None
+        key = detail_key(texture.sampler_key)
+        cached = self.sampler_path(texture.id, key)
+        if not cached.is_file():
+            if key in self._no_detail:
+                return None
+            if not self.storage.exists(key):
+                self._no_detail.add(key)
+                return None
             self.storage.get_file(key, cached)
         return self.registry.fitted_sampler(cached)
 

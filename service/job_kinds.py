@@ -157,7 +157,7 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
     limits = RegionLimits(max_pixels=services.settings.max_region_pixels,
                           max_tiles=services.settings.max_region_tiles)
     # tileable: the texture's sampler_tileable.onnx, its period the image's side
-    inputs = tileable_inputs(services, texture) if p.tileable else sampler_inputs(services, texture)
+    inputs = tileable_inputs(services, texture) if p.tileable else sampler_inputs(services, texture, zoom=p.z)
     path = render_region(inputs.sampler, inputs.code, p.seed, z=p.z, x0=p.x0, y0=p.y0, width=p.width,
                          height=p.height, fmt=p.format, out_path=out_path, size=p.size, min_zoom=p.min_zoom,
                          plane=p.plane, offset=p.offset, maps=maps, normal_strength=p.normal_strength,
@@ -186,7 +186,7 @@ def auto_fit_params(services: Services, model_version: str) -> dict[str, Any] | 
     if not (services.registry.get(model_version).model_dir / "space.pt").is_file():
         return None
     return {"seconds": min(settings.fit_seconds, settings.max_fit_seconds), "grain": "auto", "lattice": "auto",
-            "even": "auto", "lean": "auto", "in_place": True}
+            "even": "auto", "lean": "auto", "in_place": True, "detail_seconds": settings.refine_detail_seconds}
 
 
 def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
@@ -245,7 +245,7 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     new_id = fitted_texture_id(job.id)
     sampler_key = keys.sampler_key(new_id)
     services.storage.put_file(sampler_key, out_dir / "sampler.onnx")
-    _store_tileable(services, sampler_key, out_dir)
+    _store_companions(services, sampler_key, out_dir)
     colour = fitted_colour(services.registry.fitted_sampler(out_dir / "sampler.onnx"), code, image)
     exemplar_key = keys.exemplar_key(new_id, Path(texture.exemplar_key).name)  # own copy: outlives the parent
     services.storage.put_file(exemplar_key, original)
@@ -313,7 +313,7 @@ def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path
     return fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0,
                         progress=report, grain=p.grain, lattice=p.lattice, even=p.even, lean=p.lean,
                         threads=settings.fit_threads, device=settings.fit_device, precision=settings.fit_precision,
-                        run_dir=run_dir, **extra)
+                        run_dir=run_dir, detail_seconds=p.detail_seconds, **extra)
 
 
 def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],
@@ -327,7 +327,7 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
     folder = keys.refinement_prefix(texture.id, job.id, job.attempt) + ("/interim" if interim else "")
     sampler_key = f"{folder}/{keys.SAMPLER}"
     services.storage.put_file(sampler_key, sampler_path)
-    _store_tileable(services, sampler_key, sampler_path.parent)
+    _store_companions(services, sampler_key, sampler_path.parent)
     local = services.sampler_path(texture.id, sampler_key)  # where sampler_for looks: no second download
     local.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(sampler_path, local)
@@ -349,14 +349,17 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
         row.structure, row.sampler_interim = structure, interim
 
 
-def _store_tileable(services: Services, sampler_key: str, fit_dir: Path) -> None:
+def _store_companions(services: Services, sampler_key: str, fit_dir: Path) -> None:
     """Store the fit's tileable sampler beside its sampler (``tileable_key``), where
-    tileable regions look for it; a model.fit from before tileable textures writes none."""
-    from worker.contract import TILEABLE_SAMPLER
+    tileable regions look for it (a model.fit from before tileable textures writes none), and
+    its detail sampler (``detail_key``), where tiles above the native zoom look for it (a fit
+    of a photo under twice the working size, an interim or a detail stage that gained nothing
+    writes none)."""
+    from worker.contract import DETAIL_SAMPLER, TILEABLE_SAMPLER
 
-    path = fit_dir / TILEABLE_SAMPLER
-    if path.is_file():
-        services.storage.put_file(keys.tileable_key(sampler_key), path)
+    for name, key in ((TILEABLE_SAMPLER, keys.tileable_key), (DETAIL_SAMPLER, keys.detail_key)):
+        if (fit_dir / name).is_file():
+            services.storage.put_file(key(sampler_key), fit_dir / name)
 
 
 def fitted_colour(sampler, code: list[float], image: np.ndarray) -> list[float] | None:  # noqa: ANN001

@@ -441,8 +441,11 @@ def lane_time(job: Job, details: dict[str, Any] | None, seconds: float) -> dict[
 
 
 def fit_budget_seconds(services: Services, job: Job) -> float:
-    """The seconds of fitting ``job`` asked for (an upload's refinement: the server's budget)."""
-    return float((job.params or {}).get("seconds", services.settings.fit_seconds))
+    """The seconds of fitting ``job`` asked for (an upload's refinement: the server's budget),
+    its detail stage's included (model.fit runs one only for photos of 512 px and up: below, a
+    fit ends that much sooner than its estimate)."""
+    params = job.params or {}
+    return float(params.get("seconds", services.settings.fit_seconds)) + float(params.get("detail_seconds", 0.0))
 
 
 def stage_overhead(services: Services) -> float:

@@ -43,6 +43,14 @@ def tileable_key(sampler_key: str) -> str:
     return f"{folder}/{TILEABLE_SAMPLER}" if folder else TILEABLE_SAMPLER
 
 
+def detail_key(sampler_key: str) -> str:
+    """Storage key of the detail sampler (model/detail.py) stored beside a fitted texture's sampler."""
+    from worker.contract import DETAIL_SAMPLER
+
+    folder = sampler_key.rpartition("/")[0]
+    return f"{folder}/{DETAIL_SAMPLER}" if folder else DETAIL_SAMPLER
+
+
 def job_prefix(job_id: str) -> str:
     """Every file of a job: its input and its result."""
     return f"jobs/{job_id}"

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from worker.colour_match import texture_vector
+from worker.tiles import NATIVE_ZOOM
 
 from .container import Services
 from .tables import Texture
@@ -41,10 +42,13 @@ class SamplerInputs:
         return self.services.pixels_per_unit(self.texture)
 
 
-def sampler_inputs(services: Services, texture: Texture) -> SamplerInputs:
-    """The sampler (its own fitted one, or its model's), code and scale that draw ``texture``."""
+def sampler_inputs(services: Services, texture: Texture, zoom: int | None = None) -> SamplerInputs:
+    """The sampler (its own fitted one, or its model's), code and scale that draw ``texture``.
+    At a ``zoom`` above the native one, a fit's detail sampler where it has one (model/detail.py:
+    the same texture with finer octaves learned on the photo at up to 4x the working size)."""
     code = sampling_code(texture)
-    return SamplerInputs(services.sampler_for(texture), code, services, texture)
+    detail = services.detail_sampler_for(texture) if zoom is not None and zoom > NATIVE_ZOOM else None
+    return SamplerInputs(detail or services.sampler_for(texture), code, services, texture)
 
 
 def tileable_inputs(services: Services, texture: Texture) -> SamplerInputs:

@@ -6,8 +6,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
-from worker.contract import (MAX_VOLUME_RESOLUTION, MAX_WIDTH_M, MIN_BAKE_RESOLUTION, MIN_TILE_SIZE,
-                             MIN_VOLUME_RESOLUTION)
+from worker.contract import (DETAIL_SECONDS, MAX_VOLUME_RESOLUTION, MAX_WIDTH_M, MIN_BAKE_RESOLUTION,
+                             MIN_TILE_SIZE, MIN_VOLUME_RESOLUTION)
 from worker.files import OFFERED
 from worker.derived_maps import DEFAULT_NORMAL_STRENGTH, MAP_NAMES, MAX_NORMAL_STRENGTH, MAX_WHOLE_PIXELS
 from worker.bake import BAKE_FORMATS
@@ -19,7 +19,7 @@ from worker.tiles import COORD_LIMIT, MAX_TILE_SIZE, MAX_ZOOM, MIN_ZOOM, PLANES
 from worker.volume_writers import VOLUME_FORMATS
 
 from .deps import SafeText
-from .settings import FIT_SECONDS, MAX_FIT_SECONDS, Settings
+from .settings import FIT_SECONDS, MAX_DETAIL_SECONDS, MAX_FIT_SECONDS, Settings
 from .tables import Job, Texture
 from .vocabulary import TERMINAL_STATES, JobKind, JobState
 
@@ -258,6 +258,8 @@ class FitIn(BaseModel):
                             "and how much longer they are along it (from its luminance structure tensor: the "
                             "validation granite, 1.26x along -39 degrees), so tiles lean as the photo does. "
                             "null: never")
+    detail_seconds: float = Field(DETAIL_SECONDS, ge=0, le=MAX_DETAIL_SECONDS, description=(
+        "a photo at least twice the working size (512 px and up on its short side): seconds of a detail stage after the fit, which learns finer noise octaves on the photo at up to 4x the working size (1024 px) while the fit itself stays as it was; tiles and images above the native zoom 6 (zoom 7 for a 512 px photo, up to 8 for 1024 px: one pixel per photo pixel) are drawn with them, at and below zoom 6 without. Kept only where it beats the fit on the photo at that size. 0: none. An upload's automatic refinement uses the server's TEXSPACE_REFINE_DETAIL_SECONDS (default 0)"))
 
 
 class FitParams(FitIn):

@@ -25,6 +25,8 @@ from .vocabulary import JobKind
 #: (docs/DECISIONS.md, "An upload's fit is 70 s"). Fits have a queue of their own
 #: (service/queue.py), so a longer one holds up no tile, volume or bake.
 FIT_SECONDS = 70.0
+#: the longest detail stage (model/detail.py) a fit job may ask for
+MAX_DETAIL_SECONDS = 120.0
 #: the longest fit any server may allow (``max_fit_seconds`` is its own limit, at most this)
 MAX_FIT_SECONDS = 3600.0
 #: the model export shipped inside the package (``model/weights``)
@@ -127,6 +129,10 @@ class Settings(BaseSettings):
     fit_precision: Literal["auto", "bf16", "fp32"] = Field(
         "auto", description="arithmetic of a fit's VGG loss and decoder: auto is bfloat16 on CUDA and on CPUs "
         "with native bfloat16 (AVX-512 BF16, AMX), float32 elsewhere")
+    refine_detail_seconds: float = Field(
+        0.0, ge=0, le=MAX_DETAIL_SECONDS, description="an upload's automatic refinement: seconds of the detail "
+        "stage after its fit (model/detail.py: finer octaves for photos of 512 px and up, drawn above the native "
+        "zoom); 0 (default): none, so four uploads at once keep their refinement times; a fit job asks for its own")
     fit_interim_seconds: float = Field(
         10.0, ge=0, description="an upload's refinement serves its fit's best state this many seconds in (if it "
         "beats the encoder's code by then, or is its start with a lattice, grain or lean built in), until the "

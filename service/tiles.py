@@ -480,7 +480,7 @@ def render_tile_bytes(services: Services, texture: Texture, *, z: int, x: int, y
     ``background``: each band first waits for interactive tiles (BACKGROUND_YIELD_SECONDS)."""
     started = time.perf_counter()
     zoom_out = zoom_out or final_zoom_out(services.settings)
-    inputs = sampler_inputs(services, texture)
+    inputs = sampler_inputs(services, texture, zoom=z)
     args = (inputs.sampler, inputs.code, seed, z, x, y, size)
     kwargs = dict(pixels_per_unit=inputs.pixels_per_unit, plane=plane, offset=offset,
                   zoom_out=zoom_out, band_samples=BAND_SAMPLES)

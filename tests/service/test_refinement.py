@@ -35,7 +35,8 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     job = client.get(f"/v1/jobs/{refinement['job_id']}").json()
     assert job["kind"] == "fit" and job["texture_id"] == texture["id"]
     assert job["params"] == {"seconds": services.settings.fit_seconds, "grain": "auto", "lattice": "auto",
-                             "even": "auto", "lean": "auto", "in_place": True}  # all detected by model.fit
+                             "even": "auto", "lean": "auto", "in_place": True,  # all detected by model.fit
+                             "detail_seconds": 0.0}  # TEXSPACE_REFINE_DETAIL_SECONDS: off by default
 
     before = client.get(TILE.format(texture["id"]))
     assert before.status_code == 200
