@@ -282,6 +282,14 @@ fits-large: install-test
 	$(PY) -m eval.quality --model-dir model/weights --exemplars $(LARGE_VAL) --families $(QUALITY_FAMILIES) \
 		--list | xargs -P $(FIT_JOBS) -I {} sh -c '$(PY) -m model.fit {} runs/fits-large/$$(basename {} .png) $(FIT_ARGS)'
 
+# A photo's own resolution (eval/detail.py): the validation photos of 512 px and up fitted with
+# their detail stage into runs/fits-detail (kept: a rerun only measures), their tiles scored at the
+# photo's own scale with and without it. DETAIL_ARGS='--machine "..."' names the machine in the report.
+DETAIL_ARGS ?=
+.PHONY: quality-detail
+quality-detail: data
+	$(PY) -m eval.detail --exemplars data/textures/val --fits runs/fits-detail --out docs/eval/detail $(DETAIL_ARGS)
+
 # The by-example baseline's triangle edge: its style error over the floor per edge, per photo
 tune-by-example: data
 	$(PY) -m eval.tune_by_example --exemplars data/textures/val --out docs/eval/quality/by_example_tuning.md

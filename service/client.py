@@ -236,17 +236,20 @@ class Client:
 
     def fit(self, texture_id: str, *, seconds: float | None = None, grain: str | None = "auto",
             lattice: str | None = "auto", even: str | None = "auto", lean: str | None = "auto",
-            idempotency_key: str | None = None) -> Job:
+            detail_seconds: float | None = None, idempotency_key: str | None = None) -> Job:
         """Submit a fit (needs the train extra on the workers): refines the texture's sampler.
         ``seconds``: its time budget (None: the server's default, ``limits()["fit_seconds"]``;
         at most ``limits()["max_fit_seconds"]``);
         ``grain``: "x", "y", "auto" (detected from the photo) or None (isotropic);
         ``lattice``: "auto" (a repeat lattice detected from the photo) or None;
         ``even``: "auto" (an even photo's coarse octaves muted) or None;
-        ``lean``: "auto" (a photo's lean, where it has no grain or lattice) or None."""
+        ``lean``: "auto" (a photo's lean, where it has no grain or lattice) or None;
+        ``detail_seconds``: the detail stage of a photo of 512 px and up (None: the server's default, 20;
+        0: none; its finer octaves are drawn above zoom 6, ``structure["detail_zoom"]``)."""
         return self._call("POST", f"/v1/textures/{_segment(texture_id)}/fit",
                           json={"grain": grain, "lattice": lattice, "even": even, "lean": lean}
-                          | ({} if seconds is None else {"seconds": seconds}),
+                          | ({} if seconds is None else {"seconds": seconds})
+                          | ({} if detail_seconds is None else {"detail_seconds": detail_seconds}),
                           headers=self._key(idempotency_key)).json()
 
     def job(self, job: Job | str) -> Job:

@@ -24,6 +24,7 @@ from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, Paused
 from worker.files import extension, media_type
 from worker.images import read_image, write_image
 from worker.photo import working_photo
+from worker.tiles import NATIVE_ZOOM
 
 from . import jobs, keys
 from .container import Services
@@ -282,11 +283,13 @@ def photo_to_fit(original: Path, image: np.ndarray, lighting: str, folder: Path)
 
 def fit_structure(found: dict[str, Any]) -> dict[str, Any]:
     """The texture's ``structure`` from what model.fit reports it built in (its result, or
-    the interim's ``structure``)."""
+    the interim's ``structure``, which has no detail stage)."""
+    detail = found.get("detail") or {}
     return {"grain": found.get("grain"), "straightened": found.get("straightened", 0.0),
             "grain_stretch": found.get("grain_stretch"),
             "lattice": found.get("lattice"), "muted_octaves": found.get("muted_octaves", 0),
-            "lean": found.get("lean")}
+            "lean": found.get("lean"),
+            "detail_zoom": NATIVE_ZOOM + int(detail["factor"]).bit_length() - 1 if detail.get("sampler") else None}
 
 
 def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path: Path, out_dir: Path,

@@ -105,6 +105,7 @@ class Structure(BaseModel):
         description="the photo's lean the sampler's plane map started at (the fit's lean option): degrees from +x "
                     "towards +y (y down the photo) that its features run along, and how many times longer they are "
                     "along it; null: none")
+    detail_zoom: int | None = Field(None, description="the deepest zoom at which tiles show the photo's own detail, one pixel per photo pixel: 7 or 8 where the fit's detail stage learned finer octaves on a photo of 512 or 1024 px and up (tiles and images above the native zoom 6 draw them); null: none, above zoom 6 the texture is magnified")
 
     @model_validator(mode="after")
     def _stretch_of_earlier_rows(self) -> "Structure":

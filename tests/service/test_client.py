@@ -117,10 +117,11 @@ def test_fit_sends_every_option_the_server_takes() -> None:
         return httpx.Response(202, json=JOB)
 
     with client_for(handler) as ts:
-        ts.fit("t1", seconds=30, grain=None, lattice=None, even=None)
+        ts.fit("t1", seconds=30, grain=None, lattice=None, even=None, detail_seconds=0)
         ts.fit("t1")
     sent = [FitIn.model_validate(body) for body in bodies]
     assert (sent[0].grain, sent[0].lattice, sent[0].even, sent[0].seconds) == (None, None, None, 30)
+    assert sent[0].detail_seconds == 0
     assert sent[1].model_dump() == FitIn().model_dump()  # the defaults are the server's
 
 

@@ -48,10 +48,12 @@ def fake_fit_module(detail: Path | None, asked: list) -> types.ModuleType:
         out_dir.mkdir(parents=True, exist_ok=True)
         for name in ("sampler.onnx", "sampler_tileable.onnx"):
             shutil.copy(MODEL_DIR / name, out_dir / name)
-        if detail is not None:
+        stage = None
+        if detail is not None:  # as model.fit reports a 1024-px photo's stage that was kept
             shutil.copy(detail, out_dir / "sampler_detail.onnx")
+            stage = {"factor": 4, "steps": 150, "start": 0.5, "score": 0.1, "kept": True, "sampler": "sampler_detail.onnx"}
         (out_dir / "code.json").write_text(json.dumps({"code": [0.0] * 8}))
-        return {"code": [0.0] * 8, "grain": None, "lattice": None, "detail": None}
+        return {"code": [0.0] * 8, "grain": None, "lattice": None, "detail": stage}
 
     module = types.ModuleType("model.fit")
     module.fit_exemplar = fit_exemplar
@@ -86,6 +88,7 @@ def test_tiles_above_the_native_zoom_draw_the_detail_sampler(settings, tmp_path,
         with session_scope(services.sessions) as session:
             key = session.get(Texture, detailed["id"]).sampler_key
         assert services.storage.exists(detail_key(key))
+        assert detailed["structure"]["detail_zoom"] == 8 and plain["structure"]["detail_zoom"] is None
         # at and below the native zoom the fit itself: the same pixels with or without detail
         for z in (5, 6):
             assert np.array_equal(tile(client, plain, z), tile(client, detailed, z))

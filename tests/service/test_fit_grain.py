@@ -59,7 +59,8 @@ def test_the_stand_in_has_the_real_fit_exemplar_signature() -> None:
 def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_calls) -> None:
     res = fit_client.post(fit_texture["links"]["fit"], json={"seconds": 30, "grain": "y"})
     assert res.status_code == 202, res.text
-    assert res.json()["params"] == {"seconds": 30, "grain": "y", "lattice": "auto", "even": "auto", "lean": "auto"}
+    assert res.json()["params"] == {"seconds": 30, "grain": "y", "lattice": "auto", "even": "auto", "lean": "auto",
+                                    "detail_seconds": 20.0}
     job = fit_client.get(res.json()["links"]["self"]).json()
     assert job["state"] == "succeeded", job
     assert job["params"]["grain"] == "y"                      # recorded on the job
@@ -69,7 +70,8 @@ def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_call
     fitted = fit_client.get(job["links"]["output_texture"]).json()
     assert fitted["source"] == "fit" and fitted["parents"]["job"] == job["id"]
     assert fitted["structure"] == {"grain": "y", "straightened": FAKE_TURN, "grain_stretch": 16.0,
-                                   "lattice": FAKE_LATTICE, "muted_octaves": 0, "lean": None}  # as the fit says
+                                   "lattice": FAKE_LATTICE, "muted_octaves": 0, "lean": None,
+                                   "detail_zoom": None}  # as the fit says
     assert fit_client.get(f"/v1/textures/{fit_texture['id']}").json()["structure"] is None   # the encoder's
 
 

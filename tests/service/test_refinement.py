@@ -53,7 +53,8 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
                                      "queue_position": None, "interim_eta_seconds": None, "final_eta_seconds": None}
     assert refined["code"] == [0.0] * 8                         # the fit's code (the stand-in's)
     assert refined["structure"] == {"grain": None, "straightened": 0.0, "grain_stretch": None,
-                                   "lattice": FAKE_LATTICE, "muted_octaves": 0, "lean": None}   # the fit's
+                                   "lattice": FAKE_LATTICE, "muted_octaves": 0, "lean": None,
+                                   "detail_zoom": None}   # the fit's
     assert refined["source"] == "upload" and refined["links"]["tiles"] == texture["links"]["tiles"]
     assert client.get("/v1/textures").json()["items"][0]["sampler"] == "fitted"
 
