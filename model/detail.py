@@ -107,9 +107,9 @@ def fit_detail(model: TextureSpace, code: torch.Tensor, photo: np.ndarray, facto
     """Grow the fitted ``model`` by ``log2(factor)`` octaves and train them for ``seconds`` on
     ``photo`` (sRGB (H, W, 3) float32 at ``factor`` x the working size). ``grain`` and
     ``photo_plane`` (a lattice fit) draw the planes as the fit drew them; ``patch``: their side in
-    pixels. Returns the grown model
-    (or ``model`` itself where the stage did not beat its start on the probe) and
-    ``{'factor', 'steps', 'start', 'score', 'kept'}``; ``progress(fraction)`` after each step."""
+    pixels. Returns the grown model (or ``model`` itself where the stage did not beat its start on
+    the probe) and ``{'factor', 'steps', 'start', 'score', 'kept'}``; ``progress(fraction)`` after
+    each step."""
     count = int(round(math.log2(factor)))
     if factor < 2 or 2 ** count != factor:
         raise ValueError(f"factor must be a power of two >= 2, got {factor}")

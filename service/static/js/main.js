@@ -196,6 +196,13 @@ async function reloadServed(textureId) {
 function structureNote(texture) {
   const structure = texture.structure;
   if (!structure) return '';
+  // the detail stage's finer octaves (a photo of 512 px and up): drawn above the native zoom
+  const detail = structure.detail_zoom ? `; the photo's own detail up to zoom ${structure.detail_zoom}` : '';
+  return builtIn(structure) + detail;
+}
+
+/** The structure a fit built in, in words: '' when none. */
+function builtIn(structure) {
   const turned = structure.straightened ? `, straightened by ${Math.abs(structure.straightened).toFixed(1)}°` : '';
   if (structure.lattice && structure.grain) return ` (boards, grain along ${structure.grain}${turned})`;
   if (structure.lattice) return ' (follows the photo\'s repeat lattice)';
