@@ -221,13 +221,14 @@ $(addprefix compare-,$(VARIANT_NAMES)): compare-%: data
 # (runs/fits/<name>), FIT_JOBS at a time, then each fit against the shipped space's
 # encoder code. A timed fit's result depends on the steps it gets: the model card's
 # figures ran FIT_ARGS='--threads 1' FIT_JOBS=2 on 2 cores (4 minutes, as the service's).
+# No detail stage: these measure the working size, as an upload's refinement serves it.
 FIT_ARGS ?=
 FIT_JOBS ?= 1
 VAL_IMAGES = $(wildcard data/textures/val/*.png)
 .PHONY: fits evaluate-fits
 fits: data
 	printf '%s\n' $(VAL_IMAGES) | xargs -P $(FIT_JOBS) -I {} \
-		sh -c '$(PY) -m model.fit {} runs/fits/$$(basename {} .png) $(FIT_ARGS)'
+		sh -c '$(PY) -m model.fit {} runs/fits/$$(basename {} .png) --detail-seconds 0 $(FIT_ARGS)'
 
 evaluate-fits: data
 	$(PY) -m model.evaluate --checkpoint model/weights/space.pt --checkpoint-dir runs/fits \
@@ -280,7 +281,7 @@ quality-large: install-test
 
 fits-large: install-test
 	$(PY) -m eval.quality --model-dir model/weights --exemplars $(LARGE_VAL) --families $(QUALITY_FAMILIES) \
-		--list | xargs -P $(FIT_JOBS) -I {} sh -c '$(PY) -m model.fit {} runs/fits-large/$$(basename {} .png) $(FIT_ARGS)'
+		--list | xargs -P $(FIT_JOBS) -I {} sh -c '$(PY) -m model.fit {} runs/fits-large/$$(basename {} .png) --detail-seconds 0 $(FIT_ARGS)'
 
 # A photo's own resolution (eval/detail.py): the validation photos of 512 px and up fitted with
 # their detail stage into runs/fits-detail (kept: a rerun only measures), their tiles scored at the
