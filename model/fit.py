@@ -92,7 +92,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                  rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto",
                  lean: str | None = "auto", interim=None, interim_seconds: float = INTERIM_SECONDS,
                  precision: str = "auto", run_dir: str | Path | None = None, pause=None,
-                 shade: str | None = "auto", detail_seconds: float = 0.0) -> dict:
+                 shade: str | None = "auto", detail_seconds: float = 0.0, wants_detail=None) -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
     'straightened', 'grain_stretch', 'lattice', 'muted_octaves', 'lean', 'detail'}.
 
@@ -133,6 +133,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     many seconds after the fit (``model/detail.py``) writes ``OUTDIR/sampler_detail.onnx``, the
     fit with finer octaves learned on the photo at up to 4x the working size (``detail`` in the
     result and manifest: its factor, steps and probe scores; None without a stage). 0: none.
+    ``wants_detail()``: asked once when the fit itself ends; False skips the stage (the service:
+    another upload waits for the fit lane).
     ``run_dir``: the training run's folder (default: a temporary one). A fit whose ``run_dir``
     holds a paused run continues it, with the rest of its ``minutes``.
     ``pause()``: asked once, ``interim_seconds`` in (after the interim, if one is published): True
@@ -185,12 +187,12 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     result = write_fit_outputs(out_dir, model, ckpt, structure, init=init, space_cfg=space_cfg, patch=patch,
                                rate=rate, device=steps_on, precision=precision, spectrum=spectrum)
     detail = None
-    if detail_seconds > 0:
+    if detail_seconds > 0 and (wants_detail is None or wants_detail()):
         detail = write_detail(out_dir, image_path, model, ckpt["code"], found, seconds=detail_seconds,
                               device=steps_on, precision=precision, seed=seed,
                               progress=(lambda f: progress(share + (1 - share) * f)) if progress is not None else None)
-        if progress is not None:  # (a photo under twice the working size has no stage: done now)
-            progress(1.0)
+    if progress is not None and detail_seconds > 0:  # (no stage, or a photo under twice the working size)
+        progress(1.0)
     return result | {"detail": detail}
 
 

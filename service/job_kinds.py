@@ -226,10 +226,13 @@ def run_fit(services: Services, job: Job, workdir: Path, progress: Progress,
     def pause() -> bool:
         return jobs.fits_waiting_for_interim(services, job.id)
 
+    def wants_detail() -> bool:  # an upload's refinement: its detail stage only while no other fit waits
+        return not (p.in_place and jobs.other_fits_queued(services, job.id))
+
     first_stage = in_place_interim and not resumed
     fitted = _fit_exemplar(services, texture, p, photo, out_dir, progress, should_cancel,
                            serve_interim if first_stage else None, pause=pause if first_stage else None,
-                           run_dir=run_dir)
+                           run_dir=run_dir, wants_detail=wants_detail)
     if fitted.get("paused"):
         services.storage.put_file(paused_key, run_dir / "checkpoint.pt")
         raise Paused(f"paused at its interim's second, step {fitted['steps']}: other uploads wait for theirs",
@@ -295,11 +298,12 @@ def fit_structure(found: dict[str, Any]) -> dict[str, Any]:
 def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path: Path, out_dir: Path,
                   progress: Progress, should_cancel: ShouldCancel,
                   interim: Callable[..., None] | None = None, pause: Callable[[], bool] | None = None,
-                  run_dir: Path | None = None) -> dict[str, Any]:
+                  run_dir: Path | None = None, wants_detail: Callable[[], bool] | None = None) -> dict[str, Any]:
     """Run model.fit.fit_exemplar (torch) from the texture's model's space.pt; its result
     (code, grain and lattice used, ...). ``interim``: model.fit's hook for its best state
     ``TEXSPACE_FIT_INTERIM_SECONDS`` in (an in-place refinement serves it); ``pause`` and
-    ``run_dir``: model.fit's, to stop after the interim and to resume."""
+    ``run_dir``: model.fit's, to stop after the interim and to resume; ``wants_detail``: model.fit's,
+    asked before the detail stage."""
     from model.fit import fit_exemplar  # torch lives in model/, imported only here
 
     def report(fraction: float, *_: Any, **__: Any) -> None:  # no cancel hook: stop at a report
@@ -316,7 +320,7 @@ def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path
     return fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0,
                         progress=report, grain=p.grain, lattice=p.lattice, even=p.even, lean=p.lean,
                         threads=settings.fit_threads, device=settings.fit_device, precision=settings.fit_precision,
-                        run_dir=run_dir, detail_seconds=p.detail_seconds, **extra)
+                        run_dir=run_dir, detail_seconds=p.detail_seconds, wants_detail=wants_detail, **extra)
 
 
 def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],

@@ -432,6 +432,13 @@ def fits_waiting_for_interim(services: Services, job_id: str) -> bool:
     return any(_first_stage(job) and job.id != job_id for job in queued_fits(services))
 
 
+def other_fits_queued(services: Services, job_id: str) -> bool:
+    """Whether any fit other than ``job_id`` waits for the fit lane: an upload's refinement then
+    skips its detail stage (``TEXSPACE_REFINE_DETAIL_SECONDS``), so the uploads behind it get
+    their final samplers as soon as without one."""
+    return any(job.id != job_id for job in queued_fits(services))
+
+
 def lane_time(job: Job, details: dict[str, Any] | None, seconds: float) -> dict[str, Any]:
     """A fit's result details after a stage of ``seconds`` on the lane: ``lane_seconds`` and
     ``stages`` add up over its pause and continuation (the estimates' measure)."""

@@ -260,7 +260,7 @@ class FitIn(BaseModel):
                             "validation granite, 1.26x along -39 degrees), so tiles lean as the photo does. "
                             "null: never")
     detail_seconds: float = Field(DETAIL_SECONDS, ge=0, le=MAX_DETAIL_SECONDS, description=(
-        "a photo at least twice the working size (512 px and up on its short side): seconds of a detail stage after the fit, which learns finer noise octaves on the photo at up to 4x the working size (1024 px) while the fit itself stays as it was; tiles and images above the native zoom 6 (zoom 7 for a 512 px photo, up to 8 for 1024 px: one pixel per photo pixel) are drawn with them, at and below zoom 6 without. Kept only where it beats the fit on the photo at that size. 0: none. An upload's automatic refinement uses the server's TEXSPACE_REFINE_DETAIL_SECONDS (default 0)"))
+        "a photo at least twice the working size (512 px and up on its short side): seconds of a detail stage after the fit, which learns finer noise octaves on the photo at up to 4x the working size (1024 px) while the fit itself stays as it was; tiles and images above the native zoom 6 (zoom 7 for a 512 px photo, up to 8 for 1024 px: one pixel per photo pixel) are drawn with them, at and below zoom 6 without. Kept only where it beats the fit on the photo at that size. 0: none. An upload's automatic refinement uses the server's TEXSPACE_REFINE_DETAIL_SECONDS (default 20), and only when no other fit waits for the lane as its fit ends"))
 
 
 class FitParams(FitIn):

@@ -14,8 +14,8 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from worker.contract import (MAX_BAKE_RESOLUTION, MAX_TILE_SIZE, MAX_VOLUME_RESOLUTION, MIN_BAKE_RESOLUTION,
-                             MIN_TILE_SIZE, MIN_VOLUME_RESOLUTION)
+from worker.contract import (DETAIL_SECONDS, MAX_BAKE_RESOLUTION, MAX_TILE_SIZE, MAX_VOLUME_RESOLUTION,
+                             MIN_BAKE_RESOLUTION, MIN_TILE_SIZE, MIN_VOLUME_RESOLUTION)
 
 from .vocabulary import JobKind
 
@@ -130,9 +130,10 @@ class Settings(BaseSettings):
         "auto", description="arithmetic of a fit's VGG loss and decoder: auto is bfloat16 on CUDA and on CPUs "
         "with native bfloat16 (AVX-512 BF16, AMX), float32 elsewhere")
     refine_detail_seconds: float = Field(
-        0.0, ge=0, le=MAX_DETAIL_SECONDS, description="an upload's automatic refinement: seconds of the detail "
-        "stage after its fit (model/detail.py: finer octaves for photos of 512 px and up, drawn above the native "
-        "zoom); 0 (default): none, so four uploads at once keep their refinement times; a fit job asks for its own")
+        DETAIL_SECONDS, ge=0, le=MAX_DETAIL_SECONDS, description="an upload's automatic refinement: seconds of the "
+        "detail stage after its fit (model/detail.py: finer octaves for photos of 512 px and up, drawn above the "
+        "native zoom), run only when no other fit waits for the lane then, so uploads queued together get their "
+        "final samplers as soon as without it; 0: none; a fit job asks for its own")
     fit_interim_seconds: float = Field(
         10.0, ge=0, description="an upload's refinement serves its fit's best state this many seconds in (if it "
         "beats the encoder's code by then, or is its start with a lattice, grain or lean built in), until the "

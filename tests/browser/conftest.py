@@ -67,11 +67,12 @@ def keyed_server(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> I
 @pytest.fixture(scope="session")
 def refining_server(tmp_path_factory: pytest.TempPathFactory, artifacts: Path) -> Iterator[str]:
     """URL of a texspace service of its own that refines every upload (TEXSPACE_AUTO_FIT, the
-    default where torch is installed) with a short real fit."""
+    default where torch is installed) with a short real fit, and a short detail stage where no
+    other fit waits (the 512-px test photos have one)."""
     pytest.importorskip("torch", reason="refinement needs the train extra")
     data_dir = tmp_path_factory.mktemp("texspace-refining-data")
     env = {**os.environ, "TEXSPACE_DATA_DIR": str(data_dir), "TEXSPACE_AUTO_FIT": "true",
-           "TEXSPACE_FIT_SECONDS": "3"}
+           "TEXSPACE_FIT_SECONDS": "3", "TEXSPACE_REFINE_DETAIL_SECONDS": "2"}
     with serve(data_dir, artifacts / "server-refining.log", env) as url:
         yield url
 

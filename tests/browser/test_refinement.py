@@ -55,7 +55,7 @@ def test_upload_shows_refinement_progress_then_fitted_tiles(page, refining_serve
     note = (f" (boards, grain along {structure['grain']}{turned})" if structure["lattice"] and structure["grain"] else
             " (follows the photo's repeat lattice)" if structure["lattice"] else
             f" (grain along {structure['grain']}{turned})" if structure["grain"] else "")
-    if structure.get("detail_zoom"):  # (TEXSPACE_REFINE_DETAIL_SECONDS: off in this server)
+    if structure.get("detail_zoom"):  # (a 2-s detail stage: kept where it beat the fit)
         note += f"; the photo's own detail up to zoom {structure['detail_zoom']}"
     assert page.text_content("#refinement") == "refined: tiles from the fitted sampler" + note
     # opened again later, the texture still says what its tiles come from

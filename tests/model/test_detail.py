@@ -104,14 +104,17 @@ def test_a_fit_of_a_large_photo_writes_its_detail_sampler_and_a_small_one_none(t
     large = (rng.random((512, 512, 3)) * 255).astype(np.uint8)
     Image.fromarray(large).save(tmp_path / "large.png")
     Image.fromarray(large[:300, :300]).save(tmp_path / "small.png")
-    fits = {}
-    for name in ("large", "small"):
+    fits, asked = {}, []
+    for name, photo, wanted in (("large", "large", True), ("small", "small", True), ("declined", "large", False)):
         seen = []
-        fits[name] = fit_exemplar(tmp_path / f"{name}.png", tmp_path / name, init_checkpoint=tmp_path / "space" / "space.pt",
+        fits[name] = fit_exemplar(tmp_path / f"{photo}.png", tmp_path / name, init_checkpoint=tmp_path / "space" / "space.pt",
                                   minutes=0.02, patch=32, grain=None, lattice=None, even=None, lean=None,
-                                  detail_seconds=1.0, progress=seen.append)
+                                  detail_seconds=1.0, progress=seen.append,
+                                  wants_detail=lambda wanted=wanted: asked.append(wanted) or wanted)
         assert seen == sorted(seen) and seen[-1] == pytest.approx(1.0)
-    assert fits["small"]["detail"] is None and not (tmp_path / "small" / "sampler_detail.onnx").exists()
+    assert asked == [True, True, False]  # asked once each, when the fit itself ends
+    for name in ("small", "declined"):  # under twice the working size; a stage declined (another fit waits)
+        assert fits[name]["detail"] is None and not (tmp_path / name / "sampler_detail.onnx").exists()
     detail = fits["large"]["detail"]
     assert detail["factor"] == 2 and detail["steps"] >= 1
     manifest = json.loads((tmp_path / "large" / "manifest.json").read_text())

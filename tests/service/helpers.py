@@ -34,12 +34,14 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
     def fit_exemplar(image_path, out_dir, *, init_checkpoint=None, minutes=4.0, patch=64, grain="auto",  # noqa: ANN001, ANN202
                      loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu", lattice="auto",
                      rate="falling", spectrum=0.0, even="auto", lean="auto", interim=None, interim_seconds=60.0,
-                     precision="auto", run_dir=None, pause=None, shade="auto", detail_seconds=0.0):
+                     precision="auto", run_dir=None, pause=None, shade="auto", detail_seconds=0.0,
+                     wants_detail=None):
         calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),
                       "init_checkpoint": Path(init_checkpoint),
                       "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice, "even": even,
                       "lean": lean, "interim": interim, "interim_seconds": interim_seconds, "device": device,
-                      "precision": precision, "pause": pause, "detail_seconds": detail_seconds})
+                      "precision": precision, "pause": pause, "detail_seconds": detail_seconds,
+                      "wants_detail": wants_detail})
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         # what model.fit reports it used: the grain asked for (straightened by FAKE_TURN), a
@@ -61,6 +63,8 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
             return {"paused": True, "steps": 25, **structure}
         shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
         (out_dir / "code.json").write_text(json.dumps({"code": [0.0] * 8}))
+        # as model.fit, once the fit ends: whether its detail stage would run (None: not asked)
+        calls[-1]["detail_wanted"] = wants_detail() if detail_seconds > 0 and wants_detail is not None else None
         if progress:
             progress(1.0)
         return {"code": [0.0] * 8, "sampler": str(out_dir / "sampler.onnx"), "version": "fake", "steps": 1,

@@ -27,6 +27,8 @@ def test_waiting_uploads_reach_their_interims_before_any_fit_goes_on(refining, p
     first_stages = [call["interim"] is not None for call in fit_calls]
     assert first_stages == [True, True, True, False, False]
     assert [call["pause"] is not None for call in fit_calls] == first_stages  # a continuation never pauses
+    # an upload's detail stage runs only where no other fit waits when its fit ends: the last one
+    assert [call.get("detail_wanted") for call in fit_calls] == [None, None, False, False, True]
     for texture in textures:
         now = client.get(f"/v1/textures/{texture['id']}").json()
         assert now["sampler"] == "fitted" and now["refinement"]["stage"] == "done"

@@ -36,7 +36,7 @@ def test_upload_is_refined_in_place(refining, photo, fit_calls) -> None:
     assert job["kind"] == "fit" and job["texture_id"] == texture["id"]
     assert job["params"] == {"seconds": services.settings.fit_seconds, "grain": "auto", "lattice": "auto",
                              "even": "auto", "lean": "auto", "in_place": True,  # all detected by model.fit
-                             "detail_seconds": 0.0}  # TEXSPACE_REFINE_DETAIL_SECONDS: off by default
+                             "detail_seconds": 20.0}  # TEXSPACE_REFINE_DETAIL_SECONDS
 
     before = client.get(TILE.format(texture["id"]))
     assert before.status_code == 200
