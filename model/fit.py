@@ -35,7 +35,7 @@ from model.structure import (EVEN_BLOCK, GRAIN_STRETCH, detect_even, grain_stret
                              photo_structure, straighten)
 from model.train import train
 from model.train_config import TrainConfig
-from worker.contract import DETAIL_SAMPLER, DETAIL_SECONDS
+from worker.contract import DETAIL_SAMPLER, DETAIL_SECONDS, DETAIL_TILEABLE_SAMPLER
 from worker.photo import resize_short_side
 
 DEFAULT_INIT = Path(__file__).resolve().parent / "weights" / "space.pt"
@@ -199,8 +199,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
 def write_detail(out_dir: Path, image_path, model, code: torch.Tensor, found: FitStructure, *,  # noqa: ANN001
                  seconds: float, device: torch.device, precision: str, seed: int, progress=None) -> dict | None:
     """A fit's detail stage (``model.detail.fit_detail``) where its photo is at least twice the
-    working size: ``OUTDIR/sampler_detail.onnx`` and the manifest's ``detail`` where the stage
-    beat its start; returns the stage's figures, or None without a stage."""
+    working size: ``OUTDIR/sampler_detail.onnx``, its tileable twin and the manifest's ``detail``
+    where the stage beat its start; returns the stage's figures, or None without a stage."""
     full = load_exemplar(image_path, None, quantise=False)
     short_side = model.cfg.exemplar_short_side
     factor = detail_factor(*full.shape[:2], short_side)
@@ -214,6 +214,7 @@ def write_detail(out_dir: Path, image_path, model, code: torch.Tensor, found: Fi
                               photo_plane=bool(found.lattice), progress=progress)
     if stats["kept"]:
         export_sampler(grown.field, out_dir / DETAIL_SAMPLER)
+        export_tileable_sampler(grown.field, out_dir / DETAIL_TILEABLE_SAMPLER)
         stats["sampler"] = DETAIL_SAMPLER
     manifest = json.loads((out_dir / "manifest.json").read_text())
     (out_dir / "manifest.json").write_text(json.dumps(manifest | {"detail": stats}, indent=2) + "\n")

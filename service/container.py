@@ -126,12 +126,13 @@ class Services:
             self.storage.get_file(key, cached)
         return self.registry.fitted_sampler(cached)
 
-    def detail_sampler_for(self, texture: Texture):  # -> worker.runtime.SamplerSession | None
+    def detail_sampler_for(self, texture: Texture, tileable: bool = False):  # -> SamplerSession | None
         """The detail sampler (finer octaves learned on the photo above the working size,
-        model/detail.py) stored beside ``texture``'s fitted sampler, or None where its fit has none."""
+        model/detail.py), or its tileable twin, stored beside ``texture``'s fitted sampler, or None
+        where its fit has none."""
         if not texture.sampler_key:
             return None
-        key = detail_key(texture.sampler_key)
+        key = detail_key(texture.sampler_key, tileable)
         cached = self.sampler_path(texture.id, key)
         if not cached.is_file():
             if key in self._no_detail:

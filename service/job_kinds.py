@@ -158,7 +158,8 @@ def run_region(services: Services, job: Job, workdir: Path, progress: Progress,
     limits = RegionLimits(max_pixels=services.settings.max_region_pixels,
                           max_tiles=services.settings.max_region_tiles)
     # tileable: the texture's sampler_tileable.onnx, its period the image's side
-    inputs = tileable_inputs(services, texture) if p.tileable else sampler_inputs(services, texture, zoom=p.z)
+    inputs = (tileable_inputs(services, texture, zoom=p.z) if p.tileable
+              else sampler_inputs(services, texture, zoom=p.z))
     path = render_region(inputs.sampler, inputs.code, p.seed, z=p.z, x0=p.x0, y0=p.y0, width=p.width,
                          height=p.height, fmt=p.format, out_path=out_path, size=p.size, min_zoom=p.min_zoom,
                          plane=p.plane, offset=p.offset, maps=maps, normal_strength=p.normal_strength,
@@ -359,14 +360,14 @@ def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_pat
 def _store_companions(services: Services, sampler_key: str, fit_dir: Path) -> None:
     """Store the fit's tileable sampler beside its sampler (``tileable_key``), where
     tileable regions look for it (a model.fit from before tileable textures writes none), and
-    its detail sampler (``detail_key``), where tiles above the native zoom look for it (a fit
-    of a photo under twice the working size, an interim or a detail stage that gained nothing
-    writes none)."""
-    from worker.contract import DETAIL_SAMPLER, TILEABLE_SAMPLER
+    its detail sampler and that one's tileable twin (``detail_key``), where tiles and images above
+    the native zoom look for them (a fit of a photo under twice the working size, an interim or a
+    detail stage that gained nothing writes none)."""
+    from worker.contract import DETAIL_SAMPLER, DETAIL_TILEABLE_SAMPLER, TILEABLE_SAMPLER
 
-    for name, key in ((TILEABLE_SAMPLER, keys.tileable_key), (DETAIL_SAMPLER, keys.detail_key)):
+    for name in (TILEABLE_SAMPLER, DETAIL_SAMPLER, DETAIL_TILEABLE_SAMPLER):
         if (fit_dir / name).is_file():
-            services.storage.put_file(key(sampler_key), fit_dir / name)
+            services.storage.put_file(keys.beside(sampler_key, name), fit_dir / name)
 
 
 def fitted_colour(sampler, code: list[float], image: np.ndarray) -> list[float] | None:  # noqa: ANN001

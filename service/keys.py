@@ -35,20 +35,25 @@ def refinement_prefix(texture_id: str, job_id: str, attempt: int) -> str:
     return f"{refinements_prefix(texture_id)}/{job_id}-{attempt}"
 
 
+def beside(sampler_key: str, name: str) -> str:
+    """Storage key of the file ``name`` stored beside a fitted texture's sampler."""
+    folder = sampler_key.rpartition("/")[0]
+    return f"{folder}/{name}" if folder else name
+
+
 def tileable_key(sampler_key: str) -> str:
     """Storage key of the tileable sampler stored beside a fitted texture's sampler."""
     from worker.contract import TILEABLE_SAMPLER
 
-    folder = sampler_key.rpartition("/")[0]
-    return f"{folder}/{TILEABLE_SAMPLER}" if folder else TILEABLE_SAMPLER
+    return beside(sampler_key, TILEABLE_SAMPLER)
 
 
-def detail_key(sampler_key: str) -> str:
-    """Storage key of the detail sampler (model/detail.py) stored beside a fitted texture's sampler."""
-    from worker.contract import DETAIL_SAMPLER
+def detail_key(sampler_key: str, tileable: bool = False) -> str:
+    """Storage key of the detail sampler (model/detail.py), or its tileable twin, stored beside a
+    fitted texture's sampler."""
+    from worker.contract import DETAIL_SAMPLER, DETAIL_TILEABLE_SAMPLER
 
-    folder = sampler_key.rpartition("/")[0]
-    return f"{folder}/{DETAIL_SAMPLER}" if folder else DETAIL_SAMPLER
+    return beside(sampler_key, DETAIL_TILEABLE_SAMPLER if tileable else DETAIL_SAMPLER)
 
 
 def job_prefix(job_id: str) -> str:

@@ -51,8 +51,10 @@ def sampler_inputs(services: Services, texture: Texture, zoom: int | None = None
     return SamplerInputs(detail or services.sampler_for(texture), code, services, texture)
 
 
-def tileable_inputs(services: Services, texture: Texture) -> SamplerInputs:
+def tileable_inputs(services: Services, texture: Texture, zoom: int | None = None) -> SamplerInputs:
     """``sampler_inputs`` with the texture's tileable sampler (``period`` input) instead;
-    FeatureUnavailable if it has none."""
+    FeatureUnavailable if it has none. Above the native ``zoom``, the detail sampler's tileable
+    twin where the fit has one."""
     code = sampling_code(texture)
-    return SamplerInputs(services.tileable_sampler_for(texture), code, services, texture)
+    detail = services.detail_sampler_for(texture, tileable=True) if zoom is not None and zoom > NATIVE_ZOOM else None
+    return SamplerInputs(detail or services.tileable_sampler_for(texture), code, services, texture)

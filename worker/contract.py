@@ -15,6 +15,8 @@ TILEABLE_SAMPLER = "sampler_tileable.onnx"
 #: a fit's sampler with finer octaves for a photo above the working size (model/detail.py), beside
 #: sampler.onnx; tiles above the native zoom draw with it. The fit's manifest names it under ``detail``
 DETAIL_SAMPLER = "sampler_detail.onnx"
+#: its tileable twin (``period`` input), beside it: tileable images above the native zoom draw with it
+DETAIL_TILEABLE_SAMPLER = "sampler_detail_tileable.onnx"
 #: seconds of a fit job's detail stage by default (model.fit, the service's fit jobs)
 DETAIL_SECONDS = 20.0
 

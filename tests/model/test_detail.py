@@ -119,4 +119,5 @@ def test_a_fit_of_a_large_photo_writes_its_detail_sampler_and_a_small_one_none(t
     assert detail["factor"] == 2 and detail["steps"] >= 1
     manifest = json.loads((tmp_path / "large" / "manifest.json").read_text())
     assert manifest["detail"] == detail
-    assert (tmp_path / "large" / "sampler_detail.onnx").is_file() == bool(detail["kept"])
+    for name in ("sampler_detail.onnx", "sampler_detail_tileable.onnx"):
+        assert (tmp_path / "large" / name).is_file() == bool(detail["kept"])

@@ -28,7 +28,7 @@ torch = pytest.importorskip("torch")
 @pytest.fixture(scope="module")
 def detail_sampler(tmp_path_factory) -> Path:
     from model.detail import grow_octaves
-    from model.export import export_sampler
+    from model.export import export_sampler, export_tileable_sampler
     from model.networks import load_checkpoint
 
     model, _ = load_checkpoint(MODEL_DIR / "space.pt")
@@ -38,6 +38,7 @@ def detail_sampler(tmp_path_factory) -> Path:
         columns[:, model.cfg.n_octaves * 3:] = torch.randn(columns.shape[0], columns.shape[1] - model.cfg.n_octaves * 3)
     path = tmp_path_factory.mktemp("detail") / "sampler_detail.onnx"
     export_sampler(grown.field, path)
+    export_tileable_sampler(grown.field, path.with_name("sampler_detail_tileable.onnx"))
     return path
 
 
@@ -50,7 +51,8 @@ def fake_fit_module(detail: Path | None, asked: list) -> types.ModuleType:
             shutil.copy(MODEL_DIR / name, out_dir / name)
         stage = None
         if detail is not None:  # as model.fit reports a 1024-px photo's stage that was kept
-            shutil.copy(detail, out_dir / "sampler_detail.onnx")
+            for name in ("sampler_detail.onnx", "sampler_detail_tileable.onnx"):
+                shutil.copy(detail.with_name(name), out_dir / name)
             stage = {"factor": 4, "steps": 150, "start": 0.5, "score": 0.1, "kept": True, "sampler": "sampler_detail.onnx"}
         (out_dir / "code.json").write_text(json.dumps({"code": [0.0] * 8}))
         return {"code": [0.0] * 8, "grain": None, "lattice": None, "detail": stage}
@@ -104,6 +106,16 @@ def test_tiles_above_the_native_zoom_draw_the_detail_sampler(settings, tmp_path,
                 job = client.get(res.json()["links"]["self"]).json()
                 images.append(np.asarray(Image.open(io.BytesIO(client.get(job["links"]["result"]).content)), np.float64))
             assert (np.abs(images[0] - images[1]).mean() > 1.0) == differs, z
+        # a tileable image above the native zoom: the detail's tileable twin, seamless
+        square = {"z": 8, "x0": 0, "y0": 0, "width": 128, "height": 128, "tileable": True}
+        images = []
+        for texture in (plain, detailed):
+            job = client.get(client.post(texture["links"]["regions"], json=square).json()["links"]["self"]).json()
+            assert job["state"] == "succeeded", job
+            images.append(np.asarray(Image.open(io.BytesIO(client.get(job["links"]["result"]).content)), np.float64))
+        assert np.abs(images[0] - images[1]).mean() > 1.0
+        inside = np.abs(np.diff(images[1], axis=1)).mean()
+        assert np.abs(images[1][:, 0] - images[1][:, -1]).mean() < 2 * inside
     services.engine.dispose()
 
 
