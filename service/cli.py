@@ -141,8 +141,8 @@ class TextureSource:
     """A texture named on the command line: an image file (encoded now, and with ``refine``
     seconds fitted as an upload's refinement is) or a stored id. Looking an id up never
     creates a database: a mistyped path is refused instead. ``zoom`` (a tile's): above the
-    native one, the fit's detail sampler draws (model/detail.py; ``refine`` then runs the
-    fit's detail stage too, for a photo of twice the working size and more)."""
+    native one, the fit's detail sampler (and its tileable twin) draws (model/detail.py; ``refine``
+    then runs the fit's detail stage too, for a photo of twice the working size and more)."""
 
     def __init__(self, settings: Settings, ref: str, lighting: str = "as-is", refine: float | None = None,
                  zoom: int | None = None) -> None:
@@ -173,7 +173,8 @@ class TextureSource:
         self.sampler, self.code, self.ppu = inputs.sampler, inputs.code, inputs.pixels_per_unit
         self.model_version = texture.model_version
         self.structure = texture.served_structure()
-        self.tileable_sampler = lambda: services.tileable_sampler_for(texture)
+        self.tileable_sampler = lambda: ((above_native and services.detail_sampler_for(texture, tileable=True))
+                                         or services.tileable_sampler_for(texture))
 
     def _encode(self, settings: Settings, path: Path, lighting: str) -> None:
         from worker.colour_match import texture_vector
@@ -202,7 +203,7 @@ class TextureSource:
         except ImportError:
             raise CliError("--refine needs PyTorch: pip install 'texspace[train]'", code=1) from None
         from worker.colour_match import texture_vector
-        from worker.contract import DETAIL_SAMPLER, TILEABLE_SAMPLER
+        from worker.contract import DETAIL_SAMPLER, DETAIL_TILEABLE_SAMPLER, TILEABLE_SAMPLER
         from worker.photo import working_photo
 
         from .job_kinds import fit_structure, fitted_colour, photo_to_fit
@@ -233,6 +234,7 @@ class TextureSource:
         self.tileable_sampler = lambda: registry.fitted_sampler(folder / "fit" / TILEABLE_SAMPLER)
         if (folder / "fit" / DETAIL_SAMPLER).is_file():  # (its colour table is the fit's, made above)
             self.sampler = registry.fitted_sampler(folder / "fit" / DETAIL_SAMPLER)
+            self.tileable_sampler = lambda: registry.fitted_sampler(folder / "fit" / DETAIL_TILEABLE_SAMPLER)
 
 
 @contextmanager
@@ -416,7 +418,7 @@ def cmd_tileable(args: argparse.Namespace, settings: Settings) -> None:
     if args.dds_compression != "bc1" and fmt != "dds":
         raise CliError(f"--dds-compression {args.dds_compression} applies to a .dds output only")
     _at_most(args.size * args.size, settings.max_region_pixels, "pixels", "TEXSPACE_MAX_REGION_PIXELS")
-    source = TextureSource(settings, args.texture, args.lighting, args.refine)
+    source = TextureSource(settings, args.texture, args.lighting, args.refine, zoom=NATIVE_ZOOM + args.zoom)
     bar, report = _progress_bar("tileable")
     with bar:
         path = render_region(source.tileable_sampler(), source.code, args.seed, z=NATIVE_ZOOM + args.zoom, x0=0, y0=0,

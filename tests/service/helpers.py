@@ -61,7 +61,8 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
             Path(run_dir).mkdir(parents=True, exist_ok=True)  # the run's state kept in run_dir, nothing exported
             (Path(run_dir) / "checkpoint.pt").write_bytes(b"paused at step 25")
             return {"paused": True, "steps": 25, **structure}
-        shutil.copy(MODEL_DIR / "sampler.onnx", out_dir / "sampler.onnx")
+        for name in ("sampler.onnx", "sampler_tileable.onnx"):  # (the pair model.fit writes)
+            shutil.copy(MODEL_DIR / name, out_dir / name)
         (out_dir / "code.json").write_text(json.dumps({"code": [0.0] * 8}))
         # as model.fit, once the fit ends: whether its detail stage would run (None: not asked)
         calls[-1]["detail_wanted"] = wants_detail() if detail_seconds > 0 and wants_detail is not None else None

@@ -27,6 +27,9 @@ def test_refine_fits_the_photo_before_it_draws(cli_env: Path, fit_calls) -> None
     # above the native zoom the fit's detail stage runs too (drawn where model.fit made a sampler for it)
     main(["tile", "brick.png", "8", "0", "0", "--size", "64", "-o", "deep.png", "--refine", "30"])
     assert fit_calls[-1]["detail_seconds"] == DETAIL_SECONDS > 0
+    for zoom, stage in (("0", 0), ("2", DETAIL_SECONDS)):  # a tileable image: --zoom counts from the native zoom
+        main(["tileable", "brick.png", "--size", "64", "--zoom", zoom, "-o", f"t{zoom}.png", "--refine", "30"])
+        assert fit_calls[-1]["detail_seconds"] == stage
     main(["shader", "brick.png", "-o", "s.glsl", "--refine"])  # SECONDS defaults to an upload's budget
     assert fit_calls[-1]["minutes"] == FIT_SECONDS / 60
 
