@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -35,17 +34,16 @@ from eval.by_example import by_example_tile, gaussianise
 from eval.quality import FittedRuntime, texture_code
 from eval.style_floor import crop_errors, photo_floor, style_ratio
 from worker.colour import linear_to_srgb
-from worker.contract import DETAIL_SAMPLER
+from worker.contract import DETAIL_SAMPLER, DETAIL_SECONDS
 from worker.images import read_image
 from worker.photo import resize_short_side
 from worker.runtime import ModelRuntime, SamplerSession
-from worker.tiles import NATIVE_ZOOM, render_tile
+from worker.tiles import NATIVE_ZOOM, native_zoom_for, render_tile
 
 TILE = 256
 POSITIONS = ((0, 0), (1, 0))
 SEEDS = (1, 2)
 FIT_SECONDS = 70.0
-DETAIL_SECONDS = 20.0
 
 
 def tiles(runtime, code: np.ndarray, zoom: int) -> np.ndarray:  # noqa: ANN001 (a FittedRuntime)
@@ -69,7 +67,7 @@ def measure(model: ModelRuntime, path: Path, fit_dir: Path) -> dict:
     factor = int(detail.get("factor", 1))
     fit = FittedRuntime(model, fit_dir)
     code = texture_code(fit, image)  # the fit's colour table, as the service computes it for the texture
-    zoom = NATIVE_ZOOM + int(math.log2(factor))
+    zoom = native_zoom_for(factor)
     full = resize_short_side(image, model.short_side * factor)
     floor_full, floor_working = photo_floor(full), photo_floor(resize_short_side(image, model.short_side))
 

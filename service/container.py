@@ -91,13 +91,18 @@ class Services:
         """Every local sampler copy of ``texture_id`` (``sampler_path``), to remove with it."""
         return list((self.cache_dir / "samplers").glob(f"{texture_id}*.onnx"))
 
+    def stored_sampler(self, texture: Texture, key: str):  # -> worker.runtime.SamplerSession
+        """The sampler stored under ``key`` for ``texture``, from its local copy (``sampler_path``),
+        downloaded on first use."""
+        cached = self.sampler_path(texture.id, key)
+        if not cached.is_file():
+            self.storage.get_file(key, cached)
+        return self.registry.fitted_sampler(cached)
+
     def sampler_for(self, texture: Texture):  # -> worker.runtime.Sampler
         """The sampler that renders ``texture``: its own fitted one, or its model's."""
         if texture.sampler_key:
-            cached = self.sampler_path(texture.id, texture.sampler_key)
-            if not cached.is_file():
-                self.storage.get_file(texture.sampler_key, cached)
-            return self.registry.fitted_sampler(cached)
+            return self.stored_sampler(texture, texture.sampler_key)
         return self.registry.get(texture.model_version)
 
     def tileable_available(self, texture: Texture) -> str | None:
@@ -119,12 +124,9 @@ class Services:
         if not texture.sampler_key:
             return self.registry.get(texture.model_version).tileable_sampler()
         key = tileable_key(texture.sampler_key)
-        cached = self.sampler_path(texture.id, key)
-        if not cached.is_file():
-            if not self.storage.exists(key):
-                raise FeatureUnavailable(self.tileable_available(texture) or f"no tileable sampler at {key}")
-            self.storage.get_file(key, cached)
-        return self.registry.fitted_sampler(cached)
+        if not self.sampler_path(texture.id, key).is_file() and not self.storage.exists(key):
+            raise FeatureUnavailable(self.tileable_available(texture) or f"no tileable sampler at {key}")
+        return self.stored_sampler(texture, key)
 
     def detail_sampler_for(self, texture: Texture, tileable: bool = False):  # -> SamplerSession | None
         """The detail sampler (finer octaves learned on the photo above the working size,
@@ -133,15 +135,13 @@ class Services:
         if not texture.sampler_key:
             return None
         key = detail_key(texture.sampler_key, tileable)
-        cached = self.sampler_path(texture.id, key)
-        if not cached.is_file():
+        if not self.sampler_path(texture.id, key).is_file():
             if key in self._no_detail:
                 return None
             if not self.storage.exists(key):
                 self._no_detail.add(key)
                 return None
-            self.storage.get_file(key, cached)
-        return self.registry.fitted_sampler(cached)
+        return self.stored_sampler(texture, key)
 
     def pixels_per_unit(self, texture: Texture) -> float:
         """World scale of the texture's model (fitted samplers share their parent's)."""

@@ -24,7 +24,7 @@ from worker.errors import Canceled, FeatureUnavailable, InvalidParameter, Paused
 from worker.files import extension, media_type
 from worker.images import read_image, write_image
 from worker.photo import working_photo
-from worker.tiles import NATIVE_ZOOM
+from worker.tiles import native_zoom_for
 
 from . import jobs, keys
 from .container import Services
@@ -293,7 +293,7 @@ def fit_structure(found: dict[str, Any]) -> dict[str, Any]:
             "grain_stretch": found.get("grain_stretch"),
             "lattice": found.get("lattice"), "muted_octaves": found.get("muted_octaves", 0),
             "lean": found.get("lean"),
-            "detail_zoom": NATIVE_ZOOM + int(detail["factor"]).bit_length() - 1 if detail.get("sampler") else None}
+            "detail_zoom": native_zoom_for(detail["factor"]) if detail.get("sampler") else None}
 
 
 def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path: Path, out_dir: Path,

@@ -53,6 +53,12 @@ TILE_FORMATS = OFFERED["tile"]  # (written by worker.images.write_image)
 ZOOM_OUT_MODES = ("supersample", "bounded")
 
 
+def native_zoom_for(factor: int) -> int:
+    """The zoom with one tile pixel per photo pixel for a photo kept at ``factor`` (a power of
+    two) x the working resolution: a fit's detail (model/detail.py) shows up to it."""
+    return NATIVE_ZOOM + int(factor).bit_length() - 1
+
+
 def supersample_for(z: int, cap: int = SUPERSAMPLE_CAP) -> int:
     """Sub-samples per axis for zoom ``z``: 2^(NATIVE_ZOOM - z) when zoomed out, capped."""
     return int(min(2 ** max(NATIVE_ZOOM - z, 0), cap))
