@@ -38,7 +38,8 @@ def quality_module():
 
 def fit(photo: Path, out: Path, seconds: float, precision: str, threads: int) -> dict:
     subprocess.run([sys.executable, "-m", "model.fit", str(photo), str(out), "--minutes", str(seconds / 60),
-                    "--threads", str(threads), "--precision", precision], check=True, cwd=ROOT,
+                    "--threads", str(threads), "--precision", precision,
+                    "--detail-seconds", "0"], check=True, cwd=ROOT,  # (the working size is scored)
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return json.loads((out / "manifest.json").read_text())
 

@@ -160,6 +160,13 @@ class Translator(nn.Module):
         return self.to_extended(h), transforms, mix
 
 
+def _bias_matmul(bias: torch.Tensor, x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``bias + x @ weight.T`` for x [B,P,I], bias [B,1,O], weight [O,I]: one ``baddbmm``,
+    the bias added in the product's own pass (a fit's decoder forward and backward, two
+    codes of 16k points in bf16: 37-44 ms as Linear + add, 30-35 ms so)."""
+    return torch.baddbmm(bias, x, weight.t().expand(x.shape[0], -1, -1))
+
+
 class Decoder(nn.Module):
     """MLP f(noise, position, e) -> colour logits, ReLU, ``n_hidden_layers`` x ``hidden``.
 
@@ -198,17 +205,18 @@ class Decoder(nn.Module):
         if code.shape[0] == 1 or points.shape[1] == 1:
             return self._forward_rows(noise, position, code, phase)
         biases = self.from_code(code).unsqueeze(1)  # [B,1,H*L+3]
-        h = biases[..., : self.hidden]
+        hidden = self.hidden
+        h = biases[..., :hidden]
         if self.from_noise is not None:
-            h = h + self.from_noise(noise)
+            h = _bias_matmul(h, noise, self.from_noise.weight)
         if self.from_position is not None:
             h = h + self.from_position(position)
         if self.from_phase is not None:
             h = h + self.from_phase(phase)
         h = F.relu(h)
         for i, layer in enumerate(self.layers, start=1):
-            h = F.relu(layer(h) + biases[..., i * self.hidden : (i + 1) * self.hidden])
-        return self.out(h) + biases[..., -3:]
+            h = F.relu(_bias_matmul(biases[..., i * hidden : (i + 1) * hidden], h, layer.weight))
+        return _bias_matmul(biases[..., -3:], h, self.out.weight)
 
     def _forward_rows(self, noise, position, code, phase=None):
         """``forward`` where one code serves all points (B = 1) or each code one point
@@ -452,7 +460,7 @@ class TextureField(nn.Module):
                 lattice, wrap = self.lattice_points(points, transforms, anchor), None
             else:
                 lattice, wrap = self.periodic_lattice(points, transforms, period)
-            nearest, interpolated = noise_features(lattice, seeds, cfg.smooth, wrap)
+            nearest, interpolated = noise_features(lattice, seeds, cfg.smooth, wrap, nearest=cfg.nearest_input)
             noise = interpolated  # [B,P,K,3]
 
         if self.decoder is None:  # perlin / perlinT: octaves mixed by RGB weights, plus a bias

@@ -300,7 +300,8 @@ def noise_features(
     seeds: torch.Tensor,
     smooth: bool = False,
     wrap: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
+    nearest: bool = True,
+) -> tuple[torch.Tensor | None, torch.Tensor]:
     """Value noise at points already mapped into each octave's lattice.
 
     lattice_points : float64 [..., K, D]  position of each point in octave k's lattice
@@ -309,6 +310,9 @@ def noise_features(
     smooth         : apply smoothstep to the interpolation weights (C1 continuous)
     wrap           : float64 [2, 2, ..., K] or None: make the lattice periodic in its first
                      two axes with these integer basis vectors per octave (``wrap_cells``)
+    nearest        : False: skip the nearest cell's value (None in its place); a decoder
+                     without the nearest-cell input would discard it, and picking it costs
+                     as much as hashing the corners (3D, 32k points x 8 octaves: 15 vs 14 ms)
     returns (nearest, interpolated), float32 [..., K, 3] each
     """
     # Axis-major inside (see _corner_hashes_major); one transpose in, one per output out.
@@ -323,7 +327,9 @@ def noise_features(
 
     weights = frac * frac * (3.0 - 2.0 * frac) if smooth else frac
     interpolated = _blend(fields, weights) * _FIELD_SCALE  # [3, ..., K]
-    # The nearest cell centre is the corner each rounded fraction picks.
-    nearest = _pick(fields, frac >= 0.5) * _FIELD_SCALE
     last = interpolated.dim() - 1
-    return nearest.movedim(0, last), interpolated.movedim(0, last)
+    if not nearest:
+        return None, interpolated.movedim(0, last)
+    # The nearest cell centre is the corner each rounded fraction picks.
+    picked = _pick(fields, frac >= 0.5) * _FIELD_SCALE
+    return picked.movedim(0, last), interpolated.movedim(0, last)

@@ -115,6 +115,17 @@ def test_interpolation_is_continuous_and_nearest_is_a_cell_value():
     assert torch.allclose(n, i, atol=1e-6)
 
 
+def test_without_nearest_the_blend_is_the_same():
+    # A decoder without the nearest-cell input asks noise_features to skip it: the
+    # interpolated values must not change with that choice (the sampler's noise would).
+    pts = torch.rand(64, 4, 3, dtype=torch.float64) * 100.0
+    seeds = octave_seeds(torch.tensor(5), 4)
+    nearest, interp = noise_features(pts, seeds, smooth=True)
+    skipped, same = noise_features(pts, seeds, smooth=True, nearest=False)
+    assert skipped is None and nearest is not None
+    assert torch.equal(interp, same)
+
+
 def test_interpolation_is_continuous_across_the_32_bit_carry():
     # Cell -1 -> 0 and 2**32 - 1 -> 2**32 change the high half of the cell index: the
     # upper corner's hash must carry it (else the noise jumps there).
