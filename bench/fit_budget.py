@@ -1,7 +1,7 @@
 """Quality a fit reaches per time budget (``make bench-fit-budget``; not part of ``make test``).
 
     .venv/bin/python bench/fit_budget.py [--photos A.png B.png ...] [--seconds 30 60 120]
-                                         [--precision auto] [--threads 0] [--reference-seconds 240]
+                                         [--precision auto] [--threads 0] [--seed 0] [--reference-seconds 240]
 
 Each photo is fitted (``python -m model.fit``, one at a time, on every core as the fit lane runs
 them by default: ``--threads``) for every budget, then scored as ``make quality`` scores fits: the VGG Gram style error
@@ -36,9 +36,9 @@ def quality_module():
     return eval.quality
 
 
-def fit(photo: Path, out: Path, seconds: float, precision: str, threads: int) -> dict:
+def fit(photo: Path, out: Path, seconds: float, precision: str, threads: int, seed: int = 0) -> dict:
     subprocess.run([sys.executable, "-m", "model.fit", str(photo), str(out), "--minutes", str(seconds / 60),
-                    "--threads", str(threads), "--precision", precision,
+                    "--threads", str(threads), "--precision", precision, "--seed", str(seed),
                     "--detail-seconds", "0"], check=True, cwd=ROOT,  # (the working size is scored)
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return json.loads((out / "manifest.json").read_text())
@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"])
     parser.add_argument("--threads", type=int, default=0, help="torch threads of the fits (0: every core, as the "
                         "service's TEXSPACE_FIT_THREADS default)")
+    parser.add_argument("--seed", type=int, default=0, help="the fits' seed (model.fit --seed)")
     parser.add_argument("--reference-seconds", type=float, default=240.0,
                         help="float32 reference on one thread (0: none)")
     args = parser.parse_args(argv)
@@ -83,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
                          "floor_ratio": encoder[1]})
             for seconds, precision, threads in runs:
                 out = Path(folder) / f"{photo.stem}-{precision}-{seconds:g}"
-                manifest = fit(photo, out, seconds, precision, threads)
+                manifest = fit(photo, out, seconds, precision, threads, args.seed)
                 style, ratio = score(q, q.FittedRuntime(model, out), photo)
                 cores = "every core" if threads == 0 else f"{threads} thread" + "s" * (threads > 1)
                 rows.append({"photo": photo.stem, "run": f"{seconds:g} s {manifest['precision']}, {cores}",
