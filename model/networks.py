@@ -216,7 +216,8 @@ class Decoder(nn.Module):
         h = F.relu(h)
         for i, layer in enumerate(self.layers, start=1):
             h = F.relu(_bias_matmul(biases[..., i * hidden : (i + 1) * hidden], h, layer.weight))
-        return _bias_matmul(biases[..., -3:], h, self.out.weight)
+        # (the output's bias added apart: in float32 under a bf16 autocast, as the logits were before)
+        return self.out(h) + biases[..., -3:]
 
     def _forward_rows(self, noise, position, code, phase=None):
         """``forward`` where one code serves all points (B = 1) or each code one point
