@@ -165,3 +165,17 @@ def two_by_two(size: int = 256, blend: float = 0.0, seed: int = 4) -> np.ndarray
     image = 0.5 + 0.12 * ((1 - blend) * copies / tile.std() + blend * own / own.std())
     image += 0.01 * rng.standard_normal((size, size))
     return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+
+def wavy_rows(period: float = 9.1, size: int = 256, wave: float = 1.2, seed: int = 6) -> np.ndarray:
+    """Rows up-down, ``period`` px apart across x, that wave and break (0ad's temp_farmland:
+    rows of crops): each row's phase wanders by ``wave`` radians (std) over tens of px down and
+    a few rows across, under streaked leaves, so the photo's 2D correlation fades within a
+    few rows while the rows' mean profile across x repeats."""
+    rng = np.random.default_rng(seed)
+    x = np.arange(size, dtype=np.float64)[None, :]
+    drift = ndimage.gaussian_filter(rng.standard_normal((size, size)), (24.0, 2 * period), mode="wrap")
+    leaves = ndimage.gaussian_filter(rng.standard_normal((size, size)), (4.0, 0.7), mode="wrap")
+    image = (0.45 + 0.05 * np.cos(2 * np.pi * x / period + wave * drift / drift.std())
+             + 0.04 * leaves / leaves.std() + 0.03 * rng.standard_normal((size, size)))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)

@@ -7,14 +7,14 @@ from scipy import ndimage
 import pytest
 
 from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,
-                             detect_grain, detect_lattice, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
+                             detect_grain, detect_lattice, detect_rows, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
                              grain_turn, leaning_grain, photo_lean, photo_structure, same_lattice, shortest_basis,
                              straighten)
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,
                              detect_direction_lattice, detect_long_lattice, peak_height, pixel_noise,
                              luminance_correlation, stripe_normal)
 from eval.synthetic_photos import (banded_motifs, boards, corrugation, crop_rows, fibres, hexagonal_tiles,
-                                parquet, running_bond, streaks, two_by_two)
+                                parquet, running_bond, streaks, two_by_two, wavy_rows)
 from worker.colour import even_lighting
 
 
@@ -379,6 +379,27 @@ def test_faint_rows_under_leaning_leaves_are_stripes_straight_across_them():
         assert (bx, by) == pytest.approx((-ay, ax))
 
 
+def test_rows_that_wave_are_found_in_their_profile_where_stripes_are_not(skimage_textures):
+    """0ad's temp_farmland: rows of crops 9.1 px apart whose 2D correlation fades within a few
+    rows (they wave and break), too few for the stripes; averaged along the rows they repeat. Its 70-s fit
+    without them was isotropic speckle (10.8x the photo's floor), on them 1.7x. A profile
+    one degree off smears a period over 256 px, so the direction comes from the correlation."""
+    image = even_lighting(wavy_rows())
+    assert detect_lattice(image) is None and detect_stripes(image) is None and detect_grain(image) is None
+    ax, ay, bx, by = detect_rows(image)
+    assert abs(abs(ax) - 9.1) < 0.15 and abs(np.degrees(np.arctan2(ay, abs(ax)))) < 0.5, (ax, ay)
+    assert (bx, by) == pytest.approx((-ay, ax))                    # along the rows
+    assert photo_structure(wavy_rows()) == (None, pytest.approx((ax, ay, bx, by)))
+    ax, ay, _, _ = detect_rows(image.transpose(1, 0, 2))          # rows left-right: the period runs down
+    assert abs(ax) < 0.2 and abs(abs(ay) - 9.1) < 0.15, (ax, ay)
+    straight = even_lighting(wavy_rows(wave=0.0))                  # rows that hold are stripes already
+    assert detect_stripes(straight) is not None
+    for name in ("gravel", "grass", "brick"):                      # stochastic, or grain without a period
+        assert detect_rows(skimage_textures[name]) is None, name
+    assert detect_rows(streaks()) is None                          # one piece of wood: no rows
+    assert detect_rows(np.full((64, 64, 3), 0.5)) is None
+
+
 @pytest.mark.parametrize("blend, found", [(0.0, True), (0.3, True), (0.5, False)])
 def test_a_photo_of_two_by_two_copies_is_a_lattice_of_half_of_it(blend, found):
     """Game terrains made of 2 x 2 copies of one tile repeat at exactly half the photo, as far
@@ -415,7 +436,7 @@ def test_detect_boards_measures_the_board_width_across_the_grain(skimage_texture
 
 def test_photo_structure_decides_what_a_fit_builds_in(skimage_textures):
     """Lattice first, then stripes, then grain; boards only on a photo with grain, and they
-    keep it; "auto" detects, None turns a part off, an explicit grain is kept as given."""
+    keep it (rows on one without); "auto" detects, None turns a part off, an explicit grain is kept as given."""
     bond, board, plain = running_bond(), corrugation(), boards()
     grain, lattice = photo_structure(bond)
     evened = even_lighting(bond)  # what the detectors read
@@ -425,7 +446,8 @@ def test_photo_structure_decides_what_a_fit_builds_in(skimage_textures):
     assert photo_structure(streaks()) == ("y", None)                       # one piece of wood
     assert photo_structure(skimage_textures["gravel"]) == (None, None)
     assert photo_structure(plain, lattice=None) == ("y", None)             # grain alone
-    assert photo_structure(plain, grain=None) == (None, None)              # no grain: no boards
+    grain, rows = photo_structure(plain, grain=None)                       # no grain: no boards, but their
+    assert grain is None and abs(abs(rows[0]) - 25.6) < 0.2 and abs(rows[1]) < 0.5, rows  # repeat is rows
     assert photo_structure(bond, grain="x")[0] == "x"                      # asked for: kept
     assert photo_structure(board, grain=None, lattice=None) == (None, None)
 
