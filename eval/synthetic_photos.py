@@ -53,17 +53,22 @@ def corrugation(period: float = 8.8, size: int = 256, wander_px: float = 1.5, pa
     return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
 
 
-def boards(width: float = 25.6, size: int = 256, seed: int = 5) -> np.ndarray:
+def boards(width: float = 25.6, size: int = 256, seed: int = 5, uneven: float = 0.0) -> np.ndarray:
     """Boards side by side, ``width`` px across, running up-down: each its own wavy grain
-    and tone, dark joints between them (a plank floor seen from above)."""
+    and tone, dark joints between them (a plank floor seen from above). ``uneven``: each
+    board's width drawn from ``width`` times 1 +- uneven (0ad's bridge_wood_a)."""
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:size, 0:size].astype(np.float64)
     board = np.floor((x + 0.5) / width).astype(int)
+    if uneven:
+        edges = np.cumsum(width * rng.uniform(1 - uneven, 1 + uneven, int(size / width / (1 - uneven)) + 2)) - 0.5
+        board = np.searchsorted(edges, x)
+        gap = np.minimum(np.abs(x - edges[np.maximum(board - 1, 0)]), np.abs(edges[board] - x))
     wander = 200 * ndimage.gaussian_filter(rng.standard_normal((size, size)), 16)
     phase = rng.uniform(0, 2 * np.pi, (board.max() + 1, 6))[board]
     grain = sum(np.sin((x + wander) * f + phase[..., i]) / f ** 0.5 for i, f in enumerate((0.25, 0.4, 0.6, 0.9, 1.3, 1.9)))
     tone = rng.uniform(-0.06, 0.06, board.max() + 1)[board]
-    joint = np.abs(((x + 0.5) / width + 0.5) % 1 - 0.5) * width < 1.0
+    joint = (gap < 1.0) if uneven else np.abs(((x + 0.5) / width + 0.5) % 1 - 0.5) * width < 1.0
     image = 0.55 + 0.03 * grain + tone - 0.3 * joint + 0.01 * rng.standard_normal((size, size))
     return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
 

@@ -159,11 +159,19 @@ BOARD_MIN_REPEATS = 2  # multiples within a third of the image: boards at most 1
 # Rows (``detect_rows``): stripes that wave or break, whose 2D correlation fades before
 # enough multiples reach STRIPE_SUPPORT_PEAK. 0ad's temp_farmland (rows of crops, 9.1 px
 # apart at the working size) reads 0.22, 0.15, 0.11, 0.11 at two to eight rows in 2D; its
-# profile along the rows 0.52, 0.57, 0.32, 0.42, 0.20, 0.28 at one to six. Of the 1,452 corpus photos, 6 with nothing else found have such rows
-# (farmland, brick courses, a corrugated roof).
+# profile along the rows 0.52, 0.57, 0.32, 0.42, 0.20, 0.28 at one to six. Of the 1,452
+# corpus photos, 6 with nothing else found have such rows (farmland, brick courses, a
+# corrugated roof).
 ROW_PEAK = 0.3
 ROW_SUPPORT_PEAK = 0.25
 ROW_MIN_REPEATS = 3  # multiples within a third of the image: rows at most 1/9 of it
+# Boards of uneven width (0ad's bridge_wood_a: planks) repeat only on average, the profile
+# 0.38, 0.26, 0.22, 0.22, 0.29 at one to five of their mean width, 10.7 px. Where no board
+# reaches BOARD_PEAK, a first peak of ROW_PEAK with ROW_MIN_REPEATS multiples at
+# UNEVEN_BOARD_PEAK: on the corpus's grain photos without boards, 3 of 1,452 (the planks; two
+# metal panels whose slots repeat every 16 px); with two multiples, also the packaged wood_2's
+# broad bands (33.5 px), one piece of wood. The planks' 70-s fit on the mean width: 5.0x -> 1.7x the floor.
+UNEVEN_BOARD_PEAK = 0.2
 # Parquet (``detect_direction_lattice``): blocks of slats alternating between up-down and
 # left-right, each slat its own tone, repeat in the direction of their streaks only. Their
 # luminance correlation is the slats': synthetic parquet of 32-px blocks of 8-px slats
@@ -711,8 +719,10 @@ def detect_boards(image: np.ndarray, grain: str) -> tuple[float, float, float, f
     trends); the profile's autocorrelation must peak at BOARD_PEAK or more near a share of
     at least LATTICE_SUPPORT of the multiples of the width within a third of the image, at
     least BOARD_MIN_REPEATS of them (a width between two pixels splits its peaks), and the
-    width is their least-squares period. The shortest such repeat is the board (two boards
-    are a repeat too)."""
+    width is their least-squares period (``profile_period``). The shortest such repeat is
+    the board (two boards are a repeat too). Where none is found, boards of uneven width:
+    a first peak of ROW_PEAK, its multiples at UNEVEN_BOARD_PEAK, at least ROW_MIN_REPEATS
+    of them (their mean width; two would pass a plain wood's broad bands)."""
     if grain not in ("x", "y"):
         raise ValueError(f"grain must be 'x' or 'y', got {grain!r}")
     profile = rec709_luminance(image).mean(axis=0 if grain == "y" else 1)
@@ -723,7 +733,8 @@ def detect_boards(image: np.ndarray, grain: str) -> tuple[float, float, float, f
     if not correlation[0] > 0:
         return None
     correlation /= correlation[0]
-    width = profile_period(correlation, BOARD_PEAK, BOARD_PEAK, BOARD_MIN_REPEATS)
+    width = (profile_period(correlation, BOARD_PEAK, BOARD_PEAK, BOARD_MIN_REPEATS)
+             or profile_period(correlation, ROW_PEAK, UNEVEN_BOARD_PEAK, ROW_MIN_REPEATS))
     if width is None:
         return None
     ax, ay = (width, 0.0) if grain == "y" else (0.0, width)

@@ -426,6 +426,11 @@ def test_detect_boards_measures_the_board_width_across_the_grain(skimage_texture
         assert photo_structure(image) == ("y", detect_boards(even_lighting(image), "y"))  # grain and boards, not stripes
     ax, ay, bx, by = detect_boards(boards().transpose(1, 0, 2), "x")  # boards left-right
     assert ax == 0 and abs(ay - 25.6) < 0.1 and (bx, by) == pytest.approx((-ay, 0.0))
+    for seed in (5, 6):  # widths 16 px +- 10%: under BOARD_PEAK after two boards; their mean width
+        uneven = even_lighting(boards(16.0, seed=seed, uneven=0.1))
+        assert detect_lattice(uneven) is None
+        ax, ay, _, _ = detect_boards(uneven, "y")
+        assert abs(ax - 16.0) < 0.5 and ay == 0, (seed, ax)
     assert detect_boards(boards(), "x") is None                     # along the grain: no joints
     assert detect_boards(streaks(), "y") is None                    # one piece of wood
     assert detect_boards(skimage_textures["brick"], "y") is None     # grain without a period
