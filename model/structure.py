@@ -160,8 +160,8 @@ BOARD_MIN_REPEATS = 2  # multiples within a third of the image: boards at most 1
 # enough multiples reach STRIPE_SUPPORT_PEAK. 0ad's temp_farmland (rows of crops, 9.1 px
 # apart at the working size) reads 0.22, 0.15, 0.11, 0.11 at two to eight rows in 2D; its
 # profile along the rows 0.52, 0.57, 0.32, 0.42, 0.20, 0.28 at one to six. Of the 1,452
-# corpus photos, 6 with nothing else found have such rows (farmland, brick courses, a
-# corrugated roof).
+# corpus photos, 7 get rows: 6 with nothing else found (farmland, brick courses, a
+# corrugated roof), and tropic_farmland, whose rows a long lattice (105 px) carried before.
 ROW_PEAK = 0.3
 ROW_SUPPORT_PEAK = 0.25
 ROW_MIN_REPEATS = 3  # multiples within a third of the image: rows at most 1/9 of it
@@ -170,7 +170,7 @@ ROW_MIN_REPEATS = 3  # multiples within a third of the image: rows at most 1/9 o
 # reaches BOARD_PEAK, a first peak of ROW_PEAK with ROW_MIN_REPEATS multiples at
 # UNEVEN_BOARD_PEAK: on the corpus's grain photos without boards, 3 of 1,452 (the planks; two
 # metal panels whose slots repeat every 16 px); with two multiples, also the packaged wood_2's
-# broad bands (33.5 px), one piece of wood. The planks' 70-s fit on the mean width: 5.0x -> 1.7x the floor.
+# broad bands (33.5 px), one piece of wood. The planks' 70-s fit: 5.0x -> 1.7x the floor.
 UNEVEN_BOARD_PEAK = 0.2
 # Parquet (``detect_direction_lattice``): blocks of slats alternating between up-down and
 # left-right, each slat its own tone, repeat in the direction of their streaks only. Their
@@ -991,8 +991,9 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
     In this order, each where the ones before found nothing: a lattice (``detect_lattice``,
     folded; ``lattice="auto"``); grain along an axis (``detect_grain``; ``grain="auto"``);
     on a grain photo boards (``detect_boards``, which keep the grain), on one without,
-    stripes (``detect_stripes``), else rows (``detect_rows``); a lattice reaching past a third of the photo
-    (``detect_long_lattice``, which drops a detected grain: a rug's bands); a leaning grain
+    stripes (``detect_stripes``), else rows (``detect_rows``); a lattice reaching past a
+    third of the photo (``detect_long_lattice``, which drops a detected grain: a rug's
+    bands); a leaning grain
     (``leaning_grain``, without boards: they are looked for on the turned photo); a lattice of
     the direction of the streaks (``detect_direction_lattice``: parquet); large cells
     (``detect_large_cells``). Boards come before stripes on a grain photo: its boards'
@@ -1012,7 +1013,7 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
         grain = None if found else detect_grain(photo)
     if lattice == "auto" and found is None:
         # boards: stripes that keep their grain; stripes: a lattice whose second vector
-        # carries no repeat
+        # carries no repeat; rows: stripes seen only in their profile
         found = detect_boards(photo, grain) if grain else detect_stripes(photo) or detect_rows(photo)
     if lattice == "auto" and found is None:
         found = detect_long_lattice(photo)

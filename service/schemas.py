@@ -242,8 +242,9 @@ class FitIn(BaseModel):
                             "2D lattice the photo repeats on (two independent autocorrelation peaks >= 0.3 "
                             "spanning a lattice whose other points show peaks too; a weak one gives way to "
                             "grain), else on a photo with grain its boards (the luminance averaged along the "
-                            "grain repeating across it: plank floors, decking; they keep their grain), on one "
-                            "without stripes (corrugation), and where nothing was found, large cells (tiles "
+                            "grain repeating across it: plank floors, decking, planks of uneven width at their "
+                            "mean width; they keep their grain), on one without stripes (corrugation) or rows "
+                            "seen in the luminance averaged along them (crop rows, brick courses), and where nothing was found, large cells (tiles "
                             "over a third of the photo: 2 to 3 across, looked for up to half of it), and the fitted sampler, its shader and its tileable twin "
                             "also read each point's phase on it, so tiles show rows, grids and board joints "
                             "(read on the photo with its smooth shading divided out). null: off")
