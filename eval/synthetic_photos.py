@@ -184,3 +184,32 @@ def wavy_rows(period: float = 9.1, size: int = 256, wave: float = 1.2, seed: int
     image = (0.45 + 0.05 * np.cos(2 * np.pi * x / period + wave * drift / drift.std())
              + 0.04 * leaves / leaves.std() + 0.03 * rng.standard_normal((size, size)))
     return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
+
+
+def module_pavement(module: int = 16, size: int = 256, seed: int = 8, largest: int = 4, joint_depth: float = 0.15,
+                    mottling: float = 0.06) -> np.ndarray:
+    """Slabs of 1 x 1 to ``largest`` x ``largest`` modules of ``module`` px laid on one grid,
+    each its own tone, under ``mottling``, joints ``joint_depth`` darker between slabs only
+    (0ad's medit_city_pavement): the joints run along some module lines and not others."""
+    rng = np.random.default_rng(seed)
+    cells = size // module
+    slab = np.full((cells, cells), -1)
+    for i in range(cells):
+        for j in range(cells):
+            if slab[i, j] >= 0:
+                continue
+            h, w = rng.integers(1, largest + 1, 2)
+            while h > 1 and (i + h > cells or (slab[i:i + h, j] >= 0).any()):
+                h -= 1
+            while w > 1 and (j + w > cells or (slab[i:i + h, j:j + w] >= 0).any()):
+                w -= 1
+            slab[i:i + h, j:j + w] = i * cells + j
+    pixels = np.repeat(np.repeat(slab, module, axis=0), module, axis=1)
+    joint = np.zeros((size, size), bool)
+    joint[:, :-1] |= pixels[:, :-1] != pixels[:, 1:]
+    joint[:-1, :] |= pixels[:-1, :] != pixels[1:, :]
+    joint = ndimage.binary_dilation(joint)
+    tone = rng.uniform(-0.08, 0.08, cells * cells)[pixels]
+    mottle = ndimage.gaussian_filter(rng.standard_normal((size, size)), 3.0)
+    image = 0.6 + tone + mottling * mottle / mottle.std() - joint_depth * joint + 0.01 * rng.standard_normal((size, size))
+    return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)

@@ -8,6 +8,7 @@ lattices are two basis vectors (ax, ay, bx, by) in pixels, x right, y down.
   squares, then ``fold_lattice`` moves it to where the photo folds sharpest;
 * ``detect_stripes``: a repeat along one direction only (corrugated board);
 * ``detect_rows``: stripes that wave or break, seen in the profile along them (crop rows);
+* ``detect_module_grid``: slabs or tiles of several sizes on one module (a pavement);
 * ``detect_grain``: streaks along image x or y (wood, brushed metal);
 * ``detect_boards``: on a photo with grain, boards side by side (plank floors, decking);
 * ``detect_direction_lattice``: a 2D repeat of the direction streaks run in, not of their
@@ -165,6 +166,7 @@ BOARD_MIN_REPEATS = 2  # multiples within a third of the image: boards at most 1
 ROW_PEAK = 0.3
 ROW_SUPPORT_PEAK = 0.25
 ROW_MIN_REPEATS = 3  # multiples within a third of the image: rows at most 1/9 of it
+FLAT_PROFILE = 1e-10  # a profile's mean square (luminance 0-1) under which it is flat
 # Boards of uneven width (0ad's bridge_wood_a: planks) repeat only on average, the profile
 # 0.38, 0.26, 0.22, 0.22, 0.29 at one to five of their mean width, 10.7 px. Where no board
 # reaches BOARD_PEAK, a first peak of ROW_PEAK with ROW_MIN_REPEATS multiples at
@@ -782,15 +784,33 @@ def detect_rows(image: np.ndarray) -> tuple[float, float, float, float] | None:
     if measured is None:
         return None
     across = correlation_normal(measured[0], across)
-    profile = row_profile(image, across)
-    correlation = autocorrelation(profile)
-    if not correlation[0] > 0:
-        return None
-    period = profile_period(correlation / correlation[0], ROW_PEAK, ROW_SUPPORT_PEAK, ROW_MIN_REPEATS)
+    period = row_period(image, across)
     if period is None:
         return None
     ax, ay = period * across
     return float(ax), float(ay), float(-ay), float(ax)
+
+
+def detect_module_grid(image: np.ndarray) -> tuple[float, float, float, float] | None:
+    """Slabs or tiles of several sizes laid on one module (a pavement of 1 x 1 to 2 x 3
+    slabs): the module as a lattice (ax, 0, 0, by) in pixels, or None. Their joints run along
+    some module lines and not others, so no 2D repeat is strong enough for a lattice and the
+    gradients run both ways (no stripes); the luminance averaged along x and along y each
+    repeat at the module (``row_period``)."""
+    across_x, across_y = row_period(image, np.array([1.0, 0.0])), row_period(image, np.array([0.0, 1.0]))
+    if across_x is None or across_y is None:
+        return None
+    return across_x, 0.0, 0.0, across_y
+
+
+def row_period(image: np.ndarray, across: np.ndarray) -> float | None:
+    """The period across ``across`` (a unit (x, y)) of the photo's luminance averaged along
+    the lines normal to it (``row_profile``), or None (``profile_period``: ROW_PEAK,
+    ROW_SUPPORT_PEAK, ROW_MIN_REPEATS)."""
+    correlation = autocorrelation(row_profile(image, across))
+    if not correlation[0] > FLAT_PROFILE:  # (a flat photo's profile is rounding noise, with any period)
+        return None
+    return profile_period(correlation / correlation[0], ROW_PEAK, ROW_SUPPORT_PEAK, ROW_MIN_REPEATS)
 
 
 def row_profile(image: np.ndarray, across: np.ndarray) -> np.ndarray:
@@ -993,10 +1013,10 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
     on a grain photo boards (``detect_boards``, which keep the grain), on one without,
     stripes (``detect_stripes``), else rows (``detect_rows``); a lattice reaching past a
     third of the photo (``detect_long_lattice``, which drops a detected grain: a rug's
-    bands); a leaning grain
-    (``leaning_grain``, without boards: they are looked for on the turned photo); a lattice of
-    the direction of the streaks (``detect_direction_lattice``: parquet); large cells
-    (``detect_large_cells``). Boards come before stripes on a grain photo: its boards'
+    bands); a leaning grain (``leaning_grain``, without boards: they are looked for on the
+    turned photo); a lattice of the direction of the streaks (``detect_direction_lattice``:
+    parquet); large cells (``detect_large_cells``); a module grid (``detect_module_grid``:
+    slabs of several sizes). Boards come before stripes on a grain photo: its boards'
     joints are stripes too, and the stripe detector reads their repeat at any multiple
     (9.3-px synthetic boards: 28 px, three boards) and would drop the grain. ``grain``
     "x" / "y" / None and ``lattice`` None are taken as given. A photo with a lattice or
@@ -1025,4 +1045,6 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
         found = detect_direction_lattice(photo)
     if lattice == "auto" and found is None and grain is None:
         found = detect_large_cells(photo)
+    if lattice == "auto" and found is None and grain is None:
+        found = detect_module_grid(photo)
     return grain, found

@@ -244,10 +244,12 @@ class FitIn(BaseModel):
                             "grain), else on a photo with grain its boards (the luminance averaged along the "
                             "grain repeating across it: plank floors, decking, planks of uneven width at their "
                             "mean width; they keep their grain), on one without stripes (corrugation) or rows "
-                            "seen in the luminance averaged along them (crop rows, brick courses), and where nothing was found, large cells (tiles "
-                            "over a third of the photo: 2 to 3 across, looked for up to half of it), and the fitted sampler, its shader and its tileable twin "
-                            "also read each point's phase on it, so tiles show rows, grids and board joints "
-                            "(read on the photo with its smooth shading divided out). null: off")
+                            "seen in the luminance averaged along them (crop rows, brick courses), and where "
+                            "nothing was found, large cells (tiles over a third of the photo: 2 to 3 across, "
+                            "looked for up to half of it) or a module grid (slabs of several sizes on one "
+                            "module), and the fitted sampler, its shader and its tileable twin also read each "
+                            "point's phase on it, so tiles show rows, grids and board joints (read on the photo "
+                            "with its smooth shading divided out). null: off")
     even: Literal["auto"] | None = Field(
         "auto", description="auto (default): a photo with no grain or lattice that is even at large scales (its "
                             "32-px block means vary by under 3% of its luminance variance: gravel, asphalt, "

@@ -11,10 +11,10 @@ from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelatio
                              grain_turn, leaning_grain, photo_lean, photo_structure, same_lattice, shortest_basis,
                              straighten)
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,
-                             detect_direction_lattice, detect_long_lattice, peak_height, pixel_noise,
+                             detect_direction_lattice, detect_module_grid, detect_long_lattice, peak_height, pixel_noise,
                              luminance_correlation, stripe_normal)
 from eval.synthetic_photos import (banded_motifs, boards, corrugation, crop_rows, fibres, hexagonal_tiles,
-                                parquet, running_bond, streaks, two_by_two, wavy_rows)
+                                module_pavement, parquet, running_bond, streaks, two_by_two, wavy_rows)
 from worker.colour import even_lighting
 
 
@@ -398,6 +398,22 @@ def test_rows_that_wave_are_found_in_their_profile_where_stripes_are_not(skimage
         assert detect_rows(skimage_textures[name]) is None, name
     assert detect_rows(streaks()) is None                          # one piece of wood: no rows
     assert detect_rows(np.full((64, 64, 3), 0.5)) is None
+
+
+@pytest.mark.parametrize("seed", [8, 9])
+def test_slabs_of_several_sizes_on_one_module_are_a_module_grid(seed, skimage_textures):
+    """A pavement of 1 x 1 to 4 x 4 slabs on a 16-px module: joints run along some module lines
+    only, so no 2D lattice, and both ways, so no stripes or rows; the luminance averaged along x
+    and along y each repeat at the module. Nothing else is found before it."""
+    photo = module_pavement(seed=seed)
+    evened = even_lighting(photo)
+    assert detect_lattice(evened) is None and detect_stripes(evened) is None and detect_rows(evened) is None
+    ax, ay, bx, by = detect_module_grid(evened)
+    assert abs(ax - 16) < 0.1 and abs(by - 16) < 0.1 and ay == bx == 0, (ax, by)
+    assert photo_structure(photo) == (None, (ax, ay, bx, by))
+    for name in ("gravel", "grass"):
+        assert detect_module_grid(skimage_textures[name]) is None, name
+    assert detect_module_grid(np.full((64, 64, 3), 0.5)) is None
 
 
 @pytest.mark.parametrize("blend, found", [(0.0, True), (0.3, True), (0.5, False)])
