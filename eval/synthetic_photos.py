@@ -61,7 +61,8 @@ def boards(width: float = 25.6, size: int = 256, seed: int = 5, uneven: float = 
     y, x = np.mgrid[0:size, 0:size].astype(np.float64)
     board = np.floor((x + 0.5) / width).astype(int)
     if uneven:
-        edges = np.cumsum(width * rng.uniform(1 - uneven, 1 + uneven, int(size / width / (1 - uneven)) + 2)) - 0.5
+        widths = width * rng.uniform(1 - uneven, 1 + uneven, int(size / width / (1 - uneven)) + 2)
+        edges = np.cumsum(widths) - 0.5
         board = np.searchsorted(edges, x)
         gap = np.minimum(np.abs(x - edges[np.maximum(board - 1, 0)]), np.abs(edges[board] - x))
     wander = 200 * ndimage.gaussian_filter(rng.standard_normal((size, size)), 16)
@@ -186,8 +187,8 @@ def wavy_rows(period: float = 9.1, size: int = 256, wave: float = 1.2, seed: int
     return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
 
 
-def module_pavement(module: int = 16, size: int = 256, seed: int = 8, largest: int = 4, joint_depth: float = 0.15,
-                    mottling: float = 0.06) -> np.ndarray:
+def module_pavement(module: int = 16, size: int = 256, seed: int = 8, largest: int = 4,
+                    joint_depth: float = 0.15, mottling: float = 0.06) -> np.ndarray:
     """Slabs of 1 x 1 to ``largest`` x ``largest`` modules of ``module`` px laid on one grid,
     each its own tone, under ``mottling``, joints ``joint_depth`` darker between slabs only
     (0ad's medit_city_pavement): the joints run along some module lines and not others."""
@@ -211,5 +212,6 @@ def module_pavement(module: int = 16, size: int = 256, seed: int = 8, largest: i
     joint = ndimage.binary_dilation(joint)
     tone = rng.uniform(-0.08, 0.08, cells * cells)[pixels]
     mottle = ndimage.gaussian_filter(rng.standard_normal((size, size)), 3.0)
-    image = 0.6 + tone + mottling * mottle / mottle.std() - joint_depth * joint + 0.01 * rng.standard_normal((size, size))
+    image = (0.6 + tone + mottling * mottle / mottle.std() - joint_depth * joint
+             + 0.01 * rng.standard_normal((size, size)))
     return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)

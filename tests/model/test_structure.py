@@ -7,11 +7,13 @@ from scipy import ndimage
 import pytest
 
 from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,
-                             detect_grain, detect_lattice, detect_rows, detect_stripes, fold_lattice, grain_stretch, grain_tilt,
+                             detect_grain, detect_lattice, detect_rows, detect_stripes, fold_lattice, grain_stretch,
+                             grain_tilt,
                              grain_turn, leaning_grain, photo_lean, photo_structure, same_lattice, shortest_basis,
                              straighten)
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,
-                             detect_direction_lattice, detect_module_grid, detect_long_lattice, peak_height, pixel_noise,
+                             detect_direction_lattice, detect_module_grid, detect_long_lattice, peak_height,
+                             pixel_noise,
                              luminance_correlation, stripe_normal)
 from eval.synthetic_photos import (banded_motifs, boards, corrugation, crop_rows, fibres, hexagonal_tiles,
                                 module_pavement, parquet, running_bond, streaks, two_by_two, wavy_rows)
@@ -381,9 +383,10 @@ def test_faint_rows_under_leaning_leaves_are_stripes_straight_across_them():
 
 def test_rows_that_wave_are_found_in_their_profile_where_stripes_are_not(skimage_textures):
     """0ad's temp_farmland: rows of crops 9.1 px apart whose 2D correlation fades within a few
-    rows (they wave and break), too few for the stripes; averaged along the rows they repeat. Its 70-s fit
-    without them was isotropic speckle (10.8x the photo's floor), on them 1.7x. A profile
-    one degree off smears a period over 256 px, so the direction comes from the correlation."""
+    rows (they wave and break), too few for the stripes; averaged along the rows they repeat.
+    Its 70-s fit without them was isotropic speckle (10.8x the photo's floor), on them 1.7x. A
+    profile one degree off smears a period over 256 px, so the direction comes from the
+    correlation."""
     image = even_lighting(wavy_rows())
     assert detect_lattice(image) is None and detect_stripes(image) is None and detect_grain(image) is None
     ax, ay, bx, by = detect_rows(image)
@@ -457,7 +460,8 @@ def test_detect_boards_measures_the_board_width_across_the_grain(skimage_texture
 
 def test_photo_structure_decides_what_a_fit_builds_in(skimage_textures):
     """Lattice first, then stripes, then grain; boards only on a photo with grain, and they
-    keep it (rows on one without); "auto" detects, None turns a part off, an explicit grain is kept as given."""
+    keep it (rows on one without); "auto" detects, None turns a part off, an explicit grain is
+    kept as given."""
     bond, board, plain = running_bond(), corrugation(), boards()
     grain, lattice = photo_structure(bond)
     evened = even_lighting(bond)  # what the detectors read
