@@ -1,20 +1,27 @@
 """Quality a fit reaches per time budget (``make bench-fit-budget``; not part of ``make test``).
 
     .venv/bin/python bench/fit_budget.py [--photos A.png B.png ...] [--seconds 30 60 120]
-                                         [--precision auto] [--threads 0] [--seed 0] [--reference-seconds 240]
+                                         [--precision auto] [--threads 0] [--seeds 0 1 2]
+                                         [--reference-seconds 240] [--reference-checkout DIR]
 
 Each photo is fitted (``python -m model.fit``, one at a time, on every core as the fit lane runs
-them by default: ``--threads``) for every budget, then scored as ``make quality`` scores fits: the VGG Gram style error
-of its native-zoom tiles against the whole photo, and their error over the photo's own floor
-(``eval/style_floor.py``). The reference, measured in the same run: a float32 fit of
-``--reference-seconds`` on one thread (240: the refinement before bfloat16 and before fits
-took every core), and the encoder code. Prints a
-table and merges it into bench/out/results.json under ``fit_budget``.
+them by default: ``--threads``) for every budget and seed, then scored as ``make quality`` scores
+fits: the VGG Gram style error of its native-zoom tiles against the whole photo, and their error
+over the photo's own floor (``eval/style_floor.py``). The reference, measured in the same run: a
+float32 fit of ``--reference-seconds`` on one thread (240: the refinement before bfloat16 and
+before fits took every core), and the encoder code. ``--reference-checkout``: the reference fits
+run the ``model.fit`` of that folder instead, an older checkout of this project (``git worktree
+add /tmp/before 85b91e4``: the 4-minute float32 fit when fits were made fast), with its own
+defaults and space, on one thread; every fit is scored here, by this checkout's protocol. A fit's
+error moves between seeds by as much as between settings: with several ``--seeds`` the table ends
+with each run's mean over them and its ratio to the reference's mean. Prints the tables and
+merges them into bench/out/results.json under ``fit_budget``.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -27,6 +34,7 @@ from bench.common import merge_results  # noqa: E402
 
 VAL = ROOT / "data" / "textures" / "val"
 PHOTOS = ("miniworld_brick_wall_1.png", "vpython_granite.png", "miniworld_wood_1.png")
+REFERENCE = "reference"
 
 
 def quality_module():
@@ -36,11 +44,15 @@ def quality_module():
     return eval.quality
 
 
-def fit(photo: Path, out: Path, seconds: float, precision: str, threads: int, seed: int = 0) -> dict:
-    subprocess.run([sys.executable, "-m", "model.fit", str(photo), str(out), "--minutes", str(seconds / 60),
-                    "--threads", str(threads), "--precision", precision, "--seed", str(seed),
-                    "--detail-seconds", "0"], check=True, cwd=ROOT,  # (the working size is scored)
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def fit(photo: Path, out: Path, seconds: float, precision: str, threads: int, seed: int = 0,
+        checkout: Path | None = None) -> dict:
+    """``model.fit`` of this checkout, or with ``checkout`` that folder's with only the flags every
+    version has (an older one knows no --precision or --detail-seconds)."""
+    flags = ["--minutes", str(seconds / 60), "--threads", str(threads), "--seed", str(seed)]
+    if checkout is None:
+        flags += ["--precision", precision, "--detail-seconds", "0"]  # (the working size is scored)
+    subprocess.run([sys.executable, "-m", "model.fit", str(photo.resolve()), str(out), *flags], check=True,
+                   cwd=checkout or ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return json.loads((out / "manifest.json").read_text())
 
 
@@ -60,6 +72,20 @@ def score(q, runtime, photo: Path) -> tuple[float, float | None]:  # noqa: ANN00
     return style, style_ratio(float(crop_errors(tiles, floor).mean()), floor.floor)
 
 
+def seed_means(rows: list[dict]) -> list[dict]:
+    """Each (photo, run)'s mean style error over its seeds, and its ratio to the photo's reference
+    mean (None without a reference)."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["photo"], row["run"]), []).append(row)
+    reference = {photo: statistics.fmean(r["style"] for r in group)
+                 for (photo, run), group in groups.items() if run.startswith(REFERENCE)}
+    return [{"photo": photo, "run": run, "seeds": len(group), "style": statistics.fmean(r["style"] for r in group),
+             "vs_reference": (statistics.fmean(r["style"] for r in group) / reference[photo]
+                              if photo in reference else None)}
+            for (photo, run), group in groups.items()]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--photos", type=Path, nargs="+", default=[VAL / name for name in PHOTOS])
@@ -67,35 +93,49 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precision", default="auto", choices=["auto", "bf16", "fp32"])
     parser.add_argument("--threads", type=int, default=0, help="torch threads of the fits (0: every core, as the "
                         "service's TEXSPACE_FIT_THREADS default)")
-    parser.add_argument("--seed", type=int, default=0, help="the fits' seed (model.fit --seed)")
+    parser.add_argument("--seeds", "--seed", type=int, nargs="+", default=[0], help="the fits' seeds (model.fit --seed)")
     parser.add_argument("--reference-seconds", type=float, default=240.0,
                         help="float32 reference on one thread (0: none)")
+    parser.add_argument("--reference-checkout", type=Path, default=None,
+                        help="run the reference fits with this folder's model.fit (an older checkout)")
     args = parser.parse_args(argv)
     q = quality_module()
     model = q.ModelRuntime(ROOT / "model" / "weights")
-    runs = [(seconds, args.precision, args.threads) for seconds in args.seconds]
+    # (seconds, precision, threads, checkout, whether it is the reference)
+    runs = [(seconds, args.precision, args.threads, None, False) for seconds in args.seconds]
     if args.reference_seconds:
-        runs.append((args.reference_seconds, "fp32", 1))
+        runs.append((args.reference_seconds, "fp32", 1, args.reference_checkout, True))
     rows = []
     with tempfile.TemporaryDirectory(prefix="texspace-fit-budget-") as folder:
         for photo in args.photos:
             encoder = score(q, model, photo)
-            rows.append({"photo": photo.stem, "run": "encoder code", "steps": 0, "style": encoder[0],
+            rows.append({"photo": photo.stem, "run": "encoder code", "seed": None, "steps": 0, "style": encoder[0],
                          "floor_ratio": encoder[1]})
-            for seconds, precision, threads in runs:
-                out = Path(folder) / f"{photo.stem}-{precision}-{seconds:g}"
-                manifest = fit(photo, out, seconds, precision, threads, args.seed)
-                style, ratio = score(q, q.FittedRuntime(model, out), photo)
-                cores = "every core" if threads == 0 else f"{threads} thread" + "s" * (threads > 1)
-                rows.append({"photo": photo.stem, "run": f"{seconds:g} s {manifest['precision']}, {cores}",
-                             "steps": manifest["steps"], "style": style, "floor_ratio": ratio})
-                print(f"{photo.stem:28s} {rows[-1]['run']:>26s} {manifest['steps']:4d} steps  style "
-                      f"{style:.4f}  / floor {ratio if ratio is None else round(ratio, 2)}", flush=True)
-    print(f"\n| photo | run | steps | style error | over the photo's floor |\n|---|---|---|---|---|")
+            for seed in args.seeds:
+                for seconds, precision, threads, checkout, reference in runs:
+                    out = Path(folder) / f"{photo.stem}-{precision}-{seconds:g}-{seed}{'-ref' * bool(checkout)}"
+                    manifest = fit(photo, out, seconds, precision, threads, seed, checkout)
+                    style, ratio = score(q, q.FittedRuntime(model, out), photo)
+                    cores = "every core" if threads == 0 else f"{threads} thread" + "s" * (threads > 1)
+                    run = f"{seconds:g} s {manifest.get('precision', 'fp32')}, {cores}"
+                    if reference:
+                        run = f"{REFERENCE}: {run}" + (f" ({checkout.name})" if checkout is not None else "")
+                    rows.append({"photo": photo.stem, "run": run, "seed": seed, "steps": manifest["steps"],
+                                 "style": style, "floor_ratio": ratio})
+                    print(f"{photo.stem:28s} {run:>36s} seed {seed} {manifest['steps']:4d} steps  style "
+                          f"{style:.4f}  / floor {ratio if ratio is None else round(ratio, 2)}", flush=True)
+    print("\n| photo | run | seed | steps | style error | over the photo's floor |\n|---|---|---|---|---|---|")
     for row in rows:
         ratio = "-" if row["floor_ratio"] is None else f"{row['floor_ratio']:.2f}"
-        print(f"| {row['photo']} | {row['run']} | {row['steps']} | {row['style']:.4f} | {ratio} |")
-    merge_results({"fit_budget": rows})
+        seed = "-" if row["seed"] is None else row["seed"]
+        print(f"| {row['photo']} | {row['run']} | {seed} | {row['steps']} | {row['style']:.4f} | {ratio} |")
+    means = seed_means([row for row in rows if row["seed"] is not None])
+    if len(args.seeds) > 1:
+        print("\n| photo | run | seeds | mean style error | / the reference's mean |\n|---|---|---|---|---|")
+        for row in means:
+            ratio = "-" if row["vs_reference"] is None else f"{row['vs_reference']:.2f}"
+            print(f"| {row['photo']} | {row['run']} | {row['seeds']} | {row['style']:.4f} | {ratio} |")
+    merge_results({"fit_budget": rows, "fit_budget_seed_means": means})
     return 0
 
 
