@@ -34,7 +34,6 @@ from bench.common import merge_results  # noqa: E402
 
 VAL = ROOT / "data" / "textures" / "val"
 PHOTOS = ("miniworld_brick_wall_1.png", "vpython_granite.png", "miniworld_wood_1.png")
-REFERENCE = "reference"
 
 
 def quality_module():
@@ -73,17 +72,16 @@ def score(q, runtime, photo: Path) -> tuple[float, float | None]:  # noqa: ANN00
 
 
 def seed_means(rows: list[dict]) -> list[dict]:
-    """Each (photo, run)'s mean style error over its seeds, and its ratio to the photo's reference
-    mean (None without a reference)."""
+    """Each (photo, run)'s mean style error over its seeds, and its ratio to the mean of the
+    photo's reference run (the rows marked ``reference``; None without one)."""
     groups: dict[tuple[str, str], list[dict]] = {}
     for row in rows:
         groups.setdefault((row["photo"], row["run"]), []).append(row)
-    reference = {photo: statistics.fmean(r["style"] for r in group)
-                 for (photo, run), group in groups.items() if run.startswith(REFERENCE)}
-    return [{"photo": photo, "run": run, "seeds": len(group), "style": statistics.fmean(r["style"] for r in group),
-             "vs_reference": (statistics.fmean(r["style"] for r in group) / reference[photo]
-                              if photo in reference else None)}
-            for (photo, run), group in groups.items()]
+    means = {key: statistics.fmean(r["style"] for r in group) for key, group in groups.items()}
+    reference = {photo: means[photo, run] for (photo, run), group in groups.items() if group[0]["reference"]}
+    return [{"photo": photo, "run": run, "seeds": len(groups[photo, run]), "style": mean,
+             "vs_reference": mean / reference[photo] if photo in reference else None}
+            for (photo, run), mean in means.items()]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -109,19 +107,19 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="texspace-fit-budget-") as folder:
         for photo in args.photos:
             encoder = score(q, model, photo)
-            rows.append({"photo": photo.stem, "run": "encoder code", "seed": None, "steps": 0, "style": encoder[0],
-                         "floor_ratio": encoder[1]})
+            rows.append({"photo": photo.stem, "run": "encoder code", "seed": None, "reference": False, "steps": 0,
+                         "style": encoder[0], "floor_ratio": encoder[1]})
             for seed in args.seeds:
                 for seconds, precision, threads, checkout, reference in runs:
-                    out = Path(folder) / f"{photo.stem}-{precision}-{seconds:g}-{seed}{'-ref' * bool(checkout)}"
+                    out = Path(folder) / f"{photo.stem}-{precision}-{seconds:g}-{seed}{'-ref' * reference}"
                     manifest = fit(photo, out, seconds, precision, threads, seed, checkout)
                     style, ratio = score(q, q.FittedRuntime(model, out), photo)
                     cores = "every core" if threads == 0 else f"{threads} thread" + "s" * (threads > 1)
                     run = f"{seconds:g} s {manifest.get('precision', 'fp32')}, {cores}"
                     if reference:
-                        run = f"{REFERENCE}: {run}" + (f" ({checkout.name})" if checkout is not None else "")
-                    rows.append({"photo": photo.stem, "run": run, "seed": seed, "steps": manifest["steps"],
-                                 "style": style, "floor_ratio": ratio})
+                        run = f"reference: {run}" + (f" ({checkout.name})" if checkout is not None else "")
+                    rows.append({"photo": photo.stem, "run": run, "seed": seed, "reference": reference,
+                                 "steps": manifest["steps"], "style": style, "floor_ratio": ratio})
                     print(f"{photo.stem:28s} {run:>36s} seed {seed} {manifest['steps']:4d} steps  style "
                           f"{style:.4f}  / floor {ratio if ratio is None else round(ratio, 2)}", flush=True)
     print("\n| photo | run | seed | steps | style error | over the photo's floor |\n|---|---|---|---|---|---|")

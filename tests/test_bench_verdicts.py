@@ -59,9 +59,10 @@ def test_noise_floor_rows_and_the_shipped_samplers_op_count():
 def test_fit_budget_means_each_run_over_its_seeds_against_the_reference():
     from bench.fit_budget import seed_means
 
-    rows = [{"photo": "gravel", "run": "70 s bf16, every core", "style": s} for s in (2.0, 1.6, 2.1)]
-    rows += [{"photo": "gravel", "run": "reference: 240 s fp32, 1 thread (before)", "style": s} for s in (1.9, 2.0)]
-    rows += [{"photo": "granite", "run": "70 s bf16, every core", "style": 0.3}]
+    rows = [{"photo": "gravel", "run": "70 s bf16, every core", "reference": False, "style": s} for s in (2.0, 1.6, 2.1)]
+    rows += [{"photo": "gravel", "run": "reference: 240 s fp32, 1 thread (before)", "reference": True, "style": s}
+             for s in (1.9, 2.0)]
+    rows += [{"photo": "granite", "run": "70 s bf16, every core", "reference": False, "style": 0.3}]
     means = {(m["photo"], m["run"]): m for m in seed_means(rows)}
     fast = means["gravel", "70 s bf16, every core"]
     assert fast["seeds"] == 3 and abs(fast["style"] - 1.9) < 1e-9
