@@ -15,7 +15,8 @@ from model.config import VARIANTS  # noqa: E402
 from model.networks import ModelConfig, TextureSpace, load_checkpoint  # noqa: E402
 from model.slices import random_planes, render_slices  # noqa: E402
 from model.vgg import shared_vgg  # noqa: E402
-from model.objective import LATTICE_CONTRAST_WEIGHT, Objective  # noqa: E402
+from model.losses import gram_loss, gram_matrices  # noqa: E402
+from model.objective import LATTICE_CONTRAST_WEIGHT, Objective, crop_starts  # noqa: E402
 from model.slices import lattice_partners  # noqa: E402
 from model.train import main as train_main, train  # noqa: E402
 from model.train_config import TrainConfig, parse_args  # noqa: E402
@@ -451,6 +452,27 @@ def test_precision_auto_follows_the_hardware_and_named_precisions_are_kept(monke
     assert device_module.resolve_precision("auto", cpu) is torch.bfloat16
     with pytest.raises(SystemExit):
         TrainConfig(out="x", precision="fp16")
+
+
+def test_patches_are_scored_against_the_mean_gram_of_the_photos_crops_of_their_size(vgg, brick):
+    """A patch's target is the mean Gram of the photo's crops of the patch's size (padding reaches
+    more of a small image's deep features); the photo's own crops score far lower against it than
+    against the whole photo's Gram, and a patch as large as the photo keeps the whole Gram."""
+    layers = ("relu1_1", "relu3_1", "relu5_1")
+    objective = Objective([brick], layers, "gram")  # 128 x 128
+    starts = crop_starts(128, 64)
+    assert starts == [0, 32, 64] and crop_starts(1024, 128) == [0, 299, 597, 896] and crop_starts(1024, 256) == [0, 768]
+    crops = np.stack([brick[y:y + 64, x:x + 64] for y in starts for x in starts]).transpose(0, 3, 1, 2)
+    crops = torch.from_numpy(np.ascontiguousarray(crops))
+    with torch.no_grad():
+        mean = {name: g.mean(0, keepdim=True) for name, g in gram_matrices(objective.vgg(crops)).items()}
+        target = objective.gram_target(0, 64)
+        for name in layers:
+            torch.testing.assert_close(target[name], mean[name], rtol=1e-4, atol=1e-6)
+        assert objective.gram_target(0, 128) is objective.targets[0]
+        own = float(objective(crops, np.zeros(len(crops), dtype=np.int64)))
+        against_whole = float(gram_loss(objective.features(crops), objective.targets[0]))
+    assert own < 0.5 * against_whole
 
 
 def test_bf16_features_are_float32_and_their_gram_loss_stays_within_a_percent(vgg, brick):
