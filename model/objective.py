@@ -12,7 +12,7 @@ from model.colour import compressed_moments, transfer_colour_moments
 from model.device import autocast
 from model.lattice import lattice_contrast
 from model.losses import (gram_energy, gram_loss, gram_matrices, sliced_wasserstein_loss, spectrum_loss,
-                          spectrum_target)
+                          spectrum_target, target_grams)
 from model.slices import linear_to_srgb, srgb_to_linear
 from model.vgg import shared_vgg
 
@@ -157,17 +157,11 @@ class Objective:
         height, width = image.shape[:2]
         if size >= min(height, width):
             return self.targets[k]
-        if (k, size) not in self.crop_grams:
-            rows, cols = crop_starts(height, size), crop_starts(width, size)
-            total = None
-            with torch.no_grad():
-                for top in rows:  # a row of crops at a time
-                    crops = np.stack([image[top:top + size, left:left + size] for left in cols]).transpose(0, 3, 1, 2)
-                    grams = gram_matrices(self.vgg(torch.from_numpy(np.ascontiguousarray(crops)).to(self.device)))
-                    sums = {name: g.sum(0, keepdim=True) for name, g in grams.items()}
-                    total = sums if total is None else {name: total[name] + sums[name] for name in sums}
-            count = len(rows) * len(cols)
-            self.crop_grams[k, size] = {name: value / count for name, value in total.items()}
+        if (k, size) not in self.crop_grams:  # (CROP_SPAN bounds the crops to one 512-px image's pixels)
+            crops = np.stack([image[top:top + size, left:left + size] for top in crop_starts(height, size)
+                              for left in crop_starts(width, size)]).transpose(0, 3, 1, 2)
+            grams = target_grams(torch.from_numpy(np.ascontiguousarray(crops)).to(self.device), self.vgg)
+            self.crop_grams[k, size] = {name: g.mean(0, keepdim=True) for name, g in grams.items()}
         return self.crop_grams[k, size]
 
     def spectrum(self, k: int, size: int) -> torch.Tensor:
