@@ -174,6 +174,17 @@ FLAT_PROFILE = 1e-10  # a profile's mean square (luminance 0-1) under which it i
 # metal panels whose slots repeat every 16 px); with two multiples, also the packaged wood_2's
 # broad bands (33.5 px), one piece of wood. The planks' 70-s fit: 5.0x -> 1.7x the floor.
 UNEVEN_BOARD_PEAK = 0.2
+# Wide boards and ripples (``wide_period``, ``detect_wide_boards``): a repeat across the grain
+# too wide for two multiples within a third of the photo (over a sixth of it, up to a
+# quarter). The wind ripples on 0ad's savanna_sand_dunes_100 run left-right and wave, 43.5 px
+# apart at the working size: the profile across them reads 0.46 at one ripple after swinging
+# to -0.64 at half of one. The dark woods and the bark of the corpus have a first local
+# maximum below zero (-0.21, -0.5): no repeat. Their grain is dropped, as a long lattice drops
+# it: paired 70-s fits (seed 0) over the photo's floor, grain -> stripes: savanna dunes 6.20 ->
+# 4.46, desert dunes 5.71 -> 4.46, ufoai roof panels 31.8 -> 4.14 (stripes keeping the grain:
+# 6.73, 4.42, 4.68).
+WIDE_PEAK = 0.4
+WIDE_DIP = 0.3
 # Parquet (``detect_direction_lattice``): blocks of slats alternating between up-down and
 # left-right, each slat its own tone, repeat in the direction of their streaks only. Their
 # luminance correlation is the slats': synthetic parquet of 32-px blocks of 8-px slats
@@ -717,28 +728,49 @@ def detect_boards(image: np.ndarray, grain: str) -> tuple[float, float, float, f
     stripe lattice (ax, ay, bx, by) in pixels, a across the grain and b along it (a turned
     a quarter turn, as ``detect_stripes``), or None.
 
-    The luminance is averaged along the grain (a profile across it, without its slow
-    trends); the profile's autocorrelation must peak at BOARD_PEAK or more near a share of
-    at least LATTICE_SUPPORT of the multiples of the width within a third of the image, at
-    least BOARD_MIN_REPEATS of them (a width between two pixels splits its peaks), and the
-    width is their least-squares period (``profile_period``). The shortest such repeat is
-    the board (two boards are a repeat too). Where none is found, boards of uneven width:
-    a first peak of ROW_PEAK, its multiples at UNEVEN_BOARD_PEAK, at least ROW_MIN_REPEATS
-    of them (their mean width; two would pass a plain wood's broad bands)."""
+    The luminance is averaged along the grain (``across_grain_correlation``); the profile's
+    autocorrelation must peak at BOARD_PEAK or more near a share of at least LATTICE_SUPPORT
+    of the multiples of the width within a third of the image, at least BOARD_MIN_REPEATS of
+    them (a width between two pixels splits its peaks), and the width is their
+    least-squares period (``profile_period``). The shortest such repeat is the board (two
+    boards are a repeat too). Where none is found, boards of uneven width: a first peak of
+    ROW_PEAK, its multiples at UNEVEN_BOARD_PEAK, at least ROW_MIN_REPEATS of them (their
+    mean width; two would pass a plain wood's broad bands)."""
+    correlation = across_grain_correlation(image, grain)
+    if correlation is None:
+        return None
+    width = (profile_period(correlation, BOARD_PEAK, BOARD_PEAK, BOARD_MIN_REPEATS)
+             or profile_period(correlation, ROW_PEAK, UNEVEN_BOARD_PEAK, ROW_MIN_REPEATS))
+    return _across_grain_stripes(width, grain) if width is not None else None
+
+
+def detect_wide_boards(image: np.ndarray, grain: str) -> tuple[float, float, float, float] | None:
+    """Boards or ripples wider than a sixth of the photo across its grain (``wide_period``:
+    one repeat within a third of it), as ``detect_boards`` gives boards, or None. Asked after
+    ``detect_long_lattice`` (``photo_structure``): a rug's bands of motifs repeat across its
+    weave too, and their lattice says more. Unlike boards they drop the grain (WIDE_PEAK)."""
+    correlation = across_grain_correlation(image, grain)
+    width = wide_period(correlation) if correlation is not None else None
+    return _across_grain_stripes(width, grain) if width is not None else None
+
+
+def across_grain_correlation(image: np.ndarray, grain: str) -> np.ndarray | None:
+    """The autocorrelation (1 at [0], circular) of the photo's luminance averaged along its
+    grain, ``"x"`` or ``"y"``: a profile across it, without what varies slower than an eighth
+    of it (light falling off, wide grain bands); None for a flat profile."""
     if grain not in ("x", "y"):
         raise ValueError(f"grain must be 'x' or 'y', got {grain!r}")
     profile = rec709_luminance(image).mean(axis=0 if grain == "y" else 1)
-    # without what varies slower than boards (light falling off, wide grain bands)
     profile -= ndimage.gaussian_filter1d(profile, len(profile) / 8, mode="wrap")
     spectrum = np.fft.fft(profile)
     correlation = np.fft.ifft(spectrum * np.conj(spectrum)).real
     if not correlation[0] > 0:
         return None
-    correlation /= correlation[0]
-    width = (profile_period(correlation, BOARD_PEAK, BOARD_PEAK, BOARD_MIN_REPEATS)
-             or profile_period(correlation, ROW_PEAK, UNEVEN_BOARD_PEAK, ROW_MIN_REPEATS))
-    if width is None:
-        return None
+    return correlation / correlation[0]
+
+
+def _across_grain_stripes(width: float, grain: str) -> tuple[float, float, float, float]:
+    """A stripe lattice of ``width`` px across ``grain``: a across it, b along it."""
     ax, ay = (width, 0.0) if grain == "y" else (0.0, width)
     return ax, ay, -ay, ax
 
@@ -767,6 +799,24 @@ def profile_period(correlation: np.ndarray, peak: float, support: float, min_rep
         steps, at = steps[use], windows[use, best[use]]  # all within the first half: no wrapping
         peaks = at + parabola_top(correlation[at - 1], correlation[at], correlation[at + 1])
         return float((steps * peaks).sum() / (steps ** 2).sum())
+    return None
+
+
+def wide_period(correlation: np.ndarray, peak: float = WIDE_PEAK, dip: float = WIDE_DIP) -> float | None:
+    """The period of a profile that repeats only once within a third of itself (wide boards,
+    ripples: over a sixth of the profile, where ``profile_period`` would want two multiples),
+    from its autocorrelation (1D, 1 at [0]), or None: its first local maximum from
+    LATTICE_MIN_OFFSET px on, kept where it lies beyond a sixth and within a quarter of the
+    profile (in view four times or more), reaches ``peak``, and the correlation swung down to
+    ``-dip`` or lower before it (a clean oscillation); located between pixels by a parabola.
+    A narrower first repeat is the other rules' to judge (a brick wall in perspective:
+    courses that drift apart); a wider one is a close-up's broad band (the packaged wood's
+    100-px corner at the working size: 0.6 at 82 px)."""
+    for lag in range(LATTICE_MIN_OFFSET, len(correlation) // 4 + 1):
+        if correlation[lag] >= correlation[lag - 1] and correlation[lag] >= correlation[lag + 1]:
+            if 6 * lag <= len(correlation) or correlation[lag] < peak or correlation[:lag].min() > -dip:
+                return None
+            return lag + float(parabola_top(*correlation[lag - 1: lag + 2]))
     return None
 
 
@@ -1013,8 +1063,9 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
     on a grain photo boards (``detect_boards``, which keep the grain), on one without,
     stripes (``detect_stripes``), else rows (``detect_rows``); a lattice reaching past a
     third of the photo (``detect_long_lattice``, which drops a detected grain: a rug's
-    bands); a leaning grain (``leaning_grain``, without boards: they are looked for on the
-    turned photo); a lattice of the direction of the streaks (``detect_direction_lattice``:
+    bands); on a grain photo, boards or ripples wider than a sixth of it
+    (``detect_wide_boards``, which drop the grain too); a leaning grain (``leaning_grain``, without boards: they are
+    looked for on the turned photo); a lattice of the direction of the streaks (``detect_direction_lattice``:
     parquet); large cells (``detect_large_cells``); a module grid (``detect_module_grid``:
     slabs of several sizes). Boards come before stripes on a grain photo: its boards'
     joints are stripes too, and the stripe detector reads their repeat at any multiple
@@ -1037,6 +1088,10 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
         found = detect_boards(photo, grain) if grain else detect_stripes(photo) or detect_rows(photo)
     if lattice == "auto" and found is None:
         found = detect_long_lattice(photo)
+        if found is not None and asked == "auto":
+            grain = None
+    if lattice == "auto" and found is None and grain:
+        found = detect_wide_boards(photo, grain)
         if found is not None and asked == "auto":
             grain = None
     if asked == "auto" and grain is None and found is None:

@@ -172,6 +172,23 @@ def test_a_leaning_grain_is_fitted_straightened(tmp_path, monkeypatch):
     assert manifest["straightened"] == result["straightened"]
 
 
+def test_boards_found_upright_are_not_turned_by_the_grains_mean_lean(monkeypatch):
+    """A grain's mean lean (the structure tensor's) turned photos whose boards run along the
+    axis and lost them (0ad's gold brick courses, 5 degrees; wavy ripples, 11): a photo whose
+    boards are found as it is keeps its axis; one without boards is still straightened."""
+    import model.fit
+    from model.fit import detect_structure
+    from eval.synthetic_photos import streaks
+
+    monkeypatch.setattr(model.fit, "grain_turn", lambda photo, grain: 11.0 if grain else 0.0)
+    cfg = ModelConfig()
+    found = detect_structure(boards(), cfg, grain="auto", lattice="auto", even="auto", lean="auto")
+    assert found.turned == 0.0 and found.grain == "y" and found.lattice is not None
+    assert abs(found.lattice[0] * cfg.pixels_per_unit - 25.6) < 0.1
+    plain = detect_structure(streaks(), cfg, grain="auto", lattice="auto", even="auto", lean="auto")
+    assert plain.turned == 11.0 and plain.lattice is None
+
+
 def test_every_fit_takes_the_large_patch_and_falling_rates_by_default(tmp_path, monkeypatch):
     """Stripe and 2D lattice fits train on PATCH, as a fit without structure does (the
     validation cardboard: 0.054 -> 0.0048; floor tiles 0.28 -> 0.031 with falling rates),

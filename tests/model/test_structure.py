@@ -7,8 +7,8 @@ from scipy import ndimage
 import pytest
 
 from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,
-                             detect_grain, detect_lattice, detect_rows, detect_stripes, fold_lattice, grain_stretch,
-                             grain_tilt,
+                             detect_grain, detect_lattice, detect_rows, detect_stripes, detect_wide_boards,
+                             fold_lattice, grain_stretch, grain_tilt,
                              grain_turn, leaning_grain, photo_lean, photo_structure, same_lattice, shortest_basis,
                              straighten)
 from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,
@@ -16,7 +16,7 @@ from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes
                              pixel_noise,
                              luminance_correlation, stripe_normal)
 from eval.synthetic_photos import (banded_motifs, boards, corrugation, crop_rows, fibres, hexagonal_tiles,
-                                module_pavement, parquet, running_bond, streaks, two_by_two, wavy_rows)
+                                module_pavement, parquet, ripples, running_bond, streaks, two_by_two, wavy_rows)
 from worker.colour import even_lighting
 
 
@@ -456,6 +456,29 @@ def test_detect_boards_measures_the_board_width_across_the_grain(skimage_texture
     assert detect_boards(np.full((64, 64, 3), 0.5), "y") is None
     with pytest.raises(ValueError, match="grain"):
         detect_boards(boards(), None)
+
+
+def test_wide_boards_and_ripples_repeat_once_within_a_third_of_the_photo():
+    """Ripples over a sixth of the photo apart repeat too seldom for the board rules (two
+    multiples within a third), but swing from crest to trough and back: read as stripes
+    across the grain, to within the wave they bend by (a fifth of a period), in its place. A wood's broad bands, which do not swing back, a period in view under four times (a
+    close-up's band) and fibres stay boards-free; so does a rug, whose far lattice is found
+    first."""
+    for period in (48.0, 56.0):
+        for seed in (0, 1):
+            photo = ripples(period, seed=seed)
+            image = even_lighting(photo)
+            assert detect_grain(image) == "x" and detect_boards(image, "x") is None
+            ax, ay, bx, by = detect_wide_boards(image, "x")
+            assert ax == 0 and abs(ay - period) < 0.1 * period and (bx, by) == pytest.approx((-ay, 0.0)), (period, ay)
+            assert photo_structure(photo) == (None, (ax, ay, bx, by))
+            assert photo_structure(photo, grain="x") == ("x", (ax, ay, bx, by))  # a grain asked for is kept
+            assert detect_wide_boards(image, "y") is None  # along the ripples: no repeat
+    assert detect_wide_boards(even_lighting(ripples(90.0)), "x") is None  # in view under four times
+    assert detect_wide_boards(streaks(), "y") is None
+    assert detect_wide_boards(even_lighting(fibres(40, 4)), "y") is None
+    grain, found = photo_structure(banded_motifs(weave=0.08))
+    assert grain is None and same_lattice(found, (60.0, 0.0, 0.0, 110.0), tolerance=0.01)
 
 
 def test_photo_structure_decides_what_a_fit_builds_in(skimage_textures):
