@@ -748,7 +748,8 @@ def detect_wide_boards(image: np.ndarray, grain: str) -> tuple[float, float, flo
     """Boards or ripples wider than a sixth of the photo across its grain (``wide_period``:
     one repeat within a third of it), as ``detect_boards`` gives boards, or None. Asked after
     ``detect_long_lattice`` (``photo_structure``): a rug's bands of motifs repeat across its
-    weave too, and their lattice says more. Unlike boards they drop the grain (WIDE_PEAK)."""
+    weave too, and their lattice says more. Unlike boards they take the grain's place there
+    (WIDE_PEAK's note has the figures)."""
     correlation = across_grain_correlation(image, grain)
     width = wide_period(correlation) if correlation is not None else None
     return _across_grain_stripes(width, grain) if width is not None else None
@@ -1064,9 +1065,9 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
     stripes (``detect_stripes``), else rows (``detect_rows``); a lattice reaching past a
     third of the photo (``detect_long_lattice``, which drops a detected grain: a rug's
     bands); on a grain photo, boards or ripples wider than a sixth of it
-    (``detect_wide_boards``, which drop the grain too); a leaning grain (``leaning_grain``, without boards: they are
-    looked for on the turned photo); a lattice of the direction of the streaks (``detect_direction_lattice``:
-    parquet); large cells (``detect_large_cells``); a module grid (``detect_module_grid``:
+    (``detect_wide_boards``, which drop the grain too); a leaning grain (``leaning_grain``,
+    without boards: they are looked for on the turned photo); a lattice of the direction of
+    the streaks (``detect_direction_lattice``: parquet); large cells (``detect_large_cells``); a module grid (``detect_module_grid``:
     slabs of several sizes). Boards come before stripes on a grain photo: its boards'
     joints are stripes too, and the stripe detector reads their repeat at any multiple
     (9.3-px synthetic boards: 28 px, three boards) and would drop the grain. ``grain``
@@ -1086,12 +1087,8 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
         # boards: stripes that keep their grain; stripes: a lattice whose second vector
         # carries no repeat; rows: stripes seen only in their profile
         found = detect_boards(photo, grain) if grain else detect_stripes(photo) or detect_rows(photo)
-    if lattice == "auto" and found is None:
-        found = detect_long_lattice(photo)
-        if found is not None and asked == "auto":
-            grain = None
-    if lattice == "auto" and found is None and grain:
-        found = detect_wide_boards(photo, grain)
+    if lattice == "auto" and found is None:  # a rug's far lattice, else ripples: either replaces the grain
+        found = detect_long_lattice(photo) or (detect_wide_boards(photo, grain) if grain else None)
         if found is not None and asked == "auto":
             grain = None
     if asked == "auto" and grain is None and found is None:
