@@ -74,15 +74,17 @@ def boards(width: float = 25.6, size: int = 256, seed: int = 5, uneven: float = 
     return np.repeat(np.clip(image, 0, 1)[..., None], 3, axis=2)
 
 
-def ripples(period: float = 48.0, size: int = 256, seed: int = 0) -> np.ndarray:
-    """Wind ripples in sand, ``period`` px apart, running left-right and waving (crests bend
-    by a fifth of a period along a photo's width, and wander a little each): a light windward
-    slope rising to a sharp crest, a shadowed lee, fine grains over all (0ad's
-    savanna_sand_dunes_100 at the working size: 43.6 px)."""
+def ripples(period: float = 48.0, size: int = 256, seed: int = 0, lean: float = 0.0) -> np.ndarray:
+    """Wind ripples in sand, ``period`` px apart, running left-right (``lean``: turned that many
+    degrees from +x towards +y, as ``model.structure.grain_tilt`` measures) and waving (crests
+    bend by a fifth of a period along a photo's width, and wander a little each): a light
+    windward slope rising to a sharp crest, a shadowed lee, fine grains over all (0ad's
+    savanna_sand_dunes_100 at the working size: 43.6 px apart, leaning -11 degrees)."""
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:size, 0:size].astype(np.float64)
     wander = ndimage.gaussian_filter(rng.standard_normal((size, size)), 16, mode="wrap")
-    across = y + 0.2 * period * np.sin(2 * np.pi * x / size + rng.uniform(0, 2 * np.pi)) \
+    turn = np.radians(lean)
+    across = y * np.cos(turn) - x * np.sin(turn) + 0.2 * period * np.sin(2 * np.pi * x / size + rng.uniform(0, 2 * np.pi)) \
         + 0.1 * period * wander / wander.std()
     slope = ((across / period) % 1.0) ** 2  # light windward slope rising to the crest, then the lee's drop
     image = 0.45 + 0.2 * slope + 0.015 * rng.standard_normal((size, size))

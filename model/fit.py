@@ -260,7 +260,8 @@ def detect_structure(photo: np.ndarray, space_cfg: ModelConfig, *, grain: str | 
     # A grain that leans: the photo turned so it runs along its axis (the noise stretches
     # along x or y only), and its boards looked for again on the turned photo. Boards found
     # on the photo as it is run along the axis already: wavy ripples lean locally, and the
-    # savanna dunes' mean lean (11 degrees) turned their repeat out of the profile.
+    # savanna dunes' mean lean (11 degrees) turned their repeat out of the profile (their
+    # stripes run along that lean instead: model.structure._leaning_stripes).
     turned = grain_turn(photo, grain) if not found else 0.0
     if turned:
         photo = straighten(photo, turned)
