@@ -32,7 +32,7 @@ from model.device import resolve_device, resolve_precision
 from model.networks import load_checkpoint
 from model.probe import Interim
 from model.structure import (EVEN_BLOCK, GRAIN_STRETCH, detect_even, grain_stretch, grain_turn, photo_lean,
-                             photo_structure, straighten)
+                             photo_structure, straighten, turn_lattice)
 from model.train import train
 from model.train_config import TrainConfig
 from worker.contract import DETAIL_SAMPLER, DETAIL_SECONDS, DETAIL_TILEABLE_SAMPLER
@@ -102,7 +102,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     ``model.structure.photo_structure`` detects on the photo. A grain leaning
     3-45 degrees off its nearer axis (``model.structure.grain_turn``) is straightened first: the
     fit learns from the turned photo, and its tiles show the grain straight (``straightened``:
-    the degrees turned, 0 when not). The manifest and the result say what was used (the
+    the degrees turned, 0 when not); a lattice found there without a grain is turned back and
+    fitted on the photo as it is. The manifest and the result say what was used (the
     lattice in world units).
     ``threads``: torch threads (process-wide; 0 leaves torch's setting as it is).
     ``device``: where the steps run, ``cpu`` | ``cuda`` | ``auto`` (cuda when available);
@@ -256,6 +257,7 @@ def detect_structure(photo: np.ndarray, space_cfg: ModelConfig, *, grain: str | 
                      even: str | None, lean: str | None) -> FitStructure:
     """What ``fit_exemplar`` builds in for ``photo`` (at the working resolution), by its
     ``grain``, ``lattice``, ``even`` and ``lean`` arguments (``model/structure.py`` detects)."""
+    asked = grain
     grain, found = photo_structure(photo, grain, lattice)
     # A grain that leans: the photo turned so it runs along its axis (the noise stretches
     # along x or y only), and its boards looked for again on the turned photo. Boards found
@@ -264,8 +266,16 @@ def detect_structure(photo: np.ndarray, space_cfg: ModelConfig, *, grain: str | 
     # stripes run along that lean instead: model.structure._leaning_stripes).
     turned = grain_turn(photo, grain) if not found else 0.0
     if turned:
-        photo = straighten(photo, turned)
-        grain, found = photo_structure(photo, grain, lattice)
+        straight = straighten(photo, turned)
+        # detected again as asked: a grain found, not asked for, gives way to wide boards or a
+        # far lattice on the turned photo as on any other; one the turned photo loses is kept
+        again, found = photo_structure(straight, asked, lattice)
+        if found is not None and not again:
+            # a lattice without grain has no axis to keep: it is fitted as the photo leans
+            # (hazard stripes at 45 degrees came back upright, 62x their floor either way)
+            grain, found, turned = None, turn_lattice(found, turned), 0.0
+        else:
+            photo, grain = straight, again or grain
     # world units: one exemplar pixel is 1 / pixels_per_unit; image rows run along +y
     lattice = tuple(v / space_cfg.pixels_per_unit for v in found) if found else None
     stretch = grain_stretch(photo, grain) if grain else GRAIN_STRETCH  # (of the turned photo)

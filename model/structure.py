@@ -1053,6 +1053,14 @@ def leaning_grain(image: np.ndarray) -> str | None:
     return axis if detect_grain(straighten(image, turn)) == axis else None
 
 
+def turn_lattice(lattice: tuple[float, float, float, float], degrees: float) -> tuple[float, float, float, float]:
+    """A lattice (ax, ay, bx, by) found on a photo ``straighten``ed by ``degrees``, in the
+    photo's own frame: both vectors turned by ``degrees`` from +x towards +y."""
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    ax, ay, bx, by = lattice
+    return (float(c * ax - s * ay), float(s * ax + c * ay), float(c * bx - s * by), float(s * bx + c * by))
+
+
 def straighten(image: np.ndarray, degrees: float) -> np.ndarray:
     """``image`` turned by ``-degrees`` (a grain at ``degrees``, as ``grain_tilt`` measures,
     comes to lie along its axis): the largest centred rectangle of the image's own aspect

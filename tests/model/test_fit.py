@@ -189,6 +189,27 @@ def test_boards_found_upright_are_not_turned_by_the_grains_mean_lean(monkeypatch
     assert plain.turned == 11.0 and plain.lattice is None
 
 
+def test_ripples_found_on_the_turned_photo_lean_as_in_the_photo():
+    """Ripples leaning 25 degrees smear the upright profile: they are found on the photo
+    turned by its grain's lean, as stripes that replace the grain detection gave (as on a
+    photo found upright), and, with no grain left to run along an axis, fitted as the photo
+    leans: the stripes turned back, the photo not turned (hazard stripes at 45 degrees came
+    back upright, with the grain kept). A grain asked for stays, and the photo is turned."""
+    from model.fit import detect_structure
+    from eval.synthetic_photos import ripples
+
+    cfg = ModelConfig()
+    for lean in (-25.0, 25.0):
+        photo = ripples(48.0, lean=lean)
+        found = detect_structure(photo, cfg, grain="auto", lattice="auto", even="auto", lean="auto")
+        assert found.turned == 0.0 and found.grain is None and found.photo is photo, (lean, found.grain)
+        ax, ay, bx, by = (v * cfg.pixels_per_unit for v in found.lattice)
+        assert abs(np.degrees(np.arctan2(-ax, ay)) - lean) < 2.0 and abs(np.hypot(ax, ay) - 48.0) < 0.1 * 48.0
+        assert (bx, by) == pytest.approx((-ay, ax))
+    asked = detect_structure(ripples(48.0, lean=-25.0), cfg, grain="x", lattice="auto", even="auto", lean="auto")
+    assert asked.grain == "x" and asked.lattice is not None and asked.turned != 0.0
+
+
 def test_every_fit_takes_the_large_patch_and_falling_rates_by_default(tmp_path, monkeypatch):
     """Stripe and 2D lattice fits train on PATCH, as a fit without structure does (the
     validation cardboard: 0.054 -> 0.0048; floor tiles 0.28 -> 0.031 with falling rates),
