@@ -765,17 +765,15 @@ def detect_wide_boards(image: np.ndarray, grain: str) -> tuple[float, float, flo
 
 def _leaning_stripes(image: np.ndarray, spacing: float, grain: str) -> tuple[float, float, float, float]:
     """Stripes ``spacing`` px apart along the axis across ``grain``, running along the photo's
-    lean where its gradients and its autocorrelation agree on one (``stripe_normal``, read
-    again by ``correlation_normal``) WIDE_LEAN_MIN..WIDE_LEAN_MAX degrees off the grain's
+    lean where its gradients and its autocorrelation agree on one (``stripe_direction``)
+    WIDE_LEAN_MIN..WIDE_LEAN_MAX degrees off the grain's
     axis; else across the grain (``_across_grain_stripes``). Ripples lean as a whole while
     their repeat down the photo stays sharp (WIDE_LEAN_MAX's note). The autocorrelation
     checks the gradients: a gold brick wall's lean 6 degrees, its courses and their
     autocorrelation 0.1."""
-    across = stripe_normal(image)
-    measured = luminance_correlation(image, least=1.0) if across is not None else None  # (no peaks wanted)
-    if measured is None:
+    across = stripe_direction(image)
+    if across is None:
         return _across_grain_stripes(spacing, grain)
-    across = correlation_normal(measured[0], across)
     axis = np.array([0.0, 1.0]) if grain == "x" else np.array([1.0, 0.0])
     cos = abs(float(across @ axis))
     if not WIDE_LEAN_MIN <= np.degrees(np.arccos(min(cos, 1.0))) <= WIDE_LEAN_MAX:
@@ -855,16 +853,12 @@ def detect_rows(image: np.ndarray) -> tuple[float, float, float, float] | None:
     courses of bricks whose head joints do not line up): their period as a stripe lattice
     (ax, ay, bx, by) in pixels, a across the rows and b along them, or None.
 
-    The photo's gradients must run across one direction (``stripe_normal``, turned by the
-    autocorrelation, ``correlation_normal``: a profile smears a period for every degree it is
-    off); its luminance averaged along the rows (``row_profile``, without slow trends) must
+    The photo's gradients must run across one direction (``stripe_direction``: the
+    autocorrelation turns it, since a profile smears a period for every degree it is off); its
+    luminance averaged along the rows (``row_profile``, without slow trends) must
     repeat (``profile_period``: ROW_PEAK, ROW_SUPPORT_PEAK, ROW_MIN_REPEATS)."""
-    across = stripe_normal(image)
-    measured = luminance_correlation(image, least=1.0) if across is not None else None  # (no peaks wanted)
-    if measured is None:
-        return None
-    across = correlation_normal(measured[0], across)
-    period = row_period(image, across)
+    across = stripe_direction(image)
+    period = row_period(image, across) if across is not None else None
     if period is None:
         return None
     ax, ay = period * across
@@ -920,6 +914,14 @@ def stripe_normal(image: np.ndarray) -> np.ndarray | None:
     if not energy[1] >= STRIPE_ANISOTROPY * max(energy[0], 1e-12):
         return None
     return vectors[:, 1]
+
+
+def stripe_direction(image: np.ndarray) -> np.ndarray | None:
+    """``stripe_normal`` read again from the photo's luminance autocorrelation
+    (``correlation_normal``), or None where the photo has no one direction of gradients."""
+    across = stripe_normal(image)
+    measured = luminance_correlation(image, least=1.0) if across is not None else None  # (no peaks wanted)
+    return correlation_normal(measured[0], across) if measured is not None else None
 
 
 def correlation_normal(correlation: np.ndarray, across: np.ndarray) -> np.ndarray:
