@@ -766,11 +766,10 @@ def detect_wide_boards(image: np.ndarray, grain: str) -> tuple[float, float, flo
 def _leaning_stripes(image: np.ndarray, spacing: float, grain: str) -> tuple[float, float, float, float]:
     """Stripes ``spacing`` px apart along the axis across ``grain``, running along the photo's
     lean where its gradients and its autocorrelation agree on one (``stripe_direction``)
-    WIDE_LEAN_MIN..WIDE_LEAN_MAX degrees off the grain's
-    axis; else across the grain (``_across_grain_stripes``). Ripples lean as a whole while
-    their repeat down the photo stays sharp (WIDE_LEAN_MAX's note). The autocorrelation
-    checks the gradients: a gold brick wall's lean 6 degrees, its courses and their
-    autocorrelation 0.1."""
+    WIDE_LEAN_MIN..WIDE_LEAN_MAX degrees off the grain's axis; else across the grain
+    (``_across_grain_stripes``). Ripples lean as a whole while their repeat down the photo
+    stays sharp (WIDE_LEAN_MAX's note). The autocorrelation checks the gradients: a gold
+    brick wall's lean 6 degrees, its courses and their autocorrelation 0.1."""
     across = stripe_direction(image)
     if across is None:
         return _across_grain_stripes(spacing, grain)
