@@ -726,8 +726,7 @@ def _stripes_on(image: np.ndarray, wrap: bool) -> tuple[float, float, float, flo
     weight = np.sqrt(values[use])
     # least squares of k a = p_k over the located peaks: a = sum w k p / sum w k^2
     repeat = (weight[:, None] * steps[use, None] * points[use]).sum(axis=0) / (weight * steps[use] ** 2).sum()
-    ax, ay = float(repeat @ across) * across
-    return float(ax), float(ay), float(-ay), float(ax)
+    return stripe_lattice(float(repeat @ across) * across)
 
 
 def detect_boards(image: np.ndarray, grain: str) -> tuple[float, float, float, float] | None:
@@ -777,8 +776,7 @@ def _leaning_stripes(image: np.ndarray, spacing: float, grain: str) -> tuple[flo
     cos = abs(float(across @ axis))
     if not WIDE_LEAN_MIN <= np.degrees(np.arccos(min(cos, 1.0))) <= WIDE_LEAN_MAX:
         return _across_grain_stripes(spacing, grain)
-    ax, ay = spacing * cos * np.sign(across @ axis) * across  # stripes spacing apart along the axis
-    return float(ax), float(ay), float(-ay), float(ax)
+    return stripe_lattice(spacing * cos * np.sign(across @ axis) * across)  # spacing apart along the axis
 
 
 def across_grain_correlation(image: np.ndarray, grain: str) -> np.ndarray | None:
@@ -798,8 +796,14 @@ def across_grain_correlation(image: np.ndarray, grain: str) -> np.ndarray | None
 
 def _across_grain_stripes(width: float, grain: str) -> tuple[float, float, float, float]:
     """A stripe lattice of ``width`` px across ``grain``: a across it, b along it."""
-    ax, ay = (width, 0.0) if grain == "y" else (0.0, width)
-    return ax, ay, -ay, ax
+    return stripe_lattice(np.array([width, 0.0]) if grain == "y" else np.array([0.0, width]))
+
+
+def stripe_lattice(across: np.ndarray) -> tuple[float, float, float, float]:
+    """Stripes repeating by ``across`` (px, (x, y)) as a lattice (ax, ay, bx, by): b is a
+    turned a quarter turn, along the stripes, where the photo does not repeat."""
+    ax, ay = across
+    return float(ax), float(ay), float(-ay), float(ax)
 
 
 def profile_period(correlation: np.ndarray, peak: float, support: float, min_repeats: int) -> float | None:
@@ -860,8 +864,7 @@ def detect_rows(image: np.ndarray) -> tuple[float, float, float, float] | None:
     period = row_period(image, across) if across is not None else None
     if period is None:
         return None
-    ax, ay = period * across
-    return float(ax), float(ay), float(-ay), float(ax)
+    return stripe_lattice(period * across)
 
 
 def detect_module_grid(image: np.ndarray) -> tuple[float, float, float, float] | None:
@@ -1105,8 +1108,8 @@ def photo_structure(photo: np.ndarray, grain: str | None = "auto", lattice: str 
     bands); on a grain photo, boards or ripples wider than a sixth of it
     (``detect_wide_boards``, which drop the grain too); a leaning grain (``leaning_grain``,
     without boards: they are looked for on the turned photo); a lattice of the direction of
-    the streaks (``detect_direction_lattice``: parquet); large cells (``detect_large_cells``); a module grid (``detect_module_grid``:
-    slabs of several sizes). Boards come before stripes on a grain photo: its boards'
+    the streaks (``detect_direction_lattice``: parquet); large cells
+    (``detect_large_cells``); a module grid (``detect_module_grid``: slabs of several sizes). Boards come before stripes on a grain photo: its boards'
     joints are stripes too, and the stripe detector reads their repeat at any multiple
     (9.3-px synthetic boards: 28 px, three boards) and would drop the grain. ``grain``
     "x" / "y" / None and ``lattice`` None are taken as given. A photo with a lattice or
