@@ -253,7 +253,7 @@ evaluate: data
 	$(PY) -m model.evaluate --checkpoint-dir runs/compare --group ours-shipped=model/weights \
 		--exemplars data/textures/val --out docs/eval/compare
 
-# What model/structure.py finds (grain, lattices, stripes, boards) on the packaged photos and
+# What model/structure/ finds (grain, lattices, stripes, boards) on the packaged photos and
 # on crops, turns and close-ups cut from them: the reference to diff after a detector change.
 .PHONY: structure
 structure: data

@@ -146,7 +146,7 @@ def measure(data: Path) -> dict[str, list[dict]]:
 
 
 def to_markdown(rows: dict[str, list[dict]]) -> str:
-    lines = ["# What model/structure.py finds", "",
+    lines = ["# What model/structure/ finds", "",
              "`make structure` (eval/structure.py). Lattices in px at the working resolution (ax, ay, bx, by; x right, "
              "y down); close-ups, hexagonal tiles: right when the same lattice as the truth to a twentieth of a step; turns: "
              "the upright photo's lattice turned, to 0.08 of a step.", ""]

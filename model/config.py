@@ -1,6 +1,6 @@
 """What a texture space is, as data: the variants of the paper's comparison (``VARIANTS``)
 and the model's configuration (``ModelConfig``), which checkpoints store as a dict under
-``"config"``. No torch here: photo analysis (model/structure.py) reads the model's
+``"config"``. No torch here: photo analysis (model/structure/) reads the model's
 defaults without the train extra.
 """
 

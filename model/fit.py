@@ -8,7 +8,7 @@ exemplar. Writes OUTDIR/sampler.onnx (docs/ARCHITECTURE.md, Contract 1, same inp
 as the shipped sampler), OUTDIR/code.json (the code to feed it), OUTDIR/manifest.json
 and OUTDIR/fit.pt (weights and code, for ``model.evaluate``). The worker runs this as
 the ``fit`` job where torch is installed. What regular structure the fit builds in (grain,
-a repeat lattice, stripes, boards) is ``model/structure.py``'s to detect.
+a repeat lattice, stripes, boards) is for ``model.structure`` to detect.
 """
 
 from __future__ import annotations
@@ -256,14 +256,14 @@ class FitStructure:
 def detect_structure(photo: np.ndarray, space_cfg: ModelConfig, *, grain: str | None, lattice: str | None,
                      even: str | None, lean: str | None) -> FitStructure:
     """What ``fit_exemplar`` builds in for ``photo`` (at the working resolution), by its
-    ``grain``, ``lattice``, ``even`` and ``lean`` arguments (``model/structure.py`` detects)."""
+    ``grain``, ``lattice``, ``even`` and ``lean`` arguments (``model/structure/`` detects)."""
     asked = grain
     grain, found = photo_structure(photo, grain, lattice)
     # A grain that leans: the photo turned so it runs along its axis (the noise stretches
     # along x or y only), and its boards looked for again on the turned photo. Boards found
     # on the photo as it is run along the axis already: wavy ripples lean locally, and the
     # savanna dunes' mean lean (11 degrees) turned their repeat out of the profile (their
-    # stripes run along that lean instead: model.structure._leaning_stripes).
+    # stripes run along that lean instead: model.structure.stripes._leaning_stripes).
     turned = grain_turn(photo, grain) if not found else 0.0
     if turned:
         straight = straighten(photo, turned)
@@ -375,7 +375,7 @@ def main(argv=None):
                         "the photo (detect_grain); none: isotropic")
     p.add_argument("--lattice", choices=["auto", "none"], default="auto",
                    help="regular exemplar (bricks, tile grids, corrugation, boards): auto (default) detects its "
-                        "repeat lattice, stripes or boards (model/structure.py) and the decoder reads each "
+                        "repeat lattice, stripes or boards (model/structure/) and the decoder reads each "
                         "point's phase on it; none: off")
     p.add_argument("--loss", choices=["gram", "swd"], default="gram", help="VGG feature statistics to match")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu",

@@ -1,5 +1,5 @@
 """A photo on its repeat lattice (bricks, tile grids, perforated metal): numpy geometry
-that photo analysis (model/structure.py) and training (model/train.py) both read.
+that photo analysis (model/structure/) and training (model/train.py) both read.
 Lattices are two basis vectors (ax, ay, bx, by) in pixels of the exemplar at its working
 resolution, x along columns, y along rows, unless a name says world units; images are
 (H, W, 3) float arrays.

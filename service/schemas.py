@@ -82,7 +82,7 @@ def _rounded(seconds: float | None) -> float | None:
 
 
 class Structure(BaseModel):
-    """What a fit found in the photo (model/structure.py) and built into its sampler (model/fit.py)."""
+    """What a fit found in the photo (model/structure/) and built into its sampler (model/fit.py)."""
 
     grain: Literal["x", "y"] | None = Field(
         description="the axis the noise is stretched along (the photo's grain: x left-right, y up-down); "

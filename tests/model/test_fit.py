@@ -144,7 +144,7 @@ def test_a_leaning_grain_is_fitted_straightened(tmp_path, monkeypatch):
     upright (read as it is, not resized back up), and says by how much; an upright grain
     and a lean under GRAIN_TILT_MIN are fitted as they are; one 35 degrees off (which the
     axis test misses) is found on the turned photo and turned too."""
-    from model.structure import GRAIN_TILT_MIN, grain_tilt
+    from model.structure.grain import GRAIN_TILT_MIN, grain_tilt
     from model.train import load_exemplars
     from eval.synthetic_photos import streaks
 

@@ -1,4 +1,4 @@
-"""model/structure.py: what regular structure a photo has (grain, a repeat lattice,
+"""model/structure/: what regular structure a photo has (grain, a repeat lattice,
 stripes, boards), measured on synthetic photos of known structure and on packaged ones."""
 from __future__ import annotations
 
@@ -6,15 +6,14 @@ import numpy as np
 from scipy import ndimage
 import pytest
 
-from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, autocorrelation, detect_boards, detect_even,
-                             detect_grain, detect_lattice, detect_rows, detect_stripes, detect_wide_boards,
-                             fold_lattice, grain_stretch, grain_tilt,
-                             grain_turn, leaning_grain, photo_lean, photo_structure, same_lattice, shortest_basis,
-                             straighten)
-from model.structure import (_finer_lattice, _lattice_on, _repeats_along_stripes, detect_large_cells,
-                             detect_direction_lattice, detect_module_grid, detect_long_lattice, peak_height,
-                             pixel_noise,
-                             luminance_correlation, stripe_normal)
+from model.structure import (GRAIN_STRETCH, STRONG_GRAIN_STRETCH, detect_boards, detect_direction_lattice,
+                             detect_even, detect_grain, detect_large_cells, detect_lattice, detect_long_lattice,
+                             detect_module_grid, detect_rows, detect_stripes, detect_wide_boards, fold_lattice,
+                             grain_stretch, grain_tilt, grain_turn, leaning_grain, photo_lean, photo_structure,
+                             same_lattice, straighten)
+from model.structure.correlation import autocorrelation, luminance_correlation, peak_height, pixel_noise
+from model.structure.lattices import _finer_lattice, _lattice_on, _repeats_along_stripes, shortest_basis
+from model.structure.stripes import stripe_normal
 from eval.synthetic_photos import (banded_motifs, boards, corrugation, crop_rows, fibres, hexagonal_tiles,
                                 module_pavement, parquet, ripples, running_bond, streaks, two_by_two, wavy_rows)
 from worker.colour import even_lighting
@@ -327,7 +326,7 @@ def test_a_weak_lattice_gives_way_to_grain(monkeypatch):
     """A lattice with peaks under LATTICE_STRONG is kept for a photo without grain and
     dropped for one with grain (wood planks: their weak lattice drew blobs, their grain
     boards); a strong lattice stays either way."""
-    import model.structure as structure
+    import model.structure.lattices as lattices
 
     rng = np.random.default_rng(5)
     size, tile = 256, 64
@@ -340,7 +339,7 @@ def test_a_weak_lattice_gives_way_to_grain(monkeypatch):
 
     weak, strong = grid(0.05), grid(0.01)            # autocorrelation peaks ~0.56 and ~0.95
     assert detect_lattice(weak) is not None and detect_lattice(strong) is not None
-    monkeypatch.setattr(structure, "detect_grain", lambda image: "y")
+    monkeypatch.setattr(lattices, "detect_grain", lambda image: "y")
     assert detect_lattice(weak) is None and detect_lattice(strong) is not None
 
 
