@@ -1,8 +1,9 @@
-"""Repeats along one direction: stripes (corrugated board), boards across a grain (plank
-floors), wide boards and ripples (along their lean), rows seen in their profile (crop rows),
-and a module grid (slabs of several sizes). Each comes back as a lattice (ax, ay, bx, by) in
-pixels whose a is the repeat and b a turned a quarter turn, along the stripes, where the
-photo does not repeat (``stripe_lattice``); the module grid as two such repeats.
+"""Repeats read along one direction at a time: stripes (corrugated board), boards across a
+grain (plank floors), wide boards and ripples (along their lean), rows seen in their profile
+(crop rows), each as a lattice (ax, ay, bx, by) in pixels whose a is the repeat and b a
+turned a quarter turn, along the stripes, where the photo does not repeat
+(``stripe_lattice``); and a module grid (slabs of several sizes), the rows' period along x
+and along y as one lattice.
 """
 from __future__ import annotations
 
