@@ -283,6 +283,15 @@ fits-large: install-test
 	$(PY) -m eval.quality --model-dir model/weights --exemplars $(LARGE_VAL) --families $(QUALITY_FAMILIES) \
 		--list | xargs -P $(FIT_JOBS) -I {} sh -c '$(PY) -m model.fit {} runs/fits-large/$$(basename {} .png) --detail-seconds 0 $(FIT_ARGS)'
 
+# How far the space reaches (eval/space_reach.py): the best code it has for each of those
+# photos (a code-only fit: the space frozen, no structure, REACH_STEPS) beside its encoder's
+# code, into docs/eval/space-reach; the codes are kept in runs/space-reach (a rerun only measures).
+REACH_STEPS ?= 200
+.PHONY: space-reach
+space-reach: install-test
+	$(PY) -m eval.space_reach --model-dir model/weights --exemplars $(LARGE_VAL) --families $(QUALITY_FAMILIES) \
+		--steps $(REACH_STEPS) --codes runs/space-reach --out docs/eval/space-reach $(REACH_ARGS)
+
 # A photo's own resolution (eval/detail.py): the validation photos of 512 px and up fitted with
 # their detail stage into runs/fits-detail (kept: a rerun only measures), their tiles scored at the
 # photo's own scale with and without it. DETAIL_ARGS='--machine "..."' names the machine in the report.
