@@ -54,8 +54,8 @@ class CodeRuntime:
 
 def code_fit(photo_path: Path, space_checkpoint: Path, steps: int = CODE_STEPS, seed: int = 0) -> dict:
     """The code a code-only fit of ``steps`` learns for the photo (module docstring) and its
-    steps. Raises where the run moved any weight of the
-    space: the figures score the code through the space's own sampler."""
+    steps. Raises where the run moved any weight of the space: the figures score the code
+    through the space's own sampler."""
     import torch
 
     from model.data import load_exemplar
@@ -76,8 +76,8 @@ def code_fit(photo_path: Path, space_checkpoint: Path, steps: int = CODE_STEPS, 
         cfg = dataclasses.replace(cfg, lr=0.0, transform_lr=0.0, probe_every=0, minutes=None, steps=steps,
                                   decay_by_time=False, decay_start=0, decay_end=steps)
         model, ckpt = load_checkpoint(train(cfg))
-    moved = [name for name, value in model.field.state_dict().items()
-             if not torch.equal(value, space.field.state_dict()[name])]
+    before = space.field.state_dict()
+    moved = [name for name, value in model.field.state_dict().items() if not torch.equal(value, before[name])]
     if moved:
         raise RuntimeError(f"a code-only fit moved the space's {', '.join(moved)}")
     return {"code": ckpt["code"].reshape(-1).tolist(), "steps": int(ckpt["step"])}
@@ -91,13 +91,17 @@ def measure(model: ModelRuntime, path: Path, code: list[float]) -> dict:
     image = read_image(path.read_bytes(), max_pixels=1 << 26)
     floor = photo_floor(resize_short_side(image, model.short_side))
 
-    def over_floor(runtime) -> float:  # noqa: ANN001 (a ModelRuntime or CodeRuntime)
-        tiles = render_tiles(runtime, texture_code(runtime, image))
+    def over_floor(runtime, vector: np.ndarray) -> float:  # noqa: ANN001 (a ModelRuntime or CodeRuntime)
+        tiles = render_tiles(runtime, vector)
         return style_ratio(float(crop_errors(tiles, floor).mean()), floor.floor)
 
-    encoder_code = texture_code(model, image)[:model.code_size]
-    return {"photo": path.stem, "uploaded": over_floor(model), "encoder": over_floor(CodeRuntime(model, encoder_code)),
-            "code_only": over_floor(CodeRuntime(model, code))}
+    def with_fit_table(z) -> float:  # noqa: ANN001
+        fitted = CodeRuntime(model, z)
+        return over_floor(fitted, texture_code(fitted, image))
+
+    uploaded = texture_code(model, image)  # the encoder's code and the upload's colour table, encoded once
+    return {"photo": path.stem, "uploaded": over_floor(model, uploaded),
+            "encoder": with_fit_table(uploaded[:model.code_size]), "code_only": with_fit_table(code)}
 
 
 def summarise(rows: list[dict]) -> dict:
