@@ -405,7 +405,8 @@ def to_markdown(report: dict) -> str:
             f"{pattern_note(s)}) | {s['mean_style']:.3f} |")
     lines += floor_table(report)
     for label, entry in report["models"].items():
-        lines += ["", f"## {label} ({entry['model_dir']}, version {entry['version']}, step {entry['step']})", "",
+        carried = ", carried from an earlier run (--carry)" if entry.get("carried") else ""
+        lines += ["", f"## {label} ({entry['model_dir']}, version {entry['version']}, step {entry['step']}{carried})", "",
                   "| photo | dE76 pooled | dE2000 pooled | dE76 worst tile | std ratio pooled | std ratio worst tile "
                   "| style ours | baseline (kind) | win | diversity | oblique / axis |", "|---" * 11 + "|"]
         # (a ratio marked 2D: a fit on a lattice or stripes, left out of the worst-photo target)
@@ -449,7 +450,7 @@ def carried_models(results: Path, labels: list[str], photos: list[str]) -> dict:
         other = sorted(set(models[label]["photos"]) - set(photos))
         if other:
             raise SystemExit(f"--carry: {label} in {results} was measured on other photos ({', '.join(other[:3])})")
-    return {label: models[label] for label in labels}
+    return {label: models[label] | {"carried": True} for label in labels}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -144,7 +144,7 @@ def test_carry_keeps_a_model_measured_before_and_refuses_other_photos(quality, t
            "photos": {"bricks": floor_row(0.5, 2.0, 40.0)}}
     (tmp_path / "results.json").write_text(json.dumps({"models": {"shipped": {}, "shipped-fit": fit}}))
     carried = quality.carried_models(tmp_path / "results.json", ["shipped-fit"], ["bricks", "gravel"])
-    assert carried == {"shipped-fit": fit}
+    assert carried == {"shipped-fit": fit | {"carried": True}}
     assert quality.carried_models(tmp_path / "nothing.json", [], ["bricks"]) == {}
     with pytest.raises(SystemExit, match="holds no large-fit"):
         quality.carried_models(tmp_path / "results.json", ["large-fit"], ["bricks"])
