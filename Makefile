@@ -263,7 +263,8 @@ structure: data
 # noise, diversity and oblique / axis slices, all through encoder.onnx + sampler.onnx as
 # the service serves them; style over each photo's own floor (eval/style_floor.py)
 # for the tiles, by-example noise (eval/by_example.py) and value noise, with medians.
-# Another export side by side: QUALITY_ARGS='--model-dir DIR --label NAME'; fits: '--fits runs/fits'.
+# Another export side by side: QUALITY_ARGS='--model-dir DIR --label NAME'; fits: '--fits runs/fits';
+# a model's rows kept as measured before (the GPU fits, when the upload's code changes): '--carry shipped-fit'.
 QUALITY_ARGS ?=
 .PHONY: quality tune-by-example
 quality: data

@@ -202,6 +202,39 @@ def encode_crop(model_dir: Path, repeats: int = 41, warmup: int = 5, log=print) 
     return {"median_s": median(times), "all_s": times, "size": size}
 
 
+def encode_upload(model_dir: Path, side: int = 1024, repeats: int = 9, log=print) -> dict:
+    """What an upload's encode costs (``worker.encode.encode_texture``: the working photo, its
+    crops in eight orientations, the encoder, the colour table) for a ``side``^2 photo,
+    against the encoder alone on the same 72 crops and on the 9 as they lie (the upload's
+    crops before their orientations), each in the same run, default threads. Returns
+    medians in seconds."""
+    from worker.encode import encode_texture
+    from worker.photo import encoder_crops
+    from worker.runtime import ModelRuntime
+
+    runtime = ModelRuntime(model_dir)
+    rng = np.random.default_rng(3)  # smooth blobs over fine grain: a photo-like spread of scales
+    coarse = rng.random((side // 32, side // 32, 3)).repeat(32, 0).repeat(32, 1)
+    photo = np.clip(0.6 * coarse + 0.4 * rng.random((side, side, 3)), 0, 1).astype(np.float32)
+    crops = encoder_crops(photo, short_side=runtime.short_side, size=runtime.input_size)
+    as_they_lie = encoder_crops(photo, short_side=runtime.short_side, size=runtime.input_size, dihedral=False)
+    times: dict[str, list[float]] = {"upload": [], "crops_72": [], "crops_9": []}
+    calls = {"upload": lambda: encode_texture(runtime, photo), "crops_72": lambda: runtime.encode(crops),
+             "crops_9": lambda: runtime.encode(as_they_lie)}
+    for call in calls.values():
+        call()  # warm-up
+    for _ in range(repeats):  # in turns, so a slow spell falls on all three
+        for name, call in calls.items():
+            t = time.perf_counter()
+            call()
+            times[name].append(time.perf_counter() - t)
+    result = {name: median(values) for name, values in times.items()}
+    log(f"  encode a {side}^2 upload (code + colour table): median {result['upload'] * 1000:.0f} ms; encoder on its "
+        f"{len(crops)} crops {result['crops_72'] * 1000:.0f} ms, on the {len(as_they_lie)} as they lie "
+        f"{result['crops_9'] * 1000:.0f} ms")
+    return result
+
+
 def sampler_sweep(model_dir: Path, thread_options=(1, 2), chunks=CHUNKS, log=print) -> dict:
     """sampler.onnx through worker/runtime.SamplerSession over chunk sizes and threads.
 

@@ -53,7 +53,10 @@ model's working resolution, short side ``exemplar_short_side``):
 ``--families N`` measures one photo from each of N families of a corpus with an index
 (``index.json`` beside the exemplar folder, ``model/corpus.py``): the large corpus's
 validation families, never trained on (``make quality-large``). ``--list`` prints the chosen
-photos and stops (``make fits-large`` fits the same ones).
+photos and stops (``make fits-large`` fits the same ones). ``--carry LABEL`` keeps a model's
+rows from the results already in ``--out``, as they were measured: the GPU fits of ``make
+quality`` cannot be remade on a CPU, and a fit's rows do not depend on the encoder, so a
+change to the upload's code re-measures its own column beside them.
 
 Writes ``results.json`` (settings, per-photo numbers, summary) and ``results.md``.
 """
@@ -402,7 +405,8 @@ def to_markdown(report: dict) -> str:
             f"{pattern_note(s)}) | {s['mean_style']:.3f} |")
     lines += floor_table(report)
     for label, entry in report["models"].items():
-        lines += ["", f"## {label} ({entry['model_dir']}, version {entry['version']}, step {entry['step']})", "",
+        carried = ", carried from an earlier run (--carry)" if entry.get("carried") else ""
+        lines += ["", f"## {label} ({entry['model_dir']}, version {entry['version']}, step {entry['step']}{carried})", "",
                   "| photo | dE76 pooled | dE2000 pooled | dE76 worst tile | std ratio pooled | std ratio worst tile "
                   "| style ours | baseline (kind) | win | diversity | oblique / axis |", "|---" * 11 + "|"]
         # (a ratio marked 2D: a fit on a lattice or stripes, left out of the worst-photo target)
@@ -431,6 +435,24 @@ def one_per_family(exemplars: Path, families: int) -> list[Path]:
     return sorted(exemplars.parent / min(by_family[family]) for family in chosen)
 
 
+def carried_models(results: Path, labels: list[str], photos: list[str]) -> dict:
+    """The models named in ``labels`` from an earlier ``results.json``, as measured then; each
+    must hold rows of photos measured now (a table of other photos would not compare)."""
+    if not labels:
+        return {}
+    if not results.is_file():
+        raise SystemExit(f"--carry: no earlier results at {results}")
+    models = json.loads(results.read_text())["models"]
+    missing = [label for label in labels if label not in models]
+    if missing:
+        raise SystemExit(f"--carry: {results} holds no {', '.join(missing)} (it holds {', '.join(models)})")
+    for label in labels:
+        other = sorted(set(models[label]["photos"]) - set(photos))
+        if other:
+            raise SystemExit(f"--carry: {label} in {results} was measured on other photos ({', '.join(other[:3])})")
+    return {label: models[label] | {"carried": True} for label in labels}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model-dir", type=Path, action="append", required=True, help="exported model (repeatable)")
@@ -442,6 +464,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--families", type=int, help="one photo from each of this many families (the corpus's "
                                                      "index.json beside --exemplars; default: every photo)")
     parser.add_argument("--list", action="store_true", help="print the photos measured and stop")
+    parser.add_argument("--carry", action="append", default=[], metavar="LABEL",
+                        help="keep this model's rows from OUT/results.json as measured before (repeatable)")
     args = parser.parse_args(argv)
     if len(args.label) > len(args.model_dir):
         parser.error("more --label than --model-dir")
@@ -453,6 +477,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.list:
         print("\n".join(str(p) for p in photos))
         return 0
+    carried = carried_models(args.out / "results.json", args.carry, [p.stem for p in photos])
     torch.set_num_threads(2)
     images = {p.stem: read_image(p.read_bytes(), max_pixels=MAX_PIXELS) for p in photos}
     baselines: dict[str, dict] = {name: {} for name in images}
@@ -475,6 +500,7 @@ def main(argv: list[str] | None = None) -> int:
         report["models"][f"{labels[0]}-fit"] = {
             "model_dir": str(args.fits), "version": "per photo", "step": "fit",
             "seconds": round(time.perf_counter() - start, 1), "summary": summarise(list(rows.values())), "photos": rows}
+    report["models"] |= carried
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(report, indent=2) + "\n")
     markdown = to_markdown(report)

@@ -69,3 +69,18 @@ def test_fit_budget_means_each_run_over_its_seeds_against_the_reference():
     assert abs(fast["vs_reference"] - 1.9 / 1.95) < 1e-9
     assert means["gravel", "reference: 240 s fp32, 1 thread (before)"]["vs_reference"] == 1.0
     assert means["granite", "70 s bf16, every core"]["vs_reference"] is None  # no reference for that photo
+
+
+def test_the_upload_encode_is_timed_beside_its_encoder_alone():
+    """``--only encode``'s upload row: encode_texture in process, against the encoder on the
+    same 72 crops and on the 9 as they lie, timed in turns in the same run."""
+    from bench.common import SHIPPED_MODEL
+    from bench.kernels import encode_upload
+
+    lines = []
+    times = encode_upload(SHIPPED_MODEL, side=256, repeats=1, log=lines.append)
+    assert set(times) == {"upload", "crops_72", "crops_9"} and all(t > 0 for t in times.values())
+    assert "its 72 crops" in lines[0] and "the 9 as they lie" in lines[0]
+    _, rows = verdicts({"encode_upload_1024_s": times["upload"], "encode_upload_crops_72_s": times["crops_72"],
+                        "encode_upload_crops_9_s": times["crops_9"]})
+    assert rows[0][0].startswith("encode a 1024^2 upload") and rows[0][3] == "-"

@@ -76,16 +76,24 @@ def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
     return out
 
 
-def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: int = 3) -> np.ndarray:
+def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: int = 3,
+                  dihedral: bool = True) -> np.ndarray:
     """Crops of an sRGB image for the encoder.
 
     The image is resized so its shorter side is ``max(short_side, size)`` (the model's
     working resolution: features keep the scale seen in training), then a regular
     ``grid x grid`` lattice of ``size`` crops is taken, first and last flush with the
     borders, evenly spaced between (a side with room for only one crop gives one
-    position; duplicates are dropped). Values map 0..1 -> -1..1 (``2x - 1``).
+    position; duplicates are dropped). ``dihedral``: each crop also in its other seven
+    orientations (quarter turns, each mirrored), so the mean code does not depend on how the
+    photo was turned or mirrored. It also scored better: on the 40 validation families of
+    ``make quality-large`` the upload's style error over the photo's floor, median 4.81 ->
+    4.40 (geometric mean 5.89 -> 5.83, lower on 25 of 40), for 8x the encoder's work.
+    Values map 0..1 -> -1..1 (``2x - 1``).
 
-    image : (H, W, 3) float32 sRGB 0..1. Returns (N, 3, size, size) float32, N <= grid^2.
+    image : (H, W, 3) float32 sRGB 0..1. Returns (N, 3, size, size) float32: the grid's
+    crops (N0 <= grid^2, row-major) first, then with ``dihedral`` the same N0 in each further
+    orientation (N = 8 N0).
     """
     work = resize_short_side(image, max(short_side, size))
     h, w = work.shape[:2]
@@ -94,6 +102,9 @@ def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: 
     windows = np.lib.stride_tricks.sliding_window_view(work, (size, size), axis=(0, 1))
     crops = windows[rows[:, None], cols[None, :]]          # (R, C, 3, size, size)
     crops = crops.reshape(-1, 3, size, size)
+    if dihedral:
+        turns = [np.rot90(crops, k, axes=(2, 3)) for k in range(4)]
+        crops = np.concatenate(turns + [turn[..., ::-1] for turn in turns])
     return (crops * np.float32(2) - np.float32(1)).astype(np.float32)
 
 

@@ -69,8 +69,8 @@ def create_texture(
     """Encode an exemplar photo into a texture code and store it.
 
     The image is resized so its shorter side is the model's working resolution (its
-    shading evened out with ``lighting=even``), then a 3 x 3 grid of 128 x 128 crops is
-    encoded and the codes averaged. Where fitting is available (TEXSPACE_AUTO_FIT), a fit
+    shading evened out with ``lighting=even``), then a 3 x 3 grid of 128 x 128 crops, each
+    in its eight orientations, is encoded and the codes averaged. Where fitting is available (TEXSPACE_AUTO_FIT), a fit
     job then refines the texture in place.
     """
     checked_text(image.filename or "", "image filename")

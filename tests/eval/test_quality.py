@@ -133,3 +133,22 @@ def test_one_photo_per_family_from_the_corpus_index(quality, tmp_path):
     assert set(quality.one_per_family(tmp_path / "val", 5)) == {tmp_path / "val" / f"p{i:02d}.png" for i in range(5)}
     with pytest.raises(ValueError, match="5 families"):
         quality.one_per_family(tmp_path / "val", 6)
+
+
+def test_carry_keeps_a_model_measured_before_and_refuses_other_photos(quality, tmp_path):
+    """--carry: the GPU fits' rows stay as measured when the encoder's column is re-measured;
+    a missing label or rows of photos not measured now stop the run with the reason."""
+    import json
+
+    fit = {"model_dir": "runs/fits-gpu", "version": "per photo", "step": "fit",
+           "photos": {"bricks": floor_row(0.5, 2.0, 40.0)}}
+    (tmp_path / "results.json").write_text(json.dumps({"models": {"shipped": {}, "shipped-fit": fit}}))
+    carried = quality.carried_models(tmp_path / "results.json", ["shipped-fit"], ["bricks", "gravel"])
+    assert carried == {"shipped-fit": fit | {"carried": True}}
+    assert quality.carried_models(tmp_path / "nothing.json", [], ["bricks"]) == {}
+    with pytest.raises(SystemExit, match="holds no large-fit"):
+        quality.carried_models(tmp_path / "results.json", ["large-fit"], ["bricks"])
+    with pytest.raises(SystemExit, match="other photos \\(bricks\\)"):
+        quality.carried_models(tmp_path / "results.json", ["shipped-fit"], ["gravel"])
+    with pytest.raises(SystemExit, match="no earlier results"):
+        quality.carried_models(tmp_path / "nothing.json", ["shipped-fit"], ["bricks"])

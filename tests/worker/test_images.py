@@ -126,7 +126,7 @@ def test_sniff_ignores_names():
 
 
 def test_encoder_crops_grid_and_range(brick):
-    crops = encoder_crops(brick, short_side=256, size=128, grid=3)
+    crops = encoder_crops(brick, short_side=256, size=128, grid=3, dihedral=False)
     assert crops.shape == (9, 3, 128, 128) and crops.dtype == np.float32
     assert crops.min() >= -1 and crops.max() <= 1
     # brick is 512x512 -> resized to 256x256; crop (0, 0) is the top-left corner, crop 8 the
@@ -136,7 +136,31 @@ def test_encoder_crops_grid_and_range(brick):
     assert np.allclose(crops[0], work[:128, :128].transpose(2, 0, 1))
     assert np.allclose(crops[8], work[128:, 128:].transpose(2, 0, 1))
     wide = np.zeros((100, 700, 3), np.float32)                     # upscaled to 128 x 896
-    assert encoder_crops(wide, short_side=64, size=128, grid=3).shape == (3, 3, 128, 128)
+    assert encoder_crops(wide, short_side=64, size=128, grid=3, dihedral=False).shape == (3, 3, 128, 128)
+
+
+def test_encoder_crops_come_in_eight_orientations(brick):
+    """The grid's crops first, then each quarter turn, then the four mirrored: a crop of the
+    photo turned by 90 degrees is among them, so is the mirror image."""
+    plain = encoder_crops(brick, short_side=256, size=128, grid=3, dihedral=False)
+    crops = encoder_crops(brick, short_side=256, size=128, grid=3)
+    assert crops.shape == (72, 3, 128, 128)
+    np.testing.assert_array_equal(crops[:9], plain)
+    np.testing.assert_array_equal(crops[9:18], np.rot90(plain, 1, axes=(2, 3)))
+    np.testing.assert_array_equal(crops[36:45], plain[..., ::-1])
+    assert len({c.tobytes() for c in crops[:, :, :, :]}) == 72  # the brick has no symmetry: 72 different crops
+
+
+def test_a_turned_or_mirrored_photo_gets_the_same_code(runtime, brick):
+    """The upload's code is the mean over the crops' eight orientations: a photo turned by a
+    quarter or mirrored is the same material and gets the same code; without the orientations
+    the brick's code moves."""
+    code = encode_image(runtime, brick)
+    for changed in (np.rot90(brick), brick[:, ::-1], np.rot90(brick, 3)[::-1]):
+        np.testing.assert_allclose(encode_image(runtime, np.ascontiguousarray(changed)), code, atol=1e-5)
+    plain = encoder_crops(np.ascontiguousarray(np.rot90(brick)), short_side=runtime.short_side,
+                          size=runtime.input_size, dihedral=False)
+    assert np.abs(runtime.encode(plain).mean(0) - code).max() > 1e-3
 
 
 def test_encode_image(runtime, brick):
