@@ -88,22 +88,24 @@ async def _warm_up(app: FastAPI) -> AsyncIterator[None]:
 def _add_docs(app: FastAPI) -> None:
     """/docs (Swagger UI from the bundled files, so it renders offline) and /openapi.yaml."""
 
+    # the endpoints read the app from the request, never from this closure: FastAPI keeps every
+    # endpoint it has analysed in a module-level cache, which would then keep the app alive
     @app.get("/docs", include_in_schema=False, response_class=HTMLResponse)
     def docs(request: Request) -> HTMLResponse:
-        root = request.scope.get("root_path", "").rstrip("/")
-        return get_swagger_ui_html(openapi_url=f"{root}{app.openapi_url}", title=f"{app.title} - API docs",
+        root, api = request.scope.get("root_path", "").rstrip("/"), request.app
+        return get_swagger_ui_html(openapi_url=f"{root}{api.openapi_url}", title=f"{api.title} - API docs",
                                    swagger_js_url=f"{root}{SWAGGER_UI}/swagger-ui-bundle.js",
                                    swagger_css_url=f"{root}{SWAGGER_UI}/swagger-ui.css",
                                    swagger_favicon_url=f"{root}{SWAGGER_UI}/favicon-32x32.png")
 
     @app.get("/openapi.yaml", include_in_schema=False)
-    def openapi_yaml() -> Response:
+    def openapi_yaml(request: Request) -> Response:
         if CONTRACT.is_file():
             text = CONTRACT.read_text(encoding="utf-8")
         else:
             import yaml
 
-            text = yaml.safe_dump(app.openapi(), sort_keys=False, allow_unicode=True)
+            text = yaml.safe_dump(request.app.openapi(), sort_keys=False, allow_unicode=True)
         return Response(text, media_type="application/yaml")
 
 
