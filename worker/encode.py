@@ -1,7 +1,7 @@
 """What a texture stores of an uploaded photo: its code (the encoder's mean over the
-photo's crops, each in its eight orientations) and its colour table for the model's sampler. One way through: the photo
-(``worker.photo``), then the encoder (``worker.runtime``), then the table
-(``worker.colour_match``).
+photo's crops, each in its eight orientations) and its colour table for the model's
+sampler. One way through: the photo (``worker.photo``), then the encoder
+(``worker.runtime``), then the table (``worker.colour_match``).
 """
 from __future__ import annotations
 

@@ -70,8 +70,8 @@ def create_texture(
 
     The image is resized so its shorter side is the model's working resolution (its
     shading evened out with ``lighting=even``), then a 3 x 3 grid of 128 x 128 crops, each
-    in its eight orientations, is encoded and the codes averaged. Where fitting is available (TEXSPACE_AUTO_FIT), a fit
-    job then refines the texture in place.
+    in its eight orientations, is encoded and the codes averaged. Where fitting is available
+    (TEXSPACE_AUTO_FIT), a fit job then refines the texture in place.
     """
     checked_text(image.filename or "", "image filename")
     data = read_limited(image, services.settings.max_upload_bytes, "the image")
