@@ -47,9 +47,26 @@ class ContextFormatter(logging.Formatter):
         return f"{base} [{ids}]" if ids else base
 
 
+class StderrHandler(logging.StreamHandler):
+    """Writes to ``sys.stderr`` as it is when a record is emitted, not as it was at set-up:
+    an embedder (or a test harness) that swaps stderr and closes the old one after a command
+    ran would otherwise leave every later log line failing on a closed stream."""
+
+    def __init__(self) -> None:
+        logging.Handler.__init__(self)  # (StreamHandler's would fix the stream now)
+
+    @property
+    def stream(self):  # noqa: ANN201 (a text stream)
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # noqa: ANN001 (StreamHandler.setStream assigns it)
+        raise AttributeError("StderrHandler always writes to the current sys.stderr")
+
+
 def setup_logging(level: str = "INFO", json_lines: bool = True) -> None:
     """Send all logs (ours, uvicorn's, huey's) to stderr in one format."""
-    handler = logging.StreamHandler(sys.stderr)
+    handler = StderrHandler()
     handler.setFormatter(JsonFormatter() if json_lines else
                          ContextFormatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     root = logging.getLogger()
