@@ -37,7 +37,9 @@ model's working resolution, short side ``exemplar_short_side``):
   floor (as good as more of the photo: ~1), for the tiles, for the value-noise baseline (the
   kind with the lower crop error) and for by-example noise (``eval/by_example.py``: Heitz
   and Neyret 2018, histogram-preserving blending of random patches of the photo on a
-  triangle grid) at the same tile positions and seeds. Medians over photos are reported;
+  triangle grid) at the same tile positions and seeds, and for the photo itself off its
+  corner grid (8 crops at random offsets: what a perfect synthesis of a photo whose period
+  divides the crop size can score, well above 1). Medians over photos are reported;
 * diversity: VGG feature distance (``model.losses.feature_distance``) between the seed-1
   and seed-2 tile at each position, mean over positions. Target: > 0 on every photo;
 * 3D: style error of 256 px slices on 3 axis-aligned planes (xy, xz, yz at random
@@ -86,7 +88,7 @@ from worker.runtime import ModelRuntime, SamplerSession
 from worker.tiles import NATIVE_ZOOM, render_tile
 
 from eval.by_example import TRIANGLE_EDGE, by_example_tile, gaussianise
-from eval.style_floor import CROP, crop_errors, photo_floor, style_ratio, vgg_features
+from eval.style_floor import CROP, crop_errors, off_grid_error, photo_floor, style_ratio, vgg_features
 
 TILE = 256
 POSITIONS = ((0, 0), (1, 0), (0, 1), (1, 1))  # tile (x, y) at native zoom
@@ -211,6 +213,7 @@ def photo_baselines(photo: np.ndarray, pixels_per_unit: float, targets: dict[str
         whole[kind] = float(style_errors(tiles, targets).mean())
         crop[f"value_noise_{kind}"] = float(crop_errors(tiles, floor).mean())
     crop["by_example"] = float(crop_errors(by_example_tiles(photo), floor).mean())
+    crop["off_grid"] = off_grid_error(photo, floor)
     return {"whole": whole, "floor": floor, "crop": crop}
 
 
@@ -223,7 +226,8 @@ def floor_figures(ours_error: float, base: dict) -> dict:
             "error": ours_error, "ratio": style_ratio(ours_error, floor.floor),
             "by_example_error": crop["by_example"], "by_example_ratio": style_ratio(crop["by_example"], floor.floor),
             "value_noise_error": crop[f"value_noise_{kind}"], "value_noise_kind": kind,
-            "value_noise_ratio": style_ratio(crop[f"value_noise_{kind}"], floor.floor)}
+            "value_noise_ratio": style_ratio(crop[f"value_noise_{kind}"], floor.floor),
+            "off_grid_error": crop["off_grid"], "off_grid_ratio": style_ratio(crop["off_grid"], floor.floor)}
 
 
 def style_errors(images: np.ndarray, targets: dict[str, torch.Tensor]) -> np.ndarray:
@@ -313,6 +317,7 @@ def summarise(rows: list[dict]) -> dict:
         "median_floor_ratio": median_ratio(rows, "ratio"),
         "median_floor_ratio_by_example": median_ratio(rows, "by_example_ratio"),
         "median_floor_ratio_value_noise": median_ratio(rows, "value_noise_ratio"),
+        "median_floor_ratio_off_grid": median_ratio(rows, "off_grid_ratio"),
         "floor_ratio_below_by_example": [sum(r["style_floor"]["error"] < r["style_floor"]["by_example_error"]
                                              for r in rows if "style_floor" in r),
                                          sum("style_floor" in r for r in rows)],
@@ -353,15 +358,19 @@ def floor_table(report: dict) -> list[str]:
     columns = encoders + (fits or [None])  # None: the fit column, left empty
     first = models[encoders[0]]  # its baselines (at its working size) fill the baseline columns
     fmt = lambda v: "" if v is None else f"{v:.2f}"  # noqa: E731
+    bold = lambda v: "" if v is None else f"**{v:.2f}**"  # noqa: E731 (a report from before a figure: empty)
     lines = ["", "## Style error over the photo's own floor", "",
              f"VGG Gram error of {CROP}^2 crops at the working size, divided by the photo's floor: its four "
              f"corner crops, each against the mean Gram of the other three (mean of the four). Syntheses: the "
              f"quadrants of the 8 tiles, each against the mean Gram of the four corners. ~1: as close to the "
              f"photo as more of the photo is. By-example: Heitz and Neyret 2018 (eval/by_example.py, triangle "
-             f"edge {TRIANGLE_EDGE:g} px); value noise: the kind with the lower crop error."
+             f"edge {TRIANGLE_EDGE:g} px); value noise: the kind with the lower crop error. Photo off grid: "
+             f"the photo's own crops at 8 random offsets, scored as a synthesis (well above 1 where the "
+             f"photo repeats with a period dividing the crop size: its corners agree at one phase)."
              + ("" if fits else " Fit: no --fits given, left empty."), "",
              "| photo | floor | " + " | ".join(f"{c} / floor" if c else "fit / floor" for c in columns)
-             + " | by-example / floor | value noise / floor (kind) |", "|---" * (len(columns) + 4) + "|"]
+             + " | by-example / floor | value noise / floor (kind) | photo off grid / floor |",
+             "|---" * (len(columns) + 5) + "|"]
     for photo, row in first["photos"].items():
         base = row.get("style_floor")
         if base is None:
@@ -369,12 +378,14 @@ def floor_table(report: dict) -> list[str]:
         cells = [fmt(models[c]["photos"].get(photo, {}).get("style_floor", {}).get("ratio")) if c else ""
                  for c in columns]
         lines.append(f"| {photo} | {base['floor']:.4f} | " + " | ".join(cells) + f" | {fmt(base['by_example_ratio'])} "
-                     f"| {fmt(base['value_noise_ratio'])} ({base['value_noise_kind']}) |")
+                     f"| {fmt(base['value_noise_ratio'])} ({base['value_noise_kind']}) "
+                     f"| {fmt(base.get('off_grid_ratio'))} |")
     medians = [fmt(models[c]["summary"].get("median_floor_ratio")) if c else "" for c in columns]
     s = first["summary"]
     lines.append("| **median** | | " + " | ".join(f"**{m}**" if m else "" for m in medians)
                  + f" | **{fmt(s.get('median_floor_ratio_by_example'))}** "
-                   f"| **{fmt(s.get('median_floor_ratio_value_noise'))}** |")
+                   f"| **{fmt(s.get('median_floor_ratio_value_noise'))}** "
+                   f"| {bold(s.get('median_floor_ratio_off_grid'))} |")
     return lines
 
 

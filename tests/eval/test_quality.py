@@ -81,7 +81,7 @@ def floor_row(ratio: float, by_example: float, value_noise: float, floor: float 
     row["style_floor"] = {"floor": floor, "corner_errors": [floor] * 4, "error": ratio * floor, "ratio": ratio,
                           "by_example_error": by_example * floor, "by_example_ratio": by_example,
                           "value_noise_error": value_noise * floor, "value_noise_ratio": value_noise,
-                          "value_noise_kind": "lum"}
+                          "value_noise_kind": "lum", "off_grid_error": 0.8 * floor, "off_grid_ratio": 0.8}
     return row
 
 
@@ -104,10 +104,15 @@ def test_the_markdown_has_a_floor_table_with_medians_and_an_empty_fit_column(qua
     entry = {"summary": quality.summarise(list(rows.values())), "photos": rows, "model_dir": "d",
              "version": "v", "step": 1}
     markdown = quality.to_markdown({"models": {"shipped": entry}})
-    assert "| photo | floor | shipped / floor | fit / floor | by-example / floor | value noise / floor (kind) |" \
-        in markdown
-    assert "| bricks | 0.0100 | 3.00 |  | 2.00 | 40.00 (lum) |" in markdown
-    assert "| **median** | | **2.25** |  | **3.00** | **25.00** |" in markdown
+    assert ("| photo | floor | shipped / floor | fit / floor | by-example / floor | value noise / floor (kind) "
+            "| photo off grid / floor |") in markdown
+    assert "| bricks | 0.0100 | 3.00 |  | 2.00 | 40.00 (lum) | 0.80 |" in markdown
+    assert "| **median** | | **2.25** |  | **3.00** | **25.00** | **0.80** |" in markdown
+    # a report from before the off-grid figure: its cells and median stay empty
+    for row in rows.values():
+        del row["style_floor"]["off_grid_ratio"]
+    entry["summary"] = quality.summarise(list(rows.values()))
+    assert "| **median** | | **2.25** |  | **3.00** | **25.00** |  |" in quality.to_markdown({"models": {"shipped": entry}})
     assert "no --fits given" in markdown
     fit = dict(entry, step="fit", photos={"bricks": floor_row(0.5, 2.0, 40.0)})
     fit["summary"] = quality.summarise(list(fit["photos"].values()))

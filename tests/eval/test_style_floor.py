@@ -8,7 +8,8 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="the style floor runs VGG16 (the train extra)")
 
-from eval.style_floor import corner_crops, crop_errors, photo_floor, style_ratio, tile_crops  # noqa: E402
+from eval.style_floor import (corner_crops, crop_errors, off_grid_error, photo_floor, style_ratio,  # noqa: E402
+                              tile_crops)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -62,6 +63,18 @@ def test_the_photo_scores_about_its_floor_and_a_flat_tile_far_above(noise, noise
     assert 0 < own.mean() < floor.floor
     grey = np.broadcast_to(noise.reshape(-1, 3).mean(0), (1, 256, 256, 3)).astype(np.float32)
     assert style_ratio(float(crop_errors(grey, floor).mean()), floor.floor) > 10
+
+
+def test_off_the_corner_grid_a_periodic_photo_scores_far_above_its_floor(noise, noise_floor):
+    """A pattern whose period divides the crop size has no floor at its corners, yet its own
+    crops at other phases score as much as noise's crops do against each other: the floor
+    there is a phase artefact. Noise's own crops elsewhere score about its floor (below it:
+    they overlap the corners)."""
+    periodic = np.tile(noise[:16, :16], (16, 16, 1))
+    flat = photo_floor(periodic)
+    assert off_grid_error(periodic, flat) > 0.5 * noise_floor.floor > 1e6 * max(flat.floor, 1e-12)
+    assert 0.3 < off_grid_error(noise, noise_floor) / noise_floor.floor < 1.2
+    assert off_grid_error(noise, noise_floor) == off_grid_error(noise, noise_floor, seed=0)  # fixed offsets
 
 
 def test_style_ratio_divides_and_refuses_a_missing_floor():
