@@ -589,3 +589,47 @@ def test_a_fit_canceled_from_its_progress_hook_stops_without_a_last_score(tmp_pa
     assert scores == [0]  # the start's score only
     _, ckpt = load_checkpoint(out / "checkpoint.pt")
     assert ckpt["step"] == 3 and ckpt.get("probe") is None
+
+
+def test_cell_shades_start_varying_each_cell_by_the_measured_covariance():
+    """start_on_cell_shades sets the shade columns (zero until then) so that colours move with
+    each cell's shade, about as far as the asked covariance says in units of the texture's
+    spread. It is a first-order map through the mean Jacobian, as the mean cell's: on the
+    shipped decoder it moves them 1.9-4x the asked std, and two points of one cell move alike
+    only in part (correlation 0.1-0.3); the fit's steps make the shades from there. Four times
+    the covariance moves them about twice as far."""
+    from model.fit import DEFAULT_INIT
+    from model.train import _colour_jacobian, start_on_cell_shades
+
+    space, _ = load_checkpoint(DEFAULT_INIT)  # the shipped space's decoder, as a fit starts from it
+    cfg = dataclasses.replace(space.cfg, lattice=(0.0625, 0.0, 0.0, 0.0625), lattice_shade=True,
+                              lattice_cell=(16, 16))
+    torch.manual_seed(0)
+    with torch.no_grad():
+        code = space.encoder(torch.rand(1, 3, 128, 128))
+    covariance = np.diag([0.04, 0.01, 0.0225])  # shades of 0.2, 0.1 and 0.15 of the spread per channel
+    # cell centres of 64 x 64 cells, and a second point in each cell
+    centres = (torch.stack(torch.meshgrid(torch.arange(64.0), torch.arange(64.0), indexing="ij"), -1)
+               .reshape(1, -1, 2).double() + 0.5) * 0.0625
+    points = torch.cat([centres, torch.full_like(centres[..., :1], 0.3)], dim=-1)
+    nudged = points + torch.tensor([0.02, 0.0, 0.0], dtype=torch.float64)  # same cell, another place
+    seed = torch.tensor([3])
+
+    def shifts(scale: float) -> tuple[torch.Tensor, torch.Tensor, float]:
+        model = TextureSpace(cfg)
+        model.load_state_dict(space.state_dict(), strict=False)  # (the phase inputs start at zero)
+        field = model.field
+        spread = float(_colour_jacobian(field, code, np.random.default_rng(1), 64, 4)[0])
+        with torch.no_grad():
+            before, before_nudged = field(points, code, seed), field(nudged, code, seed)
+        assert not field.decoder.from_phase.weight.any()
+        start_on_cell_shades(model, code, scale * covariance, np.random.default_rng(1))
+        with torch.no_grad():
+            return field(points, code, seed)[0] - before[0], field(nudged, code, seed)[0] - before_nudged[0], spread
+
+    shift, shift_nudged, spread = shifts(1.0)
+    ratio = shift.std(dim=0).numpy() / (spread * np.sqrt(np.diag(covariance)))
+    assert np.all((ratio > 0.5) & (ratio < 5.0)), ratio
+    for channel in range(3):  # one shade per cell: two points of a cell move together, in part
+        assert torch.corrcoef(torch.stack([shift[:, channel], shift_nudged[:, channel]]))[0, 1] > 0.05
+    assert 1.5 < float(shifts(4.0)[0].std() / shift.std()) < 2.5
