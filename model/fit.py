@@ -29,7 +29,6 @@ from model.data import load_exemplar
 from model.detail import detail_factor, fit_detail
 from model.export import TILEABLE_SAMPLER, export_sampler, export_tileable_sampler, model_version
 from model.device import resolve_device, resolve_precision
-from model.lattice import cell_shade_covariance, lattice_pixels
 from model.networks import load_checkpoint
 from model.probe import Interim
 from model.structure import (EVEN_BLOCK, GRAIN_STRETCH, detect_even, grain_stretch, grain_turn, photo_lean,
@@ -122,8 +121,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     world (x, y) (``ModelConfig.warp``) that starts at its lean (``model.structure.photo_lean``:
     [degrees, stretch] in the result); None: never.
     ``shade``: ``"on"``: a fit on a lattice, stripes or boards gives each repeat cell its own
-    hashed shade (``ModelConfig.lattice_shade``); ``"auto"``: on where the steps run on CUDA
-    or the photo's cells show shades of their own (``shades_pay``);
+    hashed shade (``ModelConfig.lattice_shade``); ``"auto"``: on where the steps run on CUDA;
     ``"none"``: never.
     ``interim``: ``interim(folder, code, step, structure)`` is called once, ``interim_seconds``
     into the fit, with the best state so far written to ``folder`` (``OUTDIR/interim``: its
@@ -179,7 +177,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         cfg = fit_config(found, space_cfg, exemplar=exemplar, run_dir=run_dir, init=init, minutes=minutes,
                          patch=patch, rate=rate, seed=seed, loss=loss, device=device, quiet=quiet,
                          precision=precision, threads=threads, spectrum=spectrum,
-                         shade=shade == "on" or (shade == "auto" and shades_pay(found, steps_on)))
+                         shade=shade == "on" or (shade == "auto" and steps_on.type == "cuda"))
         ckpt_path = train(cfg, progress=fit_progress, pause=pause,
                           interim=Interim(interim_seconds, publish, start_counts=found.builds_structure)
                           if interim is not None else None)
@@ -253,18 +251,6 @@ class FitStructure:
                 "grain_stretch": self.stretch if self.grain else None,
                 "lattice": list(self.lattice) if self.lattice else None,
                 "muted_octaves": self.muted, "lean": [round(self.lean[0], 2), round(self.lean[1], 3)] if self.lean else None}
-
-
-def shades_pay(found: FitStructure, steps_on: torch.device) -> bool:
-    """Whether a fit on ``found`` gives each repeat cell its own shade under ``--shade auto``:
-    on CUDA, on every lattice (hundreds of steps learn them from zero); elsewhere where the
-    photo's cells show their own shades (``cell_shade_covariance``), which then start them
-    (``model.train.start_on_cell_shades``): 70-s CPU fits of the 4 such photos of 40
-    validation families, 0.85x the style error (geometric mean, docs/DECISIONS.md); from zero,
-    shades made CPU fits worse."""
-    if not found.lattice:
-        return False
-    return steps_on.type == "cuda" or cell_shade_covariance(found.photo, lattice_pixels(found.lattice)) is not None
 
 
 def detect_structure(photo: np.ndarray, space_cfg: ModelConfig, *, grain: str | None, lattice: str | None,
@@ -412,8 +398,8 @@ def main(argv=None):
     p.add_argument("--shade", choices=["auto", "on", "none"], default="auto",
                    help="on: a fit on a repeat lattice, stripes or boards gives each repeat cell its own hashed "
                         "shade input (ModelConfig.lattice_shade); none: every cell alike; auto (default): on "
-                        "where the fit runs on CUDA (hundreds of steps), and on the CPU where the photo's "
-                        "cells show shades of their own, which then start them (docs/DECISIONS.md)")
+                        "where the fit runs on CUDA (hundreds of steps), none on the CPU, where 60-step fits "
+                        "scored worse with it (docs/DECISIONS.md)")
     p.add_argument("--detail-seconds", type=float, default=DETAIL_SECONDS,
                    help="a photo at least twice the working size: seconds of the detail stage after the fit, "
                         f"finer octaves learned on the photo at up to 4x the working size (model/detail.py; "

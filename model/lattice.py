@@ -75,69 +75,6 @@ def lattice_mean_cell(image: np.ndarray, lattice_px: tuple[float, float, float, 
     return cell.reshape(*sizes, 3).astype(np.float32)
 
 
-# Cell shades need this many whole cells, each with its four neighbours whole, to be measured
-# (the savanna dunes' 10 gave a spread their fit drew as blotches: 2.91 -> 3.15x the floor).
-SHADE_MIN_CELLS = 24
-# ... and a shade variance at least this many of its sampling errors above zero: on 0ad's
-# validation photos, floor tiles, planks and farm rows 6.5-6.7, bricks 1.95, where 70-s CPU fits
-# gained from shades; farmland_a 1.1, its road tiles 0.1 and temp_farmland -1.3 are noise.
-SHADE_MIN_ERRORS = 1.5
-# A cell's mean less its four neighbours' has 1 + 4 / 16 = 1.25 times the variance of
-# independent per-cell shades; on cells shifted half a period each way, each the mean of four
-# shades, 0.09375 times (the sum of squares of that residual kernel convolved with a 2 x 2 box).
-_SHADE_ALIGNED, _SHADE_SHIFTED = 1.25, 0.09375
-
-
-def _cell_residuals(image: np.ndarray, lattice_px: tuple[float, float, float, float], shift: float) -> np.ndarray:
-    """Mean colour of each whole lattice cell (cells shifted by ``shift`` of a period along both
-    vectors) less the mean of its four neighbours, for cells whose neighbours are whole too:
-    float64 [n, 3]. Whole: at least 80% of the fullest cell's pixels."""
-    height, width = image.shape[:2]
-    rows, cols = np.mgrid[0:height, 0:width]
-    points = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], axis=1)
-    cell = np.floor(points @ np.linalg.inv(np.array(lattice_px, np.float64).reshape(2, 2).T).T + shift)
-    cell = (cell - cell.min(axis=0)).astype(np.int64)
-    shape = tuple(cell.max(axis=0) + 1)
-    index = cell[:, 0] * shape[1] + cell[:, 1]
-    n = int(np.prod(shape))
-    counts = np.bincount(index, minlength=n)
-    colours = image.reshape(-1, 3).astype(np.float64)
-    means = np.stack([np.bincount(index, colours[:, c], minlength=n) for c in range(3)], axis=1)
-    means = (means / np.maximum(counts, 1)[:, None]).reshape(*shape, 3)
-    whole = (counts >= 0.8 * counts.max()).reshape(shape)
-    centre = (slice(1, -1), slice(1, -1))
-    around = [(slice(2, None), slice(1, -1)), (slice(None, -2), slice(1, -1)),
-              (slice(1, -1), slice(2, None)), (slice(1, -1), slice(None, -2))]
-    residual = means[centre] - sum(means[a] for a in around) / 4.0
-    ok = whole[centre] & np.logical_and.reduce([whole[a] for a in around])
-    return residual[ok]
-
-
-def cell_shade_covariance(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> np.ndarray | None:
-    """How much each repeat cell's own shade varies (bricks, tiles, planks of different
-    shades): float64 [3, 3], the covariance of per-cell colour offsets in units of the photo's
-    mean channel variance, or None where fewer than ``SHADE_MIN_CELLS`` cells can be compared
-    or the shades' variance is not ``SHADE_MIN_ERRORS`` sampling errors above zero.
-
-    A cell's mean less its neighbours' also varies with the texture inside the cells (noise
-    averaged over a cell is not constant); that part is the same on cells shifted half a period,
-    where every cell straddles four shades, so the difference of the two, over the difference
-    of their responses to per-cell shades, leaves the shades alone (clipped to be positive
-    semi-definite). Floor tiles: 0.38 -> 0.33 of the photo's spread; farmland rows 0.10 -> 0.07."""
-    aligned, shifted = _cell_residuals(image, lattice_px, 0.0), _cell_residuals(image, lattice_px, 0.5)
-    if min(len(aligned), len(shifted)) < SHADE_MIN_CELLS:
-        return None
-    c_aligned, c_shifted = np.cov(aligned.T), np.cov(shifted.T)
-    # a variance estimated from n samples has a sampling error of about sqrt(2 / n) of itself
-    v_aligned, v_shifted = float(np.trace(c_aligned)), float(np.trace(c_shifted))
-    error = math.sqrt(2.0 * v_aligned**2 / len(aligned) + 2.0 * v_shifted**2 / len(shifted))
-    if v_aligned - v_shifted < SHADE_MIN_ERRORS * error:
-        return None
-    values, vectors = np.linalg.eigh((c_aligned - c_shifted) / (_SHADE_ALIGNED - _SHADE_SHIFTED))
-    covariance = (vectors * np.clip(values, 0.0, None)) @ vectors.T
-    return covariance / max(float(image.reshape(-1, 3).var(axis=0).mean()), 1e-12)
-
-
 def mean_cell_share(image: np.ndarray, lattice_px: tuple[float, float, float, float]) -> float:
     """How much of the photo's spread its mean repeat cell explains (0..1): the spread of
     each pixel's cell colour about the photo's mean, over the photo's own spread."""

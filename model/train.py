@@ -40,7 +40,7 @@ from tqdm import tqdm
 from model.config import ModelConfig
 from model.data import TextureDataset, load_exemplar, sample_batch
 from model.device import autocast, resolve_device, resolve_precision
-from model.lattice import cell_shade_covariance, lattice_mean_cell, lattice_pixels, mean_cell_share
+from model.lattice import lattice_mean_cell, lattice_pixels, mean_cell_share
 from model.networks import TextureSpace, load_checkpoint
 from model.objective import Objective
 from model.probe import Interim, Probe
@@ -50,33 +50,6 @@ from worker.photo import encoder_crops
 
 
 POSITION_EXTENT = 4.0  # world units around the origin where position-input variants train
-
-def _colour_jacobian(field, code: torch.Tensor, rng: np.random.Generator, patch: int,  # noqa: ANN001 (a TextureField)
-                     planes: int, output_scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """On ``planes`` random photo-plane patches: the texture's colour spread (mean channel
-    std), then, with the decoder's output weights scaled by ``output_scale``, the mean
-    Jacobian of colour with respect to the first hidden layer [3, H] and the ridged inverse of
-    its Gram [3, 3] (so ``J^T G^-1 c`` is first-layer weights that move the colour by ``c``)."""
-    device = code.device
-    origins, axes = random_planes(planes, rng, photo_plane=True)
-    points = plane_points(origins.to(device), axes.to(device), patch, field.cfg.pixels_per_unit)
-    seeds = torch.from_numpy(rng.integers(0, 2**31, size=planes)).to(device)
-    z = code.detach().expand(planes, -1)
-    with torch.no_grad():
-        spread = field(points, z, seeds).reshape(-1, 3).std(dim=0).mean()
-        field.decoder.out.weight.mul_(output_scale)
-    delta = torch.zeros(field.decoder.from_code.out_features, device=device, requires_grad=True)
-    hook = field.decoder.from_code.register_forward_hook(lambda module, inputs, output: output + delta)
-    try:
-        rgb = field(points, z, seeds)  # [B,P,3] linear
-        jacobian = torch.stack([torch.autograd.grad(rgb[..., k].mean(), delta, retain_graph=True)[0]
-                                [:field.decoder.hidden] for k in range(3)])  # [3,H]
-    finally:
-        hook.remove()
-    gram = jacobian @ jacobian.T
-    ridge = (1e-6 * gram.trace() + 1e-12) * torch.eye(3, device=device)
-    return spread, jacobian, torch.linalg.inv(gram + ridge)
-
 
 def start_on_mean_cell(model: TextureSpace, code: torch.Tensor, share: float, rng: np.random.Generator,
                        patch: int = 64, planes: int = 4) -> None:
@@ -93,33 +66,28 @@ def start_on_mean_cell(model: TextureSpace, code: torch.Tensor, share: float, rn
     Jacobian of colour with respect to the first hidden layer, on ``planes`` random
     photo-plane patches."""
     field = model.field
+    device = code.device
     share = min(share, 0.99)  # (an exactly periodic photo: keep a little of the texture to steer)
-    # (room for the cell's share made before the Jacobian is taken)
-    spread, jacobian, inverse = _colour_jacobian(field, code, rng, patch, planes,
-                                                 output_scale=math.sqrt(max(1.0 - share**2, 0.0)))
-    weight = (share * spread) * jacobian.T @ inverse
+    origins, axes = random_planes(planes, rng, photo_plane=True)
+    points = plane_points(origins.to(device), axes.to(device), patch, field.cfg.pixels_per_unit)
+    seeds = torch.from_numpy(rng.integers(0, 2**31, size=planes)).to(device)
+    z = code.detach().expand(planes, -1)
+    with torch.no_grad():
+        spread = field(points, z, seeds).reshape(-1, 3).std(dim=0).mean()
+        field.decoder.out.weight.mul_(math.sqrt(max(1.0 - share**2, 0.0)))  # room for the cell's share
+    delta = torch.zeros(field.decoder.from_code.out_features, device=device, requires_grad=True)
+    hook = field.decoder.from_code.register_forward_hook(lambda module, inputs, output: output + delta)
+    try:
+        rgb = field(points, z, seeds)  # [B,P,3] linear
+        jacobian = torch.stack([torch.autograd.grad(rgb[..., k].mean(), delta, retain_graph=True)[0]
+                                [:field.decoder.hidden] for k in range(3)])  # [3,H]
+    finally:
+        hook.remove()
+    gram = jacobian @ jacobian.T
+    ridge = (1e-6 * gram.trace() + 1e-12) * torch.eye(3, device=device)
+    weight = (share * spread) * jacobian.T @ torch.linalg.inv(gram + ridge)
     with torch.no_grad():
         field.decoder.from_phase.weight[:, -3:] = weight
-
-
-def start_on_cell_shades(model: TextureSpace, code: torch.Tensor, covariance: np.ndarray, rng: np.random.Generator,
-                         patch: int = 64, planes: int = 4) -> None:
-    """Start a lattice fit's cell shades (``lattice_shade``: three hashed values a cell,
-    uniform in [-1, 1], zero-weighted until now) at the photo's cells' own variation:
-    ``covariance`` (``model.lattice.cell_shade_covariance``, in units of the photo's channel
-    variance) taken as a share of the texture's spread, through the same first-order map as
-    ``start_on_mean_cell``. The map is rough (on the shipped decoder colours move 1.9-4x the
-    asked std, two points of a cell alike only in part); the steps make the shades from there.
-    From zero weights, 70-s CPU fits (about 200 steps) scored worse with shades than without
-    (docs/DECISIONS.md)."""
-    field = model.field
-    spread, jacobian, inverse = _colour_jacobian(field, code, rng, patch, planes)
-    # uniform values in [-1, 1] have variance 1/3: sqrt(3) L gives colour offsets of covariance L L^T
-    factor = np.linalg.cholesky(covariance + 1e-9 * np.eye(3)) * math.sqrt(3.0)
-    colour = spread * torch.as_tensor(factor, dtype=torch.float32, device=code.device)  # [3 colour, 3 shades]
-    first = 4 * field.cfg.lattice_harmonics  # the shade columns follow the phases' sin and cos
-    with torch.no_grad():
-        field.decoder.from_phase.weight[:, first:first + 3] = jacobian.T @ inverse @ colour
 
 
 def load_exemplars(cfg: TrainConfig) -> tuple[list[str], list[np.ndarray]]:
@@ -303,9 +271,6 @@ def setup(cfg: TrainConfig) -> Run:
     # a fit's cell weights are still zero (its space has no lattice): start them on the mean cell
     if mean_cell is not None and cfg.mode == "single" and not model.field.decoder.from_phase.weight[:, -3:].any():
         start_on_mean_cell(model, codes, mean_cell_share(images[0], lattice_pixels(cfg.lattice)), rng)
-        shades = cell_shade_covariance(images[0], lattice_pixels(cfg.lattice)) if cfg.lattice_shade else None
-        if shades is not None:  # (else they start at zero, as a GPU fit's did)
-            start_on_cell_shades(model, codes, shades, rng)
     # Position-input baselines (mlp, oursP) only work near the origin they saw in training;
     # noise-only models are trained everywhere, which is what makes them infinite.
     extent = POSITION_EXTENT if model.cfg.flags.position else 1000.0
