@@ -107,8 +107,7 @@ def off_grid_error(photo: np.ndarray, floor: PhotoFloor, size: int = CROP, count
     rng = np.random.default_rng(seed)
     starts = rng.integers(0, [height - size + 1, width - size + 1], size=(count, 2))
     crops = np.stack([photo[y:y + size, x:x + size] for y, x in starts])
-    with torch.no_grad():
-        return float(gram_loss(vgg_features(crops), floor.target, reduction="none").double().mean())
+    return float(crop_errors(crops, floor, size).mean())  # (each crop is one whole crop of itself)
 
 
 def style_ratio(error: float, floor: float) -> float | None:
