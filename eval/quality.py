@@ -18,7 +18,9 @@ model's working resolution, short side ``exemplar_short_side``):
 * colour: CIELAB (skimage, D65) of the photo at working resolution vs the tiles: deltaE
   of the means (CIE76 and CIEDE2000) and per-channel Lab std ratio tile / photo, for
   all 8 tiles pooled and for the worst single tile (largest deltaE; for std, the ratio
-  furthest from 1 per channel). Targets: deltaE76 < 5, std ratio in [0.7, 1.4];
+  furthest from 1 per channel). Targets: deltaE76 < 5, std ratio in [0.7, 1.4]. Beside
+  them, the photo's own: its 128^2 windows at 64-px steps against the whole photo, the same
+  two figures (``own_crop_colour``): a photo uneven at that scale has tiles as uneven;
 * fits (``--fits``): the same figures for each photo's fitted sampler (``model.fit``
   output), with its fitted code and a colour table computed for that sampler;
 * style: VGG16 Gram error (``model.losses.gram_loss``, the fixed default layer weights,
@@ -214,7 +216,7 @@ def photo_baselines(photo: np.ndarray, pixels_per_unit: float, targets: dict[str
         crop[f"value_noise_{kind}"] = float(crop_errors(tiles, floor).mean())
     crop["by_example"] = float(crop_errors(by_example_tiles(photo), floor).mean())
     crop["off_grid"] = off_grid_error(photo, floor)
-    return {"whole": whole, "floor": floor, "crop": crop}
+    return {"whole": whole, "floor": floor, "crop": crop, "own_colour": own_crop_colour(photo)}
 
 
 def floor_figures(ours_error: float, base: dict) -> dict:
@@ -234,6 +236,22 @@ def style_errors(images: np.ndarray, targets: dict[str, torch.Tensor]) -> np.nda
     """Gram error (default layer weights) of each image against the photo's Grams: (N,)."""
     with torch.no_grad():
         return gram_loss(vgg_features(images), targets, reduction="none").numpy()
+
+
+def own_crop_colour(photo: np.ndarray) -> dict:
+    """How far the photo's own ``CROP``-px windows (at half-crop steps, first and last flush
+    with its borders) are from the whole photo: the largest deltaE76 of a window's mean Lab,
+    and per channel the window's Lab std over the photo's furthest from 1. A photo that is not
+    even at that scale (a lamp on a panel, a page of print) has windows far from its mean, and
+    so may a tile that is the photo."""
+    lab = rgb2lab(photo)
+    height, width = lab.shape[:2]
+    ys, xs = (np.unique(np.linspace(0, n - CROP, 2 * (n // CROP) - 1).round().astype(int)) for n in (height, width))
+    windows = np.stack([lab[y:y + CROP, x:x + CROP].reshape(-1, 3) for y in ys for x in xs])
+    p_mean, p_std = lab.reshape(-1, 3).mean(0), lab.reshape(-1, 3).std(0)
+    ratios = windows.std(1) / p_std
+    return {"de76": float(np.linalg.norm(windows.mean(1) - p_mean, axis=1).max()),
+            "std_ratio": ratios[np.abs(np.log(ratios)).argmax(0), [0, 1, 2]].tolist(), "windows": len(windows)}
 
 
 def colour_figures(photo_lab: np.ndarray, tiles: np.ndarray) -> dict:
@@ -274,7 +292,7 @@ def measure_photo(runtime: ModelRuntime, image: np.ndarray, baselines: dict) -> 
     floor = floor_figures(float(crop_errors(tiles, baselines[key]["floor"]).mean()), baselines[key])
     axis = style_errors(render_slices(runtime, code, "axis"), targets)
     oblique = style_errors(render_slices(runtime, code, "oblique"), targets)
-    return {"colour": colour_figures(rgb2lab(photo).reshape(-1, 3), tiles),
+    return {"colour": colour_figures(rgb2lab(photo).reshape(-1, 3), tiles) | {"photo_crops": baselines[key]["own_colour"]},
             "style": {"ours": float(ours.mean()), "ours_worst_tile": float(ours.max()),
                       "baseline": base[kind], "baseline_kind": kind, "baseline_rgb": base["rgb"],
                       "baseline_lum": base["lum"], "win": bool(ours.mean() < base[kind])},
@@ -299,9 +317,12 @@ def summarise(rows: list[dict]) -> dict:
     # its oblique cuts shear the pattern, as a cut through a brick wall would); those are listed apart
     solids = [r for r in rows if not r.get("pattern_2d")] or rows
     oblique = np.mean([r["style_oblique"] for r in solids]) / np.mean([r["style_axis"] for r in solids])
+    worst_tile = max(rows, key=lambda r: r["colour"]["worst_tile"]["de76"])
     summary = {
         "max_de76_pooled": max(r["colour"]["pooled"]["de76"] for r in rows),
-        "max_de76_worst_tile": max(r["colour"]["worst_tile"]["de76"] for r in rows),
+        "max_de76_worst_tile": worst_tile["colour"]["worst_tile"]["de76"],
+        # that tile's photo: how far its own corner crops are from its mean (None before this figure)
+        "max_de76_worst_tile_photo_crops": worst_tile["colour"].get("photo_crops", {}).get("de76"),
         "max_de2000_pooled": max(r["colour"]["pooled"]["de2000"] for r in rows),
         "std_ratio_range_pooled": [ratios[:, 0].min(0).tolist(), ratios[:, 0].max(0).tolist()],
         "std_ratio_range_worst_tile": [ratios[:, 1].min(0).tolist(), ratios[:, 1].max(0).tolist()],
@@ -339,6 +360,12 @@ def summarise(rows: list[dict]) -> dict:
 def worst_photo(summary: dict) -> str:
     worst = summary.get("max_oblique_over_axis_solid", summary["max_oblique_over_axis"])
     return "no photo without a 2D pattern" if worst is None else f"worst photo {worst:.2f}"
+
+
+def own_crops(summary: dict) -> str:
+    """The worst tile's photo: its own crops' largest deltaE76 from its mean, when measured."""
+    own = summary.get("max_de76_worst_tile_photo_crops")
+    return "" if own is None else f" (its photo's crops {own:.2f})"
 
 
 def pattern_note(summary: dict) -> str:
@@ -399,7 +426,10 @@ def to_markdown(report: dict) -> str:
              "error, ours vs the stronger colour-matched value-noise baseline. Targets: dE76 < 5, std ratio in "
              "[0.7, 1.4], wins >= 80%, diversity > 0, oblique / axis <= 1.5 (pooled over the photos and for "
              "the worst photo, both leaving out fits on a lattice or stripes, a 2D pattern carried through depth: "
-             "their ratios are listed beside). **x**: target missed.", "",
+             "their ratios are listed beside). Beside the worst tile: how far its photo's own "
+             f"{CROP}-px windows (at {CROP // 2}-px steps) are from the photo's mean colour (largest dE76), the "
+             "photo's own unevenness. "
+             "**x**: target missed.", "",
              "| model | max dE76 pooled | max dE76 worst tile | max dE2000 pooled | std ratio pooled min..max "
              "| std ratio worst tile min..max | wins | min diversity | oblique / axis | mean style |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -407,7 +437,7 @@ def to_markdown(report: dict) -> str:
         s, ok = entry["summary"], entry["summary"]["pass"]
         lines.append(
             f"| {label} | {s['max_de76_pooled']:.2f}{mark(ok['de76_pooled'])} | {s['max_de76_worst_tile']:.2f}"
-            f"{mark(ok['de76_worst_tile'])} | {s['max_de2000_pooled']:.2f} | {f3(s['std_ratio_range_pooled'][0])} .. "
+            f"{mark(ok['de76_worst_tile'])}{own_crops(s)} | {s['max_de2000_pooled']:.2f} | {f3(s['std_ratio_range_pooled'][0])} .. "
             f"{f3(s['std_ratio_range_pooled'][1])}{mark(ok['std_ratio_pooled'])} | "
             f"{f3(s['std_ratio_range_worst_tile'][0])} .. {f3(s['std_ratio_range_worst_tile'][1])}"
             f"{mark(ok['std_ratio_worst_tile'])} | {s['wins'][0]}/{s['wins'][1]}{mark(ok['wins'])} | "
@@ -418,14 +448,16 @@ def to_markdown(report: dict) -> str:
     for label, entry in report["models"].items():
         carried = ", carried from an earlier run (--carry)" if entry.get("carried") else ""
         lines += ["", f"## {label} ({entry['model_dir']}, version {entry['version']}, step {entry['step']}{carried})", "",
-                  "| photo | dE76 pooled | dE2000 pooled | dE76 worst tile | std ratio pooled | std ratio worst tile "
-                  "| style ours | baseline (kind) | win | diversity | oblique / axis |", "|---" * 11 + "|"]
+                  "| photo | dE76 pooled | dE2000 pooled | dE76 worst tile | dE76 photo's crops | std ratio pooled "
+                  "| std ratio worst tile | std ratio photo's crops | style ours | baseline (kind) | win | diversity "
+                  "| oblique / axis |", "|---" * 13 + "|"]
         # (a ratio marked 2D: a fit on a lattice or stripes, left out of the worst-photo target)
         for photo, r in entry["photos"].items():
-            c, st = r["colour"], r["style"]
+            c, st, own = r["colour"], r["style"], r["colour"].get("photo_crops")  # own: None in older reports
+            own_de, own_std = (f"{own['de76']:.2f}", f3(own["std_ratio"])) if own else ("", "")
             lines.append(f"| {photo} | {c['pooled']['de76']:.2f} | {c['pooled']['de2000']:.2f} | "
-                         f"{c['worst_tile']['de76']:.2f} | {f3(c['pooled']['std_ratio'])} | "
-                         f"{f3(c['worst_tile']['std_ratio'])} | {st['ours']:.3f} | {st['baseline']:.3f} "
+                         f"{c['worst_tile']['de76']:.2f} | {own_de} | {f3(c['pooled']['std_ratio'])} | "
+                         f"{f3(c['worst_tile']['std_ratio'])} | {own_std} | {st['ours']:.3f} | {st['baseline']:.3f} "
                          f"({st['baseline_kind']}) | {'yes' if st['win'] else 'no'} | {r['diversity']:.3f} | "
                          f"{r['oblique_over_axis']:.2f}{' (2D)' if r.get('pattern_2d') else ''} |")
     return "\n".join(lines) + "\n"
@@ -462,6 +494,20 @@ def carried_models(results: Path, labels: list[str], photos: list[str]) -> dict:
         if other:
             raise SystemExit(f"--carry: {label} in {results} was measured on other photos ({', '.join(other[:3])})")
     return {label: models[label] | {"carried": True} for label in labels}
+
+
+def with_photo_figures(carried: dict, measured: dict) -> dict:
+    """Carried models' rows take their photo's own colour figures from a model measured now
+    (they are the photo's, as its floor is, and measured as this code measures them), and
+    their summary again."""
+    own = {name: row["colour"]["photo_crops"] for entry in measured.values()
+           for name, row in entry["photos"].items() if "photo_crops" in row["colour"]}
+    for entry in carried.values():
+        for name, row in entry["photos"].items():
+            if name in own:
+                row["colour"]["photo_crops"] = own[name]
+        entry["summary"] = summarise(list(entry["photos"].values()))
+    return carried
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -511,7 +557,7 @@ def main(argv: list[str] | None = None) -> int:
         report["models"][f"{labels[0]}-fit"] = {
             "model_dir": str(args.fits), "version": "per photo", "step": "fit",
             "seconds": round(time.perf_counter() - start, 1), "summary": summarise(list(rows.values())), "photos": rows}
-    report["models"] |= carried
+    report["models"] |= with_photo_figures(carried, report["models"])
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "results.json").write_text(json.dumps(report, indent=2) + "\n")
     markdown = to_markdown(report)

@@ -157,3 +157,36 @@ def test_carry_keeps_a_model_measured_before_and_refuses_other_photos(quality, t
         quality.carried_models(tmp_path / "results.json", ["shipped-fit"], ["gravel"])
     with pytest.raises(SystemExit, match="no earlier results"):
         quality.carried_models(tmp_path / "nothing.json", ["shipped-fit"], ["bricks"])
+
+
+def test_the_photos_own_crops_say_how_uneven_its_colour_is(quality):
+    """A photo dark on the left and light on the right has windows far from its mean; an
+    even one does not; std ratios are crop over photo, the one furthest from 1 per channel."""
+    rng = np.random.default_rng(0)
+    even = (0.5 + 0.05 * rng.standard_normal((256, 256, 3))).clip(0, 1).astype(np.float32)
+    halves = even.copy()
+    halves[:, :128] -= 0.2
+    flat, uneven = quality.own_crop_colour(even), quality.own_crop_colour(halves)
+    assert flat["de76"] < 1.0 < 10.0 < uneven["de76"]
+    assert all(0.9 < r < 1.1 for r in flat["std_ratio"]) and uneven["std_ratio"][0] < 0.7  # L: one tone a crop
+    assert flat["windows"] == 9  # 128-px windows at 64-px steps: 3 x 3 on 256 px
+    tall = quality.own_crop_colour(np.concatenate([even, halves]))  # 512 x 256: 7 x 3, ends flush
+    assert tall["windows"] == 21 and tall["de76"] > 10.0
+
+
+def test_the_worst_tile_shows_its_photos_own_crops_and_carried_rows_get_them(quality):
+    tile = floor_row(1.0, 1.0, 10.0)
+    tile["colour"]["worst_tile"] = {"de76": 6.0, "de2000": 4.0, "std_ratio": [1.0, 1.0, 1.0]}
+    measured = dict(tile, colour=dict(tile["colour"], photo_crops={"de76": 6.5, "std_ratio": [0.8, 1.2, 1.0]}))
+    now = {"shipped": {"photos": {"evil": measured}, "summary": quality.summarise([measured]), "model_dir": "w",
+                       "version": "v", "step": 1}}
+    carried = quality.with_photo_figures({"fit": {"photos": {"evil": tile}, "model_dir": "d", "version": "v",
+                                                  "step": "fit"}}, now)
+    summary = carried["fit"]["summary"]
+    assert summary["max_de76_worst_tile_photo_crops"] == 6.5 and not summary["pass"]["de76_worst_tile"]
+    markdown = quality.to_markdown({"models": now | carried})
+    assert "| 6.00 **x** (its photo's crops 6.50) |" in markdown
+    assert "| evil | 0.10 | 0.10 | 6.00 | 6.50 | 1.00/1.00/1.00 | 1.00/1.00/1.00 | 0.80/1.20/1.00 |" in markdown
+    # a report from before the figure: empty cells, no note
+    old = quality.summarise([floor_row(1.0, 1.0, 10.0)])
+    assert old["max_de76_worst_tile_photo_crops"] is None and "photo's crops" not in quality.own_crops(old)
