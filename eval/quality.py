@@ -321,7 +321,7 @@ def summarise(rows: list[dict]) -> dict:
     summary = {
         "max_de76_pooled": max(r["colour"]["pooled"]["de76"] for r in rows),
         "max_de76_worst_tile": worst_tile["colour"]["worst_tile"]["de76"],
-        # that tile's photo: how far its own corner crops are from its mean (None before this figure)
+        # that tile's photo: how far its own windows are from its mean (None before this figure)
         "max_de76_worst_tile_photo_crops": worst_tile["colour"].get("photo_crops", {}).get("de76"),
         "max_de2000_pooled": max(r["colour"]["pooled"]["de2000"] for r in rows),
         "std_ratio_range_pooled": [ratios[:, 0].min(0).tolist(), ratios[:, 0].max(0).tolist()],
