@@ -284,9 +284,15 @@ class TextureField(nn.Module):
             self.register_buffer("lattice_mean_cell", torch.zeros(*cfg.lattice_cell, 3), persistent=True)
 
     def warp_matrix(self) -> torch.Tensor:
-        """float64 [D,D]: the identity with ``warp`` added to its x, y block."""
-        d = self.cfg.dims
-        return torch.eye(d, dtype=torch.float64, device=self.warp.device) + F.pad(self.warp, (0, d - 2, 0, d - 2))
+        """float64 [D,D]: I + ``warp`` on x, y; in 3D, z scaled by that block's mean scale
+        (sqrt |det|). A photo shows its lean in its own plane only, so depth takes the map's
+        scale without its direction: with z as it was, a fit that grew its features in x, y
+        left them the space's size along z (docs/DECISIONS.md, "A lean's depth")."""
+        xy = torch.eye(2, dtype=torch.float64, device=self.warp.device) + self.warp
+        if self.cfg.dims == 2:
+            return xy
+        mean_scale = (xy[0, 0] * xy[1, 1] - xy[0, 1] * xy[1, 0]).abs().sqrt()  # (written out: ONNX has no det)
+        return torch.cat([F.pad(xy, (0, 1)), F.pad(mean_scale.reshape(1, 1), (2, 0))])
 
     def lattice_phases(self, points: torch.Tensor, period: torch.Tensor | None = None,
                        shade_seed: torch.Tensor | None = None) -> torch.Tensor:
@@ -361,7 +367,7 @@ class TextureField(nn.Module):
         if self.cfg.grain:  # (a Python branch: isotropic exports carry no extra node)
             points = points * self.world_scale
             anchor = anchor * self.world_scale if anchor is not None else None
-        if self.warp is not None:  # (x, y) -> (I + W) (x, y); z as it is
+        if self.warp is not None:  # (x, y) -> (I + W) (x, y); z by its mean scale
             warp = self.warp_matrix().t()
             points = points @ warp
             anchor = anchor[..., :d] @ warp if anchor is not None else None
@@ -434,8 +440,9 @@ class TextureField(nn.Module):
             axes = [a * qx - s * qy, s * qx + a * qy]
             u = torch.stack([a * n[0][0] - s * n[1][0], s * n[0][0] + a * n[1][0]])  # R N e_x
             v = torch.stack([a * n[0][1] - s * n[1][1], s * n[0][1] + a * n[1][1]])  # R N e_y
-        if d == 3:
-            axes.append(freq.unsqueeze(1) * points[..., 2:3])
+        if d == 3:  # depth as the sampler has it (a warp's mean scale of x, y)
+            depth = points[..., 2:3] * self.warp_matrix()[2, 2] if self.warp is not None else points[..., 2:3]
+            axes.append(freq.unsqueeze(1) * depth)
         lattice = torch.stack(axes, dim=-1) + self.octave_offset  # [B,P,K,D]
         return lattice, torch.stack([u, v]).unsqueeze(3)  # [2,2,B,1,K]
 

@@ -294,6 +294,32 @@ def test_a_warped_field_leans_exports_and_tiles(tmp_path):
     assert variation(tiled_along) * 2.5 < variation(tiled_across)  # the rounded warp still leans
 
 
+def test_a_warp_scales_depth_by_its_mean_scale_in_the_photo_plane(tmp_path):
+    # A warp maps the photo's plane (x, y); depth takes its mean scale (sqrt |det|), so a fit of
+    # a photo that is the texture scaled by s is that solid scaled by s in every direction: the
+    # warped field at p is the plain field at s p, along z too, in torch and in the sampler.
+    # With z as it was, a fit's cuts through depth met features of another size
+    # (docs/DECISIONS.md, "A lean's depth").
+    from model.export import export_sampler
+
+    cfg = dict(variant="ours", nearest_input=False, smooth=True, isotropic_transforms=True)
+    torch.manual_seed(5)
+    warped = TextureSpace(ModelConfig(**cfg, warp=True))
+    plain = TextureSpace(ModelConfig(**cfg))
+    plain.load_state_dict({k: v for k, v in warped.state_dict().items() if k != "field.warp"})
+    scale = 0.6
+    with torch.no_grad():
+        warped.field.warp.copy_((scale - 1.0) * torch.eye(2, dtype=torch.float64))
+    points = torch.from_numpy(np.random.default_rng(6).uniform(-3, 3, (1, 2000, 3)))
+    z = torch.from_numpy(np.random.default_rng(7).standard_normal((1, 8)).astype(np.float32))
+    with torch.no_grad():
+        ours, reference = warped.sample(points, z, 4)[0].numpy(), plain.sample(points * scale, z, 4)[0].numpy()
+    assert np.abs(ours - reference).max() < 1e-5
+    export_sampler(warped.field, tmp_path / "sampler.onnx")
+    session = ort.InferenceSession(str(tmp_path / "sampler.onnx"), providers=["CPUExecutionProvider"])
+    assert np.abs(run(session, points[0].numpy(), z.numpy(), 4) - reference).max() < 1e-4
+
+
 def test_cell_shades_are_one_per_cell_export_and_tile(tmp_path):
     # ModelConfig.lattice_shade: every repeat cell (a brick, a tile) its own three hashed
     # values, the same over the whole cell, other ones in the next cell and for another seed;
