@@ -430,7 +430,8 @@ class TextureField(nn.Module):
             u = torch.stack([wrap_x * a, wrap_x * s])  # [2,B,K]
             v = torch.stack([-wrap_y * s, wrap_y * a])
         else:
-            g = self.warp_matrix()[:2, :2] * grain[:2]  # W diag(grain), as lattice_points maps (x, y)
+            warp = self.warp_matrix()
+            g = warp[:2, :2] * grain[:2]  # W diag(grain), as lattice_points maps (x, y)
             n = [[torch.round(freq * g[i, j] * period / c) for j in range(2)] for i in range(2)]  # [B,K] each
             n[0][0], n[1][1] = torch.clamp_min(n[0][0], 1.0), torch.clamp_min(n[1][1], 1.0)
             singular = n[0][0] * n[1][1] == n[0][1] * n[1][0]
@@ -441,7 +442,7 @@ class TextureField(nn.Module):
             u = torch.stack([a * n[0][0] - s * n[1][0], s * n[0][0] + a * n[1][0]])  # R N e_x
             v = torch.stack([a * n[0][1] - s * n[1][1], s * n[0][1] + a * n[1][1]])  # R N e_y
         if d == 3:  # depth as the sampler has it (a warp's mean scale of x, y)
-            depth = points[..., 2:3] * self.warp_matrix()[2, 2] if self.warp is not None else points[..., 2:3]
+            depth = points[..., 2:3] * warp[2, 2] if self.warp is not None else points[..., 2:3]
             axes.append(freq.unsqueeze(1) * depth)
         lattice = torch.stack(axes, dim=-1) + self.octave_offset  # [B,P,K,D]
         return lattice, torch.stack([u, v]).unsqueeze(3)  # [2,2,B,1,K]
