@@ -85,7 +85,7 @@ from worker.colour import linear_to_srgb
 from worker.colour_match import calibrate_texture, texture_vector
 from worker.encode import encode_texture
 from worker.images import read_image
-from worker.photo import resize_short_side
+from worker.photo import crop_starts, resize_short_side
 from worker.runtime import ModelRuntime, SamplerSession
 from worker.tiles import NATIVE_ZOOM, render_tile
 
@@ -246,7 +246,7 @@ def own_crop_colour(photo: np.ndarray) -> dict:
     so may a tile that is the photo."""
     lab = rgb2lab(photo)
     height, width = lab.shape[:2]
-    ys, xs = (np.unique(np.linspace(0, n - CROP, 2 * (n // CROP) - 1).round().astype(int)) for n in (height, width))
+    ys, xs = (crop_starts(n, CROP, 2 * (n // CROP) - 1) for n in (height, width))
     windows = np.stack([lab[y:y + CROP, x:x + CROP].reshape(-1, 3) for y in ys for x in xs])
     p_mean, p_std = lab.reshape(-1, 3).mean(0), lab.reshape(-1, 3).std(0)
     ratios = windows.std(1) / p_std

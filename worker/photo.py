@@ -76,6 +76,13 @@ def resize_short_side(image: np.ndarray, short_side: int) -> np.ndarray:
     return out
 
 
+def crop_starts(length: int, size: int, count: int) -> np.ndarray:
+    """Where ``count`` crops of ``size`` start along a side of ``length``: first and last flush
+    with the borders, evenly spaced between, rounded; duplicates (no room for ``count``
+    distinct positions) dropped. Returns sorted int starts."""
+    return np.unique(np.round(np.linspace(0, length - size, count)).astype(int))
+
+
 def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: int = 3,
                   dihedral: bool = True) -> np.ndarray:
     """Crops of an sRGB image for the encoder.
@@ -97,8 +104,7 @@ def encoder_crops(image: np.ndarray, *, short_side: int, size: int = 128, grid: 
     """
     work = resize_short_side(image, max(short_side, size))
     h, w = work.shape[:2]
-    rows = np.unique(np.round(np.linspace(0, h - size, grid)).astype(int))
-    cols = np.unique(np.round(np.linspace(0, w - size, grid)).astype(int))
+    rows, cols = crop_starts(h, size, grid), crop_starts(w, size, grid)
     windows = np.lib.stride_tricks.sliding_window_view(work, (size, size), axis=(0, 1))
     crops = windows[rows[:, None], cols[None, :]]          # (R, C, 3, size, size)
     crops = crops.reshape(-1, 3, size, size)

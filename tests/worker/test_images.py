@@ -15,7 +15,7 @@ from worker.errors import InvalidImage, InvalidParameter, LimitExceeded
 from worker.decode import sniff_format
 from worker.encode import encode_image
 from worker.images import png_bytes, read_image, thumbnail, write_image
-from worker.photo import encoder_crops, resize_short_side, working_photo
+from worker.photo import crop_starts, encoder_crops, resize_short_side, working_photo
 
 MAX = 4096 * 4096
 RNG = np.random.default_rng(5)
@@ -137,6 +137,14 @@ def test_encoder_crops_grid_and_range(brick):
     assert np.allclose(crops[8], work[128:, 128:].transpose(2, 0, 1))
     wide = np.zeros((100, 700, 3), np.float32)                     # upscaled to 128 x 896
     assert encoder_crops(wide, short_side=64, size=128, grid=3, dihedral=False).shape == (3, 3, 128, 128)
+
+
+def test_crop_starts_are_flush_even_and_distinct():
+    """The one grid rule the encoder's crops and the quality report's windows share."""
+    assert crop_starts(256, 128, 3).tolist() == [0, 64, 128]
+    assert crop_starts(300, 128, 3).tolist() == [0, 86, 172]   # the last flush with the border
+    assert crop_starts(128, 128, 3).tolist() == [0]             # room for one position only
+    assert crop_starts(130, 128, 5).tolist() == [0, 1, 2]       # duplicates dropped
 
 
 def test_encoder_crops_come_in_eight_orientations(brick):
