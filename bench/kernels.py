@@ -204,12 +204,14 @@ def encode_crop(model_dir: Path, repeats: int = 41, warmup: int = 5, log=print) 
 
 def encode_upload(model_dir: Path, side: int = 1024, repeats: int = 9, log=print) -> dict:
     """What an upload's encode costs (``worker.encode.encode_texture``: the working photo, its
-    crops in eight orientations, the encoder, the colour table) for a ``side``^2 photo,
-    against the encoder alone on the same 72 crops and on the 9 as they lie (the upload's
-    crops before their orientations), each in the same run, default threads. Returns
+    crops in eight orientations, the encoder, the choice of code by style, the colour table)
+    for a ``side``^2 photo, against the same without the choice (the crops' mean code and its
+    colour table) and the encoder alone on the same 72 crops and on the 9 as they lie (the
+    upload's crops before their orientations), each in the same run, default threads. Returns
     medians in seconds."""
-    from worker.encode import encode_texture
-    from worker.photo import encoder_crops
+    from worker.colour_match import calibrate_texture
+    from worker.encode import encode_image, encode_texture
+    from worker.photo import encoder_crops, working_photo
     from worker.runtime import ModelRuntime
 
     runtime = ModelRuntime(model_dir)
@@ -218,20 +220,25 @@ def encode_upload(model_dir: Path, side: int = 1024, repeats: int = 9, log=print
     photo = np.clip(0.6 * coarse + 0.4 * rng.random((side, side, 3)), 0, 1).astype(np.float32)
     crops = encoder_crops(photo, short_side=runtime.short_side, size=runtime.input_size)
     as_they_lie = encoder_crops(photo, short_side=runtime.short_side, size=runtime.input_size, dihedral=False)
-    times: dict[str, list[float]] = {"upload": [], "crops_72": [], "crops_9": []}
-    calls = {"upload": lambda: encode_texture(runtime, photo), "crops_72": lambda: runtime.encode(crops),
-             "crops_9": lambda: runtime.encode(as_they_lie)}
+
+    def mean_code():
+        working = working_photo(photo, runtime.short_side)
+        return calibrate_texture(runtime.sampler, encode_image(runtime, working), working)
+
+    times: dict[str, list[float]] = {"upload": [], "mean_code": [], "crops_72": [], "crops_9": []}
+    calls = {"upload": lambda: encode_texture(runtime, photo), "mean_code": mean_code,
+             "crops_72": lambda: runtime.encode(crops), "crops_9": lambda: runtime.encode(as_they_lie)}
     for call in calls.values():
         call()  # warm-up
-    for _ in range(repeats):  # in turns, so a slow spell falls on all three
+    for _ in range(repeats):  # in turns, so a slow spell falls on all of them
         for name, call in calls.items():
             t = time.perf_counter()
             call()
             times[name].append(time.perf_counter() - t)
     result = {name: median(values) for name, values in times.items()}
-    log(f"  encode a {side}^2 upload (code + colour table): median {result['upload'] * 1000:.0f} ms; encoder on its "
-        f"{len(crops)} crops {result['crops_72'] * 1000:.0f} ms, on the {len(as_they_lie)} as they lie "
-        f"{result['crops_9'] * 1000:.0f} ms")
+    log(f"  encode a {side}^2 upload (code chosen by style + colour table): median {result['upload'] * 1000:.0f} ms; "
+        f"the crops' mean code instead {result['mean_code'] * 1000:.0f} ms; encoder on its {len(crops)} crops "
+        f"{result['crops_72'] * 1000:.0f} ms, on the {len(as_they_lie)} as they lie {result['crops_9'] * 1000:.0f} ms")
     return result
 
 

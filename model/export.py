@@ -2,7 +2,8 @@
 
     python -m model.export CHECKPOINT [OUTDIR]      # OUTDIR defaults to model/weights/
 
-writes ``encoder.onnx``, ``sampler.onnx`` (docs/ARCHITECTURE.md, Contract 1) and ``manifest.json``.
+writes ``encoder.onnx``, ``sampler.onnx`` (docs/ARCHITECTURE.md, Contract 1), ``style.onnx`` (the
+VGG16 statistics an upload chooses its code by) and ``manifest.json``.
 The sampler graph holds the hash noise itself, so any ONNX runtime reproduces a texture
 from (z, seed) without our code.
 """
@@ -22,8 +23,10 @@ import torch
 from torch import nn
 
 from model.colour import KNOTS, apply_colour, colour_size, identity_colour
+from model.losses import default_layer_weights, gram_matrix
 from model.networks import TextureField, TextureSpace, load_checkpoint
-from worker.contract import TILEABLE_SAMPLER
+from model.vgg import VGG16Features
+from worker.contract import STYLE_FEATURES, TILEABLE_SAMPLER
 
 OPSET = 18  # BitwiseAnd / BitwiseXor need 18; onnxruntime 1.31 reads it
 MAX_IR_VERSION = 13  # onnxruntime 1.31 refuses newer IR
@@ -215,6 +218,54 @@ def export_tileable_sampler(field: TextureField, path: Path) -> None:
     )
 
 
+#: the VGG16 layers of the style vector (``StyleGraph``): the Gram loss's first four. relu5_1
+#: would add 7.1 M weights to the 2.9 M these need, for a small part of the choice (docs/DECISIONS.md)
+STYLE_LAYERS = ("relu1_1", "relu2_1", "relu3_1", "relu4_1")
+
+
+class StyleGraph(nn.Module):
+    """sRGB images (N, 3, H, W) in 0..1 -> style vectors (N, D): each layer's Gram
+    (``model.losses.gram_matrix``), flattened and scaled by sqrt(weight / C^2) with the Gram
+    loss's own layer weights, so the squared distance between two rows is ``gram_loss``
+    between the images (over ``STYLE_LAYERS``). An upload picks its code by it
+    (``worker.encode``) with no torch in the worker."""
+
+    def __init__(self, layers: tuple[str, ...] = STYLE_LAYERS):
+        super().__init__()
+        self.vgg = VGG16Features(layers)
+        weights = default_layer_weights(layers)
+        self.scales = {name: float(np.sqrt(weights[name])) for name in layers}
+
+    def forward(self, images):
+        features = self.vgg(images)
+        return torch.cat([gram_matrix(value).flatten(1) * (self.scales[name] / value.shape[1])
+                          for name, value in features.items()], dim=1)
+
+
+def export_style(path: Path) -> None:
+    """``StyleGraph`` as ONNX, its conv kernels stored in float16 (half the bytes; the graph casts
+    them back once, when a runtime loads it, and computes in float32)."""
+    import onnx
+    from onnx import numpy_helper
+
+    _export(StyleGraph(), (torch.rand(1, 3, 64, 64),), path, ["image"], ["style"],
+            {"image": {0: "N", 2: "H", 3: "W"}, "style": {0: "N"}})
+    graph = onnx.load(str(path))
+    casts = []
+    for init in graph.graph.initializer:
+        values = numpy_helper.to_array(init)
+        if values.dtype != np.float32 or values.ndim != 4:  # the conv kernels; biases stay float32
+            continue
+        name = init.name
+        init.CopyFrom(numpy_helper.from_array(values.astype(np.float16), name + "_f16"))
+        casts.append(onnx.helper.make_node("Cast", [name + "_f16"], [name], to=onnx.TensorProto.FLOAT))
+    nodes = casts + list(graph.graph.node)
+    del graph.graph.node[:]
+    graph.graph.node.extend(nodes)
+    onnx.checker.check_model(graph)
+    onnx.save(graph, str(path))
+
+
 def export_encoder(model: TextureSpace, path: Path) -> None:
     image = torch.zeros(2, 3, ENCODER_INPUT_SIZE, ENCODER_INPUT_SIZE)
     _export(model.encoder, (image,), path, ["image"], ["z"], {"image": {0: "N"}, "z": {0: "N"}})
@@ -260,15 +311,18 @@ def save_weights(model: TextureSpace, path: Path, training: dict) -> None:
 
 
 def export_model(model: TextureSpace, outdir: Path, training: dict | None = None) -> dict:
-    """Write encoder.onnx, sampler.onnx, space.pt and manifest.json into outdir; return the manifest."""
+    """Write encoder.onnx, sampler.onnx, style.onnx, space.pt and manifest.json into outdir;
+    return the manifest."""
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     training = training or {}
     export_encoder(model, outdir / "encoder.onnx")
     export_sampler(model.field, outdir / "sampler.onnx")
     export_tileable_sampler(model.field, outdir / TILEABLE_SAMPLER)
+    export_style(outdir / STYLE_FEATURES)
     save_weights(model, outdir / "space.pt", training)
-    return write_manifest(outdir, model.cfg.to_dict(), training, {"tileable_sampler": TILEABLE_SAMPLER})
+    return write_manifest(outdir, model.cfg.to_dict(), training,
+                          {"tileable_sampler": TILEABLE_SAMPLER, "style_features": STYLE_FEATURES})
 
 
 REPO_ROOT = Path(__file__).resolve().parent.parent

@@ -92,7 +92,8 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
                  rate: str = "falling", spectrum: float = 0.0, even: str | None = "auto",
                  lean: str | None = "auto", interim=None, interim_seconds: float = INTERIM_SECONDS,
                  precision: str = "auto", run_dir: str | Path | None = None, pause=None,
-                 shade: str | None = "auto", detail_seconds: float = 0.0, wants_detail=None) -> dict:
+                 shade: str | None = "auto", detail_seconds: float = 0.0, wants_detail=None,
+                 start_code=None) -> dict:
     """Fit IMAGE and write the fitted sampler; returns {'code', 'sampler', 'version', 'steps', 'grain',
     'straightened', 'grain_stretch', 'lattice', 'muted_octaves', 'lean', 'detail'}.
 
@@ -142,6 +143,9 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
     stops the fit there; ``run_dir`` then holds its resumable state and the result is ``{'paused': True, 'steps',
     ...structure}`` (nothing exported). The service pauses an upload's fit so that the uploads
     queued behind it reach their interims first.
+    ``start_code``: the code the fit starts from, the one its upload stores (``worker.encode``
+    chooses it by style), so the probe's start is what users saw; None: the encoder's mean over
+    the photo's crops (``model.train.initial_code``).
     """
     if rate not in RATES:
         raise ValueError(f"rate must be one of {', '.join(RATES)}, got {rate!r}")
@@ -177,7 +181,7 @@ def fit_exemplar(image_path, out_dir, *, init_checkpoint=DEFAULT_INIT, minutes: 
         cfg = fit_config(found, space_cfg, exemplar=exemplar, run_dir=run_dir, init=init, minutes=minutes,
                          patch=patch, rate=rate, seed=seed, loss=loss, device=device, quiet=quiet,
                          precision=precision, threads=threads, spectrum=spectrum,
-                         shade=shade == "on" or (shade == "auto" and steps_on.type == "cuda"))
+                         shade=shade == "on" or (shade == "auto" and steps_on.type == "cuda"), start_code=start_code)
         ckpt_path = train(cfg, progress=fit_progress, pause=pause,
                           interim=Interim(interim_seconds, publish, start_counts=found.builds_structure)
                           if interim is not None else None)
@@ -288,7 +292,8 @@ def detect_structure(photo: np.ndarray, space_cfg: ModelConfig, *, grain: str | 
 
 def fit_config(found: FitStructure, space_cfg: ModelConfig, *, exemplar: Path, run_dir: str, init: Path,
                minutes: float, patch: int, rate: str, seed: int, loss: str, device: str, quiet: bool,
-               precision: str, threads: int, spectrum: float, shade: bool = False) -> TrainConfig:
+               precision: str, threads: int, spectrum: float, shade: bool = False,
+               start_code=None) -> TrainConfig:
     """The single-mode training run of a fit: the space's architecture, the fit's rates and
     budget, and what ``detect_structure`` found."""
     return TrainConfig(
@@ -307,7 +312,7 @@ def fit_config(found: FitStructure, space_cfg: ModelConfig, *, exemplar: Path, r
         lattice_cell=bool(found.lattice), lattice_shade=bool(found.lattice) and shade,
         threads=threads or 0,
         spectrum=spectrum, mute_octaves=found.muted, warp=found.lean is not None,
-        warp_start=found.lean)
+        warp_start=found.lean, start_code=None if start_code is None else [float(v) for v in start_code])
 
 
 def write_fit_outputs(out_dir: Path, model, ckpt: dict, structure: dict, *, init: Path,  # noqa: ANN001 (a TextureSpace)
@@ -404,6 +409,9 @@ def main(argv=None):
                    help="a photo at least twice the working size: seconds of the detail stage after the fit, "
                         f"finer octaves learned on the photo at up to 4x the working size (model/detail.py; "
                         f"default {DETAIL_SECONDS:g}; 0: none)")
+    p.add_argument("--start-code", type=float, nargs="+",
+                   help="the code to start from (as the service passes its upload's stored code; "
+                        "`texspace encode` prints it); default: the encoder's mean over the photo's crops")
     args = p.parse_args(argv)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     result = fit_exemplar(args.image, args.outdir, init_checkpoint=args.init, minutes=args.minutes,
@@ -413,7 +421,7 @@ def main(argv=None):
                           lattice=None if args.lattice == "none" else args.lattice, rate=args.rate,
                           spectrum=args.spectrum, even=None if args.even == "none" else args.even,
                           lean=None if args.lean == "none" else args.lean,
-                          shade=args.shade, detail_seconds=args.detail_seconds)
+                          shade=args.shade, detail_seconds=args.detail_seconds, start_code=args.start_code)
     print(json.dumps({k: result[k] for k in ("version", "steps", "grain", "straightened", "grain_stretch", "lattice",
                                              "muted_octaves", "lean", "sampler", "detail")}))
 

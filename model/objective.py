@@ -15,6 +15,7 @@ from model.losses import (gram_energy, gram_loss, gram_matrices, sliced_wasserst
                           spectrum_target, target_grams)
 from model.slices import linear_to_srgb, srgb_to_linear
 from model.vgg import shared_vgg
+from worker.photo import crop_starts as evenly_spread
 
 # A lattice fit's tiles must differ from one another as much as the photo's tiles do. A
 # Gram loss cannot tell: it let the phase inputs stamp one blotch into every floor tile of
@@ -50,7 +51,7 @@ def crop_starts(length: int, size: int) -> list[int]:
     """Where crops of ``size`` start along a side of ``length``: half a crop apart, first and last
     flush with the edges, at most ``max(2, CROP_SPAN // size)`` of them, evenly spread."""
     count = min(max(2, CROP_SPAN // size), -(-2 * (length - size) // size) + 1)
-    return sorted({int(round(v)) for v in np.linspace(0, length - size, count)})
+    return evenly_spread(length, size, count).tolist()
 
 
 class Objective:

@@ -169,8 +169,9 @@ def learned_codes(cfg: TrainConfig, model: TextureSpace, images: list[np.ndarray
                   init_codes: torch.Tensor | None) -> torch.nn.Parameter:
     """The codes the synthesis reads, learned directly (on the model's device).
 
-    single: one code [1, code_size]; zeros, or with --init the encoder's code for the
-    exemplar (``initial_code``).
+    single: one code [1, code_size]; zeros, or with --init ``start_code`` (the code an upload
+    stores: ``worker.encode`` chooses it among the encoder's codes) or else the encoder's mean
+    code for the exemplar (``initial_code``).
     space: one code per exemplar [N, code_size], an auto-decoder table: N(0, 0.5^2) from
     --seed (a generator of its own), or --init's table where it has the same shape (warm
     start: the decoder knows these codes). With --init on other photos (a larger corpus) the
@@ -183,7 +184,12 @@ def learned_codes(cfg: TrainConfig, model: TextureSpace, images: list[np.ndarray
     device = next(model.parameters()).device
     if cfg.mode == "single":
         code = torch.nn.Parameter(torch.zeros(1, model.cfg.code_size).to(device))
-        if cfg.init:
+        if cfg.init and cfg.start_code is not None:
+            if len(cfg.start_code) != model.cfg.code_size:
+                raise SystemExit(f"--start-code has {len(cfg.start_code)} numbers; the space's codes have "
+                                 f"{model.cfg.code_size}")
+            code.data.copy_(torch.tensor(cfg.start_code, dtype=torch.float32).reshape(1, -1))
+        elif cfg.init:
             code.data.copy_(initial_code(model, images[0], crop))
         return code
     table = torch.nn.Parameter((torch.randn(len(images), model.cfg.code_size,

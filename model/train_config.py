@@ -34,6 +34,7 @@ class TrainConfig:
     exclude: str = "miniworld_metal_grill_2"
     out: str
     init: str | None = None
+    start_code: list[float] | None = None  # single: the code to start from (None: initial_code's)
     steps: int = 100_000
     minutes: float | None = None
     batch: int = 4
@@ -104,6 +105,9 @@ def parse_args(argv=None, description: str | None = None) -> TrainConfig:
                         "regular dot grid has ~30x the Gram loss of any other photo and steers a shared decoder)")
     p.add_argument("--out", required=True, help="run folder: checkpoint, log; resumed if it exists")
     p.add_argument("--init", help="checkpoint to start from (weights only; e.g. the space for a fit)")
+    p.add_argument("--start-code", type=float, nargs="+",
+                   help="single mode with --init: the code to start from (an upload's stored code); "
+                        "default: the encoder's mean over the exemplar's crops")
     p.add_argument("--steps", type=int, help="stop after this many steps in total")
     p.add_argument("--minutes", type=float, help="stop after this much wall time (this run)")
     p.add_argument("--batch", type=int)

@@ -319,9 +319,19 @@ def _fit_exemplar(services: Services, texture: Texture, p: FitParams, image_path
     settings = services.settings
     extra = {"interim": interim, "interim_seconds": settings.fit_interim_seconds, "pause": pause} if interim else {}
     return fit_exemplar(image_path, out_dir, init_checkpoint=checkpoint, minutes=p.seconds / 60.0,
+                        start_code=start_code(texture),
                         progress=report, grain=p.grain, lattice=p.lattice, even=p.even, lean=p.lean,
                         threads=settings.fit_threads, device=settings.fit_device, precision=settings.fit_precision,
                         run_dir=run_dir, detail_seconds=p.detail_seconds, wants_detail=wants_detail, **extra)
+
+
+def start_code(texture: Texture) -> list[float] | None:
+    """The code a fit of ``texture`` starts from: the one its upload stored (the encoder's,
+    kept as ``encoder_code`` once a refinement replaced it); None for a texture whose code is
+    a fitted sampler's own (the fit then takes the encoder's mean code)."""
+    if texture.encoder_code is not None:
+        return list(texture.encoder_code)
+    return None if texture.sampler_key else list(texture.code)
 
 
 def _refine_in_place(services: Services, job: Job, texture: Texture, sampler_path: Path, code: list[float],

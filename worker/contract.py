@@ -12,6 +12,10 @@ from __future__ import annotations
 #: the tileable sampler's file name beside sampler.onnx (a model export, a fit's folder, a
 #: fitted texture's storage folder); the manifest names it under ``tileable_sampler``
 TILEABLE_SAMPLER = "sampler_tileable.onnx"
+#: a model's VGG16 style statistics (sRGB images -> vectors whose squared distance is the Gram
+#: loss) beside its encoder: an upload chooses its code by them. The manifest names it under
+#: ``style_features``
+STYLE_FEATURES = "style.onnx"
 #: a fit's sampler with finer octaves for a photo above the working size (model/detail.py), beside
 #: sampler.onnx; tiles above the native zoom draw with it. The fit's manifest names it under ``detail``
 DETAIL_SAMPLER = "sampler_detail.onnx"

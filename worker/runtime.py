@@ -5,7 +5,8 @@ Load once, then arrays in, arrays out:
 * ``SamplerSession(path)``: one ``sampler.onnx`` (a model's, or a fitted texture's own).
   ``.sample(points, code, seed)`` evaluates it in bounded chunks.
 * ``ModelRuntime(model_dir)``: manifest + encoder + sampler of one model version, plus
-  its tileable sampler (``sampler_tileable.onnx``), opened on first use.
+  its tileable sampler (``sampler_tileable.onnx``) and its style statistics (``style.onnx``),
+  each opened on first use.
 * ``PeriodicSampler(session, period)``: a tileable sampler with its period bound, so it
   is a ``Sampler`` like the others (tileable regions).
 * ``ModelRegistry(folders)``: every model version found under some folders, side by
@@ -31,7 +32,7 @@ import numpy as np
 import onnxruntime as ort
 
 from worker.colour_match import identity_colour
-from worker.contract import TILEABLE_SAMPLER
+from worker.contract import STYLE_FEATURES, TILEABLE_SAMPLER
 from worker.errors import FeatureUnavailable, InvalidParameter, ModelInvalid, ModelNotFound
 
 log = logging.getLogger(__name__)
@@ -261,6 +262,7 @@ class ModelRuntime:
         self._threads, self._chunk = threads, chunk
         self._tileable: SamplerSession | None = None
         self._tileable_lock = threading.Lock()
+        self._style: ort.InferenceSession | None = None
 
     @property
     def tileable_path(self) -> Path | None:
@@ -285,6 +287,30 @@ class ModelRuntime:
                         raise ModelInvalid(f"{path.name} has no period input")
                     self._tileable = session
         return self._tileable
+
+    @property
+    def style_path(self) -> Path | None:
+        """The export's style statistics (``style.onnx``), None if it has none (an older
+        export: its uploads keep the mean of their crops' codes)."""
+        name = self.manifest.get("style_features")
+        path = self.model_dir / Path(str(name)).name if name else None
+        return path if path is not None and path.is_file() else None
+
+    def style(self, images: np.ndarray, batch: int = 8) -> np.ndarray:
+        """images : (N, H, W, 3) sRGB 0..1 -> (N, D) float32 style vectors: the squared distance
+        of two is the Gram loss between their images (``model.export.StyleGraph``).
+        FeatureUnavailable if this export has no style statistics."""
+        if self._style is None:
+            path = self.style_path
+            if path is None:
+                raise FeatureUnavailable(f"model {self.version} has no style statistics ({STYLE_FEATURES}): "
+                                         "re-export it (python -m model.export)")
+            with self._tileable_lock:
+                if self._style is None:
+                    self._style = _open_session(path, self._threads)
+        chw = np.ascontiguousarray(np.asarray(images, np.float32).transpose(0, 3, 1, 2))
+        return np.concatenate([self._style.run(None, {"image": chw[i:i + batch]})[0]
+                               for i in range(0, len(chw), batch)])
 
     def encode(self, crops: np.ndarray, batch: int = 16) -> np.ndarray:
         """crops : (N, 3, S, S) float32 in [-1, 1] (S = encoder_input_size). Returns (N, code_size) float32."""

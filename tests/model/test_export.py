@@ -467,3 +467,26 @@ def test_a_manifest_names_training_paths_as_the_repository_sees_them() -> None:
     assert args == {"data": "gpu/data", "init": "x.pt", "exemplar": None, "batch": 16}
     shipped = json.loads((REPO_ROOT / "model" / "weights" / "manifest.json").read_text())
     assert not any(str(v).startswith("/") for v in shipped["training"]["args"].values())
+
+
+def test_style_vectors_are_apart_by_the_gram_loss(exported):
+    """style.onnx: the squared distance of two images' style vectors is model.losses.gram_loss
+    between them over STYLE_LAYERS (at any image size), weights stored in float16."""
+    from model.export import STYLE_LAYERS
+    from model.losses import gram_loss, gram_matrices
+    from model.vgg import shared_vgg
+
+    _, _, manifest, out = exported
+    assert manifest["style_features"] == "style.onnx"
+    assert (out / "style.onnx").stat().st_size < 6.5e6  # 2.9 M float16 weights; float32 would be 11.7 MB
+    session = ort.InferenceSession(str(out / "style.onnx"), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(1)
+    for shape in ((2, 3, 128, 128), (2, 3, 96, 160)):
+        images = rng.random(shape, dtype=np.float32)
+        images[1] = images[1] ** 3  # darker, sparser: another style
+        vectors = session.run(None, {"image": images})[0]
+        features = shared_vgg(STYLE_LAYERS)(torch.from_numpy(images))
+        with torch.no_grad():
+            expected = gram_loss({k: v[:1] for k, v in features.items()},
+                                 {k: g[1:] for k, g in gram_matrices(features).items()}, reduction="none")
+        assert np.square(vectors[0] - vectors[1]).sum() == pytest.approx(float(expected[0]), rel=2e-3)

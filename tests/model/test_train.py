@@ -589,3 +589,20 @@ def test_a_fit_canceled_from_its_progress_hook_stops_without_a_last_score(tmp_pa
     assert scores == [0]  # the start's score only
     _, ckpt = load_checkpoint(out / "checkpoint.pt")
     assert ckpt["step"] == 3 and ckpt.get("probe") is None
+
+
+def test_a_fit_starts_from_the_code_it_is_given():
+    """--start-code (an upload's stored code) is the single-mode code's start; a code of
+    another length than the space's is refused."""
+    from model.train import learned_codes
+
+    model = TextureSpace(ModelConfig())
+    image = np.zeros((64, 64, 3), np.float32)
+    start = [0.1 * i for i in range(model.cfg.code_size)]
+    cfg = TrainConfig(mode="single", out="unused", init="space.pt", start_code=start)
+    code = learned_codes(cfg, model, [image], 64, None)
+    assert code.shape == (1, model.cfg.code_size)
+    np.testing.assert_allclose(code.detach().numpy()[0], start, atol=1e-7)
+    assert parse_args(["--out", "o", "--mode", "single", "--start-code", "0.5", "-1"]).start_code == [0.5, -1.0]
+    with pytest.raises(SystemExit, match="start-code has 3 numbers"):
+        learned_codes(dataclasses.replace(cfg, start_code=[0.0, 1.0, 2.0]), model, [image], 64, None)

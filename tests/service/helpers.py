@@ -35,13 +35,13 @@ def fake_fit_module(calls: list[dict]) -> types.ModuleType:
                      loss="gram", progress=None, quiet=True, seed=0, threads=0, device="cpu", lattice="auto",
                      rate="falling", spectrum=0.0, even="auto", lean="auto", interim=None, interim_seconds=60.0,
                      precision="auto", run_dir=None, pause=None, shade="auto", detail_seconds=0.0,
-                     wants_detail=None):
+                     wants_detail=None, start_code=None):
         calls.append({"image_path": Path(image_path), "image_bytes": Path(image_path).read_bytes(),
                       "init_checkpoint": Path(init_checkpoint),
                       "minutes": minutes, "grain": grain, "threads": threads, "lattice": lattice, "even": even,
                       "lean": lean, "interim": interim, "interim_seconds": interim_seconds, "device": device,
                       "precision": precision, "pause": pause, "detail_seconds": detail_seconds,
-                      "wants_detail": wants_detail})
+                      "wants_detail": wants_detail, "start_code": start_code})
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         # what model.fit reports it used: the grain asked for (straightened by FAKE_TURN), a

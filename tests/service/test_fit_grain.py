@@ -67,6 +67,7 @@ def test_fit_with_grain_y_reaches_fit_exemplar(fit_client, fit_texture, fit_call
     assert len(fit_calls) == 1 and fit_calls[0]["grain"] == "y"
     assert fit_calls[0]["minutes"] == pytest.approx(0.5)
     assert fit_calls[0]["init_checkpoint"].name == "space.pt"
+    assert fit_calls[0]["start_code"] == pytest.approx(fit_texture["code"])  # the code its upload stored
     fitted = fit_client.get(job["links"]["output_texture"]).json()
     assert fitted["source"] == "fit" and fitted["parents"]["job"] == job["id"]
     assert fitted["structure"] == {"grain": "y", "straightened": FAKE_TURN, "grain_stretch": 16.0,
@@ -226,3 +227,17 @@ def test_a_grain_fit_stored_before_the_stretch_was_recorded_reads_as_8x() -> Non
     assert Structure(grain="y", straightened=0.0, lattice=None).grain_stretch == 8.0
     assert Structure(grain=None, lattice=None).grain_stretch is None
     assert Structure(grain="x", grain_stretch=16.0).grain_stretch == 16.0
+
+
+def test_a_fit_starts_from_the_code_users_saw() -> None:
+    """The upload's stored code (kept as encoder_code once a refinement replaced it); none for a
+    code that is a fitted sampler's own."""
+    from types import SimpleNamespace
+
+    from service.job_kinds import start_code
+
+    upload = SimpleNamespace(code=[0.5, -1.0], encoder_code=None, sampler_key=None)
+    refined = SimpleNamespace(code=[9.0, 9.0], encoder_code=[0.5, -1.0], sampler_key="refinements/a/sampler.onnx")
+    fitted = SimpleNamespace(code=[9.0, 9.0], encoder_code=None, sampler_key="fits/b/sampler.onnx")
+    assert start_code(upload) == [0.5, -1.0] and start_code(refined) == [0.5, -1.0]
+    assert start_code(fitted) is None
