@@ -222,13 +222,15 @@ $(addprefix compare-,$(VARIANT_NAMES)): compare-%: data
 # encoder code. A timed fit's result depends on the steps it gets: the model card's
 # figures ran FIT_ARGS='--threads 1' FIT_JOBS=2 on 2 cores (4 minutes, as the service's).
 # No detail stage: these measure the working size, as an upload's refinement serves it.
+# Each starts from the code its upload stores (texspace encode), as the service's fits do.
 FIT_ARGS ?=
 FIT_JOBS ?= 1
 VAL_IMAGES = $(wildcard data/textures/val/*.png)
+UPLOAD_CODE = $$($(VENV)/bin/texspace encode {} | $(PY) -c "import json, sys; print(*json.load(sys.stdin)[\"code\"])")
 .PHONY: fits evaluate-fits
 fits: data
 	printf '%s\n' $(VAL_IMAGES) | xargs -P $(FIT_JOBS) -I {} \
-		sh -c '$(PY) -m model.fit {} runs/fits/$$(basename {} .png) --detail-seconds 0 $(FIT_ARGS)'
+		sh -c '$(PY) -m model.fit {} runs/fits/$$(basename {} .png) --detail-seconds 0 --start-code $(UPLOAD_CODE) $(FIT_ARGS)'
 
 evaluate-fits: data
 	$(PY) -m model.evaluate --checkpoint model/weights/space.pt --checkpoint-dir runs/fits \
@@ -282,7 +284,7 @@ quality-large: install-test
 
 fits-large: install-test
 	$(PY) -m eval.quality --model-dir model/weights --exemplars $(LARGE_VAL) --families $(QUALITY_FAMILIES) \
-		--list | xargs -P $(FIT_JOBS) -I {} sh -c '$(PY) -m model.fit {} runs/fits-large/$$(basename {} .png) --detail-seconds 0 $(FIT_ARGS)'
+		--list | xargs -P $(FIT_JOBS) -I {} sh -c '$(PY) -m model.fit {} runs/fits-large/$$(basename {} .png) --detail-seconds 0 --start-code $(UPLOAD_CODE) $(FIT_ARGS)'
 
 # How far the space reaches (eval/space_reach.py): the best code it has for each of those
 # photos (a code-only fit: the space frozen, no structure, REACH_STEPS) beside its encoder's
