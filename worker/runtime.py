@@ -71,12 +71,15 @@ def session_options(threads: int | None = None) -> ort.SessionOptions:
     return opts
 
 
-def _open_session(path: Path, threads: int | None) -> ort.InferenceSession:
+def _open_session(path: Path, threads: int | None, *, arena: bool = True) -> ort.InferenceSession:
+    """``arena=False``: buffers go back to the system after each run, not into a pool the
+    session keeps (for a graph run seldom, with large activations: the style statistics)."""
     if not path.is_file():
         raise ModelNotFound(f"missing ONNX file: {path}")
+    options = session_options(threads)
+    options.enable_cpu_mem_arena = arena
     try:
-        return ort.InferenceSession(str(path), sess_options=session_options(threads),
-                                    providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises its own assorted exception types
         raise ModelInvalid(f"cannot load {path.name}: {exc}") from exc
 
@@ -296,7 +299,7 @@ class ModelRuntime:
         path = self.model_dir / Path(str(name)).name if name else None
         return path if path is not None and path.is_file() else None
 
-    def style(self, images: np.ndarray, batch: int = 8) -> np.ndarray:
+    def style(self, images: np.ndarray, batch: int = 4) -> np.ndarray:
         """images : (N, H, W, 3) sRGB 0..1 -> (N, D) float32 style vectors: the squared distance
         of two is the Gram loss between their images (``model.export.StyleGraph``).
         FeatureUnavailable if this export has no style statistics."""
@@ -307,7 +310,9 @@ class ModelRuntime:
                                          "re-export it (python -m model.export)")
             with self._tileable_lock:
                 if self._style is None:
-                    self._style = _open_session(path, self._threads)
+                    # no arena: an upload's choice runs it once, and its activations (~0.1 GB
+                    # a batch) would otherwise stay held in the API process for good
+                    self._style = _open_session(path, self._threads, arena=False)
         chw = np.ascontiguousarray(np.asarray(images, np.float32).transpose(0, 3, 1, 2))
         return np.concatenate([self._style.run(None, {"image": chw[i:i + batch]})[0]
                                for i in range(0, len(chw), batch)])
