@@ -264,15 +264,19 @@ class ModelRuntime:
         self.sampler = SamplerSession(self.model_dir / "sampler.onnx", threads=threads, chunk=chunk)
         self._threads, self._chunk = threads, chunk
         self._tileable: SamplerSession | None = None
-        self._tileable_lock = threading.Lock()
+        self._open_lock = threading.Lock()
         self._style: ort.InferenceSession | None = None
+
+    def _manifest_file(self, key: str) -> Path | None:
+        """The file the manifest names under ``key``, beside it; None if unnamed or absent."""
+        name = self.manifest.get(key)
+        path = self.model_dir / Path(str(name)).name if name else None
+        return path if path is not None and path.is_file() else None
 
     @property
     def tileable_path(self) -> Path | None:
         """The export's tileable sampler file, None if it has none (an older export)."""
-        name = self.manifest.get("tileable_sampler")
-        path = self.model_dir / Path(str(name)).name if name else None
-        return path if path is not None and path.is_file() else None
+        return self._manifest_file("tileable_sampler")
 
     def tileable_sampler(self) -> SamplerSession:
         """The tileable sampler (``period`` input), opened on first use; FeatureUnavailable
@@ -283,7 +287,7 @@ class ModelRuntime:
                 raise FeatureUnavailable(f"model {self.version} has no tileable sampler ({TILEABLE_SAMPLER}): "
                                          "it was exported before tileable textures; re-export it "
                                          "(python -m model.export)")
-            with self._tileable_lock:
+            with self._open_lock:
                 if self._tileable is None:
                     session = SamplerSession(path, threads=self._threads, chunk=self._chunk)
                     if not session.periodic:
@@ -295,9 +299,7 @@ class ModelRuntime:
     def style_path(self) -> Path | None:
         """The export's style statistics (``style.onnx``), None if it has none (an older
         export: its uploads keep the mean of their crops' codes)."""
-        name = self.manifest.get("style_features")
-        path = self.model_dir / Path(str(name)).name if name else None
-        return path if path is not None and path.is_file() else None
+        return self._manifest_file("style_features")
 
     def style(self, images: np.ndarray, batch: int = 4) -> np.ndarray:
         """images : (N, H, W, 3) sRGB 0..1 -> (N, D) float32 style vectors: the squared distance
@@ -308,7 +310,7 @@ class ModelRuntime:
             if path is None:
                 raise FeatureUnavailable(f"model {self.version} has no style statistics ({STYLE_FEATURES}): "
                                          "re-export it (python -m model.export)")
-            with self._tileable_lock:
+            with self._open_lock:
                 if self._style is None:
                     # no arena: an upload's choice runs it once, and its activations (~0.1 GB
                     # a batch) would otherwise stay held in the API process for good
