@@ -312,12 +312,22 @@ def cmd_migrate(args: argparse.Namespace, settings: Settings) -> None:
 
 def cmd_reencode(args: argparse.Namespace, settings: Settings) -> None:
     """``texspace reencode [--from VERSION]... [--to VERSION] [--dry-run]``: move textures onto
-    a loaded model (:mod:`service.reencode`); refinements go to the queue for the workers."""
+    a loaded model (:mod:`service.reencode`); refinements go to the queue for the workers.
+    ``--stale-codes``: choose again the codes of uploads made by an older choice recipe."""
     from worker.errors import ModelNotFound
 
-    from .reencode import reencode_textures
+    from .reencode import choose_codes_again, reencode_textures
 
     services = build_services(settings)
+    if args.stale_codes:
+        if args.versions or args.to:
+            raise CliError("--stale-codes chooses codes again on the textures' own models: drop --from and --to")
+        choice = choose_codes_again(services, dry_run=args.dry_run)
+        verb = "would choose" if args.dry_run else "chose"
+        print(f"{verb} the codes of {len(choice.encoded)} uploads again (their photos encoded again on their own "
+              f"models) and {'would mix' if args.dry_run else 'mixed'} {len(choice.blended)} blends again")
+        _report_skipped(choice.skipped, args.dry_run, "chosen again")
+        return
     try:
         report = reencode_textures(services, set(args.versions) if args.versions else None, target=args.to,
                                    dry_run=args.dry_run)
@@ -548,6 +558,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="textures of this model version (repeatable; default: of every model not loaded)")
     p.add_argument("--to", metavar="VERSION",
                    help="the model to move them to (default: TEXSPACE_DEFAULT_MODEL_VERSION, else the newest)")
+    p.add_argument("--stale-codes", action="store_true",
+                   help="instead: encode again, on their own models, the uploads whose code was chosen by an older "
+                        "recipe (after an upgrade that says so); refined uploads keep their fits")
     p.add_argument("--dry-run", action="store_true", help="report what would move; change nothing (default: move them)")
     p = proc("recolour", cmd_recolour, "compute colour tables made by an older recipe again, from the textures' "
                                        "photos (after an upgrade that says so)")

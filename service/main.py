@@ -20,6 +20,7 @@ from .errors import PROBLEM_MEDIA_TYPE, install_error_handlers
 from .logs import setup_logging
 from .middleware import RequestContextMiddleware
 from .recolour import warn_if_stale
+from .reencode import warn_if_stale_choice
 from .routes import jobs, system, textures, tiles
 from .settings import Settings
 from .site import SiteFiles
@@ -78,8 +79,9 @@ async def _warm_up(app: FastAPI) -> AsyncIterator[None]:
             return
         try:
             warn_if_stale(app.state.services)
+            warn_if_stale_choice(app.state.services)
         except Exception:  # a hint for operators: never in the way of serving
-            log.exception("could not count textures with stale colour tables")
+            log.exception("could not count textures made by an older recipe")
 
     threading.Thread(target=load, name="warm-up", daemon=True).start()
     yield

@@ -13,17 +13,23 @@ gives each one a code in the target model's space from the photo it keeps:
 
 Tiles change (the model, and so the ETag, is new). Run it with the workers idle: a
 refinement still running for the old model would fail anyway.
+
+``--stale-codes`` (``choose_codes_again``) re-encodes in place instead: uploads on a loaded
+model whose code was chosen by an older recipe (``worker.encode.CODE_CHOICE``; the
+``code_choice`` column) get the code an upload of their photo gets today, on the same model.
+A refined upload keeps its fitted sampler and what it serves; the new code replaces the
+encoder's code it keeps for blends. Blends of such uploads are mixed again.
 """
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
 
-from sqlalchemy import select
+from sqlalchemy import and_, false, func, or_, select
 from sqlalchemy.orm import load_only
 
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures
-from worker.encode import encode_texture
+from worker.encode import MEAN_CHOICE, choice_recipe, encode_texture
 from worker.images import read_image
 
 from . import jobs, keys
@@ -107,7 +113,7 @@ def _encode_again(services, runtime, texture: Texture, refine: dict | None) -> b
         if row is None:
             return False
         row.code, row.colour = [float(c) for c in code], [float(c) for c in colour] or None
-        row.colour_calibration = COLOUR_CALIBRATION
+        row.colour_calibration, row.code_choice = COLOUR_CALIBRATION, choice_recipe(runtime)
         row.encoder_code = row.encoder_colour = row.structure = row.sampler_key = None
         row.sampler_interim = False
         row.model_version, row.updated_at = runtime.version, utcnow()
@@ -156,3 +162,107 @@ def _blend_again(services, runtime, texture: Texture) -> None:  # noqa: ANN001
                                               runtime.sampler.colour_size)
         row.colour_calibration = blend_calibration(a, b)
         row.model_version, row.updated_at = runtime.version, utcnow()
+
+
+@dataclass
+class ChoiceReport:
+    """What one ``choose_codes_again`` run did (or, with ``dry_run``, would do), by texture id."""
+
+    encoded: list[str] = field(default_factory=list)
+    blended: list[str] = field(default_factory=list)
+    skipped: dict[str, str] = field(default_factory=dict)  # id -> why
+
+
+def _stale_choice(query, services):  # noqa: ANN001, ANN202
+    """``query`` narrowed to uploads on a loaded model whose code was chosen by an older
+    recipe than that model's (``choice_recipe``; NULL: the mean, from before it was recorded)."""
+    newer = [and_(Texture.model_version == version, or_(Texture.code_choice.is_(None), Texture.code_choice < recipe))
+             for version, recipe in ((v, choice_recipe(m)) for v, m in services.registry.models.items())
+             if recipe > MEAN_CHOICE]
+    return query.where(Texture.source == "upload", Texture.exemplar_key.is_not(None), or_(false(), *newer))
+
+
+def stale_choice_textures(services) -> list[Texture]:  # noqa: ANN001
+    """Uploads whose code an upload of their photo would choose differently today, oldest first."""
+    query = (_stale_choice(select(Texture), services).order_by(Texture.created_at, Texture.id)
+             .options(load_only(Texture.id, Texture.model_version, Texture.exemplar_key, Texture.lighting,
+                                Texture.created_at)))
+    with session_scope(services.sessions) as session:
+        return list(session.scalars(query))
+
+
+def warn_if_stale_choice(services) -> int:  # noqa: ANN001
+    """Log a warning naming the command when uploads have codes of an older choice (at the
+    API's start, as ``service.recolour.warn_if_stale`` does for tables); how many there are."""
+    with session_scope(services.sessions) as session:
+        count = session.scalar(_stale_choice(select(func.count()).select_from(Texture), services))
+    if count:
+        log.warning("%d uploads have codes chosen by an older recipe (their tiles keep the old code): "
+                    "run `texspace reencode --stale-codes`", count)
+    return count
+
+
+def choose_codes_again(services, *, dry_run: bool = False) -> ChoiceReport:  # noqa: ANN001
+    """Encode every ``stale_choice_textures`` upload again on its own model, then mix again
+    the blends (oldest first: blends of blends after their parents) with a parent that moved."""
+    report = ChoiceReport()
+    textures = stale_choice_textures(services)
+    for texture in textures:
+        if not dry_run:
+            try:
+                why = _choose_again(services, texture)
+            except Exception as exc:  # one bad photo (missing, unreadable) must not stop the rest
+                log.warning("upload's code not chosen again: %s", exc, extra={"texture_id": texture.id})
+                why = f"its photo could not be encoded again: {exc}"
+            if why:
+                report.skipped[texture.id] = why
+                continue
+        report.encoded.append(texture.id)
+    moved = set(report.encoded)
+    versions = {t.model_version for t in textures}
+    blends = select(Texture).where(Texture.source == "interpolate", Texture.model_version.in_(versions))
+    with session_scope(services.sessions) as session:
+        blends = list(session.scalars(blends.order_by(Texture.created_at, Texture.id)
+                                      .options(load_only(Texture.id, Texture.parents, Texture.source,
+                                                         Texture.model_version, Texture.created_at))))
+    for blend in blends:
+        if not {(blend.parents or {}).get("a"), (blend.parents or {}).get("b")} & moved:
+            continue
+        why = _blend_problem(services, blend, blend.model_version, set())
+        if why:
+            report.skipped[blend.id] = why
+            continue
+        if not dry_run:
+            _blend_again(services, services.registry.get(blend.model_version), blend)
+        report.blended.append(blend.id)
+        moved.add(blend.id)
+    return report
+
+
+def _choose_again(services, texture: Texture) -> str | None:  # noqa: ANN001
+    """The upload's code as an upload of its photo gets it today, on its own model; why not
+    (None: done). A refined upload keeps its fit: the new code is the encoder code it keeps."""
+    runtime = services.registry.get(texture.model_version)
+    with session_scope(services.sessions) as session:
+        row = session.get(Texture, texture.id)
+        if row is None:
+            return "deleted meanwhile"
+        before = (row.code, row.sampler_key, row.encoder_code, row.model_version)
+    pixels = read_image(services.storage.get_bytes(texture.exemplar_key),
+                        max_pixels=services.settings.max_image_pixels)
+    code, colour = encode_texture(runtime, pixels, texture.lighting)
+    code, colour = [float(c) for c in code], [float(c) for c in colour] or None
+    with session_scope(services.sessions) as session:
+        row = session.get(Texture, texture.id)
+        if row is None:
+            return "deleted meanwhile"
+        if (row.code, row.sampler_key, row.encoder_code, row.model_version) != before:
+            return "refined or re-encoded while its code was chosen: run the command again"
+        if row.encoder_code is not None:  # refined: the fit stays what it serves
+            row.encoder_code, row.encoder_colour = code, colour
+        else:
+            row.code, row.colour = code, colour
+            row.colour_calibration = COLOUR_CALIBRATION
+        row.code_choice, row.updated_at = choice_recipe(runtime), utcnow()
+    log.info("upload's code chosen again", extra={"texture_id": texture.id, "model_version": runtime.version})
+    return None

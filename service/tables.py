@@ -94,6 +94,10 @@ class Texture(Base):
     # The recipe both tables were made by (worker.colour_match.COLOUR_CALIBRATION); None:
     # an older one, from before it was recorded. ``texspace recolour`` updates stale rows.
     colour_calibration: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    # The recipe an upload's code was chosen by (worker.encode.CODE_CHOICE; 1 the crops' mean);
+    # None: not an upload's encoder code, or from before it was recorded (the mean). ``texspace
+    # reencode --stale-codes`` chooses stale uploads' codes again.
+    code_choice: Mapped[int | None] = mapped_column(Integer, nullable=True)
     # What the fitted sampler was built with (model.fit): {"grain": "x" | "y" | None,
     # "straightened": degrees the photo was turned (absent in rows from before),
     # "grain_stretch": 8 | 16 | None (absent in rows from before: 8 with a grain),

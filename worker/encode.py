@@ -28,6 +28,12 @@ STYLE_CROP = 128
 CHOICE_SEED, CHOICE_X, CHOICE_Y = 7, 3, 3
 # the mean moved this many standard deviations either way along the codes' main axis
 PRINCIPAL_STEP = 0.7
+# The recipe an upload's code is chosen by, kept with it (service: Texture.code_choice).
+# 1: the crops' mean code (also what a model without style statistics gets);
+# 2: of ``candidate_codes``, the one nearest the photo in style (``choose_code``).
+# Bump it whenever encode_texture chooses another code for the same photo and model:
+# ``texspace reencode --stale-codes`` then chooses the stored uploads' codes again.
+MEAN_CHOICE, CODE_CHOICE = 1, 2
 
 
 def encode_image(runtime: ModelRuntime, image: np.ndarray, *, grid: int = 3) -> np.ndarray:
@@ -80,6 +86,12 @@ def choose_code(runtime: ModelRuntime, working: np.ndarray, codes: np.ndarray) -
     return candidates[best], colours[best]
 
 
+def choice_recipe(runtime: ModelRuntime) -> int:
+    """The recipe ``encode_texture`` chooses a code by under ``runtime``: ``CODE_CHOICE`` where
+    the model has style statistics and its working photo holds a style crop, else ``MEAN_CHOICE``."""
+    return CODE_CHOICE if runtime.style_path is not None and runtime.short_side >= STYLE_CROP else MEAN_CHOICE
+
+
 def encode_texture(runtime: ModelRuntime, image: np.ndarray, lighting: str = "as-is") -> tuple[np.ndarray, np.ndarray]:
     """What a texture stores of an sRGB photo: its code (code_size,) float32 and its colour
     table for the model's sampler (worker/colour_match.py; empty if the sampler has no colour
@@ -93,7 +105,7 @@ def encode_texture(runtime: ModelRuntime, image: np.ndarray, lighting: str = "as
     else:  # crops larger than the working image: cut from the photo (evened as a whole)
         cropped = even_lighting(image) if lighting == "even" else image
     codes = crop_codes(runtime, cropped)
-    if runtime.style_path is not None and min(working.shape[:2]) >= STYLE_CROP:
+    if choice_recipe(runtime) == CODE_CHOICE:
         return choose_code(runtime, working, codes)
     code = codes.mean(axis=0).astype(np.float32)
     return code, calibrate_texture(runtime.sampler, code, working)

@@ -11,7 +11,7 @@ from sqlalchemy import select
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures
 from worker.contract import MAX_WIDTH_M
 from worker.decode import sniff_format
-from worker.encode import encode_texture
+from worker.encode import choice_recipe, encode_texture
 from worker.files import media_type, media_type_of_extension
 from worker.images import read_image
 from worker.photo import LIGHTING
@@ -70,8 +70,10 @@ def create_texture(
 
     The image is resized so its shorter side is the model's working resolution (its
     shading evened out with ``lighting=even``), then a 3 x 3 grid of 128 x 128 crops, each
-    in its eight orientations, is encoded and the codes averaged. Where fitting is available
-    (TEXSPACE_AUTO_FIT), a fit job then refines the texture in place.
+    in its eight orientations, is encoded; of their mean and a few other combinations of
+    their codes, the one whose tile is nearest the photo in VGG16 style statistics is
+    stored (worker/encode.py). Where fitting is available (TEXSPACE_AUTO_FIT), a fit job
+    then refines the texture in place.
     """
     checked_text(image.filename or "", "image filename")
     data = read_limited(image, services.settings.max_upload_bytes, "the image")
@@ -85,8 +87,8 @@ def create_texture(
     services.storage.put_bytes(key, data)
     colour = [float(c) for c in colour] or None
     texture = Texture(id=texture_id, name=(name or image.filename or "")[:NAME_LENGTH], code=[float(c) for c in code],
-                      colour=colour, colour_calibration=COLOUR_CALIBRATION, model_version=runtime.version,
-                      source="upload", exemplar_key=key,
+                      colour=colour, colour_calibration=COLOUR_CALIBRATION, code_choice=choice_recipe(runtime),
+                      model_version=runtime.version, source="upload", exemplar_key=key,
                       exemplar_media_type=media_type_of_extension(ext), lighting=lighting,
                       width=int(pixels.shape[1]), height=int(pixels.shape[0]), width_m=width_m,
                       owner_id=auth.current_owner(),

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from worker.colour_match import calibrate_texture, texture_vector
-from worker.encode import (ORIENTATIONS, candidate_codes, choice_tile, crop_codes, encode_image,
-                           encode_texture, photo_style)
+from worker.encode import (CODE_CHOICE, MEAN_CHOICE, ORIENTATIONS, candidate_codes, choice_recipe, choice_tile,
+                           crop_codes, encode_image, encode_texture, photo_style)
 from worker.errors import FeatureUnavailable
 from worker.photo import working_photo
 from worker.runtime import ModelRuntime
@@ -58,6 +58,7 @@ def test_the_upload_stores_the_code_whose_tile_is_nearest_the_photo(runtime, pho
         np.testing.assert_allclose(colour, calibrate_texture(runtime.sampler, code, working))
         assert distances[chosen] < distances[0]
         np.testing.assert_array_equal(encode_texture(runtime, photo)[0], code)
+    assert choice_recipe(runtime) == CODE_CHOICE
 
 
 def test_an_export_without_style_statistics_keeps_the_mean_code(model_dir, tmp_path, brick):
@@ -65,6 +66,7 @@ def test_an_export_without_style_statistics_keeps_the_mean_code(model_dir, tmp_p
         shutil.copy(model_dir / name, tmp_path / name)
     older = ModelRuntime(tmp_path)
     assert older.style_path is None
+    assert choice_recipe(older) == MEAN_CHOICE  # what its uploads record
     with pytest.raises(FeatureUnavailable, match="style"):
         older.style(np.zeros((1, 128, 128, 3), np.float32))
     code, _ = encode_texture(older, brick)
