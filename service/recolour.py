@@ -6,7 +6,8 @@ improves (``COLOUR_CALIBRATION`` goes up), textures made before keep their old t
 same model, same code, older colours. Recolouring computes them again, as they would be
 made today, on the textures' own models (the codes and samplers stay):
 
-- an upload: its code's table from its photo, with quantile curves; if it was refined in
+- an upload: its code's table from its photo, as an upload gets it (``worker.encode.code_colour``:
+  quantile curves, or linear ones where they draw nearer the photo); if it was refined in
   place, also the fitted sampler's table, with linear curves (the transfer the fit was
   optimised under), and the kept encoder code's table, for blends;
 - a fit's own texture: its fitted sampler's table from its own copy of the photo;
@@ -27,7 +28,8 @@ import numpy as np
 from sqlalchemy import func, or_, select
 from sqlalchemy.orm import load_only
 
-from worker.colour_match import COLOUR_CALIBRATION, blend_textures, calibrate_texture
+from worker.colour_match import COLOUR_CALIBRATION, blend_textures
+from worker.encode import code_colour
 from worker.images import read_image
 from worker.photo import working_photo
 
@@ -121,7 +123,7 @@ def _calibrate_again(services, texture_id: str) -> str | None:  # noqa: ANN001
                           runtime.short_side, row.lighting)
     encoder_colour, space = None, row.model_space()  # the code the model's own sampler draws, if any
     if space:
-        encoder_colour = _table(calibrate_texture(runtime.sampler, np.asarray(space[0], np.float32), image))
+        encoder_colour = _table(code_colour(runtime, image, np.asarray(space[0], np.float32)))
     colour = fitted_colour(services.sampler_for(row), row.code, image) if row.sampler_key else encoder_colour
     with session_scope(services.sessions) as session:
         current = session.get(Texture, texture_id)

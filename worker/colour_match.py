@@ -16,7 +16,8 @@ Statistics are taken in compressed colour, ``(rgb + FLOOR) ** (1/4)``, a log-lik
    the photo's lightness axis: fits drew speckle they were never judged by.)
 3. Per channel, a curve sampled on an even grid of ``u`` from the raw sample's smallest to
    its largest value: ``curves="quantile"``: ``photo quantile(raw CDF(u))``, so the tiles
-   have the photo's colour histogram per decorrelated channel (an upload's encoder code);
+   have the photo's colour histogram per decorrelated channel (an upload's encoder code,
+   unless linear ones draw nearer the photo: ``worker.encode.code_colour``);
    ``"linear"``: the straight line that gives the photo's mean and spread, the moment
    transfer itself (a fit, which was optimised under it: quantile curves stretched the
    flat metal of a grill fit into speckle).
@@ -53,9 +54,11 @@ CURVES = ("quantile", "linear")  # an encoder code's table, a fit's (the module 
 # 1: the symmetric whitening on the photo's axes and quantile curves for every sampler;
 # 2: the moment whitening above, quantile curves for an encoder code, linear for a fit;
 # 3: as 2 with a ridge relative to each covariance's scale (``RIDGE``), not a fixed 1e-6.
+# 4: as 3, an encoder code's curves linear where its tile lies nearer the photo's style
+#    (``worker.encode.code_colour``; models without style statistics: quantile, as 3).
 # Bump it whenever calibrate_texture makes different tables for the same inputs:
 # ``texspace recolour`` then brings the stored ones up to date.
-COLOUR_CALIBRATION = 3
+COLOUR_CALIBRATION = 4
 
 
 def knots_of(colour_size: int) -> int:

@@ -6,8 +6,10 @@ on the photo's crops, each in its eight orientations, then the choice of code, t
 The choice: the crops' mean code is one guess of several the encoder's codes offer
 (``candidate_codes``). Each candidate draws one tile; the code whose tile's VGG16 Gram
 statistics (the model's ``style.onnx``, the refinement's own loss) lie nearest the photo's is
-stored (docs/DECISIONS.md, "An upload chooses its code"). An export without style statistics
-keeps the mean.
+stored (docs/DECISIONS.md, "An upload chooses its code"). Its colour table is then chosen
+the same way: the photo's histograms (quantile curves), or the moment transfer (linear
+curves) where that tile lies nearer the photo (``code_colour``). An export without style
+statistics keeps the mean and quantile curves.
 """
 from __future__ import annotations
 
@@ -74,16 +76,50 @@ def choice_tile(runtime: ModelRuntime, vector: np.ndarray) -> np.ndarray:
                                       STYLE_CROP, pixels_per_unit=runtime.pixels_per_unit))
 
 
+def style_distances(runtime: ModelRuntime, vectors: list[np.ndarray], target: np.ndarray) -> np.ndarray:
+    """How far each texture vector's (code + colour table) ``choice_tile`` lies from the style
+    ``target`` (``photo_style``): the Gram loss over ``style.onnx``'s layers. (N,) float32."""
+    tiles = np.stack([choice_tile(runtime, vector) for vector in vectors])
+    return np.square(runtime.style(tiles) - target).sum(axis=1)
+
+
+def nearer_curves(runtime: ModelRuntime, working: np.ndarray, code: np.ndarray, target: np.ndarray,
+                  quantile: np.ndarray, distance: float) -> np.ndarray:
+    """The code's colour table: ``quantile`` (its quantile-curve table, whose tile lies at
+    ``distance`` from ``target``), or its linear-curve table where that tile lies nearer.
+    Quantile curves give the photo's histograms; where the code draws its features in other
+    proportions than the photo's, they stretch them (a bland plate's rare dark flecks into
+    dark blotches) and the moment transfer draws nearer the photo."""
+    linear = calibrate_texture(runtime.sampler, code, working, curves="linear")
+    if linear.size and style_distances(runtime, [texture_vector(code, linear)], target)[0] < distance:
+        return linear
+    return quantile
+
+
+def code_colour(runtime: ModelRuntime, working: np.ndarray, code: np.ndarray) -> np.ndarray:
+    """An encoder code's colour table for the photo ``working`` as an upload gets it (``texspace
+    recolour`` computes stored ones again with it): quantile curves, or the nearer of them and
+    linear ones where the model has style statistics (``nearer_curves``). (colour_size,) float32."""
+    quantile = calibrate_texture(runtime.sampler, code, working)
+    if choice_recipe(runtime) != CODE_CHOICE or not quantile.size:
+        return quantile
+    target = photo_style(runtime, working)
+    distance = style_distances(runtime, [texture_vector(code, quantile)], target)[0]
+    return nearer_curves(runtime, working, code, target, quantile, distance)
+
+
 def choose_code(runtime: ModelRuntime, working: np.ndarray, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Of ``candidate_codes(codes)``, the code whose tile is nearest the photo ``working`` in
-    style (the Gram loss over ``style.onnx``'s layers), and its colour table: ((k,) float32,
-    (colour_size,) float32). Ties keep the first (the mean)."""
+    """Of ``candidate_codes(codes)``, the code whose tile (with its quantile-curve table) is
+    nearest the photo ``working`` in style, and its table as ``code_colour`` chooses it:
+    ((k,) float32, (colour_size,) float32). Ties keep the first (the mean)."""
     candidates = candidate_codes(codes)
+    target = photo_style(runtime, working)
     colours = [calibrate_texture(runtime.sampler, code, working) for code in candidates]
-    tiles = np.stack([choice_tile(runtime, texture_vector(code, colour)) for code, colour in zip(candidates, colours)])
-    distances = np.square(runtime.style(tiles) - photo_style(runtime, working)).sum(axis=1)
+    distances = style_distances(runtime, [texture_vector(c, colour) for c, colour in zip(candidates, colours)], target)
     best = int(np.argmin(distances))
-    return candidates[best], colours[best]
+    if not colours[best].size:
+        return candidates[best], colours[best]
+    return candidates[best], nearer_curves(runtime, working, candidates[best], target, colours[best], distances[best])
 
 
 def choice_recipe(runtime: ModelRuntime) -> int:

@@ -22,7 +22,7 @@ from service.tables import Texture
 from tests.helpers import brick_png
 from tests.service.test_model_versions import second_model
 from worker.colour_match import COLOUR_CALIBRATION, blend_textures, calibrate_texture, identity_colour
-from worker.encode import encode_texture
+from worker.encode import code_colour, encode_texture
 from worker.images import read_image
 from worker.photo import working_photo
 from worker.runtime import SamplerSession
@@ -143,13 +143,13 @@ def test_the_api_start_names_the_command_while_tables_are_stale(world: dict, cap
 def test_a_texture_refined_meanwhile_is_skipped(world: dict, monkeypatch) -> None:
     services, b = world["services"], world["b"]
 
-    def calibrate_while_refined(sampler, code, image, curves="quantile"):  # noqa: ANN001, ANN202
+    def calibrate_while_refined(runtime, image, code):  # noqa: ANN001, ANN202
         if np.allclose(code[:8], b["code"]):  # a refinement of b lands while its table is computed
             with session_scope(services.sessions) as session:
                 session.get(Texture, b["id"]).sampler_key = f"textures/{b['id']}/refined/job-2/sampler.onnx"
-        return calibrate_texture(sampler, code, image, curves)
+        return code_colour(runtime, image, code)
 
-    monkeypatch.setattr(recolour, "calibrate_texture", calibrate_while_refined)
+    monkeypatch.setattr(recolour, "code_colour", calibrate_while_refined)
     report = recolour_textures(services)
     assert "run recolour again" in report.skipped[b["id"]]
     assert rows(services)[b["id"]].colour == world["stale"]

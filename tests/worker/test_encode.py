@@ -8,7 +8,7 @@ import pytest
 
 from worker.colour_match import calibrate_texture, texture_vector
 from worker.encode import (CODE_CHOICE, MEAN_CHOICE, ORIENTATIONS, candidate_codes, choice_recipe, choice_tile,
-                           crop_codes, encode_image, encode_texture, photo_style)
+                           code_colour, crop_codes, encode_image, encode_texture, photo_style)
 from worker.errors import FeatureUnavailable
 from worker.photo import working_photo
 from worker.runtime import ModelRuntime
@@ -33,20 +33,22 @@ def test_candidates_are_the_mean_the_median_each_position_and_the_main_axis():
 
 @pytest.fixture(scope="module")
 def photos() -> list[np.ndarray]:
-    """scikit-image's gravel and grass (grey, CC0) as (512, 512, 3) float32 sRGB."""
+    """scikit-image's gravel, grass and brick (grey, CC0) as (512, 512, 3) float32 sRGB."""
     from skimage import data
     return [np.repeat(getattr(data, name)()[:, :, None], 3, axis=2).astype(np.float32) / 255.0
-            for name in ("gravel", "grass")]
+            for name in ("gravel", "grass", "brick")]
 
 
-def style_distance(runtime, working, target, code) -> float:
-    vector = texture_vector(code, calibrate_texture(runtime.sampler, code, working))
+def style_distance(runtime, working, target, code, curves="quantile") -> float:
+    vector = texture_vector(code, calibrate_texture(runtime.sampler, code, working, curves=curves))
     return float(np.square(runtime.style(choice_tile(runtime, vector)[None]) - target).sum())
 
 
 def test_the_upload_stores_the_code_whose_tile_is_nearest_the_photo(runtime, photos):
     """Of the candidates, the stored code's tile scores the lowest Gram loss against the photo;
-    below the crops' mean code on these photos, and the same on every encode."""
+    below the crops' mean code on these photos, and the same on every encode. Its table's
+    curves are chosen the same way (gravel and grass: linear; brick: quantile)."""
+    curves = []
     for photo in photos:
         code, colour = encode_texture(runtime, photo)
         working = working_photo(photo, runtime.short_side)
@@ -55,9 +57,16 @@ def test_the_upload_stores_the_code_whose_tile_is_nearest_the_photo(runtime, pho
         distances = [style_distance(runtime, working, target, c) for c in candidates]
         chosen = int(np.argmin(distances))
         np.testing.assert_array_equal(code, candidates[chosen])
-        np.testing.assert_allclose(colour, calibrate_texture(runtime.sampler, code, working))
         assert distances[chosen] < distances[0]
-        np.testing.assert_array_equal(encode_texture(runtime, photo)[0], code)
+        # its table: the photo's histograms, or the moment transfer where that tile lies nearer
+        nearer = "linear" if style_distance(runtime, working, target, code, "linear") < distances[chosen] else "quantile"
+        np.testing.assert_allclose(colour, calibrate_texture(runtime.sampler, code, working, curves=nearer), atol=1e-6)
+        np.testing.assert_allclose(code_colour(runtime, working, code), colour, atol=1e-6)  # as recolour makes it
+        again = encode_texture(runtime, photo)
+        np.testing.assert_array_equal(again[0], code)
+        np.testing.assert_array_equal(again[1], colour)
+        curves.append(nearer)
+    assert curves == ["linear", "linear", "quantile"]
     assert choice_recipe(runtime) == CODE_CHOICE
 
 
