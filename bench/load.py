@@ -5,7 +5,9 @@ against a real ``texspace serve`` on a free loopback port.
 
 Each client loops over a weighted mix: cached tile GETs (a hot set rendered once before
 the clock starts), cold tile GETs (random far-away tiles, rendered on demand), job
-submissions (small volumes) and job polls. Deliberate back-pressure (503 / 429 with
+submissions (small volumes), job polls and, one request in a hundred, an upload (a 192 px
+photo: the encoder and the code's choice, about a second of CPU, ``TEXSPACE_UPLOAD_ENCODES``
+at a time). Deliberate back-pressure (503 / 429 with
 ``Retry-After``) is counted apart, its latency under ``<kind>_503`` (so ``tile_cold`` is
 the latency of tiles served); anything else that is not 2xx / 304, and any
 transport error, is an error. After the run, every accepted job must finish (nothing
@@ -35,7 +37,7 @@ sys.path.insert(0, str(ROOT))  # run as a script (``python bench/load.py``)
 from service.spawn import free_port, spawn, stop, wait_ready  # noqa: E402
 
 RESULTS = ROOT / "bench" / "out" / "results.json"
-MIX = (("tile_cached", 0.55), ("tile_cold", 0.25), ("job_submit", 0.08), ("job_poll", 0.12))
+MIX = (("tile_cached", 0.54), ("tile_cold", 0.25), ("job_submit", 0.08), ("job_poll", 0.12), ("upload", 0.01))
 HOT_TILES = 16
 BACK_PRESSURE = {429, 503}
 
@@ -119,6 +121,8 @@ async def client_loop(i: int, http: httpx.AsyncClient, setup: dict, stop_at: flo
             texture = rng.choice(setup["textures"])
             request = ("POST", f"/v1/textures/{texture}/volumes",
                        {"json": {"resolution": 8, "seed": rng.randint(0, 10**6), "format": "npy"}})
+        elif kind == "upload":
+            request = ("POST", "/v1/textures", {"files": {"image": ("load.png", setup["photo"], "image/png")}})
         else:
             if not rec.accepted_jobs:
                 continue
@@ -148,7 +152,7 @@ async def run_load(base: str, clients: int, seconds: float) -> tuple[Recorder, f
         hot = [f"/v1/textures/{textures[k % 2]}/tiles/6/{k}/{-k}.png" for k in range(HOT_TILES)]
         for url in hot:  # rendered once: from here on these are cache hits
             (await http.get(url)).raise_for_status()
-        setup = {"textures": textures, "hot": hot}
+        setup = {"textures": textures, "hot": hot, "photo": exemplar_png(2)}
         rec = Recorder()
         started = time.monotonic()
         await asyncio.gather(*(client_loop(i, http, setup, started + seconds, rec) for i in range(clients)))

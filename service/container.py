@@ -42,6 +42,7 @@ class Services:
     run_fit_job: object = None
     metrics: Metrics = field(default_factory=Metrics)
     tile_cache: TileCache | None = None
+    upload_slots: object = None  # limits.CpuSlots: uploads decoded and encoded at once (upload_encodes)
     worker_id: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
     # set when this worker process begins to stop: it claims nothing from then on
     stopping: threading.Event = field(default_factory=threading.Event)

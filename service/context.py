@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from . import db
 from .container import Services
+from .limits import upload_slots
 from .queue import make_huey
 from .runner import register_tasks
 from .settings import Settings
@@ -26,7 +27,7 @@ def build_services(settings: Settings, *, immediate: bool = False, migrate: bool
     engine = db.make_engine(url)
     services = Services(settings=settings, engine=engine, sessions=db.make_sessionmaker(engine),
                         storage=make_storage(settings), huey=None,
-                        tile_cache=TileCache(settings.tile_cache_bytes))
+                        tile_cache=TileCache(settings.tile_cache_bytes), upload_slots=upload_slots(settings))
     services.huey = make_huey(settings, immediate=immediate)
     services.fit_huey = make_huey(settings, immediate=immediate, lane="fit")
     services.run_job = register_tasks(services.huey, services)

@@ -52,11 +52,13 @@ MESH_PARSES_WAITING = 4
 MESH_PARSE_WAIT_SECONDS = 10.0
 
 
-class ParseSlots:
-    """At most ``slots`` holders at once, at most ``max_waiting`` waiting ``wait_seconds``."""
+class CpuSlots:
+    """At most ``slots`` holders at once, at most ``max_waiting`` waiting ``wait_seconds``;
+    beyond, ``Busy`` (503 + Retry-After) saying what ``work`` is in progress ("meshes are
+    being checked")."""
 
-    def __init__(self, slots: int, max_waiting: int, wait_seconds: float) -> None:
-        self.slots, self.max_waiting, self.wait_seconds = slots, max_waiting, wait_seconds
+    def __init__(self, slots: int, max_waiting: int, wait_seconds: float, work: str) -> None:
+        self.slots, self.max_waiting, self.wait_seconds, self.work = slots, max_waiting, wait_seconds, work
         self._cond = threading.Condition()
         self._held = self._waiting = 0
 
@@ -65,12 +67,12 @@ class ParseSlots:
         with self._cond:
             if self._held >= self.slots:
                 if self._waiting >= self.max_waiting:
-                    raise Busy(f"{self._held} meshes are being checked and {self._waiting} wait; retry shortly",
-                               retry_after=2)
+                    raise Busy(f"{self._held} {self.work} and {self._waiting} wait; retry shortly", retry_after=2)
                 self._waiting += 1
                 try:
                     if not self._cond.wait_for(lambda: self._held < self.slots, timeout=self.wait_seconds):
-                        raise Busy(f"no room to check the mesh within {self.wait_seconds:g} s", retry_after=2)
+                        raise Busy(f"{self._held} {self.work}: no room within {self.wait_seconds:g} s; retry "
+                                   "shortly", retry_after=2)
                 finally:
                     self._waiting -= 1
             self._held += 1
@@ -82,7 +84,20 @@ class ParseSlots:
                 self._cond.notify()
 
 
-MESH_PARSE_SLOTS = ParseSlots(MESH_PARSES, MESH_PARSES_WAITING, MESH_PARSE_WAIT_SECONDS)
+MESH_PARSE_SLOTS = CpuSlots(MESH_PARSES, MESH_PARSES_WAITING, MESH_PARSE_WAIT_SECONDS, "meshes are being checked")
+
+#: uploads that may wait for an encode slot (``Settings.upload_encodes``), per slot, and for
+#: how long: a client uploading a batch at once waits its turn rather than being refused
+UPLOADS_WAITING_PER_SLOT = 4
+UPLOAD_WAIT_SECONDS = 30.0
+
+
+def upload_slots(settings: Settings) -> CpuSlots:
+    """The bound on uploads one API process decodes and encodes at once: each is about a
+    second of CPU at 1024^2 (the encoder, 13 candidate tiles and their style statistics) and
+    up to ~1 GB at the pixel limit, so a burst of them would starve tiles and memory."""
+    return CpuSlots(settings.upload_encodes, UPLOADS_WAITING_PER_SLOT * settings.upload_encodes,
+                    UPLOAD_WAIT_SECONDS, "uploads are being encoded")
 
 
 def check_mesh(settings: Settings, data: bytes, filename: str) -> Mesh:

@@ -144,6 +144,9 @@ class Settings(BaseSettings):
     tile_linear_cache_bytes: int = Field(64 * 2**20, ge=0, description="linear-light copies of recent tiles "
                                          "at and one zoom out from native, from which zoomed-out parents are "
                                          "built without sampling (0: off)")
+    upload_encodes: int = Field(2, ge=1, description="uploads one API process decodes and encodes at once "
+                                "(about a second of CPU each at 1024^2); 4 per slot may wait up to 30 s, then "
+                                "503 busy + Retry-After")
     tile_workers: int = Field(2, ge=1, description="cold tiles one API process renders at once (each over "
                               "the sampler's threads); the others wait in order")
     tile_queue_depth: int = Field(64, ge=0, description="cold tiles that may wait for a render, in units "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import time
 from pathlib import Path
 
 import pytest
@@ -104,7 +105,7 @@ def test_mesh_parses_are_bounded_and_header_checks_do_not_wait(client, module_se
                                                                 monkeypatch) -> None:
     """With every parse slot taken and no room to wait, a bake is 503 busy + Retry-After and
     stores nothing; a GLB its header refuses is still a 413 at once."""
-    slots = limits.ParseSlots(1, 0, 0.1)
+    slots = limits.CpuSlots(1, 0, 0.1, "meshes are being checked")
     monkeypatch.setattr(limits, "MESH_PARSE_SLOTS", slots)
     cube = (BAD / "cube.obj").read_bytes()
     before = stored_files(module_services), row_counts(module_services)
@@ -117,6 +118,30 @@ def test_mesh_parses_are_bounded_and_header_checks_do_not_wait(client, module_se
     assert (stored_files(module_services), row_counts(module_services)) == before
     assert client.post(texture["links"]["bakes"], files={"mesh": ("cube.obj", cube)},
                        data={"resolution": "16"}).status_code == 202
+
+
+def test_uploads_wait_for_an_encode_slot_then_are_busy(client, module_services, monkeypatch) -> None:
+    """Uploads are encoded ``upload_encodes`` at a time: one that finds every slot held waits
+    its turn and is stored once a slot frees; with no room to wait it is 503 busy +
+    Retry-After, naming the work, and stores nothing."""
+    slots = limits.CpuSlots(1, 1, 30.0, "uploads are being encoded")
+    monkeypatch.setattr(module_services, "upload_slots", slots)
+    photo = {"image": ("brick.png", brick_png(), "image/png")}
+    before = stored_files(module_services), row_counts(module_services)
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        with slots.slot():                               # another upload's encode
+            waiting = pool.submit(client.post, "/v1/textures", files=photo)
+            while slots._waiting == 0:                   # it waits for the slot (not refused)
+                assert not waiting.done()
+                time.sleep(0.01)
+            busy = client.post("/v1/textures", files=photo)  # no room to wait: refused at once
+        assert waiting.result(timeout=60).status_code == 201
+    assert busy.status_code == 503 and busy.headers["content-type"] == PROBLEM, busy.text
+    assert busy.json()["type"].endswith(":busy") and int(busy.headers["retry-after"]) >= 1
+    assert "uploads are being encoded" in busy.json()["detail"]
+    assert row_counts(module_services)[0] == before[1][0] + 1  # the one that waited, only
+    monkeypatch.setattr(module_services, "upload_slots", limits.CpuSlots(1, 0, 0.05, "uploads are being encoded"))
+    assert client.post("/v1/textures", files=photo).status_code == 201  # a free slot: no wait
 
 
 def test_queue_back_pressure(tmp_path: Path) -> None:
