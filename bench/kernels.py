@@ -206,9 +206,13 @@ def encode_upload(model_dir: Path, side: int = 1024, repeats: int = 9, log=print
     """What an upload's encode costs (``worker.encode.encode_texture``: the working photo, its
     crops in eight orientations, the encoder, the choice of code by style, the colour table)
     for a ``side``^2 photo, against the same without the choice (the crops' mean code and its
-    colour table) and the encoder alone on the same 72 crops and on the 9 as they lie (the
-    upload's crops before their orientations), each in the same run, default threads. Returns
-    medians in seconds."""
+    colour table), the same choice of code with quantile curves always (no choice of curves),
+    and the encoder alone on the same 72 crops and on the 9 as they lie (the upload's crops
+    before their orientations), each in the same run, default threads. Returns medians in
+    seconds."""
+    from unittest.mock import patch
+
+    from worker import encode
     from worker.colour_match import calibrate_texture
     from worker.encode import encode_image, encode_texture
     from worker.photo import encoder_crops, working_photo
@@ -225,8 +229,14 @@ def encode_upload(model_dir: Path, side: int = 1024, repeats: int = 9, log=print
         working = working_photo(photo, runtime.short_side)
         return calibrate_texture(runtime.sampler, encode_image(runtime, working), working)
 
-    times: dict[str, list[float]] = {"upload": [], "mean_code": [], "crops_72": [], "crops_9": []}
+    def quantile_table():  # nearer_curves(runtime, working, code, target, quantile, distance): the quantile one
+        with patch.object(encode, "nearer_curves", lambda *args: args[4]):
+            return encode_texture(runtime, photo)
+
+    times: dict[str, list[float]] = {"upload": [], "mean_code": [], "quantile_table": [], "crops_72": [],
+                                     "crops_9": []}
     calls = {"upload": lambda: encode_texture(runtime, photo), "mean_code": mean_code,
+             "quantile_table": quantile_table,
              "crops_72": lambda: runtime.encode(crops), "crops_9": lambda: runtime.encode(as_they_lie)}
     for call in calls.values():
         call()  # warm-up
@@ -237,7 +247,8 @@ def encode_upload(model_dir: Path, side: int = 1024, repeats: int = 9, log=print
             times[name].append(time.perf_counter() - t)
     result = {name: median(values) for name, values in times.items()}
     log(f"  encode a {side}^2 upload (code chosen by style + colour table): median {result['upload'] * 1000:.0f} ms; "
-        f"the crops' mean code instead {result['mean_code'] * 1000:.0f} ms; encoder on its {len(crops)} crops "
+        f"the crops' mean code instead {result['mean_code'] * 1000:.0f} ms; quantile curves always "
+        f"{result['quantile_table'] * 1000:.0f} ms; encoder on its {len(crops)} crops "
         f"{result['crops_72'] * 1000:.0f} ms, on the {len(as_they_lie)} as they lie {result['crops_9'] * 1000:.0f} ms")
     return result
 

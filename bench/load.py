@@ -38,6 +38,7 @@ from service.spawn import free_port, spawn, stop, wait_ready  # noqa: E402
 
 RESULTS = ROOT / "bench" / "out" / "results.json"
 MIX = (("tile_cached", 0.54), ("tile_cold", 0.25), ("job_submit", 0.08), ("job_poll", 0.12), ("upload", 0.01))
+UPLOAD_SHARE = dict(MIX)["upload"]  # --upload-share 0: the same mix without uploads (their cost to the rest)
 HOT_TILES = 16
 BACK_PRESSURE = {429, 503}
 
@@ -106,9 +107,17 @@ class Recorder:
             self.errors.append(f"{kind}: HTTP {res.status_code} {res.text[:200]}")
 
 
+def mix(upload_share: float) -> tuple[tuple[str, ...], tuple[float, ...]]:
+    """The kinds and weights of ``MIX`` with uploads taking ``upload_share`` of the requests
+    (the tile_cached share gives or takes the difference)."""
+    weights = dict(MIX) | {"upload": upload_share}
+    weights["tile_cached"] += UPLOAD_SHARE - upload_share
+    return tuple(weights), tuple(weights.values())
+
+
 async def client_loop(i: int, http: httpx.AsyncClient, setup: dict, stop_at: float, rec: Recorder) -> None:
     rng = random.Random(1000 + i)
-    kinds, weights = zip(*MIX)
+    kinds, weights = setup["mix"]
     while time.monotonic() < stop_at:
         kind = rng.choices(kinds, weights)[0]
         if kind == "tile_cached":
@@ -141,7 +150,8 @@ async def client_loop(i: int, http: httpx.AsyncClient, setup: dict, stop_at: flo
             rec.accepted_jobs.append(res.json()["id"])
 
 
-async def run_load(base: str, clients: int, seconds: float) -> tuple[Recorder, float]:
+async def run_load(base: str, clients: int, seconds: float, upload_share: float = UPLOAD_SHARE
+                   ) -> tuple[Recorder, float]:
     limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
     async with httpx.AsyncClient(base_url=base, timeout=120.0, limits=limits) as http:
         textures = []
@@ -152,7 +162,7 @@ async def run_load(base: str, clients: int, seconds: float) -> tuple[Recorder, f
         hot = [f"/v1/textures/{textures[k % 2]}/tiles/6/{k}/{-k}.png" for k in range(HOT_TILES)]
         for url in hot:  # rendered once: from here on these are cache hits
             (await http.get(url)).raise_for_status()
-        setup = {"textures": textures, "hot": hot, "photo": exemplar_png(2)}
+        setup = {"textures": textures, "hot": hot, "photo": exemplar_png(2), "mix": mix(upload_share)}
         rec = Recorder()
         started = time.monotonic()
         await asyncio.gather(*(client_loop(i, http, setup, started + seconds, rec) for i in range(clients)))
@@ -222,7 +232,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="a setting for the server started here (repeatable); the results key gets "
                              "the values appended")
     parser.add_argument("--max-queued-jobs", type=int, default=32, help="server back-pressure threshold")
+    parser.add_argument("--upload-share", type=float, default=UPLOAD_SHARE,
+                        help=f"share of requests that upload a photo (default {UPLOAD_SHARE:g}; 0: none, the "
+                             "reference for what uploads cost the tiles); the results key gets it appended")
     args = parser.parse_args(argv)
+    if not 0 <= args.upload_share <= dict(MIX)["tile_cached"] + UPLOAD_SHARE:
+        parser.error("upload share must be 0..0.55")
     if not 1 <= args.clients <= 256 or not 0 < args.seconds <= 600:
         parser.error("clients must be 1..256 and seconds 0..600 (bounded)")
     if args.base_url and not args.base_url.startswith(("http://127.0.0.1", "http://localhost", "http://[::1]")):
@@ -230,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def measure(base: str) -> dict:
         print(f"load: {args.clients} clients for {args.seconds:g} s against {base}", flush=True)
-        rec, elapsed = asyncio.run(run_load(base, args.clients, args.seconds))
+        rec, elapsed = asyncio.run(run_load(base, args.clients, args.seconds, args.upload_share))
         job_states = wait_jobs(base, rec.accepted_jobs, timeout=120)
         return summarise(rec, elapsed, args.clients, args.seconds, job_states)
 
@@ -242,8 +257,9 @@ def main(argv: list[str] | None = None) -> int:
     else:
         with serve({"TEXSPACE_MAX_QUEUED_JOBS": str(args.max_queued_jobs)} | extra) as base:
             summary = measure(base)
-    summary["settings"] = extra
-    key = f"load_{args.clients}_clients" + "".join(f"_{v}" for v in extra.values())
+    summary["settings"], summary["upload_share"] = extra, args.upload_share
+    key = (f"load_{args.clients}_clients" + "".join(f"_{v}" for v in extra.values())
+           + (f"_uploads_{args.upload_share:g}" if args.upload_share != UPLOAD_SHARE else ""))
     merge_into(args.out, key, summary)
     print(f"{'kind':<12} {'requests':>9} {'p50 ms':>9} {'p95 ms':>9}")
     for kind, row in summary["by_kind"].items():

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import shutil
 import threading
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -55,12 +56,22 @@ MESH_PARSE_WAIT_SECONDS = 10.0
 class CpuSlots:
     """At most ``slots`` holders at once, at most ``max_waiting`` waiting ``wait_seconds``;
     beyond, ``Busy`` (503 + Retry-After) saying what ``work`` is in progress ("meshes are
-    being checked")."""
+    being checked"). One that would wait longer than ``wait_seconds`` by the holders' recent
+    pace (a moving average of how long each held its slot) is refused at once instead of
+    after waiting in vain: under load an encode takes several times its idle time."""
+
+    PACE_WEIGHT = 0.3  # of the latest holder's time in the moving average
 
     def __init__(self, slots: int, max_waiting: int, wait_seconds: float, work: str) -> None:
         self.slots, self.max_waiting, self.wait_seconds, self.work = slots, max_waiting, wait_seconds, work
         self._cond = threading.Condition()
         self._held = self._waiting = 0
+        self.pace: float | None = None  # seconds a holder keeps its slot, moving average
+
+    def expected_wait(self) -> float:
+        """Seconds the next arrival would wait by the recent pace: its turn comes after
+        ``waiting + 1`` slots free, ``slots`` at a time (0 before any holder has finished)."""
+        return 0.0 if self.pace is None else math.ceil((self._waiting + 1) / self.slots) * self.pace
 
     @contextmanager
     def slot(self):  # noqa: ANN201
@@ -68,6 +79,10 @@ class CpuSlots:
             if self._held >= self.slots:
                 if self._waiting >= self.max_waiting:
                     raise Busy(f"{self._held} {self.work} and {self._waiting} wait; retry shortly", retry_after=2)
+                if self.expected_wait() > self.wait_seconds:
+                    raise Busy(f"{self._held} {self.work} and {self._waiting} wait, about {self.expected_wait():.0f} s "
+                               f"at the recent pace, past the {self.wait_seconds:g} s an arrival may wait; retry "
+                               "shortly", retry_after=math.ceil(self.pace))
                 self._waiting += 1
                 try:
                     if not self._cond.wait_for(lambda: self._held < self.slots, timeout=self.wait_seconds):
@@ -76,11 +91,15 @@ class CpuSlots:
                 finally:
                     self._waiting -= 1
             self._held += 1
+        started = time.monotonic()
         try:
             yield
         finally:
+            held_for = time.monotonic() - started
             with self._cond:
                 self._held -= 1
+                self.pace = held_for if self.pace is None else (
+                    (1 - self.PACE_WEIGHT) * self.pace + self.PACE_WEIGHT * held_for)
                 self._cond.notify()
 
 

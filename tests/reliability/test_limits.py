@@ -14,6 +14,7 @@ from service import limits
 from service.context import build_services
 from service.main import create_app
 from tests.helpers import brick_png, chained_glb
+from worker.errors import Busy
 from tests.reliability.helpers import BAD, PROBLEM, make_settings, row_counts, stored_files
 
 CHUNK = 64 * 1024
@@ -142,6 +143,26 @@ def test_uploads_wait_for_an_encode_slot_then_are_busy(client, module_services, 
     assert row_counts(module_services)[0] == before[1][0] + 1  # the one that waited, only
     monkeypatch.setattr(module_services, "upload_slots", limits.CpuSlots(1, 0, 0.05, "uploads are being encoded"))
     assert client.post("/v1/textures", files=photo).status_code == 201  # a free slot: no wait
+
+
+def test_slots_refuse_at_once_an_arrival_that_would_wait_past_the_bound() -> None:
+    """The slots keep the holders' pace; one arriving where that pace says it would wait past
+    the bound is refused at once (503 busy, Retry-After about one holder's time), not after
+    waiting in vain."""
+    slots = limits.CpuSlots(1, 8, 1.0, "things are done")
+    assert slots.expected_wait() == 0.0  # no pace yet: an arrival waits
+    with slots.slot():
+        time.sleep(0.2)
+    assert 0.15 < slots.pace < 1.0
+    with slots.slot():                     # held
+        slots.pace = 2.0                   # holders grew slow (a busy machine)
+        started = time.monotonic()
+        with pytest.raises(Busy, match="about 2 s at the recent pace") as refused:
+            with slots.slot():
+                pass
+        assert time.monotonic() - started < 0.5 and refused.value.retry_after == 2
+        slots.pace = 0.3                   # fast again: this one would wait its turn
+        assert slots.expected_wait() == pytest.approx(0.3)
 
 
 def test_queue_back_pressure(tmp_path: Path) -> None:

@@ -28,3 +28,12 @@ def test_load_benchmark_short_run(tmp_path: Path) -> None:
     assert load["p95_ms"] >= load["p50_ms"] > 0
     assert set(load["by_kind"]) >= {"tile_cached", "tile_cold"}
     assert load["jobs_final_states"].get("succeeded", 0) == load["jobs_accepted"]
+
+
+def test_the_mix_moves_the_upload_share_to_cached_tiles() -> None:
+    from bench.load import MIX, mix
+    for share in (0.0, 0.05):
+        weights = dict(zip(*mix(share)))
+        assert weights["upload"] == share and sum(weights.values()) == pytest.approx(1.0)
+        assert {k: v for k, v in weights.items() if k not in ("upload", "tile_cached")} == {
+            k: v for k, v in MIX if k not in ("upload", "tile_cached")}
