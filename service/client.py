@@ -13,7 +13,10 @@ notebook that talks to a running server pays for no numpy, ONNX or FastAPI impor
         path = ts.download(job, "out/")                 # out/brick_volume_64px_seed0.exr
 
 Every error answer (RFC 9457 problem+json) raises :class:`ApiError`; a job that ends
-failed or canceled raises :class:`JobFailed` from :meth:`Client.wait`.
+failed or canceled raises :class:`JobFailed` from :meth:`Client.wait`. A busy server's
+answer (429 or 503 with ``Retry-After``: the request was refused before anything was
+stored, uploads waiting their turn to be encoded, a full queue, a cold tile's render
+queue) is retried after the wait it names, ``retries`` times (3 by default).
 """
 from __future__ import annotations
 
@@ -74,6 +77,15 @@ class JobFailed(Exception):
         super().__init__(f"job {job['id']} {job['state']}: {error.get('detail', '')}".rstrip(": "))
 
 
+def _retry_after(res: httpx.Response) -> float | None:
+    """Seconds to wait before asking again, for a busy answer that names them (the
+    delay-seconds form of Retry-After, at most ``MAX_RETRY_WAIT``); None: do not ask again."""
+    value = res.headers.get("retry-after", "")
+    if res.status_code not in BUSY_STATUSES or not value.strip().isdigit():
+        return None
+    return min(float(value), MAX_RETRY_WAIT)
+
+
 def _job_id(job: Job | str) -> str:
     """A job's id as one URL path segment (``_segment``)."""
     return _segment(job if isinstance(job, str) else job["id"])
@@ -107,15 +119,25 @@ def _segment(value: str) -> str:
     return quote(str(value), safe="")
 
 
+#: answers that say "not now": the server refused before doing or storing anything, and
+#: names in Retry-After when to ask again
+BUSY_STATUSES = (429, 503)
+#: the longest wait between two tries the client accepts from a Retry-After (seconds)
+MAX_RETRY_WAIT = 30.0
+
+
 class Client:
     """One connection pool to one texspace server. ``transport`` lets tests pass an
-    ``httpx.ASGITransport`` or a mock; ``timeout`` is per request (seconds)."""
+    ``httpx.ASGITransport`` or a mock; ``timeout`` is per request (seconds); ``retries``:
+    how many times a busy answer (``BUSY_STATUSES`` with ``Retry-After``) is asked again
+    after the wait it names (at most ``MAX_RETRY_WAIT``), before it raises."""
 
     def __init__(self, base_url: str = "http://127.0.0.1:8000", *, api_key: str | None = None,
-                 timeout: float = 60.0, transport: httpx.BaseTransport | None = None) -> None:
+                 timeout: float = 60.0, transport: httpx.BaseTransport | None = None, retries: int = 3) -> None:
         headers = {"X-API-Key": api_key} if api_key else {}
         self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout,
                                  transport=transport)
+        self.retries = retries
         self._limits: dict[str, Any] | None = None
 
     def close(self) -> None:
@@ -128,7 +150,14 @@ class Client:
         self.close()
 
     def _call(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
-        res = self.http.request(method, url, **kwargs)
+        for _ in range(self.retries):
+            res = self.http.request(method, url, **kwargs)
+            wait = _retry_after(res)
+            if wait is None:
+                break
+            time.sleep(wait)
+        else:
+            res = self.http.request(method, url, **kwargs)
         if res.status_code >= 400:
             self._raise(res)
         return res

@@ -75,6 +75,45 @@ def test_errors_carry_the_problem_document() -> None:
     assert info.value.status == 404 and info.value.problem == problem
 
 
+BUSY = {"type": "urn:texspace:problem:busy", "title": "The service is busy; retry later", "status": 503,
+        "detail": "2 uploads are being encoded and 8 wait; retry shortly"}
+
+
+def test_a_busy_answer_is_asked_again_after_its_retry_after(monkeypatch) -> None:
+    """503 / 429 with Retry-After: the same request again (the photo's bytes too) after the
+    named wait, capped; up to ``retries`` times, then the problem is raised. Other errors,
+    and a 503 without Retry-After (nothing to wait for), raise at once."""
+    slept: list[float] = []
+    monkeypatch.setattr("service.client.time.sleep", slept.append)
+    answers: list[httpx.Response] = []
+    bodies: list[bytes] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        bodies.append(request.read())
+        return answers.pop(0)
+
+    busy = [httpx.Response(503, json=BUSY, headers={"retry-after": "2"}),
+            httpx.Response(429, json={**BUSY, "status": 429}, headers={"retry-after": "600"})]
+    answers[:] = busy + [httpx.Response(201, json={"id": "t1"})]
+    with client_for(handler) as ts:
+        assert ts.upload(b"photo bytes", filename="p.png")["id"] == "t1"
+    assert slept == [2.0, 30.0] and len(bodies) == 3 and all(b"photo bytes" in body for body in bodies)
+
+    slept.clear()
+    answers[:] = [httpx.Response(503, json=BUSY, headers={"retry-after": "1"}) for _ in range(3)]
+    with Client("http://texspace.test", transport=httpx.MockTransport(handler), retries=2) as ts, \
+            pytest.raises(ApiError, match="being encoded") as info:
+        ts.texture("x")
+    assert info.value.status == 503 and slept == [1.0, 1.0] and answers == []
+
+    for status, headers in ((503, {}), (422, {"retry-after": "1"})):
+        slept.clear()
+        answers[:] = [httpx.Response(status, json={**BUSY, "status": status}, headers=headers)]
+        with client_for(handler) as ts, pytest.raises(ApiError):
+            ts.texture("x")
+        assert slept == [] and answers == []
+
+
 def test_download_keeps_the_servers_file_name(tmp_path: Path) -> None:
     def handler(request: httpx.Request) -> httpx.Response:
         assert request.url.path == "/v1/jobs/j1/result"
