@@ -560,7 +560,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the model to move them to (default: TEXSPACE_DEFAULT_MODEL_VERSION, else the newest)")
     p.add_argument("--stale-codes", action="store_true",
                    help="instead: encode again, on their own models, the uploads whose code was chosen by an older "
-                        "recipe (after an upgrade that says so); refined uploads keep their fits")
+                        "recipe (after an upgrade that says so); refined uploads keep their fits (default: move "
+                        "textures off models not loaded)")
     p.add_argument("--dry-run", action="store_true", help="report what would move; change nothing (default: move them)")
     p = proc("recolour", cmd_recolour, "compute colour tables made by an older recipe again, from the textures' "
                                        "photos (after an upgrade that says so)")

@@ -73,15 +73,18 @@ def test_fit_budget_means_each_run_over_its_seeds_against_the_reference():
 
 def test_the_upload_encode_is_timed_beside_its_encoder_alone():
     """``--only encode``'s upload row: encode_texture in process, against the same with the
-    crops' mean code (no choice) and the encoder on the same 72 crops and on the 9 as they
-    lie, timed in turns in the same run."""
+    crops' mean code (no choice), with quantile curves always (no choice of curves) and the
+    encoder on the same 72 crops and on the 9 as they lie, timed in turns in the same run."""
     from bench.common import SHIPPED_MODEL
     from bench.kernels import encode_upload
 
     lines = []
     times = encode_upload(SHIPPED_MODEL, side=256, repeats=1, log=lines.append)
-    assert set(times) == {"upload", "mean_code", "crops_72", "crops_9"} and all(t > 0 for t in times.values())
+    assert set(times) == {"upload", "mean_code", "quantile_table", "crops_72", "crops_9"}
+    assert all(t > 0 for t in times.values())
     assert "mean code instead" in lines[0] and "its 72 crops" in lines[0] and "the 9 as they lie" in lines[0]
+    assert "quantile curves always" in lines[0]
     _, rows = verdicts({"encode_upload_1024_s": times["upload"], "encode_upload_mean_code_s": times["mean_code"],
+                        "encode_upload_quantile_table_s": times["quantile_table"],
                         "encode_upload_crops_72_s": times["crops_72"], "encode_upload_crops_9_s": times["crops_9"]})
     assert rows[0][0].startswith("encode a 1024^2 upload") and rows[0][3] == "-"
