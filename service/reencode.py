@@ -105,14 +105,12 @@ def _encode_again(services, runtime, texture: Texture, refine: dict | None) -> b
     """The texture's code and colour table from its photo in ``runtime``'s space; what it
     had fitted in the old space is dropped, and a refinement queued where they run. False:
     the texture was deleted meanwhile."""
-    pixels = read_image(services.storage.get_bytes(texture.exemplar_key),
-                        max_pixels=services.settings.max_image_pixels)
-    code, colour = encode_texture(runtime, pixels, texture.lighting)
+    code, colour = _encoded_photo(services, runtime, texture)
     with session_scope(services.sessions) as session:
         row = session.get(Texture, texture.id)
         if row is None:
             return False
-        row.code, row.colour = [float(c) for c in code], [float(c) for c in colour] or None
+        row.code, row.colour = code, colour
         row.colour_calibration, row.code_choice = COLOUR_CALIBRATION, choice_recipe(runtime)
         row.encoder_code = row.encoder_colour = row.structure = row.sampler_key = None
         row.sampler_interim = False
@@ -130,6 +128,15 @@ def _encode_again(services, runtime, texture: Texture, refine: dict | None) -> b
     if refine:
         jobs.queue_refinement(services, row, refine)
     return True
+
+
+def _encoded_photo(services, runtime, texture: Texture) -> tuple[list[float], list[float] | None]:  # noqa: ANN001
+    """The texture's stored photo encoded on ``runtime`` as an upload of it is today (its
+    lighting as uploaded): code and colour table as a row stores them (None: no table)."""
+    pixels = read_image(services.storage.get_bytes(texture.exemplar_key),
+                        max_pixels=services.settings.max_image_pixels)
+    code, colour = encode_texture(runtime, pixels, texture.lighting)
+    return [float(c) for c in code], [float(c) for c in colour] or None
 
 
 def _blend_problem(services, texture: Texture, version: str, moved: set[str]) -> str | None:  # noqa: ANN001
@@ -248,10 +255,7 @@ def _choose_again(services, texture: Texture) -> str | None:  # noqa: ANN001
         if row is None:
             return "deleted meanwhile"
         before = (row.code, row.sampler_key, row.encoder_code, row.model_version)
-    pixels = read_image(services.storage.get_bytes(texture.exemplar_key),
-                        max_pixels=services.settings.max_image_pixels)
-    code, colour = encode_texture(runtime, pixels, texture.lighting)
-    code, colour = [float(c) for c in code], [float(c) for c in colour] or None
+    code, colour = _encoded_photo(services, runtime, texture)
     with session_scope(services.sessions) as session:
         row = session.get(Texture, texture.id)
         if row is None:

@@ -18,6 +18,7 @@ from service.reencode import choose_codes_again, stale_choice_textures, warn_if_
 from service.settings import Settings
 from service.tables import Texture
 from tests.helpers import brick_png
+from tests.service.test_recolour import rows
 from worker.colour_match import blend_textures
 from worker.encode import CODE_CHOICE, encode_texture
 from worker.images import read_image
@@ -54,13 +55,6 @@ def world(tmp_path: Path, database: dict) -> Iterator[dict]:
     yield {"services": services, "a": a, "b": b, "current": current, "blend": blend, "fitted": fitted,
            "refined": refined}
     services.engine.dispose()
-
-
-def rows(services) -> dict[str, Texture]:  # noqa: ANN001
-    with session_scope(services.sessions) as session:
-        found = {t.id: t for t in session.query(Texture)}
-        session.expunge_all()
-    return found
 
 
 def test_stale_uploads_get_todays_code_and_keep_their_fits(world: dict, caplog) -> None:
